@@ -1,0 +1,61 @@
+"""One exception tree for everything cosim raises on purpose.
+
+The CLI maps :class:`InputError` (and children) to exit status 2 and every other
+:class:`CosimError` to exit status 1.
+"""
+
+from __future__ import annotations
+
+
+class CosimError(Exception):
+    """Base of every error cosim raises deliberately."""
+
+
+class InputError(CosimError):
+    """The user gave something unusable (file, flag, value). Exit status 2."""
+
+
+class ScenarioError(InputError):
+    """A scenario file or override is invalid.
+
+    ``path`` is the dotted key path (``agents.drones.0.strategy``), ``line`` the 1-based YAML
+    line when known, ``source`` the file it came from.
+    """
+
+    def __init__(self, message: str, *, path: str = "", line: int | None = None, source: str = ""):
+        self.path = path
+        self.line = line
+        self.source = source
+        self.detail = message
+        where = source or "scenario"
+        if line is not None:
+            where += f":{line}"
+        key = f" {path}:" if path else ""
+        super().__init__(f"{where}:{key} {message}")
+
+
+class WorkerError(CosimError):
+    """A simulation worker failed, died, or replied with an error."""
+
+    def __init__(self, worker: str, message: str, *, tick: int | None = None):
+        self.worker = worker
+        self.tick = tick
+        at = f" at tick {tick}" if tick is not None else ""
+        super().__init__(f"{worker} worker{at}: {message}")
+
+
+class SyncTimeout(WorkerError):
+    """A worker did not answer a lockstep query in time."""
+
+
+class CollisionError(CosimError):
+    """A drone hit the static world or the ground."""
+
+    def __init__(self, agent_id: str, tick: int, what: str):
+        self.agent_id = agent_id
+        self.tick = tick
+        super().__init__(f"{agent_id} collided with {what} at tick {tick}")
+
+
+class FormatError(CosimError):
+    """An episode file does not follow docs/episode_format.md."""

@@ -1,0 +1,315 @@
+"""Load a scenario: YAML with line marks, ``extends:`` overlays and ``--set`` overrides.
+
+The result is one frozen :class:`~cosim.scenario.model.Scenario`. Every problem becomes a
+:class:`~cosim.errors.ScenarioError` naming the dotted key path and the file and line it came from.
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ValidationError
+
+from cosim.errors import ScenarioError
+from cosim.scenario.model import RuleError, Scenario
+
+Key = tuple[str | int, ...]
+
+#: Where shipped scenarios live (the repository's scenarios/ folder or the installed copy).
+SCENARIO_DIRS = (Path(__file__).resolve().parents[2] / "scenarios", Path(__file__).resolve().parents[1] / "data" / "scenarios")
+
+
+@dataclass
+class _Doc:
+    """Plain data plus, for every key path, the (source, line) it was written at."""
+
+    data: dict[str, Any]
+    marks: dict[Key, tuple[str, int]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class LoadedScenario:
+    """A validated scenario and the merged plain data it was built from (for the episode attachment)."""
+
+    scenario: Scenario
+    source: Path | None
+    resolved: dict[str, Any]
+    base_dir: Path
+
+    def resolve_path(self, value: str) -> Path:
+        """A path from the scenario (e.g. ``map.file``), relative to the scenario's folder."""
+        p = Path(value)
+        return p if p.is_absolute() else (self.base_dir / p).resolve()
+
+
+class _LineLoader(yaml.SafeLoader):
+    """SafeLoader that refuses duplicate keys (a silent overwrite hides typos)."""
+
+
+def _construct(node: yaml.Node, source: str, path: Key, marks: dict[Key, tuple[str, int]]) -> Any:
+    marks[path] = (source, node.start_mark.line + 1)
+    if isinstance(node, yaml.MappingNode):
+        out: dict[str, Any] = {}
+        for key_node, value_node in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                raise ScenarioError("YAML merge keys (<<) are not supported; use extends:", path=_dotted(path),
+                                    line=key_node.start_mark.line + 1, source=source)
+            if not isinstance(key_node, yaml.ScalarNode):
+                raise ScenarioError("keys must be plain strings", path=_dotted(path),
+                                    line=key_node.start_mark.line + 1, source=source)
+            key = key_node.value
+            if key in out:
+                raise ScenarioError(f"key {key!r} appears twice", path=_dotted((*path, key)),
+                                    line=key_node.start_mark.line + 1, source=source)
+            child = (*path, key)
+            out[key] = _construct(value_node, source, child, marks)
+            marks[child] = (source, key_node.start_mark.line + 1)
+        return out
+    if isinstance(node, yaml.SequenceNode):
+        return [_construct(v, source, (*path, i), marks) for i, v in enumerate(node.value)]
+    return yaml.SafeLoader(" ").construct_object(node, deep=True)
+
+
+def _dotted(path: Iterable[str | int]) -> str:
+    return ".".join(str(p) for p in path)
+
+
+def _parse_file(path: Path) -> _Doc:
+    source = str(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ScenarioError(f"file not found: {path}", source=source) from None
+    except OSError as exc:
+        raise ScenarioError(f"cannot read {path}: {exc.strerror}", source=source) from None
+    try:
+        node = yaml.compose(text, Loader=_LineLoader)
+    except yaml.MarkedYAMLError as exc:
+        line = exc.problem_mark.line + 1 if exc.problem_mark else None
+        raise ScenarioError(f"invalid YAML: {exc.problem}", line=line, source=source) from None
+    if node is None:
+        raise ScenarioError("the file is empty", source=source)
+    if not isinstance(node, yaml.MappingNode):
+        raise ScenarioError("a scenario must be a YAML mapping", line=node.start_mark.line + 1, source=source)
+    marks: dict[Key, tuple[str, int]] = {}
+    data = _construct(node, source, (), marks)
+    return _Doc(data, marks)
+
+
+def _merge(base: Any, over: Any) -> Any:
+    """Deep-merge mappings; anything else in ``over`` replaces ``base``."""
+    if isinstance(base, dict) and isinstance(over, dict):
+        out = dict(base)
+        for k, v in over.items():
+            out[k] = _merge(base[k], v) if k in base else v
+        return out
+    return over
+
+
+def _load_with_extends(path: Path, seen: tuple[Path, ...] = ()) -> _Doc:
+    path = path.resolve()
+    if path in seen:
+        chain = " -> ".join(str(p) for p in (*seen, path))
+        raise ScenarioError(f"extends: forms a cycle: {chain}", path="extends", source=str(path))
+    doc = _parse_file(path)
+    parent = doc.data.pop("extends", None)
+    if parent is None:
+        return doc
+    if not isinstance(parent, str):
+        src, line = doc.marks[("extends",)]
+        raise ScenarioError("extends must be a path to a scenario file", path="extends", line=line, source=src)
+    base_path = (path.parent / parent).resolve()
+    if not base_path.is_file():
+        src, line = doc.marks[("extends",)]
+        raise ScenarioError(f"base scenario not found: {base_path}", path="extends", line=line, source=src)
+    base = _load_with_extends(base_path, (*seen, path))
+    marks = dict(base.marks)
+    marks.update(doc.marks)
+    return _Doc(_merge(base.data, doc.data), marks)
+
+
+def _apply_set(doc: _Doc, assignment: str) -> None:
+    """Apply one ``a.b.0.c=value`` override; the value is parsed as YAML (``3``, ``true``, ``[1, 2]``)."""
+    key, sep, raw = assignment.partition("=")
+    source = f"--set {assignment}"
+    if not sep or not key.strip():
+        raise ScenarioError("expected KEY=VALUE, for example --set environment.weather=foggy", source=source)
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError as exc:
+        raise ScenarioError(f"value is not valid YAML: {exc}", path=key, source=source) from None
+    parts: list[str | int] = [int(p) if p.isdigit() else p for p in key.strip().split(".")]
+    node: Any = doc.data
+    for i, part in enumerate(parts[:-1]):
+        if isinstance(node, list):
+            if not isinstance(part, int) or part >= len(node):
+                raise ScenarioError(f"no list item {part} (the list has {len(node)})",
+                                    path=_dotted(parts[: i + 1]), source=source)
+            node = node[part]
+        elif isinstance(node, dict):
+            node = node.setdefault(part, {})
+        else:
+            raise ScenarioError("cannot set a key inside a plain value", path=_dotted(parts[: i + 1]), source=source)
+    last = parts[-1]
+    if isinstance(node, list):
+        if not isinstance(last, int) or last >= len(node):
+            raise ScenarioError(f"no list item {last} (the list has {len(node)})", path=key, source=source)
+        node[last] = value
+    elif isinstance(node, dict):
+        node[last] = value
+    else:
+        raise ScenarioError("cannot set a key inside a plain value", path=key, source=source)
+    for k in [k for k in doc.marks if k[: len(parts)] == tuple(parts)]:
+        del doc.marks[k]
+    doc.marks[tuple(parts)] = (source, None)  # type: ignore[assignment]
+
+
+def _clean_loc(loc: Sequence[str | int], data: Any) -> list[str | int]:
+    """Drop pydantic's union tags and validator names from an error location, keeping data keys."""
+    out: list[str | int] = []
+    node = data
+    for i, part in enumerate(loc):
+        last = i == len(loc) - 1
+        if isinstance(node, dict) and part in node:
+            out.append(part)
+            node = node[part]
+        elif isinstance(node, list) and isinstance(part, int) and part < len(node):
+            out.append(part)
+            node = node[part]
+        elif last and isinstance(part, str) and not part.startswith(("function-", "tagged-union")):
+            out.append(part)  # a missing key
+        elif isinstance(node, dict) and isinstance(part, str) and part not in ("hover", "patrol", "escort") \
+                and not part.startswith(("function-", "tagged-union", "tuple")):
+            out.append(part)
+            node = None
+    return out
+
+
+def _model_at(path: Sequence[str | int], data: Any) -> type[BaseModel] | None:
+    """The pydantic model class that validates the mapping at ``path`` (for key suggestions)."""
+    from cosim.scenario import model as m
+
+    cls: Any = Scenario
+    node = data
+    for part in path:
+        if isinstance(part, int):
+            node = node[part] if isinstance(node, list) and part < len(node) else None
+            continue
+        if not (isinstance(cls, type) and issubclass(cls, BaseModel)) or part not in cls.model_fields:
+            return None
+        node = node.get(part) if isinstance(node, dict) else None
+        ann = cls.model_fields[part].annotation
+        if part == "drones":
+            cls = None
+            continue
+        cls = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
+        if cls is None and ann is not None:
+            for arg in getattr(ann, "__args__", ()):
+                if isinstance(arg, type) and issubclass(arg, BaseModel):
+                    cls = arg
+    if cls is None and isinstance(node, dict) and "strategy" in node:
+        cls = {"hover": m.HoverDrone, "patrol": m.PatrolDrone, "escort": m.EscortDrone}.get(node["strategy"])
+    if cls is None and len(path) >= 2 and path[-2] == "drones" and isinstance(node, dict):
+        cls = {"hover": m.HoverDrone, "patrol": m.PatrolDrone, "escort": m.EscortDrone}.get(
+            node.get("strategy", "hover"))
+    return cls
+
+
+def _message(err: dict[str, Any], path: list[str | int], data: Any) -> str:
+    kind = err["type"]
+    if kind == "extra_forbidden":
+        bad = str(path[-1])
+        owner = _model_at(path[:-1], data)
+        if owner is not None:
+            known = list(owner.model_fields)
+            close = difflib.get_close_matches(bad, known, n=1, cutoff=0.6)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            return f"unknown key {bad!r}{hint} (known keys: {', '.join(known)})"
+        return f"unknown key {bad!r}"
+    if kind == "missing":
+        return "required key is missing"
+    if kind in ("literal_error", "enum"):
+        return f"{err['msg']}, got {json.dumps(err.get('input'))}"
+    if kind == "union_tag_invalid":
+        return f"unknown strategy {err['ctx']['tag']!r}; expected one of {err['ctx']['expected_tags']}"
+    msg = err["msg"]
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, "):]
+    got = err.get("input")
+    if kind not in ("value_error", "assertion_error") and not isinstance(got, dict | list):
+        msg += f", got {json.dumps(got, default=str)}"
+    return msg
+
+
+def _validation_error(exc: ValidationError, doc: _Doc) -> ScenarioError:
+    err = exc.errors(include_url=False)[0]
+    path = _clean_loc(err["loc"], doc.data)
+    ctx_error = (err.get("ctx") or {}).get("error")
+    if isinstance(ctx_error, RuleError):
+        path = path + [int(p) if p.isdigit() else p for p in ctx_error.path.split(".")]
+    message = _message(err, path, doc.data)
+    source, line = "", None
+    for n in range(len(path), -1, -1):
+        mark = doc.marks.get(tuple(path[:n]))
+        if mark is not None:
+            source, line = mark
+            break
+    more = len(exc.errors()) - 1
+    if more:
+        message += f" (and {more} more problem{'s' if more > 1 else ''})"
+    return ScenarioError(message, path=_dotted(path), line=line, source=source)
+
+
+def find_scenario(name_or_path: str | Path) -> Path:
+    """A scenario path as given, or the name of a shipped one (``town_rural_night``)."""
+    p = Path(name_or_path)
+    if p.is_file():
+        return p
+    for d in SCENARIO_DIRS:
+        for cand in (d / p, d / f"{p}.yaml"):
+            if cand.is_file():
+                return cand
+    raise ScenarioError(f"scenario not found: {name_or_path} (see `cosim scenarios` for the shipped ones)",
+                        source=str(name_or_path))
+
+
+def load_scenario(path: str | Path, overrides: Sequence[str] = ()) -> LoadedScenario:
+    """Load, overlay, override and validate a scenario file."""
+    file = find_scenario(path).resolve()
+    doc = _load_with_extends(file)
+    for assignment in overrides:
+        _apply_set(doc, assignment)
+    return _validate(doc, file)
+
+
+def load_scenario_data(data: dict[str, Any], overrides: Sequence[str] = ()) -> LoadedScenario:
+    """Validate a scenario given as plain data (as stored in an episode or built by a sweep)."""
+    doc = _Doc(json.loads(json.dumps(data)))
+    for assignment in overrides:
+        _apply_set(doc, assignment)
+    return _validate(doc, None)
+
+
+def _validate(doc: _Doc, file: Path | None) -> LoadedScenario:
+    try:
+        scenario = Scenario.model_validate(doc.data)
+    except ValidationError as exc:
+        raise _validation_error(exc, doc) from None
+    resolved = scenario.model_dump(mode="json")
+    return LoadedScenario(scenario, file, resolved, file.parent if file else Path.cwd())
+
+
+def shipped_scenarios() -> list[tuple[str, Path]]:
+    """(name, path) of every shipped scenario, base overlays excluded."""
+    seen: dict[str, Path] = {}
+    for d in SCENARIO_DIRS:
+        if d.is_dir():
+            for p in sorted(d.glob("*.yaml")):
+                seen.setdefault(p.stem, p)
+    return sorted(seen.items())

@@ -1,0 +1,379 @@
+"""Scenario schema: frozen pydantic models, validated once at load.
+
+Every model forbids unknown keys; cross-field rules live on the model that owns the fields.
+Defaults reproduce the AirV2X-Perception setting (paper Table 2, design.md section 4).
+"""
+
+from __future__ import annotations
+
+from fractions import Fraction
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+TICK_NS_PER_S = 1_000_000_000
+
+ObjectClass = Literal["car", "van", "truck", "bus", "motorcycle", "bicycle"]
+Weather = Literal["clear", "cloudy", "foggy", "rainy"]
+Lighting = Literal["day", "dusk", "night"]
+MapKind = Literal["urban", "suburban", "rural", "highway", "net", "osm"]
+DynamicsBackend = Literal["jsbsim", "pybullet"]
+
+
+class RuleError(ValueError):
+    """A cross-field rule failed; ``path`` is the offending key relative to the model checking it."""
+
+    def __init__(self, path: str, message: str):
+        super().__init__(message)
+        self.path = path
+
+
+class Model(BaseModel):
+    """Base: immutable, no unknown keys, validated on assignment-free construction only."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", validate_default=True)
+
+
+def _rate_divides_tick(name: str, rate_hz: float, tick_hz: float) -> None:
+    ratio = Fraction(rate_hz).limit_denominator(10_000) / Fraction(tick_hz).limit_denominator(10_000)
+    if ratio.denominator != 1 or ratio < 1:
+        raise RuleError(
+            name,
+            f"{name} = {rate_hz:g} Hz does not divide the tick: it must be a whole multiple of "
+            f"tick_hz = {tick_hz:g} Hz (for example {tick_hz * 4:g} or {tick_hz * 20:g})"
+        )
+
+
+# --------------------------------------------------------------------------------------- world
+
+
+class MapSpec(Model):
+    """Road network. Generated kinds are deterministic from the scenario seed."""
+
+    kind: MapKind = "urban"
+    file: str | None = None  # .net.xml (kind net) or .osm (kind osm); relative to the scenario file
+    size_m: float = Field(400.0, gt=50.0, le=5000.0)  # [m] side of the generated square area
+    lanes: int | None = Field(None, ge=1, le=5)  # lanes per direction; None = the kind's default
+
+    @model_validator(mode="after")
+    def _file_matches_kind(self) -> MapSpec:
+        if self.kind in ("net", "osm") and not self.file:
+            raise RuleError("file", f"map.kind {self.kind!r} needs map.file")
+        if self.kind not in ("net", "osm") and self.file:
+            raise RuleError("file", f"map.file is only used with kind 'net' or 'osm', not {self.kind!r}")
+        return self
+
+
+class GeoOrigin(Model):
+    lat_deg: float = Field(37.3352, ge=-90, le=90)
+    lon_deg: float = Field(-121.8811, ge=-180, le=180)
+    alt_m: float = 20.0
+
+
+class EnvironmentSpec(Model):
+    weather: Weather = "clear"
+    lighting: Lighting = "day"
+    fog_visibility_m: float | None = Field(None, gt=0)  # None = weather's default
+    rain_rate_mm_h: float | None = Field(None, ge=0)
+    wind_mps: float = Field(3.0, ge=0, le=20)  # mean wind at drone altitude
+    gust_mps: float = Field(1.5, ge=0, le=15)  # gust standard deviation
+
+
+class TrafficSpec(Model):
+    density_veh_per_km: float = Field(12.0, ge=0, le=200)  # background vehicles per km of road
+    mix: dict[ObjectClass, float] = Field(
+        default_factory=lambda: {
+            "car": 0.6,
+            "van": 0.1,
+            "truck": 0.08,
+            "bus": 0.05,
+            "motorcycle": 0.1,
+            "bicycle": 0.07,
+        }
+    )
+    step_hz: float = Field(20.0, gt=0)  # SUMO sub-step rate; whole multiple of tick_hz
+
+    @field_validator("mix")
+    @classmethod
+    def _mix_is_distribution(cls, mix: dict[str, float]) -> dict[str, float]:
+        if not mix:
+            raise ValueError("traffic.mix needs at least one class")
+        if any(v < 0 for v in mix.values()):
+            raise ValueError("traffic.mix shares must be >= 0")
+        total = sum(mix.values())
+        if total <= 0:
+            raise ValueError("traffic.mix shares must not all be 0")
+        return {k: v / total for k, v in sorted(mix.items())}
+
+
+# -------------------------------------------------------------------------------------- agents
+
+
+class VehicleAgents(Model):
+    count: int = Field(4, ge=0, le=32)
+    vclass: ObjectClass = "car"
+
+
+class RsuAgents(Model):
+    count: int = Field(4, ge=0, le=32)
+    height_m: tuple[float, float] = (6.0, 10.0)  # [m] pole height range, drawn per RSU
+
+    @model_validator(mode="after")
+    def _range(self) -> RsuAgents:
+        lo, hi = self.height_m
+        if not 0 < lo <= hi:
+            raise RuleError("height_m", f"rsus.height_m must be 0 < low <= high, got {list(self.height_m)}")
+        return self
+
+
+class DroneBase(Model):
+    backend: DynamicsBackend | None = None  # None = agents.drone_backend
+    altitude_m: float = Field(60.0, ge=5.0, le=300.0)  # [m] above ground
+    max_speed_mps: float = Field(15.0, gt=0, le=40)
+    start: tuple[float, float] | None = None  # [m] map x, y; None = chosen by the strategy
+
+
+class HoverDrone(DroneBase):
+    strategy: Literal["hover"] = "hover"
+    point: tuple[float, float] | None = None  # [m] map x, y; None = above a junction
+
+
+class PatrolDrone(DroneBase):
+    strategy: Literal["patrol"] = "patrol"
+    waypoints: list[tuple[float, float]] | None = None  # [m] map x, y; None = generated along roads
+    loop_length_m: float = Field(400.0, gt=20)  # for generated loops
+    speed_mps: float = Field(8.0, gt=0, le=40)
+    reach_radius_m: float = Field(2.0, gt=0)
+
+    @model_validator(mode="after")
+    def _enough_waypoints(self) -> PatrolDrone:
+        if self.waypoints is not None and len(self.waypoints) < 2:
+            raise RuleError("waypoints", "a patrol needs at least 2 waypoints")
+        if self.speed_mps > self.max_speed_mps:
+            raise RuleError("speed_mps", f"speed_mps {self.speed_mps} exceeds max_speed_mps {self.max_speed_mps}")
+        return self
+
+
+class EscortDrone(DroneBase):
+    strategy: Literal["escort"] = "escort"
+    target: str = "vehicle_0"  # agent id of a connected vehicle
+    offset_m: tuple[float, float] = (-8.0, 0.0)  # [m] in the target's body frame (forward, left)
+    altitude_m: float = Field(40.0, ge=5.0, le=300.0)
+
+    @field_validator("target")
+    @classmethod
+    def _vehicle_target(cls, target: str) -> str:
+        prefix, _, index = target.partition("_")
+        if prefix != "vehicle" or not index.isdigit():
+            raise ValueError(f"escort target must be a connected vehicle id like 'vehicle_0', got {target!r}")
+        return target
+
+
+DroneSpec = Annotated[HoverDrone | PatrolDrone | EscortDrone, Field(discriminator="strategy")]
+
+
+class AgentsSpec(Model):
+    vehicles: VehicleAgents = VehicleAgents()
+    rsus: RsuAgents = RsuAgents()
+    drones: list[DroneSpec] = Field(
+        default_factory=lambda: [HoverDrone(), PatrolDrone(), EscortDrone(target="vehicle_0")]
+    )
+    drone_backend: DynamicsBackend = "jsbsim"
+    drone_physics_hz: float = Field(100.0, gt=0)  # dynamics rate; whole multiple of tick_hz
+    drone_mass_kg: float = Field(3.5, gt=0.2, le=30)
+
+    def drone_backend_of(self, index: int) -> DynamicsBackend:
+        return self.drones[index].backend or self.drone_backend
+
+    @model_validator(mode="after")
+    def _escort_targets_exist(self) -> AgentsSpec:
+        for i, d in enumerate(self.drones):
+            if isinstance(d, EscortDrone):
+                n = int(d.target.split("_")[1])
+                if n >= self.vehicles.count:
+                    raise RuleError(
+                        f"drones.{i}.target",
+                        f"escort target {d.target!r} does not exist: the scenario has "
+                        f"{self.vehicles.count} connected vehicles (vehicle_0..vehicle_{self.vehicles.count - 1})"
+                    )
+        return self
+
+
+# ------------------------------------------------------------------------------------- sensors
+
+
+class Mount(Model):
+    """Sensor pose in its agent's body frame (FLU), metres and degrees."""
+
+    xyz_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+class LidarSpec(Model):
+    channels: int = Field(64, ge=1, le=256)
+    upper_fov_deg: float = 10.0
+    lower_fov_deg: float = -38.0
+    horizontal_resolution_deg: float = Field(0.35, gt=0.01, le=10)
+    rotation_hz: float = Field(20.0, gt=0)
+    range_m: float = Field(120.0, gt=1, le=500)
+    range_noise_m: float = Field(0.02, ge=0)
+    dropout: float = Field(0.0, ge=0, lt=1)
+    mount: Mount = Mount(xyz_m=(0.0, 0.0, 1.9))
+
+    @model_validator(mode="after")
+    def _fov(self) -> LidarSpec:
+        if not -90.0 <= self.lower_fov_deg < self.upper_fov_deg <= 90.0:
+            raise RuleError(
+                "lower_fov_deg",
+                f"lidar vertical FOV must satisfy -90 <= lower < upper <= 90, "
+                f"got lower {self.lower_fov_deg}, upper {self.upper_fov_deg}"
+            )
+        return self
+
+
+CameraOutput = Literal["rgb", "depth", "semantic", "instance"]
+
+
+class CameraSpec(Model):
+    name: str = Field(pattern=r"^[a-z][a-z0-9_]*$")
+    width: int = Field(1280, ge=16, le=8192)
+    height: int = Field(720, ge=16, le=8192)
+    fov_deg: float = Field(110.0, gt=1, lt=179)  # horizontal
+    mount: Mount = Mount()
+    gimbal: bool = False  # True: orientation held in the map frame (nadir), yaw follows the body
+    outputs: tuple[CameraOutput, ...] = ("rgb", "depth", "semantic", "instance")
+
+
+class GnssSpec(Model):
+    noise_m: float = Field(0.5, ge=0)
+
+
+class ImuSpec(Model):
+    accel_noise_mps2: float = Field(0.02, ge=0)
+    gyro_noise_radps: float = Field(0.002, ge=0)
+    accel_bias_mps2: float = Field(0.05, ge=0)
+    gyro_bias_radps: float = Field(0.001, ge=0)
+
+
+class RigSpec(Model):
+    lidar: LidarSpec | None = LidarSpec()
+    cameras: list[CameraSpec] = Field(default_factory=list)
+    gnss: GnssSpec | None = GnssSpec()
+    imu: ImuSpec | None = None
+
+    @field_validator("cameras")
+    @classmethod
+    def _unique_names(cls, cams: list[CameraSpec]) -> list[CameraSpec]:
+        names = [c.name for c in cams]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise ValueError(f"camera names must be unique within a rig; repeated: {', '.join(dupes)}")
+        return cams
+
+
+def _surround(names_yaw: list[tuple[str, float]], xyz: tuple[float, float, float], pitch: float) -> list[CameraSpec]:
+    return [CameraSpec(name=n, mount=Mount(xyz_m=xyz, rpy_deg=(0.0, pitch, yaw))) for n, yaw in names_yaw]
+
+
+def default_vehicle_rig() -> RigSpec:
+    cams = _surround(
+        [("front", 0), ("front_left", 55), ("front_right", -55), ("rear", 180), ("rear_left", 125),
+         ("rear_right", -125)],
+        (0.0, 0.0, 1.6),
+        0.0,
+    )
+    return RigSpec(lidar=LidarSpec(), cameras=cams, gnss=GnssSpec(), imu=ImuSpec())
+
+
+def default_rsu_rig() -> RigSpec:
+    cams = _surround([("front", 0), ("left", 90), ("right", -90), ("rear", 180)], (0.0, 0.0, 0.0), 15.0)
+    return RigSpec(lidar=LidarSpec(mount=Mount(xyz_m=(0.0, 0.0, 0.3))), cameras=cams, gnss=GnssSpec(), imu=None)
+
+
+def default_drone_rig() -> RigSpec:
+    down = CameraSpec(name="down", mount=Mount(xyz_m=(0.0, 0.0, -0.15), rpy_deg=(0.0, 90.0, 0.0)), gimbal=True)
+    lidar = LidarSpec(upper_fov_deg=-30.0, lower_fov_deg=-90.0, mount=Mount(xyz_m=(0.0, 0.0, -0.2)))
+    return RigSpec(lidar=lidar, cameras=[down], gnss=GnssSpec(), imu=ImuSpec())
+
+
+class SensorsSpec(Model):
+    """Per agent type rigs. ``enabled: false`` turns all sensor rendering off (labels only)."""
+
+    enabled: bool = True
+    vehicle: RigSpec = Field(default_factory=default_vehicle_rig)
+    rsu: RigSpec = Field(default_factory=default_rsu_rig)
+    drone: RigSpec = Field(default_factory=default_drone_rig)
+    bev_cell_m: float = Field(0.25, gt=0.01, le=5)
+    bev_range_m: tuple[float, float] = (64.0, 40.0)  # [m] half extents x, y (paper section 4.2)
+
+
+# -------------------------------------------------------------------------------------- output
+
+
+class OutputSpec(Model):
+    dir: str = "out"
+    name: str | None = None  # file stem; None = "<scenario name>_s<seed>"
+    compression: Literal["zstd", "lz4", "none"] = "zstd"
+    image_format: Literal["png", "jpeg"] = "png"
+    jpeg_quality: int = Field(90, ge=10, le=100)
+
+
+class RuntimeSpec(Model):
+    startup_timeout_s: float = Field(60.0, gt=0)  # workers ready (processes started, world loaded)
+    tick_timeout_s: float = Field(10.0, gt=0)  # one lockstep query
+
+
+# ------------------------------------------------------------------------------------ scenario
+
+
+class Scenario(Model):
+    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+    description: str = ""
+    seed: int = Field(0, ge=0, lt=2**31)
+    duration_s: float = Field(20.0, gt=0, le=24 * 3600)
+    tick_hz: float = Field(5.0, gt=0, le=100)
+    map: MapSpec = MapSpec()
+    geo_origin: GeoOrigin = GeoOrigin()
+    environment: EnvironmentSpec = EnvironmentSpec()
+    traffic: TrafficSpec = TrafficSpec()
+    agents: AgentsSpec = AgentsSpec()
+    sensors: SensorsSpec = SensorsSpec()
+    output: OutputSpec = OutputSpec()
+    runtime: RuntimeSpec = RuntimeSpec()
+
+    @model_validator(mode="after")
+    def _rates(self) -> Scenario:
+        tick_ns = TICK_NS_PER_S / self.tick_hz
+        if abs(tick_ns - round(tick_ns)) > 1e-6:
+            raise RuleError("tick_hz", f"tick_hz = {self.tick_hz:g} gives a tick that is not a whole number of ns")
+        _rate_divides_tick("traffic.step_hz", self.traffic.step_hz, self.tick_hz)
+        _rate_divides_tick("agents.drone_physics_hz", self.agents.drone_physics_hz, self.tick_hz)
+        ticks = self.duration_s * self.tick_hz
+        if abs(ticks - round(ticks)) > 1e-6 or round(ticks) < 1:
+            raise RuleError(
+                "duration_s",
+                f"duration_s = {self.duration_s:g} is not a whole number of ticks at {self.tick_hz:g} Hz"
+            )
+        return self
+
+    @property
+    def tick_ns(self) -> int:
+        """Tick period [ns]."""
+        return round(TICK_NS_PER_S / self.tick_hz)
+
+    @property
+    def n_ticks(self) -> int:
+        """Number of ticks written: t = 0, tick, ..., duration - tick."""
+        return round(self.duration_s * self.tick_hz)
+
+    def agent_ids(self) -> list[str]:
+        a = self.agents
+        return (
+            [f"vehicle_{i}" for i in range(a.vehicles.count)]
+            + [f"rsu_{i}" for i in range(a.rsus.count)]
+            + [f"drone_{i}" for i in range(len(a.drones))]
+        )
+
+    def rig_for(self, agent_id: str) -> RigSpec:
+        kind = agent_id.rsplit("_", 1)[0]
+        return {"vehicle": self.sensors.vehicle, "rsu": self.sensors.rsu, "drone": self.sensors.drone}[kind]
