@@ -1,0 +1,186 @@
+"""``cosim``: the command line. Thin: parse arguments, call typed functions, map errors to exit codes.
+
+Exit codes: 0 ok, 1 runtime failure, 2 bad input, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import cosim
+from cosim.errors import CosimError, InputError
+
+log = logging.getLogger("cosim")
+
+EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that exits with status 2 and one line on bad usage (its default too, made explicit)."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.print_usage(sys.stderr)
+        self.exit(EXIT_BAD_INPUT, f"cosim: error: {message}\n")
+
+
+def _human_size(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1024
+    return f"{n:.1f} GiB"
+
+
+def _progress_bar(desc: str, enabled: bool) -> tuple[Callable[[int, int], None], Callable[[], None]]:
+    from tqdm import tqdm
+
+    bar: list[tqdm] = []
+
+    def update(done: int, total: int) -> None:
+        if not bar:
+            bar.append(tqdm(total=total, desc=desc, unit="tick", disable=not enabled, file=sys.stderr,
+                            dynamic_ncols=True, mininterval=0.2))
+        bar[0].update(done - bar[0].n)
+
+    def close() -> None:
+        if bar:
+            bar[0].close()
+
+    return update, close
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from cosim.runner import run_episode
+    from cosim.scenario import load_scenario
+    from cosim.transport import check_endpoint
+
+    overrides = list(args.set or [])
+    if args.duration is not None:
+        overrides.append(f"duration_s={args.duration!r}")
+    if args.seed is not None:
+        overrides.append(f"seed={args.seed}")
+    if args.no_sensors:
+        overrides.append("sensors.enabled=false")
+    loaded = load_scenario(args.scenario, overrides)
+    if args.listen:
+        check_endpoint(args.listen)
+    if args.external_workers and not args.listen:
+        raise InputError("--external-workers needs --listen tcp/HOST:PORT so the workers can connect")
+    out_dir = Path(args.out) if args.out else Path(loaded.scenario.output.dir)
+    update, close = _progress_bar(loaded.scenario.name, enabled=not args.quiet)
+    try:
+        result = run_episode(loaded, out_dir, progress=update, listen=args.listen,
+                             external_workers=args.external_workers, prefix=args.prefix,
+                             worker_log_level=logging.getLogger().level)
+    finally:
+        close()
+    s = loaded.scenario
+    print(
+        f"episode  {result.path}\n"
+        f"size     {_human_size(result.size_bytes)} ({result.messages} messages)\n"
+        f"ticks    {result.ticks} at {s.tick_hz:g} Hz ({result.sim_time_s:g} s simulated)\n"
+        f"actors   {result.actors} tracks; agents: {s.agents.vehicles.count} vehicles, "
+        f"{s.agents.rsus.count} RSUs, {len(s.agents.drones)} drones\n"
+        f"wall     {result.wall_time_s:.1f} s, real-time factor {result.real_time_factor:.2f}x"
+    )
+    return EXIT_OK
+
+
+def cmd_scenarios(args: argparse.Namespace) -> int:
+    from cosim.scenario import load_scenario, shipped_scenarios
+
+    for name, path in shipped_scenarios():
+        try:
+            s = load_scenario(path).scenario
+            line = (f"{name:<28} {s.map.kind:<9} {s.environment.weather:<7} {s.environment.lighting:<6} "
+                    f"{'+'.join(d.strategy for d in s.agents.drones) or '-':<22} {s.duration_s:g} s  {s.description}")
+        except CosimError as exc:
+            line = f"{name:<28} INVALID: {exc}"
+        print(line.rstrip())
+    return EXIT_OK
+
+
+def cmd_worker(args: argparse.Namespace) -> int:
+    from cosim.transport import EXTERNAL_PREFIX, check_endpoint
+    from cosim.workers import worker_main
+
+    check_endpoint(args.connect)
+    return worker_main(args.role, args.connect, args.prefix or EXTERNAL_PREFIX,
+                       logging.getLogger().level or logging.INFO, spawned=False)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="cosim", description="Headless co-simulation data generator for drone-assisted V2X "
+                                          "collaborative perception (SUMO + JSBSim/PyBullet + Zenoh -> MCAP).")
+    p.add_argument("--version", action="version", version=f"cosim {cosim.__version__}")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+
+    run = sub.add_parser("run", help="generate one episode from a scenario")
+    run.add_argument("scenario", help="scenario YAML file, or the name of a shipped scenario")
+    run.add_argument("--out", help="output folder (default: the scenario's output.dir)")
+    run.add_argument("--duration", type=float, help="simulated seconds (overrides duration_s)")
+    run.add_argument("--seed", type=int, help="random seed (overrides seed)")
+    run.add_argument("--set", action="append", metavar="KEY=VALUE",
+                     help="override any scenario field, e.g. --set environment.weather=foggy (repeatable)")
+    run.add_argument("--no-sensors", action="store_true", help="labels and transforms only (sensors.enabled=false)")
+    run.add_argument("--listen", metavar="ENDPOINT", help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447")
+    run.add_argument("--external-workers", action="store_true",
+                     help="do not start workers; wait for `cosim worker ... --connect` on --listen")
+    run.add_argument("--prefix", help="Zenoh key prefix of the episode (default: fresh; 'cosim/external' "
+                                      "with --external-workers)")
+    run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    run.set_defaults(func=cmd_run)
+
+    sc = sub.add_parser("scenarios", help="list the shipped scenarios, one line each")
+    sc.set_defaults(func=cmd_scenarios)
+
+    wk = sub.add_parser("worker", help="run a simulation worker by hand (for a conductor on another host)")
+    wk.add_argument("role", choices=["traffic", "drones"])
+    wk.add_argument("--connect", required=True, metavar="ENDPOINT", help="the conductor's endpoint, tcp/HOST:PORT")
+    wk.add_argument("--prefix", help="Zenoh key prefix (default: cosim/external, as the conductor uses)")
+    wk.set_defaults(func=cmd_worker)
+
+    _register_more(sub)
+    return p
+
+
+def _register_more(sub: argparse._SubParsersAction) -> None:
+    """Subcommands contributed by other modules (episode tools, batch)."""
+    for module_name in ("cosim.tools", "cosim.batch.cli"):
+        try:
+            module = __import__(module_name, fromlist=["register"])
+        except ModuleNotFoundError as exc:
+            if exc.name is None or not module_name.startswith(exc.name):
+                raise
+            continue
+        module.register(sub)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = [logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "func", None):
+        parser.print_help(sys.stderr)
+        return EXIT_BAD_INPUT
+    try:
+        return args.func(args)
+    except InputError as exc:
+        print(f"cosim: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except CosimError as exc:
+        print(f"cosim: failed: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
+    except KeyboardInterrupt:
+        print("cosim: interrupted; workers stopped, no episode written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+if __name__ == "__main__":
+    sys.exit(main())

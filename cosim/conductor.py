@@ -1,0 +1,237 @@
+"""The conductor: starts the workers, and locks them together tick by tick over Zenoh.
+
+Per tick it sends one query to every worker and waits for every reply before going on (lockstep).
+Worker deaths arrive as liveliness DELETE events on the same inbox as the replies, so a SIGKILLed
+worker stops the episode within milliseconds with a message that names it and the tick; a worker
+that hangs is reported when its reply is ``runtime.tick_timeout_s`` late.
+
+Workers are spawned (never forked: a forked child's ``zenoh.open`` hangs) and always reaped: on
+success, error or Ctrl-C they are asked to close, then terminated, then killed.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import queue
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+
+from cosim import protocol, transport
+from cosim.errors import SyncTimeout, WorkerError
+from cosim.workers import ROLES, spawned_worker_main
+
+log = logging.getLogger(__name__)
+
+_CLOSE_GRACE_S = 2.0  # [s] for a worker to exit after "close" before it is terminated
+
+
+@dataclass(frozen=True)
+class _Reply:
+    role: str
+    tick: int
+    ok: bool
+    data: Any
+
+
+@dataclass(frozen=True)
+class _Liveliness:
+    role: str
+    alive: bool
+
+
+class Conductor:
+    """Owns the Zenoh router, the worker processes and the lockstep loop of one episode.
+
+    Use as a context manager::
+
+        with Conductor(scenario_data, world_wire, startup_timeout_s=60, tick_timeout_s=10) as c:
+            c.start()
+            replies = c.step(tick, t_ns, escort_targets)
+    """
+
+    def __init__(
+        self,
+        scenario_data: dict[str, Any],
+        world_wire: dict[str, Any],
+        *,
+        startup_timeout_s: float,
+        tick_timeout_s: float,
+        listen: str | None = None,
+        external_workers: bool = False,
+        prefix: str | None = None,
+        worker_log_level: int = logging.WARNING,
+    ):
+        self._init = protocol.InitRequest(scenario=scenario_data, world=world_wire)
+        self._startup_timeout_s = startup_timeout_s
+        self._tick_timeout_s = tick_timeout_s
+        self.external = external_workers
+        self.endpoint = listen or transport.free_loopback_endpoint()
+        self.prefix = prefix or (transport.EXTERNAL_PREFIX if external_workers else transport.new_prefix())
+        self._worker_log_level = worker_log_level
+        self._inbox: queue.Queue[_Reply | _Liveliness] = queue.Queue()
+        self._alive: set[str] = set()
+        self._procs: dict[str, mp.process.BaseProcess] = {}
+        self._session: zenoh.Session | None = None
+        self._keep: list[Any] = []  # declared Zenoh entities, alive as long as the session
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    def __enter__(self) -> Conductor:
+        self._session = transport.open_router(self.endpoint)
+        live = self._session.liveliness()
+        self._keep.append(live.declare_token(f"{self.prefix}/alive/conductor"))
+        self._keep.append(live.declare_subscriber(f"{self.prefix}/alive/*", self._on_liveliness, history=True))
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()
+
+    def start(self) -> None:
+        """Start (or wait for) the workers and have each build its engine from the world."""
+        if not self.external:
+            ctx = mp.get_context("spawn")
+            for role in ROLES:
+                proc = ctx.Process(
+                    target=spawned_worker_main,
+                    args=(role, self.endpoint, self.prefix, self._worker_log_level),
+                    name=f"cosim-{role}",
+                    daemon=True,
+                )
+                proc.start()
+                self._procs[role] = proc
+        else:
+            log.warning("waiting for external workers: cosim worker traffic|drones --connect %s --prefix %s",
+                        self.endpoint, self.prefix)
+        self._wait_alive()
+        self._query_all("init", -1, {role: self._init for role in ROLES}, self._startup_timeout_s)
+
+    def _wait_alive(self) -> None:
+        deadline = time.monotonic() + self._startup_timeout_s
+        while not all(r in self._alive for r in ROLES):
+            self._check_processes(tick=None)
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                missing = [r for r in ROLES if r not in self._alive]
+                raise SyncTimeout(missing[0], f"did not come up within {self._startup_timeout_s:g} s "
+                                  f"(endpoint {self.endpoint}, prefix {self.prefix})")
+            try:
+                event = self._inbox.get(timeout=min(remaining, 0.1))
+            except queue.Empty:
+                continue
+            if isinstance(event, _Liveliness) and not event.alive:
+                raise WorkerError(event.role, "went away while starting")
+
+    def shutdown(self) -> None:
+        """Ask workers to close, then make sure every child process is gone."""
+        if self._session is not None and not self._session.is_closed():
+            for role in list(self._alive):
+                try:
+                    self._session.get(f"{self.prefix}/{role}/close", lambda _r: None, timeout=1.0)
+                except zenoh.ZError:
+                    pass
+        deadline = time.monotonic() + _CLOSE_GRACE_S
+        for proc in self._procs.values():
+            proc.join(max(0.0, deadline - time.monotonic()))
+        for proc in self._procs.values():
+            if proc.is_alive():
+                proc.terminate()
+                proc.join(1.0)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(1.0)
+        self._procs.clear()
+        self._keep.clear()
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+
+    # -- lockstep -------------------------------------------------------------------------------
+
+    def step(self, tick: int, t_ns: int, escort_targets: dict[str, protocol.EscortTarget]) -> dict[str, Any]:
+        """Advance every worker to ``t_ns``; returns {role: reply data} once all have answered."""
+        requests = {
+            "traffic": protocol.StepRequest(tick, t_ns),
+            "drones": protocol.StepRequest(tick, t_ns, escort_targets),
+        }
+        return self._query_all("step", tick, requests, self._tick_timeout_s)
+
+    def _query_all(self, verb: str, tick: int, requests: dict[str, Any], timeout_s: float) -> dict[str, Any]:
+        assert self._session is not None, "Conductor used outside its with-block"
+        shown_tick = tick if tick >= 0 else None
+        for role, request in requests.items():
+            if role not in self._alive:
+                raise WorkerError(role, "is not running", tick=shown_tick)
+            self._session.get(
+                f"{self.prefix}/{role}/{verb}",
+                lambda reply, role=role: self._on_reply(role, tick, reply),
+                payload=protocol.encode(request),
+                timeout=timeout_s + 1.0,
+            )
+        results: dict[str, Any] = {}
+        deadline = time.monotonic() + timeout_s
+        while len(results) < len(requests):
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                late = [r for r in requests if r not in results]
+                raise SyncTimeout(late[0], f"no reply to {verb} within {timeout_s:g} s", tick=shown_tick)
+            try:
+                event = self._inbox.get(timeout=min(remaining, 0.25))
+            except queue.Empty:
+                self._check_processes(shown_tick)
+                continue
+            if isinstance(event, _Liveliness):
+                if not event.alive and event.role in requests:
+                    raise WorkerError(event.role, self._death_reason(event.role), tick=shown_tick)
+                continue
+            if event.tick != tick:
+                continue  # a late reply from an earlier query
+            if not event.ok:
+                raise WorkerError(event.role, event.data.get("error", "failed"), tick=shown_tick)
+            results[event.role] = event.data
+        return results
+
+    # -- callbacks (Zenoh threads) --------------------------------------------------------------
+
+    def _on_reply(self, role: str, tick: int, reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            self._inbox.put(_Reply(role, tick, True, protocol.decode(reply.ok.payload.to_bytes())))
+        else:
+            try:
+                data = protocol.decode(reply.err.payload.to_bytes())
+            except ValueError:
+                data = {"error": reply.err.payload.to_string()}
+            self._inbox.put(_Reply(role, tick, False, data))
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        role = str(sample.key_expr).rsplit("/", 1)[-1]
+        if role not in ROLES:
+            return
+        alive = sample.kind == zenoh.SampleKind.PUT
+        if alive:
+            self._alive.add(role)
+        else:
+            self._alive.discard(role)
+        self._inbox.put(_Liveliness(role, alive))
+
+    # -- process health -------------------------------------------------------------------------
+
+    def _check_processes(self, tick: int | None) -> None:
+        for role, proc in self._procs.items():
+            if not proc.is_alive():
+                raise WorkerError(role, self._death_reason(role), tick=tick)
+
+    def _death_reason(self, role: str) -> str:
+        proc = self._procs.get(role)
+        if proc is None:
+            return "disconnected (liveliness lost)"
+        proc.join(0.5)
+        code = proc.exitcode
+        if code is None:
+            return "disconnected (liveliness lost)"
+        if code < 0:
+            return f"process {proc.pid} died (killed by signal {-code})"
+        return f"process {proc.pid} exited with status {code}"

@@ -1,0 +1,219 @@
+"""Run one episode: scenario in, one labelled MCAP file out.
+
+``run_episode`` is the typed entry point behind ``cosim run`` and the batch executors. It builds the
+world, starts the conductor and its workers, and per tick assembles the snapshot, renders the
+sensors and writes labels and sensor data. The episode file appears only when it is complete.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import json
+import logging
+import platform
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+import cosim
+from cosim.assemble import TrackRegistry, build_snapshot, escort_targets
+from cosim.classes import class_table
+from cosim.conductor import Conductor
+from cosim.protocol import drone_from_dict, vehicle_from_dict
+from cosim.scenario import LoadedScenario
+from cosim.scenario.model import EscortDrone
+from cosim.snapshot import WorldSnapshot
+from cosim.world.types import World
+
+log = logging.getLogger(__name__)
+
+FORMAT_VERSION = "1.0"
+#: Independent random streams derived from the scenario seed.
+SENSOR_STREAM = 0x5E5
+
+_VERSIONED = ("libsumo", "eclipse-sumo", "jsbsim", "pybullet", "open3d-cpu", "eclipse-zenoh", "mcap",
+              "numpy", "pydantic", "protobuf", "foxglove-schemas-protobuf")
+
+
+@dataclass
+class EpisodeResult:
+    """What ``run_episode`` reports back (also what ``cosim run`` prints)."""
+
+    path: Path
+    ticks: int
+    sim_time_s: float
+    actors: int
+    messages: int
+    size_bytes: int
+    wall_time_s: float
+    tick_times_s: list[float] = field(default_factory=list)  # wall time of the lockstep step per tick
+
+    @property
+    def real_time_factor(self) -> float:
+        return self.sim_time_s / self.wall_time_s if self.wall_time_s > 0 else float("inf")
+
+
+def dependency_versions() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for name in _VERSIONED:
+        try:
+            out[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            continue
+    return out
+
+
+def episode_path(loaded: LoadedScenario, out_dir: Path) -> Path:
+    s = loaded.scenario
+    stem = s.output.name or f"{s.name}_s{s.seed}"
+    return Path(out_dir) / f"{stem}.mcap"
+
+
+def episode_metadata(loaded: LoadedScenario, world: World) -> dict[str, str]:
+    """The ``episode`` metadata record (all values are strings; structured ones are JSON)."""
+    s = loaded.scenario
+    strategies = [d.strategy for d in s.agents.drones]
+    return {
+        "format_version": FORMAT_VERSION,
+        "generator": f"cosim {cosim.__version__}",
+        "scenario": s.name,
+        "description": s.description,
+        "seed": str(s.seed),
+        "weather": s.environment.weather,
+        "lighting": s.environment.lighting,
+        "environment": world.map_kind,
+        "strategies": json.dumps(strategies),
+        "tick_hz": repr(s.tick_hz),
+        "tick_ns": str(s.tick_ns),
+        "n_ticks": str(s.n_ticks),
+        "duration_s": repr(s.duration_s),
+        "agents": json.dumps(s.agent_ids()),
+        "sensors_enabled": json.dumps(s.sensors.enabled),
+        "geo_origin": json.dumps(list(world.geo_origin)),
+        "map_bounds_m": json.dumps(list(world.bounds_m)),
+        "class_table": json.dumps(class_table()),
+        "versions": json.dumps(dependency_versions()),
+    }
+
+
+def run_episode(
+    loaded: LoadedScenario,
+    out_dir: Path,
+    *,
+    progress: Callable[[int, int], None] | None = None,
+    listen: str | None = None,
+    external_workers: bool = False,
+    prefix: str | None = None,
+    worker_log_level: int = logging.WARNING,
+) -> EpisodeResult:
+    """Generate one episode; returns where it went and how long it took.
+
+    ``progress(done_ticks, total_ticks)`` is called after every tick. Raises a
+    :class:`~cosim.errors.CosimError` on failure; no file is left at the output path then.
+    """
+    from cosim.exporters.labels import label_messages
+    from cosim.exporters.mcap_writer import EpisodeWriter
+    from cosim.world import build_world
+
+    s = loaded.scenario
+    started = time.perf_counter()
+    final = episode_path(loaded, out_dir)
+    with tempfile.TemporaryDirectory(prefix="cosim-world-") as workdir:
+        world = build_world(loaded, Path(workdir))
+    suite = _sensor_suite(loaded, world)
+    tracks = TrackRegistry()
+    escorts = {f"drone_{i}": d.target for i, d in enumerate(s.agents.drones) if isinstance(d, EscortDrone)}
+    tick_times: list[float] = []
+    snapshot: WorldSnapshot | None = None
+
+    with EpisodeWriter(final, compression=s.output.compression) as writer, Conductor(
+        loaded.resolved,
+        world.to_wire(),
+        startup_timeout_s=s.runtime.startup_timeout_s,
+        tick_timeout_s=s.runtime.tick_timeout_s,
+        listen=listen,
+        external_workers=external_workers,
+        prefix=prefix,
+        worker_log_level=worker_log_level,
+    ) as conductor:
+        writer.add_metadata("episode", episode_metadata(loaded, world))
+        conductor.start()
+        for tick in range(s.n_ticks):
+            t_ns = tick * s.tick_ns
+            t0 = time.perf_counter()
+            targets = escort_targets(snapshot, escorts) if snapshot is not None else {}
+            replies = conductor.step(tick, t_ns, targets)
+            tick_times.append(time.perf_counter() - t0)
+            vehicles = [vehicle_from_dict(v) for v in replies["traffic"]["vehicles"]]
+            drones = [drone_from_dict(d) for d in replies["drones"]["drones"]]
+            snapshot = build_snapshot(tick, t_ns, vehicles, drones, world, tracks)
+            rig_tf = suite.transforms(snapshot) if suite is not None else []
+            for topic, message in label_messages(snapshot, rig_tf):
+                writer.write(topic, message, t_ns)
+            if suite is not None:
+                for topic, message in suite.messages(snapshot, np.random.default_rng([s.seed, tick, SENSOR_STREAM])):
+                    writer.write(topic, message, t_ns)
+            if progress is not None:
+                progress(tick + 1, s.n_ticks)
+        _attach(writer, loaded, world)
+        messages = writer.message_count
+        path = writer.finish()
+    return EpisodeResult(
+        path=path,
+        ticks=s.n_ticks,
+        sim_time_s=s.n_ticks * s.tick_ns / 1e9,
+        actors=len(tracks),
+        messages=messages,
+        size_bytes=path.stat().st_size,
+        wall_time_s=time.perf_counter() - started,
+        tick_times_s=tick_times,
+    )
+
+
+def _attach(writer: Any, loaded: LoadedScenario, world: World) -> None:
+    scenario_yaml = yaml.safe_dump(loaded.resolved, sort_keys=False).encode()
+    writer.add_attachment("scenario.yaml", "application/yaml", scenario_yaml)
+    writer.add_attachment("map.net.xml", "application/xml", world.net_xml)
+    writer.add_attachment("routes.rou.xml", "application/xml", world.routes_xml)
+    writer.add_attachment("world.json", "application/json", json.dumps(_world_summary(world)).encode())
+
+
+def _world_summary(world: World) -> dict[str, Any]:
+    """The static layout and RSU sites as plain JSON (what a reader needs to rebuild the scene)."""
+    wire = world.to_wire()
+    return {k: v for k, v in wire.items() if k not in ("net_xml", "routes_xml")}
+
+
+class _SensorAdapter:
+    """Couples the sensor suite to the runner: rig transforms for /tf and sensor messages."""
+
+    def __init__(self, loaded: LoadedScenario, world: World):
+        from cosim.exporters.sensor_messages import frame_messages
+        from cosim.sensors import SensorSuite
+        from cosim.sensors.rig import sensor_transforms
+
+        self._scenario = loaded.scenario
+        self._suite = SensorSuite(loaded.scenario, world)
+        self._frame_messages = frame_messages
+        self._sensor_transforms = sensor_transforms
+
+    def transforms(self, snapshot: WorldSnapshot) -> list[Any]:
+        out: list[Any] = []
+        for agent in snapshot.agents:
+            out.extend(self._sensor_transforms(self._scenario, agent))
+        return out
+
+    def messages(self, snapshot: WorldSnapshot, rng: np.random.Generator) -> list[tuple[str, Any]]:
+        return self._frame_messages(self._suite.render(snapshot, rng), snapshot.t_ns)
+
+
+def _sensor_suite(loaded: LoadedScenario, world: World) -> _SensorAdapter | None:
+    if not loaded.scenario.sensors.enabled:
+        return None
+    return _SensorAdapter(loaded, world)

@@ -1,0 +1,172 @@
+"""Plane geometry for the static world: polygons, polyline offsets, rasterised masks.
+
+Every polygon is an ``(N, 2)`` float64 array of map x/y [m] without a repeated last point.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from matplotlib.path import Path as MplPath
+from PIL import Image, ImageDraw, ImageFilter
+
+
+def signed_area(poly: np.ndarray) -> float:
+    """Shoelace area [m^2] of ``poly`` (N, 2); positive when counter-clockwise."""
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
+
+
+def ccw(poly: np.ndarray) -> np.ndarray:
+    """``poly`` (N, 2) in counter-clockwise order, repeated last point and duplicates removed."""
+    p = np.asarray(poly, dtype=np.float64)
+    if len(p) > 1 and np.allclose(p[0], p[-1]):
+        p = p[:-1]
+    keep = np.ones(len(p), dtype=bool)
+    keep[1:] = np.linalg.norm(np.diff(p, axis=0), axis=1) > 1e-6
+    p = p[keep]
+    return p[::-1].copy() if signed_area(p) < 0 else p
+
+
+def rect(cx: float, cy: float, length_m: float, width_m: float, yaw_rad: float) -> np.ndarray:
+    """Corners (4, 2) of a rectangle centred at (cx, cy), ``length_m`` along ``yaw_rad``, CCW."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    hl, hw = 0.5 * length_m, 0.5 * width_m
+    local = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw]])
+    rot = np.array([[c, -s], [s, c]])
+    return local @ rot.T + np.array([cx, cy])
+
+
+def regular_polygon(cx: float, cy: float, radius_m: float, n: int = 8, phase_rad: float = 0.0) -> np.ndarray:
+    """``n``-gon (n, 2) around (cx, cy), CCW."""
+    a = phase_rad + np.arange(n) * (2.0 * math.pi / n)
+    return np.stack([cx + radius_m * np.cos(a), cy + radius_m * np.sin(a)], axis=1)
+
+
+def polyline_length(line: np.ndarray) -> float:
+    """Length [m] of a polyline (N, 2)."""
+    return float(np.linalg.norm(np.diff(line, axis=0), axis=1).sum())
+
+
+def resample(line: np.ndarray, start_m: float, end_m: float) -> np.ndarray:
+    """Part of polyline ``line`` (N, 2) between arc lengths ``start_m`` and ``end_m``, as (M, 2)."""
+    seg = np.linalg.norm(np.diff(line, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    start_m, end_m = max(0.0, start_m), min(s[-1], end_m)
+    inner = [i for i in range(len(line)) if start_m < s[i] < end_m]
+    pts = [point_at(line, start_m), *(line[i] for i in inner), point_at(line, end_m)]
+    return np.array(pts)
+
+
+def point_at(line: np.ndarray, pos_m: float) -> np.ndarray:
+    """Point (2,) at arc length ``pos_m`` along polyline (N, 2), clamped to its ends."""
+    seg = np.linalg.norm(np.diff(line, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    pos_m = min(max(pos_m, 0.0), s[-1])
+    i = int(np.clip(np.searchsorted(s, pos_m, side="right") - 1, 0, len(seg) - 1))
+    t = 0.0 if seg[i] < 1e-9 else (pos_m - s[i]) / seg[i]
+    return line[i] + t * (line[i + 1] - line[i])
+
+
+def direction_at(line: np.ndarray, pos_m: float) -> float:
+    """Heading [rad, ENU] of polyline (N, 2) at arc length ``pos_m``."""
+    seg = np.linalg.norm(np.diff(line, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    i = int(np.clip(np.searchsorted(s, pos_m, side="right") - 1, 0, len(seg) - 1))
+    d = line[i + 1] - line[i]
+    return math.atan2(d[1], d[0])
+
+
+def offset_polyline(line: np.ndarray, offset_m: float) -> np.ndarray:
+    """Polyline (N, 2) shifted ``offset_m`` to its left (negative: right), mitred at the joints."""
+    p = np.asarray(line, dtype=np.float64)
+    d = np.diff(p, axis=0)
+    n = np.linalg.norm(d, axis=1, keepdims=True)
+    n[n < 1e-9] = 1e-9
+    t = d / n
+    normals = np.stack([-t[:, 1], t[:, 0]], axis=1)
+    out = np.empty_like(p)
+    out[0] = p[0] + offset_m * normals[0]
+    out[-1] = p[-1] + offset_m * normals[-1]
+    for i in range(1, len(p) - 1):
+        m = normals[i - 1] + normals[i]
+        norm = np.linalg.norm(m)
+        if norm < 1e-6:
+            out[i] = p[i] + offset_m * normals[i]
+            continue
+        m /= norm
+        cos_half = max(0.3, float(np.dot(m, normals[i])))
+        out[i] = p[i] + offset_m / cos_half * m
+    return out
+
+
+def strip(line: np.ndarray, width_m: float) -> np.ndarray:
+    """CCW polygon of a band of ``width_m`` centred on polyline ``line`` (N, 2)."""
+    left = offset_polyline(line, 0.5 * width_m)
+    right = offset_polyline(line, -0.5 * width_m)
+    return ccw(np.concatenate([right, left[::-1]], axis=0))
+
+
+def points_in_polygon(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Bool (M,) whether each point (M, 2) lies inside polygon (N, 2) (boundary counts as inside)."""
+    return MplPath(poly).contains_points(points, radius=1e-9) | MplPath(poly[::-1]).contains_points(points, radius=1e-9)
+
+
+@dataclass(frozen=True)
+class Raster:
+    """A boolean occupancy grid over the map: ``mask[row, col]`` covers
+    x in [x0 + col * cell, x0 + (col + 1) * cell), y in [y0 + row * cell, ...)."""
+
+    x0: float
+    y0: float
+    cell_m: float
+    mask: np.ndarray  # (H, W) bool
+
+    @classmethod
+    def empty(cls, bounds_m: tuple[float, float, float, float], cell_m: float) -> Raster:
+        xmin, ymin, xmax, ymax = bounds_m
+        w = int(math.ceil((xmax - xmin) / cell_m)) + 1
+        h = int(math.ceil((ymax - ymin) / cell_m)) + 1
+        return cls(xmin, ymin, cell_m, np.zeros((h, w), dtype=bool))
+
+    def with_polygons(self, polys: list[np.ndarray]) -> Raster:
+        """A copy with every polygon (N, 2) filled in."""
+        img = Image.fromarray(self.mask.astype(np.uint8) * 255, mode="L")
+        draw = ImageDraw.Draw(img)
+        for poly in polys:
+            pix = (np.asarray(poly) - [self.x0, self.y0]) / self.cell_m
+            draw.polygon([tuple(q) for q in pix.tolist()], fill=255, outline=255)
+        return Raster(self.x0, self.y0, self.cell_m, np.asarray(img) > 0)
+
+    def dilated(self, radius_m: float) -> Raster:
+        """A copy grown by ``radius_m`` (square structuring element)."""
+        k = 2 * int(math.ceil(radius_m / self.cell_m)) + 1
+        if k <= 1:
+            return self
+        img = Image.fromarray(self.mask.astype(np.uint8) * 255, mode="L").filter(ImageFilter.MaxFilter(k))
+        return Raster(self.x0, self.y0, self.cell_m, np.asarray(img) > 0)
+
+    def lookup(self, points: np.ndarray) -> np.ndarray:
+        """Bool (M,) mask value at points (M, 2); outside the grid is False."""
+        c = np.floor((points[:, 0] - self.x0) / self.cell_m).astype(int)
+        r = np.floor((points[:, 1] - self.y0) / self.cell_m).astype(int)
+        h, w = self.mask.shape
+        ok = (c >= 0) & (c < w) & (r >= 0) & (r < h)
+        out = np.zeros(len(points), dtype=bool)
+        out[ok] = self.mask[r[ok], c[ok]]
+        return out
+
+    def polygon_free(self, poly: np.ndarray) -> bool:
+        """True when no occupied cell lies under polygon (N, 2) (sampled at cell resolution)."""
+        xmin, ymin = poly.min(axis=0)
+        xmax, ymax = poly.max(axis=0)
+        xs = np.arange(xmin, xmax + self.cell_m, self.cell_m * 0.5)
+        ys = np.arange(ymin, ymax + self.cell_m, self.cell_m * 0.5)
+        gx, gy = np.meshgrid(xs, ys)
+        pts = np.stack([gx.ravel(), gy.ravel()], axis=1)
+        inside = MplPath(poly).contains_points(pts, radius=self.cell_m) | MplPath(poly[::-1]).contains_points(
+            pts, radius=self.cell_m)
+        pts = np.concatenate([pts[inside], poly])
+        return not bool(self.lookup(pts).any())

@@ -1,0 +1,154 @@
+"""The episode writer: one MCAP file per episode, complete or absent.
+
+The file is written to a hidden temporary name beside the destination and renamed only by
+:meth:`EpisodeWriter.finish`; any failure (or leaving the ``with`` block on an exception) deletes
+the temporary file, so a crash never leaves a file that looks complete.
+
+Times: every record's ``log_time`` and ``publish_time`` is simulation time in integer ns since the
+episode start, never the wall clock, so the same scenario and seed give the same bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from google.protobuf import descriptor_pb2
+from google.protobuf.message import Message as ProtoMessage
+from mcap.writer import CompressionType, Writer
+
+import cosim
+
+log = logging.getLogger(__name__)
+
+COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+CHUNK_SIZE = 4 * 1024 * 1024  # [bytes]
+
+
+def temporary_path(final: Path) -> Path:
+    """Where an episode is written before it is complete: a hidden ``.partial`` beside ``final``."""
+    return final.with_name(f".{final.name}.partial")
+
+
+def proto_file_descriptor_set(message_type: type[ProtoMessage]) -> bytes:
+    """Serialized FileDescriptorSet of a message type and everything it imports (dependencies first)."""
+    fds = descriptor_pb2.FileDescriptorSet()
+    seen: set[str] = set()
+
+    def add(fd: Any) -> None:
+        if fd.name in seen:
+            return
+        seen.add(fd.name)
+        for dep in fd.dependencies:
+            add(dep)
+        proto = descriptor_pb2.FileDescriptorProto()
+        fd.CopyToProto(proto)
+        fds.file.append(proto)
+
+    add(message_type.DESCRIPTOR.file)
+    return fds.SerializeToString(deterministic=True)
+
+
+class EpisodeWriter:
+    """Writes protobuf (Foxglove) and JSON (project schema) messages into one MCAP episode."""
+
+    def __init__(self, final_path: Path, *, compression: str = "zstd"):
+        self.final_path = Path(final_path)
+        self.tmp_path = temporary_path(self.final_path)
+        self.final_path.parent.mkdir(parents=True, exist_ok=True)
+        self._stream: BinaryIO = open(self.tmp_path, "wb")  # noqa: SIM115 (closed in finish/abort)
+        self._writer = Writer(self._stream, chunk_size=CHUNK_SIZE, compression=COMPRESSION[compression])
+        self._writer.start(profile="", library=f"cosim {cosim.__version__}")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._sequence: dict[int, int] = {}
+        self._done = False
+        self.message_count = 0
+
+    # -- channels -------------------------------------------------------------------------------
+
+    def _channel(self, topic: str, schema_name: str, schema_encoding: str, schema_data: bytes,
+                 message_encoding: str) -> int:
+        channel_id = self._channels.get(topic)
+        if channel_id is not None:
+            return channel_id
+        schema_id = self._schemas.get(schema_name)
+        if schema_id is None:
+            schema_id = self._writer.register_schema(schema_name, schema_encoding, schema_data)
+            self._schemas[schema_name] = schema_id
+        channel_id = self._writer.register_channel(topic, message_encoding, schema_id)
+        self._channels[topic] = channel_id
+        self._sequence[channel_id] = 0
+        return channel_id
+
+    def _add(self, channel_id: int, data: bytes, t_ns: int) -> None:
+        seq = self._sequence[channel_id]
+        self._sequence[channel_id] = seq + 1
+        self._writer.add_message(channel_id, log_time=t_ns, data=data, publish_time=t_ns, sequence=seq)
+        self.message_count += 1
+
+    # -- messages -------------------------------------------------------------------------------
+
+    def write_proto(self, topic: str, message: ProtoMessage, t_ns: int) -> None:
+        """Write a protobuf message (e.g. a ``foxglove.FrameTransforms``) at simulation time ``t_ns``."""
+        desc = message.DESCRIPTOR
+        channel_id = self._channels.get(topic)
+        if channel_id is None:
+            channel_id = self._channel(topic, desc.full_name, "protobuf",
+                                       proto_file_descriptor_set(type(message)), "protobuf")
+        self._add(channel_id, message.SerializeToString(deterministic=True), t_ns)
+
+    def write_json(self, topic: str, schema_name: str, schema: dict[str, Any], payload: Any, t_ns: int) -> None:
+        """Write a JSON message described by a JSON Schema (project schemas such as ``cosim.ObjectArray``)."""
+        channel_id = self._channels.get(topic)
+        if channel_id is None:
+            channel_id = self._channel(topic, schema_name, "jsonschema",
+                                       json.dumps(schema, sort_keys=True).encode(), "json")
+        self._add(channel_id, json.dumps(payload, separators=(",", ":")).encode(), t_ns)
+
+    def write(self, topic: str, message: Any, t_ns: int) -> None:
+        """Write either a protobuf message or a ``(schema_name, json_schema, payload)`` triple."""
+        if isinstance(message, ProtoMessage):
+            self.write_proto(topic, message, t_ns)
+        else:
+            schema_name, schema, payload = message
+            self.write_json(topic, schema_name, schema, payload, t_ns)
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        self._writer.add_metadata(name, data)
+
+    def add_attachment(self, name: str, media_type: str, data: bytes, t_ns: int = 0) -> None:
+        self._writer.add_attachment(create_time=t_ns, log_time=t_ns, name=name, media_type=media_type, data=data)
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    def finish(self) -> Path:
+        """Write the summary, flush to disk and move the file to its final name."""
+        self._writer.finish()
+        self._stream.flush()
+        os.fsync(self._stream.fileno())
+        self._stream.close()
+        os.replace(self.tmp_path, self.final_path)
+        self._done = True
+        log.debug("wrote %s (%d messages)", self.final_path, self.message_count)
+        return self.final_path
+
+    def abort(self) -> None:
+        """Drop the unfinished episode: close and delete the temporary file."""
+        if self._done:
+            return
+        self._done = True
+        try:
+            self._stream.close()
+        finally:
+            self.tmp_path.unlink(missing_ok=True)
+
+    def __enter__(self) -> EpisodeWriter:
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        if not self._done:
+            self.abort()
