@@ -15,6 +15,7 @@ import logging
 import multiprocessing as mp
 import queue
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -46,6 +47,9 @@ class _Liveliness:
 class Conductor:
     """Owns the Zenoh router, the worker processes and the lockstep loop of one episode.
 
+    ``worker_target(role, endpoint, prefix, log_level)`` is the spawned processes' entry point
+    (module-level, so ``spawn`` can import it); tests pass one that serves fake engines.
+
     Use as a context manager::
 
         with Conductor(scenario_data, world_wire, startup_timeout_s=60, tick_timeout_s=10) as c:
@@ -64,6 +68,7 @@ class Conductor:
         external_workers: bool = False,
         prefix: str | None = None,
         worker_log_level: int = logging.WARNING,
+        worker_target: Callable[[str, str, str, int], None] = spawned_worker_main,
     ):
         self._init = protocol.InitRequest(scenario=scenario_data, world=world_wire)
         self._startup_timeout_s = startup_timeout_s
@@ -72,6 +77,7 @@ class Conductor:
         self.endpoint = listen or transport.free_loopback_endpoint()
         self.prefix = prefix or (transport.EXTERNAL_PREFIX if external_workers else transport.new_prefix())
         self._worker_log_level = worker_log_level
+        self._worker_target = worker_target
         self._inbox: queue.Queue[_Reply | _Liveliness] = queue.Queue()
         self._alive: set[str] = set()
         self._procs: dict[str, mp.process.BaseProcess] = {}
@@ -96,7 +102,7 @@ class Conductor:
             ctx = mp.get_context("spawn")
             for role in ROLES:
                 proc = ctx.Process(
-                    target=spawned_worker_main,
+                    target=self._worker_target,
                     args=(role, self.endpoint, self.prefix, self._worker_log_level),
                     name=f"cosim-{role}",
                     daemon=True,

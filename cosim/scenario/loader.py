@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import difflib
 import json
+import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,8 +22,12 @@ from cosim.scenario.model import RuleError, Scenario
 
 Key = tuple[str | int, ...]
 
-#: Where shipped scenarios live (the repository's scenarios/ folder or the installed copy).
-SCENARIO_DIRS = (Path(__file__).resolve().parents[2] / "scenarios", Path(__file__).resolve().parents[1] / "data" / "scenarios")
+
+
+def scenario_dirs() -> list[Path]:
+    """Where shipped scenarios live: $COSIM_SCENARIO_PATH (os.pathsep-separated), then the checkout's scenarios/."""
+    dirs = [Path(p) for p in os.environ.get("COSIM_SCENARIO_PATH", "").split(os.pathsep) if p]
+    return [*dirs, Path(__file__).resolve().parents[2] / "scenarios"]
 
 
 @dataclass
@@ -271,7 +276,7 @@ def find_scenario(name_or_path: str | Path) -> Path:
     p = Path(name_or_path)
     if p.is_file():
         return p
-    for d in SCENARIO_DIRS:
+    for d in scenario_dirs():
         for cand in (d / p, d / f"{p}.yaml"):
             if cand.is_file():
                 return cand
@@ -308,7 +313,7 @@ def _validate(doc: _Doc, file: Path | None) -> LoadedScenario:
 def shipped_scenarios() -> list[tuple[str, Path]]:
     """(name, path) of every shipped scenario, base overlays excluded."""
     seen: dict[str, Path] = {}
-    for d in SCENARIO_DIRS:
+    for d in scenario_dirs():
         if d.is_dir():
             for p in sorted(d.glob("*.yaml")):
                 seen.setdefault(p.stem, p)

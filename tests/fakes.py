@@ -1,0 +1,56 @@
+"""In-process fake engines for fast conductor tests: real processes, real Zenoh, no SUMO or JSBSim.
+
+The behaviour is chosen by the scenario's name so that it travels with the init request:
+``fake-hang-drones-3`` makes the drone worker hang at tick 3, ``fake-fail-traffic-2`` makes the
+traffic worker raise at tick 2, ``fake-exit-drones-4`` makes it exit abruptly.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from typing import Any
+
+from cosim import protocol
+from cosim.errors import CosimError
+from cosim.workers.base import serve
+
+
+class FakeEngine:
+    def __init__(self, role: str):
+        self.role = role
+        self.mode: tuple[str, str, int] | None = None
+
+    def init(self, request: protocol.InitRequest) -> dict[str, Any]:
+        parts = request.scenario["name"].split("-")
+        if len(parts) == 4 and parts[0] == "fake":
+            self.mode = (parts[1], parts[2], int(parts[3]))
+        return {"ready": True}
+
+    def step(self, request: protocol.StepRequest) -> dict[str, Any]:
+        if self.mode and self.mode[1] == self.role and request.tick == self.mode[2]:
+            action = self.mode[0]
+            if action == "hang":
+                time.sleep(3600)
+            if action == "fail":
+                raise CosimError(f"injected failure at tick {request.tick}")
+            if action == "exit":
+                os._exit(3)
+        t = request.t_ns / 1e9
+        if self.role == "traffic":
+            v = protocol.VehicleState("vehicle_0", "car", (10.0 * t, 0.0, 0.75), (4.5, 1.9, 1.5), 0.0, 0.0,
+                                      10.0, (10.0, 0.0, 0.0), 0.0, 0.0, "vehicle_0")
+            return {"tick": request.tick, "t_ns": request.t_ns, "vehicles": [v]}
+        d = protocol.DroneState("drone_0", (0.0, 0.0, 50.0), (0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0),
+                                (0.0, 0.0, 9.81), (0.0, 0.0, 0.0, 1.0), 0.0, "hover", "hold")
+        return {"tick": request.tick, "t_ns": request.t_ns, "drones": [d],
+                "escorts_seen": sorted(request.escort_targets)}
+
+    def close(self) -> None:
+        pass
+
+
+def fake_worker_main(role: str, connect: str, prefix: str, log_level: int) -> None:
+    logging.basicConfig(level=log_level)
+    raise SystemExit(serve(role, connect, prefix, FakeEngine(role), spawned=True))
