@@ -53,6 +53,7 @@ class EpisodeResult:
     size_bytes: int
     wall_time_s: float
     tick_times_s: list[float] = field(default_factory=list)  # wall time of the lockstep step per tick
+    sync_costs_s: list[float] = field(default_factory=list)  # step wall time minus the slowest worker's compute
 
     @property
     def real_time_factor(self) -> float:
@@ -130,6 +131,7 @@ def run_episode(
     tracks = TrackRegistry()
     escorts = {f"drone_{i}": d.target for i, d in enumerate(s.agents.drones) if isinstance(d, EscortDrone)}
     tick_times: list[float] = []
+    sync_costs: list[float] = []
     snapshot: WorldSnapshot | None = None
 
     with EpisodeWriter(final, compression=s.output.compression) as writer, Conductor(
@@ -149,7 +151,9 @@ def run_episode(
             t0 = time.perf_counter()
             targets = escort_targets(snapshot, escorts) if snapshot is not None else {}
             replies = conductor.step(tick, t_ns, targets)
-            tick_times.append(time.perf_counter() - t0)
+            step_s = time.perf_counter() - t0
+            tick_times.append(step_s)
+            sync_costs.append(step_s - max(r.get("compute_ns", 0) for r in replies.values()) / 1e9)
             vehicles = [vehicle_from_dict(v) for v in replies["traffic"]["vehicles"]]
             drones = [drone_from_dict(d) for d in replies["drones"]["drones"]]
             snapshot = build_snapshot(tick, t_ns, vehicles, drones, world, tracks)
@@ -173,6 +177,7 @@ def run_episode(
         size_bytes=path.stat().st_size,
         wall_time_s=time.perf_counter() - started,
         tick_times_s=tick_times,
+        sync_costs_s=sync_costs,
     )
 
 

@@ -14,6 +14,7 @@ import os
 import queue
 import signal
 import sys
+import time
 import traceback
 from typing import Any, Protocol
 
@@ -90,7 +91,9 @@ def _loop(role: str, inbox: queue.Queue[Any], engine: Engine) -> int:
             if verb == "init":
                 reply = engine.init(protocol.InitRequest(**data))
             elif verb == "step":
+                started = time.perf_counter_ns()  # telemetry only: never feeds the simulation
                 reply = engine.step(protocol.step_request_from_dict(data))
+                reply["compute_ns"] = time.perf_counter_ns() - started
             elif verb == "close":
                 query.reply(query.key_expr, protocol.encode({"closed": True}))
                 return 0

@@ -1,0 +1,53 @@
+"""Co-simulation overhead: the default scenario without sensors (traffic + drones + Zenoh + labels).
+
+Prints simulated seconds per wall second for the whole run and per phase, and the per-tick lockstep
+cost: the wall time of one conductor step, and the sync cost (that step minus the slowest worker's
+own compute time, i.e. what Zenoh, encoding and waiting add). Everything is measured in one run;
+ratios, not absolute times, are what to compare across these shared machines.
+
+    .venv/bin/python benchmarks/cosim_overhead.py [--duration 60] [--scenario scenarios/default.yaml]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+from pathlib import Path
+
+from cosim.runner import run_episode
+from cosim.scenario import load_scenario
+
+
+def percentile(values: list[float], q: float) -> float:
+    s = sorted(values)
+    return s[min(len(s) - 1, round(q / 100 * (len(s) - 1)))]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scenario", default="scenarios/default.yaml")
+    p.add_argument("--duration", type=float, default=60.0, help="simulated seconds")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    args = p.parse_args()
+    loaded = load_scenario(args.scenario, [f"duration_s={args.duration}", "sensors.enabled=false", *args.set])
+    s = loaded.scenario
+    with tempfile.TemporaryDirectory() as out:
+        r = run_episode(loaded, Path(out))
+    step_ms = [t * 1e3 for t in r.tick_times_s]
+    sync_ms = [t * 1e3 for t in r.sync_costs_s]
+    loop_s = sum(r.tick_times_s)
+    print(f"scenario            {s.name}: {s.map.kind}, {s.agents.vehicles.count} vehicles, "
+          f"{s.agents.rsus.count} RSUs, {len(s.agents.drones)} drones, {r.actors} tracks")
+    print(f"simulated           {r.sim_time_s:.1f} s in {r.ticks} ticks; wall {r.wall_time_s:.2f} s "
+          f"(incl. world build and worker start-up)")
+    print(f"real-time factor    {r.real_time_factor:.1f}x overall, {r.sim_time_s / loop_s:.1f}x in the tick loop "
+          f"(lockstep steps only)")
+    print(f"step per tick       mean {statistics.mean(step_ms):.2f} ms, p99 {percentile(step_ms, 99):.2f} ms")
+    print(f"sync cost per tick  mean {statistics.mean(sync_ms):.3f} ms, p99 {percentile(sync_ms, 99):.3f} ms "
+          f"({statistics.mean(sync_ms) / statistics.mean(step_ms):.0%} of a step)")
+    print(f"episode             {r.messages} messages, {r.size_bytes / 1e6:.2f} MB")
+
+
+if __name__ == "__main__":
+    main()
