@@ -170,7 +170,7 @@ class Conductor:
         shown_tick = tick if tick >= 0 else None
         for role, request in requests.items():
             if role not in self._alive:
-                raise WorkerError(role, "is not running", tick=shown_tick)
+                raise WorkerError(role, self._death_reason(role), tick=shown_tick)
             self._session.get(
                 f"{self.prefix}/{role}/{verb}",
                 lambda reply, role=role: self._on_reply(role, tick, reply),
