@@ -39,23 +39,28 @@ class Engine(Protocol):
     def close(self) -> None: ...
 
 
-def _die_with_parent() -> None:
-    """Ask Linux to SIGKILL this process when its parent dies (spawned workers only)."""
-    if sys.platform.startswith("linux"):
-        import ctypes
+def _set_process(role: str, *, die_with_parent: bool) -> None:
+    """Name the process ``cosim-<role>`` (as ``ps`` and ``top`` show it) and, for spawned workers, ask
+    Linux to SIGKILL it when its parent dies."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
 
-        try:
-            libc = ctypes.CDLL("libc.so.6", use_errno=True)
-            pr_set_pdeathsig = 1
-            libc.prctl(pr_set_pdeathsig, signal.SIGKILL)
-        except OSError:
-            log.debug("prctl unavailable; relying on liveliness to notice a dead conductor")
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+    except OSError:
+        log.debug("libc unavailable; relying on liveliness to notice a dead conductor")
+        return
+    pr_set_pdeathsig, pr_set_name = 1, 15
+    libc.prctl(pr_set_name, ctypes.c_char_p(f"cosim-{role}".encode()[:15]), 0, 0, 0)
+    if die_with_parent:
+        libc.prctl(pr_set_pdeathsig, signal.SIGKILL, 0, 0, 0)
 
 
 def serve(role: str, connect: str, prefix: str, engine: Engine, *, spawned: bool = False) -> int:
     """Serve one episode for ``role`` and return the process exit status."""
+    _set_process(role, die_with_parent=spawned)
     if spawned:
-        _die_with_parent()
         # Ctrl-C reaches the whole process group; the conductor shuts us down in order instead.
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     inbox: queue.Queue[Any] = queue.Queue()
