@@ -17,9 +17,7 @@ G_MPS2 = 9.80665  # [m/s^2] standard gravity
 RHO_KGPM3 = 1.225  # [kg/m^3] sea-level air density (ISA)
 
 #: Unit directions of the 4 rotors in the body x/y plane: front-left, back-left, back-right, front-right.
-ROTOR_DIRS = np.array(
-    [[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]]
-) / math.sqrt(2.0)
+ROTOR_DIRS = np.array([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]]) / math.sqrt(2.0)
 #: Spin direction of each rotor (+1 counter-clockwise seen from above).
 ROTOR_SPIN = np.array([1.0, -1.0, 1.0, -1.0])
 

@@ -29,7 +29,12 @@ class Wind:
 
     @classmethod
     def create(
-        cls, speed_mps: float, direction_rad: float, gust_std_mps: float, dt_s: float, rng: np.random.Generator
+        cls,
+        speed_mps: float,
+        direction_rad: float,
+        gust_std_mps: float,
+        dt_s: float,
+        rng: np.random.Generator,
     ) -> Wind:
         """Mean wind blowing TOWARD ``direction_rad`` (ENU yaw); gust state drawn from its stationary law."""
         mean = np.array([speed_mps * math.cos(direction_rad), speed_mps * math.sin(direction_rad), 0.0])

@@ -1,0 +1,213 @@
+"""The drone fleet: one dynamics backend, controller, wind and strategy per drone, stepped in lockstep.
+
+``DroneFleet.step_to(t_ns, tick, escort_targets)`` advances every drone to ``t_ns`` at the physics
+rate and returns one :class:`cosim.protocol.DroneState` per drone, in drone index order
+(drone_0, drone_1, ...). The drone worker process wraps this; nothing here touches Zenoh.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from cosim.drones.airframe import Airframe, airframe_for_mass, rotor_power_w
+from cosim.drones.backends import backend_class
+from cosim.drones.backends.base import DynamicsBackend
+from cosim.drones.backends.pybullet_backend import body_half_extents_m
+from cosim.drones.control import BodyState, Controller, Limits, yaw_of
+from cosim.drones.obstacles import Obstacles
+from cosim.drones.routes import hover_point, patrol_loop, ranked_junctions, world_centre
+from cosim.drones.strategies import Escort, Hover, Patrol, Strategy, planned_altitude
+from cosim.drones.wind import Wind
+from cosim.errors import CollisionError, WorkerError
+from cosim.geometry import quat_from_matrix, quat_from_rpy
+from cosim.protocol import DroneState, EscortTarget
+from cosim.scenario.model import EscortDrone, HoverDrone, PatrolDrone, Scenario
+from cosim.world.types import World
+
+log = logging.getLogger(__name__)
+
+WIND_STREAM = 0xD12E  # SeedSequence tag of the drones' random streams
+
+
+@dataclass
+class _Drone:
+    agent_id: str
+    backend: DynamicsBackend
+    controller: Controller
+    wind: Wind
+    strategy: Strategy
+    radius_m: float
+    size_m: tuple[float, float, float]
+    energy_j: float = 0.0
+
+
+def _clearance(spec: HoverDrone | PatrolDrone | EscortDrone) -> float | None:
+    """Clearance above obstacles [m], or None when the scenario turns altitude planning off."""
+    if not getattr(spec, "avoid_obstacles", True):
+        return None
+    return float(getattr(spec, "clearance_m", 10.0))
+
+
+def build_strategy(
+    spec: HoverDrone | PatrolDrone | EscortDrone, kind_index: int, world: World, obstacles: Obstacles
+) -> Strategy:
+    """The strategy of one drone; ``kind_index`` counts drones of the same strategy (0, 1, ...)."""
+    clearance = _clearance(spec)
+    if isinstance(spec, HoverDrone):
+        xy = np.array(
+            spec.point if spec.point is not None else hover_point(world, kind_index), dtype=np.float64
+        )
+        z = planned_altitude(obstacles, xy[None, :], spec.altitude_m, clearance)
+        return Hover(np.array([xy[0], xy[1], z]))
+    if isinstance(spec, PatrolDrone):
+        if spec.waypoints is not None:
+            wps = np.array(spec.waypoints, dtype=np.float64)
+        else:
+            wps = patrol_loop(world, kind_index, spec.loop_length_m)
+        closed = np.vstack([wps, wps[:1]])
+        dense = np.concatenate(
+            [
+                np.linspace(a, b, max(2, int(np.linalg.norm(b - a) // 5) + 2))
+                for a, b in itertools.pairwise(closed)
+            ]
+        )
+        z = planned_altitude(obstacles, dense, spec.altitude_m, clearance)
+        return Patrol(np.column_stack([wps, np.full(len(wps), z)]), spec.speed_mps, spec.reach_radius_m)
+    if isinstance(spec, EscortDrone):
+        if spec.start is not None:
+            xy = np.array(spec.start, dtype=np.float64)
+        else:
+            js = ranked_junctions(world)
+            xy = np.array(js[0].position_m) if js else world_centre(world)
+        z = planned_altitude(obstacles, xy[None, :], spec.altitude_m, clearance)
+        return Escort(spec.offset_m, spec.altitude_m, clearance, obstacles, np.array([xy[0], xy[1], z]))
+    raise TypeError(f"unknown drone spec {type(spec).__name__}")
+
+
+class DroneFleet:
+    """All drones of a scenario, physics at ``agents.drone_physics_hz``."""
+
+    def __init__(self, scenario: Scenario, world: World):
+        a = scenario.agents
+        self.scenario = scenario
+        self.world = world
+        self.tick_ns = scenario.tick_ns
+        self.substeps = round(a.drone_physics_hz / scenario.tick_hz)
+        self.dt_s = 1.0 / a.drone_physics_hz
+        self.obstacles = Obstacles.from_layout(world.layout)
+        self.frame: Airframe = airframe_for_mass(a.drone_mass_kg)
+        seeds = np.random.SeedSequence([scenario.seed, WIND_STREAM]).spawn(len(a.drones) + 1)
+        wind_dir = float(np.random.default_rng(seeds[0]).uniform(-math.pi, math.pi))
+        env = scenario.environment
+        half = body_half_extents_m(self.frame)
+        counts: dict[str, int] = {}
+        self._drones: list[_Drone] = []
+        self._t_ns: int | None = None
+        try:
+            for i, spec in enumerate(a.drones):
+                k = counts.get(spec.strategy, 0)
+                counts[spec.strategy] = k + 1
+                strategy = build_strategy(spec, k, self.world, self.obstacles)
+                backend = backend_class(a.drone_backend_of(i))(self.frame, self.dt_s, world)
+                limits = Limits(max_speed_mps=spec.max_speed_mps)
+                wind = Wind.create(
+                    env.wind_mps, wind_dir, env.gust_mps, self.dt_s, np.random.default_rng(seeds[i + 1])
+                )
+                drone = _Drone(
+                    f"drone_{i}",
+                    backend,
+                    Controller(self.frame, self.dt_s, limits),
+                    wind,
+                    strategy,
+                    radius_m=float(math.hypot(half[0], half[1])) * 0.75,
+                    size_m=(2 * half[0], 2 * half[1], 2 * half[2]),
+                )
+                self._drones.append(drone)
+                self._place(drone, spec.start)
+        except Exception:
+            self.close()
+            raise
+
+    @staticmethod
+    def _place(d: _Drone, start: tuple[float, float] | None) -> None:
+        pos, yaw = d.strategy.start()
+        if start is not None:
+            pos = np.array([start[0], start[1], pos[2]])
+        d.backend.reset(pos, yaw)
+        d.controller.yaw_setpoint_rad = yaw
+        d.controller.vel_integral[:] = 0.0
+
+    @property
+    def agent_ids(self) -> list[str]:
+        return [d.agent_id for d in self._drones]
+
+    def step_to(self, t_ns: int, tick: int, escort_targets: dict[str, EscortTarget]) -> list[DroneState]:
+        """Advance to ``t_ns`` (0 on the first call: initial states, no integration).
+
+        ``escort_targets`` maps drone agent id -> its target's state at the previous tick (at t=0:
+        the state at t=0). Raises :class:`CollisionError` when a drone hits an obstacle or the ground.
+        """
+        if self._t_ns is None:
+            if t_ns != 0:
+                raise WorkerError("drones", f"the first step must be t_ns=0, got {t_ns}", tick=tick)
+            for i, d in enumerate(self._drones):
+                if isinstance(d.strategy, Escort):
+                    d.strategy.observe(0.0, escort_targets.get(d.agent_id))
+                    self._place(d, self.scenario.agents.drones[i].start)
+            self._t_ns = 0
+            return [self._state_of(d) for d in self._drones]
+        span = t_ns - self._t_ns
+        if span <= 0 or span % self.tick_ns:
+            raise WorkerError(
+                "drones",
+                f"step to t_ns={t_ns} from t_ns={self._t_ns} is not a whole number of "
+                f"{self.tick_ns} ns ticks",
+                tick=tick,
+            )
+        t_prev_s = self._t_ns * 1e-9
+        for d in self._drones:
+            if isinstance(d.strategy, Escort):
+                d.strategy.observe(t_prev_s, escort_targets.get(d.agent_id))
+        n_steps = (span // self.tick_ns) * self.substeps
+        for k in range(1, n_steps + 1):
+            t_s = t_prev_s + k * self.dt_s
+            for d in self._drones:
+                self._physics_step(d, t_s, tick)
+        self._t_ns = t_ns
+        return [self._state_of(d) for d in self._drones]
+
+    def _physics_step(self, d: _Drone, t_s: float, tick: int) -> None:
+        s = d.backend.state()
+        ref = d.strategy.reference(t_s, s)
+        cmd = d.controller.update(s, ref)
+        d.backend.step(cmd, d.wind.step())
+        d.energy_j += rotor_power_w(d.backend.rotors.thrust_n, self.frame) * self.dt_s
+        what = d.backend.contact() or self.obstacles.hit(d.backend.state().position_m, d.radius_m)
+        if what is not None:
+            raise CollisionError(d.agent_id, tick, what)
+
+    def _state_of(self, d: _Drone) -> DroneState:
+        s: BodyState = d.backend.state()
+        return DroneState(
+            agent_id=d.agent_id,
+            position_m=tuple(float(v) for v in s.position_m),
+            rotation=quat_from_matrix(s.rotation),
+            velocity_mps=tuple(float(v) for v in s.velocity_mps),
+            angular_rate_radps=tuple(float(v) for v in s.rate_radps),
+            specific_force_mps2=tuple(float(v) for v in s.specific_force_mps2),
+            gimbal_rotation=quat_from_rpy(0.0, 0.0, yaw_of(s.rotation)),
+            energy_used_j=float(d.energy_j),
+            strategy=d.strategy.name,
+            strategy_state=d.strategy.label(),
+            size_m=d.size_m,
+        )
+
+    def close(self) -> None:
+        for d in self._drones:
+            d.backend.close()
+        self._drones = []

@@ -1,0 +1,249 @@
+"""Drone strategies: what each drone wants to do, as a moving reference for the shared controller.
+
+- hover: hold a point (default above a junction) at a planned altitude;
+- patrol: loop over waypoints with a speed profile that slows into corners and never runs ahead of
+  a waypoint the drone has not reached;
+- escort: hold an offset (target body frame) and altitude over a connected vehicle whose state
+  arrives one tick late; the target is extrapolated with a constant turn-rate model.
+
+Altitude planning: the flight altitude is the requested height above ground or, where higher, the
+obstacle tops along the path (:class:`Obstacles`) plus ``clearance_m``. Map frame ENU, metres.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+from cosim.drones.control import BodyState, Reference
+from cosim.drones.obstacles import Obstacles
+from cosim.geometry import wrap_angle
+from cosim.protocol import EscortTarget
+
+ZERO3 = np.zeros(3)
+PATH_MARGIN_M = 10.0  # [m] lateral distance from the path inside which obstacles count for altitude
+HOLD_RADIUS_M = 2.0  # [m] within this of its point a hovering drone is "hold"
+TRACK_RADIUS_M = 5.0  # [m] within this of the offset point an escort is "tracking"
+
+
+def planned_altitude(
+    obstacles: Obstacles, points_xy: np.ndarray, height_m: float, clearance_m: float | None
+) -> float:
+    """Flight z [m]: ``height_m`` above the ground, raised to clear obstacle tops along ``points_xy``
+    (N, 2) by ``clearance_m`` (None: no planning, fly at ``height_m`` whatever is there)."""
+    z = obstacles.ground_z_m + height_m
+    if clearance_m is None:
+        return z
+    return max(z, obstacles.top_along(points_xy, PATH_MARGIN_M) + clearance_m)
+
+
+class Strategy(ABC):
+    name: str
+
+    @abstractmethod
+    def start(self) -> tuple[np.ndarray, float]:
+        """Where the drone starts, hovering: position (3,) map ENU [m] and yaw [rad]."""
+
+    @abstractmethod
+    def reference(self, t_s: float, s: BodyState) -> Reference:
+        """The reference at time ``t_s`` given the drone's state; called once per physics step, in order."""
+
+    @abstractmethod
+    def label(self) -> str:
+        """Short state of the strategy ("hold", "to_wp_3", "tracking", ...)."""
+
+
+@dataclass
+class Hover(Strategy):
+    point_m: np.ndarray  # (3,)
+    yaw_rad: float = 0.0
+    name: str = "hover"
+    _label: str = "hold"
+
+    def start(self) -> tuple[np.ndarray, float]:
+        return self.point_m.copy(), self.yaw_rad
+
+    def reference(self, t_s: float, s: BodyState) -> Reference:
+        d = float(np.linalg.norm(s.position_m - self.point_m))
+        self._label = "hold" if d <= HOLD_RADIUS_M else "approach"
+        return Reference(self.point_m, ZERO3, ZERO3, self.yaw_rad)
+
+    def label(self) -> str:
+        return self._label
+
+
+def corner_speed(prev_dir: np.ndarray, next_dir: np.ndarray, cruise_mps: float) -> float:
+    """Speed [m/s] to pass a corner between unit directions: cruise when straight, 1 m/s at 90 deg or more."""
+    c = float(np.clip(prev_dir @ next_dir, -1.0, 1.0))
+    turn = math.acos(c)
+    share = max(0.0, 1.0 - turn / (0.5 * math.pi))
+    return max(1.0, min(cruise_mps, cruise_mps * share * share))
+
+
+@dataclass
+class Patrol(Strategy):
+    """Loop over ``waypoints_m`` (N, 3) closed polygon (last point not repeated)."""
+
+    waypoints_m: np.ndarray
+    cruise_mps: float
+    reach_radius_m: float
+    accel_mps2: float = 1.5  # planned along-path acceleration
+    name: str = "patrol"
+
+    def __post_init__(self) -> None:
+        w = self.waypoints_m
+        n = len(w)
+        seg = np.roll(w, -1, axis=0) - w  # segment i: waypoint i -> i+1
+        self._seg_len = np.linalg.norm(seg, axis=1)
+        self._seg_dir = seg / self._seg_len[:, None]
+        self._s_wp = np.concatenate(
+            [[0.0], np.cumsum(self._seg_len)]
+        )  # arc length at waypoint i (and loop end)
+        self._loop_m = float(self._s_wp[-1])
+        self._v_corner = np.array(
+            [corner_speed(self._seg_dir[(i - 1) % n], self._seg_dir[i], self.cruise_mps) for i in range(n)]
+        )
+        self._s = 0.0  # unwrapped arc length of the reference
+        self._s_dot = 0.0
+        self._next = 1 % n  # next waypoint to reach (the drone starts on waypoint 0)
+        self._next_s = float(self._s_wp[1])  # unwrapped arc length of that waypoint
+        self._last_t: float | None = None
+        self.reached: list[tuple[float, int]] = [(0.0, 0)]  # (t [s], waypoint index)
+
+    def start(self) -> tuple[np.ndarray, float]:
+        d = self._seg_dir[0]
+        return self.waypoints_m[0].copy(), math.atan2(d[1], d[0])
+
+    def _locate(self, s: float) -> tuple[int, float]:
+        u = s % self._loop_m
+        i = min(int(np.searchsorted(self._s_wp, u, side="right")) - 1, len(self.waypoints_m) - 1)
+        return i, u - self._s_wp[i]
+
+    def reference(self, t_s: float, s: BodyState) -> Reference:
+        dt = 0.0 if self._last_t is None else t_s - self._last_t
+        self._last_t = t_s
+        n = len(self.waypoints_m)
+        # Waypoint bookkeeping: the drone itself must come within the reach radius, in order.
+        wp = self.waypoints_m[self._next]
+        if math.hypot(s.position_m[0] - wp[0], s.position_m[1] - wp[1]) <= self.reach_radius_m:
+            self.reached.append((t_s, self._next))
+            self._next = (self._next + 1) % n
+            self._next_s += float(self._seg_len[(self._next - 1) % n])
+        # Speed profile: brake into the next corner, never more than cruise.
+        i, along = self._locate(self._s)
+        to_corner = self._seg_len[i] - along
+        v_c = self._v_corner[(i + 1) % n]
+        v_allowed = min(self.cruise_mps, math.sqrt(v_c * v_c + 2.0 * self.accel_mps2 * max(to_corner, 0.0)))
+        # Governor: wait for a lagging drone.
+        ref_now = self.waypoints_m[i] + along * self._seg_dir[i]
+        lag = float(np.linalg.norm(ref_now - s.position_m))
+        v_allowed *= min(1.0, max(0.0, 1.0 - (lag - 4.0) / 6.0))
+        s_dot_new = min(v_allowed, self._s_dot + self.accel_mps2 * dt)
+        s_new = self._s + s_dot_new * dt
+        # Do not run past a waypoint the drone has not reached.
+        if s_new > self._next_s:
+            s_new = self._next_s
+            s_dot_new = min(s_dot_new, v_c)
+        a_t = (s_dot_new - self._s_dot) / dt if dt > 0 else 0.0
+        self._s, self._s_dot = s_new, s_dot_new
+        i, along = self._locate(self._s)
+        d = self._seg_dir[i]
+        pos = self.waypoints_m[i] + along * d
+        return Reference(pos, s_dot_new * d, a_t * d, math.atan2(d[1], d[0]))
+
+    def label(self) -> str:
+        return f"to_wp_{self._next}"
+
+
+@dataclass
+class Escort(Strategy):
+    """Hold ``offset_m`` (forward, left) in the target's body frame at flight z ``z_m``."""
+
+    offset_m: tuple[float, float]
+    height_m: float
+    clearance_m: float | None
+    obstacles: Obstacles
+    fallback_start_m: np.ndarray  # (3,) where to start when the target is not known at t=0
+    name: str = "escort"
+
+    def __post_init__(self) -> None:
+        self._obs: tuple[float, np.ndarray, float, np.ndarray] | None = None  # t, centre, yaw, velocity
+        self._yaw_rate = 0.0
+        self._label = "lost"
+        self._hold: np.ndarray | None = None
+        self._z_m = self.fallback_start_m[2]
+
+    def observe(self, t_s: float, target: EscortTarget | None) -> None:
+        """The target's state at ``t_s`` (the previous tick), or None when the conductor sent none."""
+        if target is None:
+            self._obs = None
+            return
+        c = np.array(target.center_m, dtype=np.float64)
+        v = np.array(target.velocity_mps, dtype=np.float64)
+        if self._obs is not None and t_s > self._obs[0]:
+            self._yaw_rate = wrap_angle(target.yaw_rad - self._obs[2]) / (t_s - self._obs[0])
+        self._obs = (t_s, c, float(target.yaw_rad), v)
+        q = self._predict(t_s)[0]
+        ahead = np.array([q[:2] + v[:2] * tau for tau in (0.0, 2.0, 4.0, 6.0)])
+        self._z_m = planned_altitude(self.obstacles, ahead, self.height_m, self.clearance_m)
+
+    def _predict(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Offset point position (3,), velocity (3,), acceleration (3,) and target yaw at ``t_s``."""
+        assert self._obs is not None
+        t0, c0, yaw0, v0 = self._obs
+        dt = min(max(t_s - t0, 0.0), 1.0)
+        w = self._yaw_rate
+        speed = math.hypot(v0[0], v0[1])
+        h0 = math.atan2(v0[1], v0[0]) if speed > 0.5 else yaw0
+        h = h0 + w * dt
+        if abs(w) > 1e-4:
+            dp = speed / w * np.array([math.sin(h) - math.sin(h0), math.cos(h0) - math.cos(h)])
+        else:
+            dp = speed * dt * np.array([math.cos(h0), math.sin(h0)])
+        p = c0[:2] + dp
+        v = speed * np.array([math.cos(h), math.sin(h)])
+        a = speed * w * np.array([-math.sin(h), math.cos(h)])
+        yaw = yaw0 + w * dt
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        o = np.array(
+            [cy * self.offset_m[0] - sy * self.offset_m[1], sy * self.offset_m[0] + cy * self.offset_m[1]]
+        )
+        q = p + o
+        q_dot = v + w * np.array([-o[1], o[0]])
+        q_ddot = a - w * w * o
+        return (
+            np.array([q[0], q[1], self._z_m]),
+            np.array([q_dot[0], q_dot[1], 0.0]),
+            np.array([q_ddot[0], q_ddot[1], 0.0]),
+            yaw,
+        )
+
+    def offset_point(self, target: EscortTarget) -> np.ndarray:
+        """(2,) the commanded offset point of an exactly known target state."""
+        cy, sy = math.cos(target.yaw_rad), math.sin(target.yaw_rad)
+        fx, ly = self.offset_m
+        return np.array([target.center_m[0] + cy * fx - sy * ly, target.center_m[1] + sy * fx + cy * ly])
+
+    def start(self) -> tuple[np.ndarray, float]:
+        if self._obs is None:
+            return self.fallback_start_m.copy(), 0.0
+        q, _, _, yaw = self._predict(self._obs[0])
+        return q, yaw
+
+    def reference(self, t_s: float, s: BodyState) -> Reference:
+        if self._obs is None:
+            if self._hold is None:
+                self._hold = s.position_m.copy()
+            self._label = "lost"
+            return Reference(self._hold, ZERO3, ZERO3, math.atan2(s.rotation[1, 0], s.rotation[0, 0]))
+        self._hold = None
+        q, q_dot, q_ddot, yaw = self._predict(t_s)
+        d = math.hypot(q[0] - s.position_m[0], q[1] - s.position_m[1])
+        self._label = "tracking" if d <= TRACK_RADIUS_M else "approach"
+        return Reference(q, q_dot, q_ddot, yaw)
+
+    def label(self) -> str:
+        return self._label
