@@ -111,7 +111,9 @@ def strip(line: np.ndarray, width_m: float) -> np.ndarray:
 
 def points_in_polygon(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
     """Bool (M,) whether each point (M, 2) lies inside polygon (N, 2) (boundary counts as inside)."""
-    return MplPath(poly).contains_points(points, radius=1e-9) | MplPath(poly[::-1]).contains_points(points, radius=1e-9)
+    return MplPath(poly).contains_points(points, radius=1e-9) | MplPath(poly[::-1]).contains_points(
+        points, radius=1e-9
+    )
 
 
 @dataclass(frozen=True)
@@ -127,8 +129,8 @@ class Raster:
     @classmethod
     def empty(cls, bounds_m: tuple[float, float, float, float], cell_m: float) -> Raster:
         xmin, ymin, xmax, ymax = bounds_m
-        w = int(math.ceil((xmax - xmin) / cell_m)) + 1
-        h = int(math.ceil((ymax - ymin) / cell_m)) + 1
+        w = math.ceil((xmax - xmin) / cell_m) + 1
+        h = math.ceil((ymax - ymin) / cell_m) + 1
         return cls(xmin, ymin, cell_m, np.zeros((h, w), dtype=bool))
 
     def with_polygons(self, polys: list[np.ndarray]) -> Raster:
@@ -142,7 +144,7 @@ class Raster:
 
     def dilated(self, radius_m: float) -> Raster:
         """A copy grown by ``radius_m`` (square structuring element)."""
-        k = 2 * int(math.ceil(radius_m / self.cell_m)) + 1
+        k = 2 * math.ceil(radius_m / self.cell_m) + 1
         if k <= 1:
             return self
         img = Image.fromarray(self.mask.astype(np.uint8) * 255, mode="L").filter(ImageFilter.MaxFilter(k))
@@ -167,6 +169,43 @@ class Raster:
         gx, gy = np.meshgrid(xs, ys)
         pts = np.stack([gx.ravel(), gy.ravel()], axis=1)
         inside = MplPath(poly).contains_points(pts, radius=self.cell_m) | MplPath(poly[::-1]).contains_points(
-            pts, radius=self.cell_m)
+            pts, radius=self.cell_m
+        )
         pts = np.concatenate([pts[inside], poly])
         return not bool(self.lookup(pts).any())
+
+
+class Occupancy:
+    """A mutable occupancy grid for placing objects one after another without overlaps."""
+
+    def __init__(self, bounds_m: tuple[float, float, float, float], cell_m: float) -> None:
+        xmin, ymin, xmax, ymax = bounds_m
+        self.x0, self.y0, self.cell_m = xmin, ymin, cell_m
+        self.size = (math.ceil((xmax - xmin) / cell_m) + 1, math.ceil((ymax - ymin) / cell_m) + 1)
+        self.img = Image.new("L", self.size, 0)
+        self._draw = ImageDraw.Draw(self.img)
+
+    def _pix(self, poly: np.ndarray) -> list[tuple[float, float]]:
+        return [tuple(q) for q in ((np.asarray(poly) - [self.x0, self.y0]) / self.cell_m).tolist()]
+
+    def add(self, poly: np.ndarray) -> None:
+        self._draw.polygon(self._pix(poly), fill=255, outline=255)
+
+    def add_mask(self, raster: Raster) -> None:
+        """Mark every occupied cell of ``raster`` (same grid) as occupied."""
+        self.img.paste(255, mask=Image.fromarray(raster.mask.astype(np.uint8) * 255, mode="L"))
+
+    def free(self, poly: np.ndarray) -> bool:
+        """True when polygon (N, 2) covers no occupied cell."""
+        pix = np.asarray(self._pix(poly))
+        x0, y0 = np.floor(pix.min(axis=0)).astype(int) - 1
+        x1, y1 = np.ceil(pix.max(axis=0)).astype(int) + 1
+        region = np.asarray(self.img.crop((x0, y0, x1, y1))) > 0
+        if not region.any():
+            return True
+        local = Image.new("L", (x1 - x0, y1 - y0), 0)
+        ImageDraw.Draw(local).polygon([(x - x0, y - y0) for x, y in pix.tolist()], fill=255, outline=255)
+        return not bool((region & (np.asarray(local) > 0)).any())
+
+    def raster(self) -> Raster:
+        return Raster(self.x0, self.y0, self.cell_m, np.asarray(self.img) > 0)

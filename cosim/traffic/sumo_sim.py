@@ -1,0 +1,193 @@
+"""The SUMO adapter: start libsumo on a World, step to a time, read every vehicle as a VehicleState.
+
+libsumo allows one simulation per process; the traffic worker owns one :class:`TrafficSim`.
+SUMO time = :data:`WARMUP_S` + episode time: vehicles depart at SUMO time 0 (standing) and the
+warm-up lets them get moving, so at episode t = 0 every connected vehicle is on the road.
+Routes are extended before they end (:meth:`TrafficSim._extend_routes`), so no vehicle runs out of
+route on a network where its class can always go on; on open networks (OSM, user nets) vehicles
+that reach a fringe leave and their track simply ends.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from fractions import Fraction
+from pathlib import Path
+
+import libsumo
+import numpy as np
+
+from cosim.errors import WorkerError
+from cosim.geometry import sumo_front_to_center, wrap_angle
+from cosim.protocol import VehicleState
+from cosim.scenario.model import Scenario
+from cosim.traffic.vtypes import SUMO_VCLASS, class_of_type
+from cosim.world.netgen import sumo_binary
+from cosim.world.routes import read_sumolib, strong_core
+from cosim.world.types import World
+
+log = logging.getLogger(__name__)
+
+WARMUP_S = 4  # [s] SUMO time before episode t = 0 (a whole number of seconds)
+REROUTE_EDGES_LEFT = 2  # extend a route when the vehicle is on one of its last edges
+LANE_CHANGE_S = 1.5  # [s] duration of a lane change (continuous, not a sideways jump)
+SEED_SALT = 7919  # SUMO's --seed = (scenario seed * salt + 1) mod 2^31
+
+
+def sumo_seed(seed: int) -> int:
+    return (seed * SEED_SALT + 1) % (2**31 - 1)
+
+
+class TrafficSim:
+    """libsumo on ``world``; :meth:`step_to` advances in ``traffic.step_hz`` sub-steps."""
+
+    def __init__(self, scenario: Scenario, world: World, workdir: Path) -> None:
+        if libsumo.simulation.isLoaded():
+            raise WorkerError(
+                "traffic", "a SUMO simulation is already running in this process (libsumo allows one)"
+            )
+        self.scenario = scenario
+        workdir = Path(workdir)
+        workdir.mkdir(parents=True, exist_ok=True)
+        net_path = workdir / "traffic.net.xml"
+        routes_path = workdir / "traffic.rou.xml"
+        net_path.write_bytes(world.net_xml)
+        routes_path.write_bytes(world.routes_xml)
+        self.step_hz = Fraction(scenario.traffic.step_hz).limit_denominator(10_000)
+        step_s = 1 / self.step_hz
+        self._rng = np.random.default_rng([scenario.seed, 10])
+        net = read_sumolib(world.net_xml)
+        self._targets = {c: strong_core(net, c) for c in sorted(set(SUMO_VCLASS.values()))}
+        cmd = [
+            sumo_binary("sumo"),
+            "-n",
+            str(net_path),
+            "-r",
+            str(routes_path),
+            "--step-length",
+            f"{float(step_s):.6f}",
+            "--begin",
+            "0",
+            "--seed",
+            str(sumo_seed(scenario.seed)),
+            "--no-step-log",
+            "true",
+            "--no-warnings",
+            "true",
+            "--duration-log.disable",
+            "true",
+            "--xml-validation",
+            "never",
+            "--time-to-teleport",
+            "-1",
+            "--time-to-teleport.highways",
+            "-1",
+            "--collision.action",
+            "warn",
+            "--lanechange.duration",
+            f"{LANE_CHANGE_S}",
+        ]
+        try:
+            libsumo.start(cmd)
+        except libsumo.TraCIException as exc:
+            raise WorkerError("traffic", f"SUMO failed to start: {exc}") from exc
+        self._step = 0  # SUMO steps done
+        self._warmup_steps = int(WARMUP_S * self.step_hz)
+        self._prev_yaw: dict[str, float] = {}
+        self._closed = False
+        self._advance_to(self._warmup_steps)
+        present = set(libsumo.vehicle.getIDList())
+        missing = [
+            f"vehicle_{i}" for i in range(scenario.agents.vehicles.count) if f"vehicle_{i}" not in present
+        ]
+        if missing:
+            self.close()
+            raise WorkerError("traffic", f"connected vehicles not on the road at t=0: {', '.join(missing)}")
+
+    # ------------------------------------------------------------------------------- stepping
+    def _advance_to(self, target_step: int) -> None:
+        dt = float(1 / self.step_hz)
+        while self._step < target_step:
+            if self._step == target_step - 1:
+                self._prev_yaw = {
+                    v: math.radians(90.0 - libsumo.vehicle.getAngle(v)) for v in libsumo.vehicle.getIDList()
+                }
+            libsumo.simulationStep()
+            self._step += 1
+            self._extend_routes()
+        self._dt = dt
+
+    def _extend_routes(self) -> None:
+        for vid in libsumo.vehicle.getIDList():
+            route = libsumo.vehicle.getRoute(vid)
+            if libsumo.vehicle.getRouteIndex(vid) < len(route) - REROUTE_EDGES_LEFT:
+                continue
+            if libsumo.vehicle.getRoadID(vid).startswith(":"):
+                continue
+            targets = self._targets.get(libsumo.vehicle.getVehicleClass(vid), [])
+            for _ in range(8 if targets else 0):
+                target = targets[int(self._rng.integers(len(targets)))]
+                if target in route[libsumo.vehicle.getRouteIndex(vid) :]:
+                    continue
+                try:
+                    libsumo.vehicle.changeTarget(vid, target)
+                except libsumo.TraCIException:
+                    continue
+                break
+
+    def step_to(self, t_ns: int) -> list[VehicleState]:
+        """Advance to episode time ``t_ns`` and return every vehicle, sorted by SUMO id."""
+        if self._closed:
+            raise WorkerError("traffic", "step_to after close")
+        steps = Fraction(t_ns, 1_000_000_000) * self.step_hz
+        if steps.denominator != 1:
+            raise WorkerError(
+                "traffic", f"t_ns = {t_ns} is not a whole number of SUMO steps at {self.step_hz} Hz"
+            )
+        target = self._warmup_steps + int(steps)
+        if target < self._step:
+            raise WorkerError("traffic", f"cannot step back to t_ns = {t_ns}")
+        self._advance_to(target)
+        return [self._read(v) for v in sorted(libsumo.vehicle.getIDList())]
+
+    def _read(self, vid: str) -> VehicleState:
+        v = libsumo.vehicle
+        length, width, height = v.getLength(vid), v.getWidth(vid), v.getHeight(vid)
+        fx, fy, fz = v.getPosition3D(vid)
+        cx, cy, yaw = sumo_front_to_center(fx, fy, v.getAngle(vid), length)
+        slope = math.radians(v.getSlope(vid))
+        pitch = -slope  # FLU: a positive pitch is nose down
+        cz = fz - 0.5 * length * math.sin(slope) + 0.5 * height
+        speed = v.getSpeed(vid)
+        prev = self._prev_yaw.get(vid)
+        yaw_rate = 0.0 if prev is None else wrap_angle(yaw - prev) / self._dt
+        vel = (
+            speed * math.cos(slope) * math.cos(yaw),
+            speed * math.cos(slope) * math.sin(yaw),
+            speed * math.sin(slope),
+        )
+        return VehicleState(
+            sumo_id=vid,
+            cls=class_of_type(v.getTypeID(vid)),
+            center_m=(cx, cy, cz),
+            size_m=(length, width, height),
+            yaw_rad=yaw,
+            pitch_rad=pitch,
+            speed_mps=speed,
+            velocity_mps=vel,
+            accel_mps2=v.getAcceleration(vid),
+            yaw_rate_radps=yaw_rate,
+            agent_id=vid if vid.startswith("vehicle_") else None,
+        )
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            libsumo.close()
+
+    def __enter__(self) -> TrafficSim:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

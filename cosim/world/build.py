@@ -1,0 +1,97 @@
+"""build_world: scenario -> World (network, routes, static layout, RSU sites, geo origin).
+
+Deterministic: every stage draws from its own generator seeded by (scenario seed, stage), so a
+change in one stage (say, more trees) does not move the vehicles.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from cosim.errors import InputError
+from cosim.scenario.loader import LoadedScenario
+from cosim.world import geom
+from cosim.world.layout import GROUND_Z, build_layout, prism
+from cosim.world.netgen import MapRequest, generate_network
+from cosim.world.network import read_network
+from cosim.world.routes import plan_vehicles, read_sumolib, routes_xml
+from cosim.world.rsu import place_rsus
+from cosim.world.types import Junction, StaticLayout, World
+
+log = logging.getLogger(__name__)
+
+STAGE_NET, STAGE_LAYOUT, STAGE_RSU, STAGE_ROUTES = 1, 2, 3, 4
+MARGIN_M = {"urban": 30.0, "suburban": 30.0}  # [m] scenery beyond the outermost road; others 20
+RSU_POLE_M = 0.35  # [m] side of an RSU pole
+
+
+def stage_rng(seed: int, stage: int) -> np.random.Generator:
+    return np.random.default_rng([seed, stage])
+
+
+def build_world(loaded: LoadedScenario, workdir: Path) -> World:
+    """Build the episode's world; map files (kind net/osm) are resolved against the scenario folder."""
+    sc = loaded.scenario
+    spec = sc.map
+    file = None
+    if spec.kind in ("net", "osm"):
+        file = loaded.resolve_path(spec.file or "")
+        if not file.is_file():
+            raise InputError(f"map.file {spec.file!r} not found (looked at {file})")
+    workdir = Path(workdir) / "map"
+    result = generate_network(
+        MapRequest(spec.kind, spec.size_m, spec.lanes, file, workdir), stage_rng(sc.seed, STAGE_NET)
+    )
+    net = read_network(result.net_xml)
+    margin = MARGIN_M.get(spec.kind, 20.0)
+    xmin, ymin, xmax, ymax = net.bounds_m
+    bounds = (
+        round(xmin - margin, 3),
+        round(ymin - margin, 3),
+        round(xmax + margin, 3),
+        round(ymax + margin, 3),
+    )
+
+    prisms, road = build_layout(net, spec.kind, bounds, stage_rng(sc.seed, STAGE_LAYOUT), result.buildings)
+    junctions = net.real_junctions() or [j for j in net.junctions.values() if j.kind != "internal"]
+    junctions = sorted(junctions, key=lambda j: j.junction_id)
+    centre = (0.5 * (xmin + xmax), 0.5 * (ymin + ymax))
+    rsus = place_rsus(
+        junctions, sc.agents.rsus.count, sc.agents.rsus.height_m, road, centre, stage_rng(sc.seed, STAGE_RSU)
+    )
+    next_id = max((p.instance_id for p in prisms), default=999_999) + 1
+    for k, r in enumerate(rsus):
+        foot = geom.rect(r.position_m[0], r.position_m[1], RSU_POLE_M, RSU_POLE_M, r.yaw_rad)
+        prisms.append(prism("rsu", foot, GROUND_Z, r.height_m, next_id + k))
+
+    planned = plan_vehicles(
+        read_sumolib(result.net_xml), sc, net.road_length_km(), stage_rng(sc.seed, STAGE_ROUTES)
+    )
+    geo = (sc.geo_origin.lat_deg, sc.geo_origin.lon_deg, sc.geo_origin.alt_m)
+    if spec.kind in ("net", "osm") and net.geo_origin is not None:
+        geo = (net.geo_origin[0], net.geo_origin[1], sc.geo_origin.alt_m)
+    log.info(
+        "world %s: %.2f km of road, %d junctions, %d prisms, %d vehicles, %d RSUs",
+        spec.kind,
+        net.road_length_km(),
+        len(junctions),
+        len(prisms),
+        len(planned),
+        len(rsus),
+    )
+    return World(
+        map_kind=spec.kind,
+        net_xml=result.net_xml,
+        routes_xml=routes_xml(planned),
+        bounds_m=bounds,
+        junctions=tuple(
+            Junction(j.junction_id, (round(j.position_m[0], 3), round(j.position_m[1], 3)), j.kind)
+            for j in junctions
+        ),
+        rsus=tuple(rsus),
+        layout=StaticLayout(tuple(prisms), 0.0),
+        geo_origin=geo,
+    )

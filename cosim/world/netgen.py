@@ -1,0 +1,364 @@
+"""Road networks per map kind, made with SUMO's own tools (netconvert, polyconvert).
+
+Generated kinds (urban, suburban, rural, highway) write SUMO plain XML (nodes, edges) drawn from the
+scenario's random generator and build the network with netconvert; kind ``net`` loads a user's
+.net.xml, kind ``osm`` imports OpenStreetMap through netconvert (and building outlines through
+polyconvert). A generator returns the network bytes and, for OSM, building footprints.
+
+Registry: :data:`MAP_GENERATORS`, name -> function; :func:`generate_network` looks a kind up.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import subprocess
+import xml.etree.ElementTree as ET
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import sumo
+
+from cosim.errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class NetworkResult:
+    net_xml: bytes
+    buildings: list[np.ndarray] = field(default_factory=list)  # (N, 2) footprints from OSM [m]
+
+
+@dataclass(frozen=True)
+class MapRequest:
+    kind: str
+    size_m: float
+    lanes: int | None
+    file: Path | None
+    workdir: Path
+
+
+Generator = Callable[[MapRequest, np.random.Generator], NetworkResult]
+MAP_GENERATORS: dict[str, Generator] = {}
+
+
+def register(name: str) -> Callable[[Generator], Generator]:
+    def deco(fn: Generator) -> Generator:
+        if name in MAP_GENERATORS:
+            raise ValueError(f"map generator {name!r} registered twice")
+        MAP_GENERATORS[name] = fn
+        return fn
+
+    return deco
+
+
+def generate_network(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
+    try:
+        gen = MAP_GENERATORS[req.kind]
+    except KeyError:
+        raise InputError(
+            f"unknown map kind {req.kind!r}; known: {', '.join(sorted(MAP_GENERATORS))}"
+        ) from None
+    req.workdir.mkdir(parents=True, exist_ok=True)
+    return gen(req, rng)
+
+
+# ------------------------------------------------------------------------------------ tools
+
+
+def sumo_binary(name: str) -> str:
+    return str(Path(sumo.SUMO_HOME) / "bin" / name)
+
+
+def _run_tool(name: str, args: list[str], cwd: Path) -> None:
+    env = {**os.environ, "SUMO_HOME": sumo.SUMO_HOME}
+    proc = subprocess.run(
+        [sumo_binary(name), *args], cwd=cwd, env=env, capture_output=True, text=True, check=False
+    )
+    if proc.returncode != 0:
+        msg = (proc.stderr or proc.stdout).strip().splitlines()
+        raise InputError(f"{name} failed (exit {proc.returncode}): {' | '.join(msg[-5:])}")
+    for line in proc.stderr.splitlines():
+        if line.startswith("Warning") and "SUMO_HOME" not in line:
+            log.debug("%s: %s", name, line)
+
+
+_HEADER = re.compile(rb"<!--.*?-->\s*", re.S)
+
+
+def strip_header(xml: bytes) -> bytes:
+    """Remove SUMO's leading comment (it carries the wall-clock date and local paths)."""
+    head, sep, rest = xml.partition(b"?>")
+    if not sep:
+        return _HEADER.sub(b"", xml, count=1)
+    return head + sep + b"\n" + _HEADER.sub(b"", rest.lstrip(), count=1)
+
+
+def _netconvert_plain(nodes: list[dict], edges: list[dict], req: MapRequest, extra: list[str]) -> bytes:
+    root_n = ET.Element("nodes")
+    for n in nodes:
+        ET.SubElement(root_n, "node", {k: _fmt(v) for k, v in n.items()})
+    root_e = ET.Element("edges")
+    for e in edges:
+        ET.SubElement(root_e, "edge", {k: _fmt(v) for k, v in e.items()})
+    nod = req.workdir / f"{req.kind}.nod.xml"
+    edg = req.workdir / f"{req.kind}.edg.xml"
+    out = req.workdir / f"{req.kind}.net.xml"
+    ET.ElementTree(root_n).write(nod)
+    ET.ElementTree(root_e).write(edg)
+    _run_tool(
+        "netconvert",
+        [
+            "-n",
+            nod.name,
+            "-e",
+            edg.name,
+            "-o",
+            out.name,
+            "--offset.disable-normalization",
+            "--no-turnarounds.except-deadend",
+            "--junctions.corner-detail",
+            "5",
+            "--xml-validation",
+            "never",
+            *extra,
+        ],
+        req.workdir,
+    )
+    return strip_header(out.read_bytes())
+
+
+def _fmt(v: object) -> str:
+    if isinstance(v, float):
+        return f"{v:.2f}"
+    if isinstance(v, list):  # shape: list of (x, y)
+        return " ".join(f"{x:.2f},{y:.2f}" for x, y in v)
+    return str(v)
+
+
+# ------------------------------------------------------------------------------- grid towns
+
+
+def _grid_lines(size_m: float, block_m: float, rng: np.random.Generator, jitter: float) -> np.ndarray:
+    n = max(2, round(size_m / block_m)) + 1
+    xs = np.linspace(0.0, size_m, n)
+    spacing = size_m / (n - 1)
+    xs[1:-1] += rng.uniform(-jitter, jitter, n - 2) * spacing
+    return xs
+
+
+@dataclass(frozen=True)
+class GridStyle:
+    block_m: tuple[float, float]  # block side range [m]
+    main_lanes: int
+    minor_lanes: int
+    main_speed_mps: float
+    minor_speed_mps: float
+    lane_width_m: float
+    sidewalk_m: float
+    drop_fraction: float  # share of interior street segments removed (irregular blocks)
+    tls_main_only: bool
+
+
+URBAN = GridStyle((75.0, 95.0), 3, 2, 13.89, 13.89, 3.2, 3.0, 0.0, False)
+SUBURBAN = GridStyle((130.0, 170.0), 2, 1, 13.89, 11.11, 3.1, 2.0, 0.2, True)
+
+
+def _grid_network(req: MapRequest, rng: np.random.Generator, style: GridStyle) -> NetworkResult:
+    s = req.size_m
+    block = rng.uniform(*style.block_m)
+    xs = _grid_lines(s, block, rng, 0.12)
+    ys = _grid_lines(s, block, rng, 0.12)
+    nx, ny = len(xs), len(ys)
+    main_lanes = req.lanes or style.main_lanes
+    minor_lanes = (
+        max(1, main_lanes - (style.main_lanes - style.minor_lanes)) if req.lanes else style.minor_lanes
+    )
+
+    # main roads: the interior lines nearest the middle (one per direction, two on large maps)
+    def mains(n: int) -> set[int]:
+        interior = list(range(1, n - 1)) or [0]
+        k = 1 if n < 7 else 2
+        centre = (n - 1) / 2
+        return set(sorted(interior, key=lambda i: (abs(i - centre), i))[:k])
+
+    main_x, main_y = mains(nx), mains(ny)
+
+    # segments: ("v", i, j) joins (i, j)-(i, j+1); ("h", i, j) joins (i, j)-(i+1, j)
+    segments = [("h", i, j) for j in range(ny) for i in range(nx - 1)] + [
+        ("v", i, j) for i in range(nx) for j in range(ny - 1)
+    ]
+
+    def is_main(seg: tuple[str, int, int]) -> bool:
+        d, i, j = seg
+        return (d == "h" and j in main_y) or (d == "v" and i in main_x)
+
+    def is_perimeter(seg: tuple[str, int, int]) -> bool:
+        d, i, j = seg
+        return (d == "h" and j in (0, ny - 1)) or (d == "v" and i in (0, nx - 1))
+
+    droppable = [g for g in segments if not is_main(g) and not is_perimeter(g)]
+    n_drop = round(style.drop_fraction * len(droppable))
+    keep = set(segments)
+    for idx in rng.permutation(len(droppable)):
+        if n_drop == 0:
+            break
+        seg = droppable[idx]
+        trial = keep - {seg}
+        if _connected(trial, nx, ny):
+            keep = trial
+            n_drop -= 1
+
+    degree: dict[tuple[int, int], int] = {}
+    for d, i, j in keep:
+        a, b = ((i, j), (i + 1, j)) if d == "h" else ((i, j), (i, j + 1))
+        degree[a] = degree.get(a, 0) + 1
+        degree[b] = degree.get(b, 0) + 1
+    nodes = []
+    for (i, j), deg in sorted(degree.items()):
+        on_main = (i in main_x) + (j in main_y)
+        if deg <= 2:
+            kind = "priority"
+        elif style.tls_main_only:
+            kind = "traffic_light" if on_main == 2 else "priority"
+        else:
+            kind = "traffic_light"
+        nodes.append({"id": f"n{i}_{j}", "x": float(xs[i]), "y": float(ys[j]), "type": kind})
+    edges = []
+    for seg in sorted(keep):
+        d, i, j = seg
+        a, b = (f"n{i}_{j}", f"n{i + 1}_{j}") if d == "h" else (f"n{i}_{j}", f"n{i}_{j + 1}")
+        main = is_main(seg)
+        attrs = {
+            "numLanes": main_lanes if main else minor_lanes,
+            "speed": style.main_speed_mps if main else style.minor_speed_mps,
+            "priority": 3 if main else 1,
+            "width": style.lane_width_m,
+            "sidewalkWidth": style.sidewalk_m,
+            "disallow": "pedestrian",
+        }
+        edges.append({"id": f"{a}_{b}", "from": a, "to": b, **attrs})
+        edges.append({"id": f"{b}_{a}", "from": b, "to": a, **attrs})
+    return NetworkResult(_netconvert_plain(nodes, edges, req, ["--tls.default-type", "static"]))
+
+
+def _connected(segments: set[tuple[str, int, int]], nx: int, ny: int) -> bool:
+    adj: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for d, i, j in segments:
+        a, b = ((i, j), (i + 1, j)) if d == "h" else ((i, j), (i, j + 1))
+        adj.setdefault(a, []).append(b)
+        adj.setdefault(b, []).append(a)
+    if not adj:
+        return False
+    start = next(iter(adj))
+    seen = {start}
+    stack = [start]
+    while stack:
+        for m in adj[stack.pop()]:
+            if m not in seen:
+                seen.add(m)
+                stack.append(m)
+    return len(seen) == len(adj) and len(adj) == nx * ny
+
+
+@register("urban")
+def urban(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
+    """Dense grid of 75-95 m blocks, 3-lane avenues and 2-lane streets, traffic lights, sidewalks."""
+    return _grid_network(req, rng, URBAN)
+
+
+@register("suburban")
+def suburban(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
+    """Irregular grid of 130-170 m blocks, 2-lane main roads, 1-lane streets, few traffic lights."""
+    return _grid_network(req, rng, SUBURBAN)
+
+
+# ----------------------------------------------------------------------------- from files
+
+
+@register("net")
+def from_net_file(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
+    """A user's SUMO network, used as it is (the builder checks that vehicles can drive on it)."""
+    assert req.file is not None
+    data = req.file.read_bytes()
+    if b"<net" not in data[:4096]:
+        raise InputError(
+            f"map.file {req.file} is not a SUMO network (.net.xml): no <net> element at its start"
+        )
+    return NetworkResult(data)
+
+
+_POLY_TYPES = b"""<polygonTypes>
+    <polygonType id="building" name="building" color="0.7,0.7,0.7" layer="1"/>
+</polygonTypes>
+"""
+
+
+@register("osm")
+def from_osm(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
+    """OpenStreetMap through netconvert (roads) and polyconvert (building outlines, when present)."""
+    assert req.file is not None
+    head = req.file.read_bytes()[:4096]
+    if b"<osm" not in head:
+        raise InputError(
+            f"map.file {req.file} is not an OpenStreetMap XML file: no <osm> element at its start"
+        )
+    out = req.workdir / "osm.net.xml"
+    _run_tool(
+        "netconvert",
+        [
+            "--osm-files",
+            str(req.file),
+            "-o",
+            out.name,
+            "--geometry.remove",
+            "--roundabouts.guess",
+            "--ramps.guess",
+            "--junctions.join",
+            "--tls.guess-signals",
+            "--tls.discard-simple",
+            "--tls.join",
+            "--no-turnarounds.except-deadend",
+            "--remove-edges.isolated",
+            "--sidewalks.guess",
+            "--keep-edges.by-vclass",
+            "passenger,bicycle,bus,truck,delivery,motorcycle,pedestrian",
+            "--xml-validation",
+            "never",
+        ],
+        req.workdir,
+    )
+    net_xml = strip_header(out.read_bytes())
+    buildings: list[np.ndarray] = []
+    osm_text = req.file.read_bytes()
+    if b'k="building"' in osm_text:
+        (req.workdir / "buildings.typ.xml").write_bytes(_POLY_TYPES)
+        polys = req.workdir / "buildings.poly.xml"
+        _run_tool(
+            "polyconvert",
+            [
+                "--osm-files",
+                str(req.file),
+                "--net-file",
+                out.name,
+                "--type-file",
+                "buildings.typ.xml",
+                "-o",
+                polys.name,
+                "--xml-validation",
+                "never",
+            ],
+            req.workdir,
+        )
+        for poly in ET.parse(polys).getroot().iter("poly"):
+            if not poly.get("type", "").startswith("building"):
+                continue
+            pts = np.array([[float(v) for v in p.split(",")[:2]] for p in poly.get("shape", "").split()])
+            if len(pts) >= 3:
+                buildings.append(pts)
+    log.info("OSM import: %d building outlines", len(buildings))
+    return NetworkResult(net_xml, buildings)

@@ -1,0 +1,145 @@
+"""A SUMO network read into plain arrays: lanes, edges and junctions with their shapes.
+
+Everything downstream of the network generators (routes, layout, RSU sites, pictures) reads this,
+not SUMO's XML, so it can be tested on small hand-made networks.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import sumolib
+
+from cosim.errors import InputError
+from cosim.world import geom
+
+log = logging.getLogger(__name__)
+
+#: SUMO vClasses that count as motor or cycle traffic (a lane allowing one of them is a road lane).
+VEHICLE_VCLASSES = ("passenger", "delivery", "truck", "bus", "motorcycle", "bicycle")
+
+
+@dataclass(frozen=True)
+class Lane:
+    lane_id: str
+    edge_id: str
+    index: int  # 0 = rightmost
+    width_m: float
+    speed_mps: float
+    shape: np.ndarray  # (N, 2) centre line in map x/y [m], in driving direction
+    allowed: frozenset[str]  # SUMO vClasses allowed
+    internal: bool
+
+    @property
+    def is_road(self) -> bool:
+        return any(c in self.allowed for c in VEHICLE_VCLASSES)
+
+    @property
+    def is_sidewalk(self) -> bool:
+        return self.allowed == frozenset({"pedestrian"})
+
+    @property
+    def length_m(self) -> float:
+        return geom.polyline_length(self.shape)
+
+
+@dataclass(frozen=True)
+class Edge:
+    edge_id: str
+    from_node: str
+    to_node: str
+    lanes: tuple[Lane, ...]
+    internal: bool
+
+
+@dataclass(frozen=True)
+class JunctionGeom:
+    junction_id: str
+    position_m: tuple[float, float]
+    kind: str
+    shape: np.ndarray  # (N, 2) outline, possibly empty
+
+
+@dataclass(frozen=True)
+class RoadNetwork:
+    edges: dict[str, Edge]
+    junctions: dict[str, JunctionGeom]
+    bounds_m: tuple[float, float, float, float]  # xmin, ymin, xmax, ymax of the network
+    geo_origin: tuple[float, float] | None  # lat, lon of map (0, 0) when geo-referenced
+
+    def lanes(self, *, internal: bool | None = None) -> list[Lane]:
+        return [
+            ln for e in self.edges.values() for ln in e.lanes if internal is None or ln.internal == internal
+        ]
+
+    def road_edges(self) -> list[Edge]:
+        """Non-internal edges that carry vehicles."""
+        return [e for e in self.edges.values() if not e.internal and any(ln.is_road for ln in e.lanes)]
+
+    def road_length_km(self) -> float:
+        """Length of road [km]: a two-way road (edge pair in opposite directions) counts once."""
+        total = 0.0
+        roads = self.road_edges()
+        pairs = {(e.from_node, e.to_node) for e in roads}
+        for e in roads:
+            length = max(ln.length_m for ln in e.lanes if ln.is_road)
+            total += 0.5 * length if (e.to_node, e.from_node) in pairs else length
+        return total / 1000.0
+
+    def real_junctions(self) -> list[JunctionGeom]:
+        """Junctions where roads meet (no internal or dead-end nodes)."""
+        return [j for j in self.junctions.values() if j.kind not in ("internal", "dead_end")]
+
+
+def read_network(net_xml: bytes) -> RoadNetwork:
+    """Parse a SUMO .net.xml; raises InputError when it is not a usable network."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "map.net.xml"
+        path.write_bytes(net_xml)
+        try:
+            net = sumolib.net.readNet(str(path), withInternal=True, withPedestrianConnections=False)
+        except Exception as exc:  # sumolib raises plain exceptions on malformed XML
+            raise InputError(f"cannot read the SUMO network: {exc}") from exc
+    edges: dict[str, Edge] = {}
+    for e in net.getEdges(withInternal=True):
+        eid = e.getID()
+        internal = eid.startswith(":")
+        lanes = []
+        for ln in e.getLanes():
+            shape = np.array([p[:2] for p in ln.getShape()], dtype=np.float64)
+            if len(shape) < 2:
+                continue
+            allowed = frozenset(ln.getPermissions())
+            lanes.append(
+                Lane(
+                    ln.getID(),
+                    eid,
+                    ln.getIndex(),
+                    float(ln.getWidth()),
+                    float(ln.getSpeed()),
+                    shape,
+                    allowed,
+                    internal,
+                )
+            )
+        fn = e.getFromNode().getID() if not internal else ""
+        tn = e.getToNode().getID() if not internal else ""
+        edges[eid] = Edge(eid, fn, tn, tuple(lanes), internal)
+    junctions: dict[str, JunctionGeom] = {}
+    for n in net.getNodes():
+        shape = np.array([p[:2] for p in (n.getShape() or [])], dtype=np.float64).reshape(-1, 2)
+        x, y = n.getCoord()[:2]
+        junctions[n.getID()] = JunctionGeom(n.getID(), (float(x), float(y)), n.getType(), shape)
+    xmin, ymin, xmax, ymax = net.getBoundary()
+    origin = None
+    if net.hasGeoProj():
+        lon, lat = net.convertXY2LonLat(0.0, 0.0)
+        origin = (float(lat), float(lon))
+    road_net = RoadNetwork(edges, junctions, (float(xmin), float(ymin), float(xmax), float(ymax)), origin)
+    if not road_net.road_edges():
+        raise InputError("the SUMO network has no edge that vehicles may use")
+    return road_net

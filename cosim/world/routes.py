@@ -1,0 +1,214 @@
+"""Initial traffic as a SUMO route file: vehicle types, background vehicles and connected vehicles.
+
+Every vehicle departs at SUMO time 0 at a drawn position on a drawn lane, spaced so that no two
+overlap, with a route inside the part of the network where its class can always go on (the
+strongly connected core for its vClass). The traffic adapter extends routes before they end, so
+vehicles stay for the whole episode. Class counts follow ``traffic.mix`` by largest remainders,
+so the mix is exact up to rounding rather than sampled.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import tempfile
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import sumolib
+
+from cosim.errors import InputError
+from cosim.scenario.model import Scenario
+from cosim.traffic.vtypes import SUMO_VCLASS, VARIANTS, VehicleVariant
+
+log = logging.getLogger(__name__)
+
+MIN_LANE_M = 20.0  # [m] shortest lane a vehicle departs on
+END_CLEARANCE_M = 12.0  # [m] no departure closer than this to a lane's end
+ROUTE_TARGETS = 3  # random destinations chained into the initial route
+
+
+@dataclass(frozen=True)
+class PlannedVehicle:
+    vehicle_id: str
+    variant: VehicleVariant
+    lane_id: str
+    lane_index: int
+    pos_m: float  # front bumper along the lane [m]
+    route: tuple[str, ...]
+
+
+def class_counts(mix: dict[str, float], n: int) -> dict[str, int]:
+    """Vehicles per class for ``n`` vehicles: largest-remainder rounding of ``mix`` (shares sum to 1)."""
+    raw = {c: mix[c] * n for c in sorted(mix)}
+    counts = {c: math.floor(v) for c, v in raw.items()}
+    rest = n - sum(counts.values())
+    for c in sorted(raw, key=lambda c: (-(raw[c] - counts[c]), c))[:rest]:
+        counts[c] += 1
+    return counts
+
+
+def read_sumolib(net_xml: bytes) -> sumolib.net.Net:
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "map.net.xml"
+        path.write_bytes(net_xml)
+        return sumolib.net.readNet(str(path))
+
+
+def strong_core(net: sumolib.net.Net, vclass: str) -> list[str]:
+    """Ids of edges of the largest strongly connected edge set that ``vclass`` may use, sorted."""
+    allowed = sorted((e for e in net.getEdges() if e.allows(vclass)), key=lambda e: e.getID())
+    best: set[str] = set()
+    seen: set[str] = set()
+    for ref in sorted(allowed, key=lambda e: (-e.getLength(), e.getID())):
+        if ref.getID() in seen:
+            continue
+        fwd = {e.getID() for e in net.getReachable(ref, vclass)} | {ref.getID()}
+        bwd = {e.getID() for e in net.getReachable(ref, vclass, useIncoming=True)} | {ref.getID()}
+        core = fwd & bwd
+        seen |= core
+        if len(core) > len(best):
+            best = core
+        if len(best) * 2 >= len(allowed):
+            break
+    return sorted(best)
+
+
+def random_route(
+    net: sumolib.net.Net,
+    start: str,
+    core: list[str],
+    vclass: str,
+    rng: np.random.Generator,
+    n_targets: int = ROUTE_TARGETS,
+) -> list[str]:
+    """Route from edge ``start`` through ``n_targets`` random core edges (shortest paths between them)."""
+    route = [start]
+    for _ in range(n_targets):
+        for _attempt in range(10):
+            target = core[int(rng.integers(len(core)))]
+            if target == route[-1]:
+                continue
+            path, _cost = net.getShortestPath(net.getEdge(route[-1]), net.getEdge(target), vClass=vclass)
+            if path:
+                route.extend(e.getID() for e in path[1:])
+                break
+    return route
+
+
+class _LaneOccupancy:
+    """Occupied front-bumper intervals per lane, so departures keep their gaps."""
+
+    def __init__(self) -> None:
+        self.spans: dict[str, list[tuple[float, float]]] = {}
+
+    def free(self, lane_id: str, lo: float, hi: float) -> bool:
+        return all(hi <= a or lo >= b for a, b in self.spans.get(lane_id, []))
+
+    def take(self, lane_id: str, lo: float, hi: float) -> None:
+        self.spans.setdefault(lane_id, []).append((lo, hi))
+
+
+def plan_vehicles(
+    net: sumolib.net.Net, scenario: Scenario, road_km: float, rng: np.random.Generator
+) -> list[PlannedVehicle]:
+    """Connected vehicles first (ids vehicle_<i>), then background (ids bg_<nnnn>)."""
+    n_bg = round(scenario.traffic.density_veh_per_km * road_km)
+    counts = class_counts(dict(scenario.traffic.mix), n_bg)
+    wanted: list[tuple[str, str]] = [
+        (f"vehicle_{i}", scenario.agents.vehicles.vclass) for i in range(scenario.agents.vehicles.count)
+    ]
+    bg_classes = [c for c in sorted(counts) for _ in range(counts[c])]
+    order = rng.permutation(len(bg_classes))
+    wanted += [(f"bg_{k:04d}", bg_classes[i]) for k, i in enumerate(order)]
+
+    cores: dict[str, list[str]] = {}
+    lanes: dict[str, list[sumolib.net.lane.Lane]] = {}
+    occ = _LaneOccupancy()
+    out: list[PlannedVehicle] = []
+    for vid, cls in wanted:
+        vclass = SUMO_VCLASS[cls]
+        if vclass not in cores:
+            cores[vclass] = strong_core(net, vclass)
+            lanes[vclass] = [
+                ln
+                for eid in cores[vclass]
+                for ln in net.getEdge(eid).getLanes()
+                if ln.allows(vclass) and ln.getLength() >= MIN_LANE_M
+            ]
+        if not lanes[vclass]:
+            if vid.startswith("vehicle_"):
+                raise InputError(f"the map has no road where connected vehicles of class {cls!r} can drive")
+            log.info("no %s can drive on this map; skipping %s", cls, vid)
+            continue
+        variants = VARIANTS[cls]
+        variant = variants[int(rng.integers(len(variants)))]
+        cand = lanes[vclass]
+        weights = np.array([ln.getLength() for ln in cand])
+        weights /= weights.sum()
+        placed = None
+        for _attempt in range(60):
+            ln = cand[int(rng.choice(len(cand), p=weights))]
+            lo_lim = variant.length_m + 2.0
+            hi_lim = ln.getLength() - END_CLEARANCE_M
+            if hi_lim <= lo_lim:
+                continue
+            pos = float(rng.uniform(lo_lim, hi_lim))
+            span = (pos - variant.length_m - variant.min_gap_m - 1.0, pos + 4.0)
+            if occ.free(ln.getID(), *span):
+                occ.take(ln.getID(), *span)
+                placed = (ln, pos)
+                break
+        if placed is None:
+            if vid.startswith("vehicle_"):
+                raise InputError(
+                    f"no free place to insert connected vehicle {vid}: the map is too small "
+                    f"for {len(wanted)} vehicles"
+                )
+            log.info("no free place for %s; traffic is denser than the map holds", vid)
+            continue
+        ln, pos = placed
+        route = random_route(net, ln.getEdge().getID(), cores[vclass], vclass, rng)
+        out.append(PlannedVehicle(vid, variant, ln.getID(), ln.getIndex(), round(pos, 2), tuple(route)))
+    return out
+
+
+def routes_xml(planned: list[PlannedVehicle]) -> bytes:
+    """SUMO route file: the vTypes of every variant, then every vehicle departing at time 0."""
+    root = ET.Element("routes")
+    for cls in sorted(VARIANTS):
+        for v in VARIANTS[cls]:
+            ET.SubElement(
+                root,
+                "vType",
+                {
+                    "id": v.type_id,
+                    "vClass": v.vclass,
+                    "length": f"{v.length_m:.2f}",
+                    "width": f"{v.width_m:.2f}",
+                    "height": f"{v.height_m:.2f}",
+                    "minGap": f"{v.min_gap_m:.2f}",
+                    "maxSpeed": f"{v.max_speed_mps:.2f}",
+                    "accel": f"{v.accel_mps2:.2f}",
+                    "decel": f"{v.decel_mps2:.2f}",
+                    "sigma": "0.5",
+                },
+            )
+    for p in sorted(planned, key=lambda p: p.vehicle_id):
+        veh = ET.SubElement(
+            root,
+            "vehicle",
+            {
+                "id": p.vehicle_id,
+                "type": p.variant.type_id,
+                "depart": "0.00",
+                "departLane": str(p.lane_index),
+                "departPos": f"{p.pos_m:.2f}",
+                "departSpeed": "0.00",
+            },
+        )
+        ET.SubElement(veh, "route", {"edges": " ".join(p.route)})
+    ET.indent(root)
+    return b'<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root) + b"\n"

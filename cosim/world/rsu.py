@@ -1,0 +1,83 @@
+"""Roadside-unit sites: poles at junction corners, heads facing the junction centre."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from cosim.world.geom import Raster
+from cosim.world.network import JunctionGeom
+from cosim.world.types import RsuSite
+
+MAX_OFFSET_M = 14.0  # [m] farthest a pole stands from its junction centre
+POLE_CLEARANCE_M = 0.6  # [m] pole to road surface
+
+
+def choose_junctions(
+    junctions: list[JunctionGeom], count: int, centre: tuple[float, float]
+) -> list[JunctionGeom]:
+    """``count`` junctions spread over the map (farthest-point order from the one nearest ``centre``;
+    signalised junctions first). Repeats junctions when there are fewer than ``count``."""
+    if not junctions or count <= 0:
+        return []
+    pool = sorted(junctions, key=lambda j: (j.kind != "traffic_light", j.junction_id))
+    n_tls = sum(j.kind == "traffic_light" for j in pool)
+    if n_tls >= count:
+        pool = pool[:n_tls]
+    pts = np.array([j.position_m for j in pool])
+    first = int(np.argmin(np.linalg.norm(pts - np.array(centre), axis=1)))
+    chosen = [first]
+    dist = np.linalg.norm(pts - pts[first], axis=1)
+    while len(chosen) < min(count, len(pool)):
+        nxt = int(np.argmax(dist))
+        chosen.append(nxt)
+        dist = np.minimum(dist, np.linalg.norm(pts - pts[nxt], axis=1))
+    out = [pool[i] for i in chosen]
+    k = 0
+    while len(out) < count:
+        out.append(out[k % len(chosen)])
+        k += 1
+    return out
+
+
+def place_rsus(
+    junctions: list[JunctionGeom],
+    count: int,
+    height_range_m: tuple[float, float],
+    road: Raster,
+    centre: tuple[float, float],
+    rng: np.random.Generator,
+) -> list[RsuSite]:
+    """RSU sites ``rsu_0..``: a pole off the road surface within :data:`MAX_OFFSET_M` of its junction."""
+    sites: list[RsuSite] = []
+    blocked = road.dilated(POLE_CLEARANCE_M)
+    used: list[tuple[float, float]] = []
+    for i, j in enumerate(choose_junctions(junctions, count, centre)):
+        jx, jy = j.position_m
+        phase = float(rng.uniform(0, 2 * math.pi))
+        best = None
+        for r in np.arange(4.0, MAX_OFFSET_M + 0.01, 0.5):
+            for a in phase + np.arange(8) * (math.pi / 4):
+                p = (jx + r * math.cos(a), jy + r * math.sin(a))
+                if blocked.lookup(np.array([p]))[0] or any(math.dist(p, u) < 3.0 for u in used):
+                    continue
+                best = p
+                break
+            if best is not None:
+                break
+        if best is None:  # the junction is all asphalt: stand at its edge
+            best = (jx + MAX_OFFSET_M * math.cos(phase), jy + MAX_OFFSET_M * math.sin(phase))
+        used.append(best)
+        h = float(rng.uniform(*height_range_m))
+        yaw = math.atan2(jy - best[1], jx - best[0])
+        sites.append(
+            RsuSite(
+                f"rsu_{i}",
+                j.junction_id,
+                (round(float(best[0]), 3), round(float(best[1]), 3), round(h, 3)),
+                yaw,
+                round(h, 3),
+            )
+        )
+    return sites
