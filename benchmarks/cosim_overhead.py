@@ -46,6 +46,10 @@ def main() -> None:
     print(f"step per tick       mean {statistics.mean(step_ms):.2f} ms, p99 {percentile(step_ms, 99):.2f} ms")
     print(f"sync cost per tick  mean {statistics.mean(sync_ms):.3f} ms, p99 {percentile(sync_ms, 99):.3f} ms "
           f"({statistics.mean(sync_ms) / statistics.mean(step_ms):.0%} of a step)")
+    for role, times in sorted(r.compute_s.items()):
+        ms = [t * 1e3 for t in times]
+        print(f"{role + ' worker':<20}mean {statistics.mean(ms):.2f} ms, p99 {percentile(ms, 99):.2f} ms per tick "
+              f"({r.sim_time_s / sum(times):.0f}x real time on its own)")
     print(f"episode             {r.messages} messages, {r.size_bytes / 1e6:.2f} MB")
 
 

@@ -42,7 +42,8 @@ def _progress_bar(desc: str, enabled: bool) -> tuple[Callable[[int, int], None],
 
     def update(done: int, total: int) -> None:
         if not bar:
-            bar.append(tqdm(total=total, desc=desc, unit="tick", disable=not enabled, file=sys.stderr,
+            bar.append(tqdm(total=total, desc=desc, unit="tick", disable=not enabled or not sys.stderr.isatty(),
+                            file=sys.stderr,
                             dynamic_ncols=True, mininterval=0.2))
         bar[0].update(done - bar[0].n)
 

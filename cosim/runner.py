@@ -54,6 +54,7 @@ class EpisodeResult:
     wall_time_s: float
     tick_times_s: list[float] = field(default_factory=list)  # wall time of the lockstep step per tick
     sync_costs_s: list[float] = field(default_factory=list)  # step wall time minus the slowest worker's compute
+    compute_s: dict[str, list[float]] = field(default_factory=dict)  # per worker role: its own step time
 
     @property
     def real_time_factor(self) -> float:
@@ -132,6 +133,7 @@ def run_episode(
     escorts = {f"drone_{i}": d.target for i, d in enumerate(s.agents.drones) if isinstance(d, EscortDrone)}
     tick_times: list[float] = []
     sync_costs: list[float] = []
+    compute: dict[str, list[float]] = {}
     snapshot: WorldSnapshot | None = None
 
     with EpisodeWriter(final, compression=s.output.compression) as writer, Conductor(
@@ -154,6 +156,8 @@ def run_episode(
             step_s = time.perf_counter() - t0
             tick_times.append(step_s)
             sync_costs.append(step_s - max(r.get("compute_ns", 0) for r in replies.values()) / 1e9)
+            for role, reply in replies.items():
+                compute.setdefault(role, []).append(reply.get("compute_ns", 0) / 1e9)
             vehicles = [vehicle_from_dict(v) for v in replies["traffic"]["vehicles"]]
             drones = [drone_from_dict(d) for d in replies["drones"]["drones"]]
             snapshot = build_snapshot(tick, t_ns, vehicles, drones, world, tracks)
@@ -178,6 +182,7 @@ def run_episode(
         wall_time_s=time.perf_counter() - started,
         tick_times_s=tick_times,
         sync_costs_s=sync_costs,
+        compute_s=compute,
     )
 
 

@@ -1,0 +1,131 @@
+"""`cosim run` end to end with the real engines: SUMO, JSBSim/PyBullet, Zenoh across processes, MCAP."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+from mcap.reader import make_reader
+
+from tests.conftest import REPO, run_cli
+
+pytestmark = pytest.mark.integration
+
+TICK_NS = 200_000_000
+FAST = ["--no-sensors", "--set", "traffic.density_veh_per_km=8", "--set", "agents.drones.2.altitude_m=80"]
+
+
+def read_topics(path: Path) -> dict[str, list[tuple[int, bytes]]]:
+    out: dict[str, list[tuple[int, bytes]]] = {}
+    with open(path, "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages():
+            out.setdefault(channel.topic, []).append((message.log_time, message.data))
+    return out
+
+
+def labels_hash(path: Path) -> str:
+    h = hashlib.sha256()
+    for _, data in read_topics(path)["/labels/objects"]:
+        h.update(data)
+    return h.hexdigest()
+
+
+def test_rural_night_10_s_gives_50_ticks_with_one_tf_and_label_message_each(tmp_path):
+    r = run_cli("run", "scenarios/town_rural_night.yaml", "--duration", "10", "--out", str(tmp_path), *FAST)
+    assert r.returncode == 0, r.stderr
+    files = list(tmp_path.iterdir())
+    assert [f.name for f in files] == ["town_rural_night_s0.mcap"]
+    assert "ticks    50 at 5 Hz" in r.stdout and "real-time factor" in r.stdout
+    topics = read_topics(files[0])
+    grid = [k * TICK_NS for k in range(50)]
+    assert [t for t, _ in topics["/tf"]] == grid
+    assert [t for t, _ in topics["/labels/objects"]] == grid
+    for t_ns, data in topics["/labels/objects"]:
+        labels = json.loads(data)
+        assert labels["timestamp_ns"] == t_ns
+        connected = sorted(o["agent_id"] for o in labels["objects"] if o["agent_id"])
+        assert connected == ["drone_0", "drone_1", "drone_2", "vehicle_0", "vehicle_1", "vehicle_2", "vehicle_3"]
+        agents = [a["agent_id"] for a in labels["agents"]]
+        assert agents == [f"vehicle_{i}" for i in range(4)] + [f"rsu_{i}" for i in range(4)] + \
+                         [f"drone_{i}" for i in range(3)]
+        assert len(labels["objects"]) > 7  # background traffic too
+
+
+def test_same_seed_same_labels_other_seed_different(tmp_path):
+    hashes = []
+    for run, seed in enumerate(["3", "3", "4"]):
+        out = tmp_path / str(run)
+        r = run_cli("run", "scenarios/default.yaml", "--duration", "4", "--seed", seed, "--out", str(out), *FAST)
+        assert r.returncode == 0, r.stderr
+        hashes.append(labels_hash(next(out.iterdir())))
+    assert hashes[0] == hashes[1]
+    assert hashes[0] != hashes[2]
+
+
+def _start(tmp_path: Path) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "cosim.cli", "run", "scenarios/default.yaml", "--duration", "120", "--out",
+         str(tmp_path), *FAST],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+
+
+def _workers(proc: subprocess.Popen, timeout_s: float = 60) -> dict[str, psutil.Process]:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        found = {p.name(): p for p in psutil.Process(proc.pid).children(recursive=True)
+                 if p.name() in ("cosim-traffic", "cosim-drones")}
+        if len(found) == 2:
+            return found
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(0.05)
+    raise AssertionError("workers did not start")
+
+
+@pytest.mark.parametrize("role", ["drones", "traffic"])
+def test_sigkill_of_a_worker_stops_the_run_within_3_s_naming_it_and_the_tick(tmp_path, role):
+    proc = _start(tmp_path)
+    try:
+        workers = _workers(proc)
+        time.sleep(3.0)  # let the episode get going
+        assert proc.poll() is None
+        workers[f"cosim-{role}"].kill()
+        t0 = time.monotonic()
+        _, err = proc.communicate(timeout=10)
+        elapsed = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert elapsed < 3.0, elapsed
+    assert proc.returncode == 1
+    assert f"{role} worker at tick" in err and "killed by signal 9" in err, err
+    assert "Traceback" not in err
+    tick = int(err.split(" at tick ")[1].split(":")[0])
+    assert tick > 0
+    assert list(tmp_path.iterdir()) == []  # neither an episode nor its temporary file
+    for p in workers.values():
+        assert not p.is_running() or p.status() == psutil.STATUS_ZOMBIE
+
+
+def test_ctrl_c_stops_cleanly(tmp_path):
+    proc = _start(tmp_path)
+    try:
+        workers = _workers(proc)
+        time.sleep(2.0)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+    for p in workers.values():
+        assert not p.is_running() or p.status() == psutil.STATUS_ZOMBIE
