@@ -131,6 +131,8 @@ class DroneBase(Model):
     altitude_m: float = Field(60.0, ge=5.0, le=300.0)  # [m] above ground
     max_speed_mps: float = Field(15.0, gt=0, le=40)
     start: tuple[float, float] | None = None  # [m] map x, y; None = chosen by the strategy
+    clearance_m: float = Field(10.0, ge=0.0, le=200.0)  # [m] kept above obstacle tops along the path
+    plan_altitude: bool = True  # False: fly at altitude_m whatever is below (can collide; for tests)
 
 
 class HoverDrone(DroneBase):
