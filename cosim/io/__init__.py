@@ -1,0 +1,34 @@
+"""Reading cosim episodes (docs/episode_format.md): ``open_episode(path)`` and the decoded types."""
+
+from cosim.io.decode import (
+    Boxes,
+    Calibration,
+    GnssFix,
+    Grid,
+    Image,
+    Objects,
+    PointCloud,
+    Transform,
+    TransformTree,
+    decode,
+)
+from cosim.io.reader import Episode, RawMessage, Tick, TopicInfo, check_format_version, open_episode
+
+__all__ = [
+    "Boxes",
+    "Calibration",
+    "Episode",
+    "GnssFix",
+    "Grid",
+    "Image",
+    "Objects",
+    "PointCloud",
+    "RawMessage",
+    "Tick",
+    "TopicInfo",
+    "Transform",
+    "TransformTree",
+    "check_format_version",
+    "decode",
+    "open_episode",
+]

@@ -1,0 +1,432 @@
+"""Read an episode: metadata, agents, topics, and an iterator over ticks with lazy decoding.
+
+    with open_episode("out/default_s0.mcap") as ep:
+        print(ep.scenario, ep.n_ticks, ep.agents)
+        for tick in ep.ticks(topics=["/labels/objects", "/vehicle_0/lidar"]):
+            boxes = tick.labels.centers_m          # (N, 3) [m] in map
+            xyz = tick.points("vehicle_0").xyz     # (M, 3) [m] in vehicle_0/lidar
+
+Messages are read through the MCAP chunk index of a seekable file (only chunks holding the asked
+topics and times are read) and decoded on first access, so asking for one topic of one tick never
+decodes the others.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+import logging
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from mcap.exceptions import McapError
+from mcap.reader import SeekingReader, make_reader
+
+from cosim.errors import FormatError, InputError
+from cosim.io.decode import (
+    Boxes,
+    Calibration,
+    GnssFix,
+    Grid,
+    Image,
+    Objects,
+    PointCloud,
+    TransformTree,
+    decode,
+)
+
+log = logging.getLogger(__name__)
+
+#: Format versions this reader understands (major version).
+SUPPORTED_MAJOR = 1
+#: Metadata values stored as JSON text.
+JSON_METADATA = (
+    "strategies",
+    "agents",
+    "sensors_enabled",
+    "geo_origin",
+    "map_bounds_m",
+    "class_table",
+    "versions",
+    "tick_hz",
+    "tick_ns",
+    "n_ticks",
+    "duration_s",
+    "seed",
+)
+LABEL_TOPICS = ("/tf", "/labels/objects", "/labels/boxes")
+
+
+def check_format_version(version: str | None, source: str = "episode") -> str:
+    """Raise :class:`FormatError` unless ``version`` is a format version this reader can read."""
+    if version is None:
+        raise FormatError(
+            f"{source}: no 'format_version' in the 'episode' metadata record; not a cosim episode?"
+        )
+    major, _, _ = str(version).partition(".")
+    if not major.isdigit():
+        raise FormatError(
+            f"{source}: malformed format_version {version!r}; expected MAJOR.MINOR such as '1.0'"
+        )
+    if int(major) != SUPPORTED_MAJOR:
+        import cosim
+
+        raise FormatError(
+            f"{source}: episode format version {version} is not supported: cosim {cosim.__version__} reads "
+            f"format {SUPPORTED_MAJOR}.x only (see docs/episode_format.md); "
+            f"use a cosim release that reads {major}.x"
+        )
+    return str(version)
+
+
+def parse_metadata(raw: dict[str, str]) -> dict[str, Any]:
+    """The ``episode`` record with JSON-valued keys decoded (strings stay strings)."""
+    out: dict[str, Any] = dict(raw)
+    for key in JSON_METADATA:
+        if key in raw:
+            try:
+                out[key] = json.loads(raw[key])
+            except json.JSONDecodeError:
+                out[key] = raw[key]
+    return out
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    """One channel: its schema, encoding and message statistics from the summary."""
+
+    topic: str
+    schema_name: str
+    message_encoding: str
+    message_count: int
+
+
+@dataclass(frozen=True)
+class RawMessage:
+    """One undecoded message: bytes plus what is needed to decode them."""
+
+    topic: str
+    schema_name: str
+    message_encoding: str
+    log_time_ns: int
+    publish_time_ns: int
+    sequence: int
+    data: bytes
+    schema_data: bytes = field(default=b"", repr=False)
+
+    def decode(self) -> Any:
+        return decode(self.schema_name, self.message_encoding, self.data, self.schema_data)
+
+
+class Tick:
+    """The messages of one tick; each is decoded on first access and cached.
+
+    ``tick[topic]`` gives the decoded message, ``tick.raw(topic)`` the bytes; typed accessors
+    (``labels``, ``transforms``, ``points(agent)``, ``image(agent, cam)``...) name the topics of
+    docs/episode_format.md.
+    """
+
+    def __init__(self, index: int, t_ns: int, messages: dict[str, RawMessage]):
+        self.index = index
+        self.t_ns = t_ns
+        self._raw = messages
+        self._decoded: dict[str, Any] = {}
+
+    def __repr__(self) -> str:
+        return f"Tick({self.index}, t_ns={self.t_ns}, topics={len(self._raw)})"
+
+    @property
+    def topics(self) -> list[str]:
+        return sorted(self._raw)
+
+    def __contains__(self, topic: str) -> bool:
+        return topic in self._raw
+
+    def raw(self, topic: str) -> RawMessage:
+        try:
+            return self._raw[topic]
+        except KeyError:
+            raise KeyError(
+                f"tick {self.index} has no message on {topic!r}; read topics: {', '.join(self.topics)}"
+            ) from None
+
+    def __getitem__(self, topic: str) -> Any:
+        if topic not in self._decoded:
+            self._decoded[topic] = self.raw(topic).decode()
+        return self._decoded[topic]
+
+    def get(self, topic: str, default: Any = None) -> Any:
+        return self[topic] if topic in self._raw else default
+
+    @property
+    def decoded_topics(self) -> list[str]:
+        """Topics decoded so far (for checking laziness)."""
+        return sorted(self._decoded)
+
+    # -- typed accessors ------------------------------------------------------------------------
+
+    @property
+    def labels(self) -> Objects:
+        return self["/labels/objects"]
+
+    @property
+    def boxes(self) -> Boxes:
+        return self["/labels/boxes"]
+
+    @property
+    def transforms(self) -> TransformTree:
+        return self["/tf"]
+
+    def points(self, agent: str) -> PointCloud:
+        return self[f"/{agent}/lidar"]
+
+    def image(self, agent: str, camera: str) -> Image:
+        return self[f"/{agent}/{camera}/image"]
+
+    def depth(self, agent: str, camera: str) -> Image:
+        return self[f"/{agent}/{camera}/depth"]
+
+    def semantic(self, agent: str, camera: str) -> Image:
+        return self[f"/{agent}/{camera}/semantic"]
+
+    def instance(self, agent: str, camera: str) -> Image:
+        return self[f"/{agent}/{camera}/instance"]
+
+    def calibration(self, agent: str, camera: str) -> Calibration:
+        return self[f"/{agent}/{camera}/calibration"]
+
+    def gnss(self, agent: str) -> GnssFix:
+        return self[f"/{agent}/gnss"]
+
+    def imu(self, agent: str) -> Any:
+        return self[f"/{agent}/imu"]
+
+    def bev(self, agent: str) -> Grid:
+        return self[f"/{agent}/bev"]
+
+    def visibility(self, agent: str) -> Any:
+        return self[f"/{agent}/visibility"]
+
+
+class Episode:
+    """An open episode file. Use :func:`open_episode`; close it (or use ``with``) when done."""
+
+    def __init__(
+        self, path: Path, stream: BinaryIO, reader: SeekingReader, summary: Any, raw_metadata: dict[str, str]
+    ):
+        self.path = path
+        self._stream = stream
+        self._reader = reader
+        self._summary = summary
+        self.raw_metadata = raw_metadata
+        self.metadata = parse_metadata(raw_metadata)
+        self.format_version = check_format_version(raw_metadata.get("format_version"), str(path))
+        self._attachment_index = {a.name: a for a in summary.attachment_indexes}
+        self.topics: dict[str, TopicInfo] = {}
+        counts = summary.statistics.channel_message_counts if summary.statistics else {}
+        for cid, ch in sorted(summary.channels.items()):
+            schema = summary.schemas.get(ch.schema_id)
+            self.topics[ch.topic] = TopicInfo(
+                ch.topic, schema.name if schema else "", ch.message_encoding, counts.get(cid, 0)
+            )
+
+    # -- metadata ---------------------------------------------------------------------------------
+
+    @property
+    def scenario(self) -> str:
+        return self.metadata.get("scenario", "")
+
+    @property
+    def agents(self) -> list[str]:
+        """Connected agent ids (``vehicle_0``, ``rsu_0``, ``drone_0``...)."""
+        return list(self.metadata.get("agents", []))
+
+    @property
+    def tick_ns(self) -> int:
+        return int(self.metadata["tick_ns"])
+
+    @property
+    def n_ticks(self) -> int:
+        return int(self.metadata["n_ticks"])
+
+    @property
+    def duration_s(self) -> float:
+        return self.n_ticks * self.tick_ns / 1e9
+
+    @property
+    def start_ns(self) -> int:
+        st = self._summary.statistics
+        return st.message_start_time if st and st.message_count else 0
+
+    @property
+    def end_ns(self) -> int:
+        st = self._summary.statistics
+        return st.message_end_time if st and st.message_count else 0
+
+    @property
+    def message_count(self) -> int:
+        st = self._summary.statistics
+        return st.message_count if st else 0
+
+    @property
+    def class_table(self) -> dict[str, Any]:
+        return self.metadata.get("class_table", {})
+
+    def cameras(self, agent: str) -> list[str]:
+        """Camera names of ``agent`` that have an image topic in this file."""
+        prefix = f"/{agent}/"
+        return sorted(
+            t[len(prefix) : -len("/image")]
+            for t in self.topics
+            if t.startswith(prefix) and t.endswith("/image") and t.count("/") == 3
+        )
+
+    # -- attachments ------------------------------------------------------------------------------
+
+    @property
+    def attachments(self) -> list[str]:
+        return sorted(self._attachment_index)
+
+    def attachment(self, name: str) -> bytes:
+        """The bytes of one attachment (``scenario.yaml``, ``map.net.xml``, ``routes.rou.xml``...)."""
+        if name not in self._attachment_index:
+            raise KeyError(f"{self.path} has no attachment {name!r}; it has: {', '.join(self.attachments)}")
+        for a in self._reader.iter_attachments():
+            if a.name == name:
+                return a.data
+        raise FormatError(f"{self.path}: attachment {name!r} is indexed but cannot be read")
+
+    # -- messages ---------------------------------------------------------------------------------
+
+    def select(self, topics: Iterable[str] | str | None) -> list[str]:
+        """Topics of this file matching names or shell patterns (``/vehicle_0/*``, ``*/lidar``).
+
+        A name or pattern that matches nothing raises ``KeyError`` listing the topics.
+        """
+        if topics is None:
+            return sorted(self.topics)
+        if isinstance(topics, str):
+            topics = [topics]
+        out: set[str] = set()
+        for pattern in topics:
+            hits = [t for t in self.topics if fnmatch.fnmatchcase(t, pattern)]
+            if not hits:
+                raise KeyError(
+                    f"no topic matches {pattern!r} in {self.path}; topics: {', '.join(sorted(self.topics))}"
+                )
+            out.update(hits)
+        return sorted(out)
+
+    def messages(
+        self,
+        topics: Iterable[str] | str | None = None,
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+    ) -> Iterator[RawMessage]:
+        """Undecoded messages in log-time order, limited to ``topics`` and ``[start_ns, end_ns)``."""
+        selected = self.select(topics)
+        try:
+            for schema, channel, message in self._reader.iter_messages(
+                topics=selected, starting_at=start_ns, ending_before=end_ns, log_time_order=True
+            ):
+                yield RawMessage(
+                    channel.topic,
+                    schema.name if schema else "",
+                    channel.message_encoding,
+                    message.log_time,
+                    message.publish_time,
+                    message.sequence,
+                    message.data,
+                    schema.data if schema else b"",
+                )
+        except (McapError, EOFError, ValueError) as exc:
+            raise FormatError(
+                f"{self.path}: cannot read messages ({exc}); run `cosim validate` on it"
+            ) from None
+
+    def ticks(
+        self, topics: Iterable[str] | str | None = None, start: int = 0, stop: int | None = None
+    ) -> Iterator[Tick]:
+        """Ticks ``start <= k < stop`` in order, each holding the messages of ``topics`` (default all)."""
+        stop = self.n_ticks if stop is None else stop
+        if start >= stop:
+            return
+        current: dict[str, RawMessage] = {}
+        current_t: int | None = None
+        for m in self.messages(topics, start * self.tick_ns, stop * self.tick_ns):
+            if current_t is not None and m.log_time_ns != current_t:
+                yield Tick(current_t // self.tick_ns, current_t, current)
+                current = {}
+            current_t = m.log_time_ns
+            current[m.topic] = m
+        if current_t is not None:
+            yield Tick(current_t // self.tick_ns, current_t, current)
+
+    def tick(self, index: int, topics: Iterable[str] | str | None = None) -> Tick:
+        """One tick by index (reads only the chunks around its time)."""
+        if not 0 <= index < self.n_ticks:
+            raise IndexError(f"tick {index} out of range: {self.path} has ticks 0..{self.n_ticks - 1}")
+        for t in self.ticks(topics, index, index + 1):
+            return t
+        return Tick(index, index * self.tick_ns, {})
+
+    def __len__(self) -> int:
+        return self.n_ticks
+
+    # -- lifecycle --------------------------------------------------------------------------------
+
+    def close(self) -> None:
+        self._stream.close()
+
+    def __enter__(self) -> Episode:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return (
+            f"Episode({str(self.path)!r}, scenario={self.scenario!r}, ticks={self.n_ticks}, "
+            f"agents={len(self.agents)}, topics={len(self.topics)})"
+        )
+
+
+def open_episode(path: str | Path) -> Episode:
+    """Open an episode for reading.
+
+    Raises :class:`~cosim.errors.InputError` when the file is missing and
+    :class:`~cosim.errors.FormatError` when it is not a complete cosim episode (truncated, no
+    summary, no ``episode`` metadata) or has a format major version this reader does not know.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"no episode file at {path}")
+    stream = open(path, "rb")  # noqa: SIM115 (owned by the Episode)
+    try:
+        reader = make_reader(stream)
+        if not isinstance(reader, SeekingReader):
+            raise FormatError(f"{path}: not seekable")
+        try:
+            summary = reader.get_summary()
+        except (McapError, EOFError, ValueError, OSError) as exc:
+            raise FormatError(
+                f"{path}: truncated or corrupt MCAP (no readable footer/summary: {exc}); "
+                f"run `cosim validate` on it"
+            ) from None
+        if summary is None:
+            raise FormatError(f"{path}: MCAP without a summary section; the writer did not finish it")
+        raw: dict[str, str] | None = None
+        for record in reader.iter_metadata():
+            if record.name == "episode":
+                raw = dict(record.metadata)
+        if raw is None:
+            raise FormatError(f"{path}: no 'episode' metadata record; not a cosim episode")
+        return Episode(path, stream, reader, summary, raw)
+    except McapError as exc:
+        stream.close()
+        raise FormatError(f"{path}: not a readable MCAP file ({exc})") from None
+    except BaseException:
+        stream.close()
+        raise

@@ -1,0 +1,635 @@
+"""``cosim validate``: check an episode file against docs/episode_format.md.
+
+The file is read linearly record by record (no trust in its summary), so a truncated or corrupt
+file yields a problem report, never an exception. Checks:
+
+- structure: MCAP magic, header, every record readable, data end, summary and footer present,
+  summary statistics equal to the messages actually found;
+- metadata: the ``episode`` record with every required key and a readable format version;
+- attachments: scenario, network, routes, world layout;
+- topics: each topic's schema is the one the format names for it;
+- completeness: every tick 0..n_ticks-1 has exactly one message on every topic;
+- time: log times non-decreasing in file order, on the tick grid, inside the episode,
+  ``publish_time == log_time`` and the message's own timestamp equal to its log time;
+- labels: unique track ids of known classes, one stable class per track, every box, agent,
+  LiDAR point, instance pixel and visibility entry refers to a track alive at that tick;
+- transforms: ``/tf`` forms one tree rooted at ``map`` (one parent per frame, no cycle), every
+  agent has ``<agent>/base_link`` and every message's frame id is in the tree;
+- calibration: every image has a calibration on the same tick, same frame, same size.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import struct
+from collections import defaultdict
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
+from mcap.records import Attachment, Channel, DataEnd, Footer, Header, Message, Metadata, Schema, Statistics
+from mcap.stream_reader import StreamReader
+
+from cosim.classes import OBJECT_CLASSES
+from cosim.errors import CosimError, FormatError, InputError
+from cosim.io.decode import PROTO_DECODERS, TransformTree, decode_transforms, parse_json, parse_proto
+from cosim.io.format import (
+    LABEL_TOPICS,
+    MAP_FRAME,
+    REQUIRED_ATTACHMENTS,
+    REQUIRED_METADATA,
+    STATIC_INSTANCE_MIN,
+    topic_spec,
+)
+from cosim.io.reader import check_format_version, parse_metadata
+
+log = logging.getLogger(__name__)
+
+#: Problems kept per (check, topic); the rest are counted.
+MAX_PER_KIND = 8
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One way the file departs from the format."""
+
+    #: structure | metadata | attachments | topics | completeness | time | labels | transforms | calibration
+    check: str
+    message: str
+    tick: int | None = None
+    topic: str | None = None
+
+    def __str__(self) -> str:
+        where = []
+        if self.tick is not None:
+            where.append(f"tick {self.tick}")
+        if self.topic:
+            where.append(self.topic)
+        loc = f" {' '.join(where)}:" if where else ""
+        return f"[{self.check}]{loc} {self.message}"
+
+
+@dataclass
+class ValidationReport:
+    path: Path
+    problems: list[Problem] = field(default_factory=list)
+    suppressed: dict[tuple[str, str], int] = field(default_factory=dict)
+    messages: int = 0
+    ticks: int = 0
+    topics: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def checks_failed(self) -> set[str]:
+        return {p.check for p in self.problems}
+
+    def lines(self) -> list[str]:
+        out = [str(p) for p in self.problems]
+        out += [
+            f"[{c}] {t or '(file)'}: {n} more problems of this kind not shown"
+            for (c, t), n in self.suppressed.items()
+        ]
+        return out
+
+
+def _ranges(ticks: Iterable[int]) -> str:
+    ks = sorted(set(ticks))
+    parts: list[str] = []
+    i = 0
+    while i < len(ks):
+        j = i
+        while j + 1 < len(ks) and ks[j + 1] == ks[j] + 1:
+            j += 1
+        parts.append(str(ks[i]) if i == j else f"{ks[i]}-{ks[j]}")
+        i = j + 1
+    if len(parts) > 12:
+        parts = [*parts[:12], f"... ({len(ks)} ticks)"]
+    return ", ".join(parts)
+
+
+class _Validator:
+    def __init__(self, path: Path, pixels: bool):
+        self.report = ValidationReport(path)
+        self.pixels = pixels
+        self.schemas: dict[int, Schema] = {}
+        self.channels: dict[int, Channel] = {}
+        self.meta: dict[str, Any] | None = None
+        self.tick_ns: int | None = None
+        self.n_ticks: int | None = None
+        self.agents: list[str] = []
+        self.attachments: set[str] = set()
+        self.topic_ticks: dict[str, list[int]] = defaultdict(list)
+        self.track_class: dict[int, str] = {}
+        self.last_time = -1
+        self.done_times: set[int] = set()
+        self.group_t: int | None = None
+        self.group: list[tuple[Channel, Message]] = []
+        self.counts: dict[int, int] = defaultdict(int)
+        self.statistics: Statistics | None = None
+        self.seen_header = self.seen_data_end = self.seen_footer = False
+
+    # -- reporting --------------------------------------------------------------------------------
+
+    def problem(self, check: str, message: str, tick: int | None = None, topic: str | None = None) -> None:
+        key = (check, topic or "")
+        kept = sum(1 for p in self.report.problems if (p.check, p.topic or "") == key)
+        if kept >= MAX_PER_KIND:
+            self.report.suppressed[key] = self.report.suppressed.get(key, 0) + 1
+            return
+        self.report.problems.append(Problem(check, message, tick, topic))
+
+    # -- records ----------------------------------------------------------------------------------
+
+    def run(self) -> ValidationReport:
+        path = self.report.path
+        size = path.stat().st_size
+        offset_hint = 0
+        try:
+            with open(path, "rb") as f:
+                reader = StreamReader(f, validate_crcs=True, record_size_limit=max(size, 1))
+                for record in reader.records:
+                    offset_hint = f.tell()
+                    self.on_record(record)
+        except Exception as exc:  # a corrupt file may break the MCAP parser in any way; report, never crash
+            if isinstance(exc, EndOfFile | struct.error | RecordLengthLimitExceeded):
+                what = f"unexpected end of file{f': {exc}' if str(exc) else ''}"
+            else:
+                what = f"{type(exc).__name__}: {exc}"
+            last = (
+                f"; last message read at t={self.last_time} ns (tick {self.last_time // self.tick_ns})"
+                if self.last_time >= 0 and self.tick_ns
+                else "; no message could be read"
+            )
+            self.problem(
+                "structure", f"file is truncated or corrupt after byte {offset_hint} of {size} ({what}){last}"
+            )
+        self.flush_group()
+        self.finish()
+        return self.report
+
+    def on_record(self, record: Any) -> None:
+        if isinstance(record, Header):
+            self.seen_header = True
+        elif isinstance(record, Schema):
+            self.schemas[record.id] = record
+        elif isinstance(record, Channel):
+            self.channels[record.id] = record
+            self.check_channel(record)
+        elif isinstance(record, Message):
+            self.on_message(record)
+        elif isinstance(record, Metadata):
+            if record.name == "episode":
+                self.on_metadata(dict(record.metadata))
+        elif isinstance(record, Attachment):
+            self.attachments.add(record.name)
+        elif isinstance(record, DataEnd):
+            self.seen_data_end = True
+        elif isinstance(record, Statistics):
+            self.statistics = record
+        elif isinstance(record, Footer):
+            self.seen_footer = True
+            if record.summary_start == 0:
+                self.problem("structure", "no summary section (the writer did not finish the file)")
+
+    def on_metadata(self, raw: dict[str, str]) -> None:
+        missing = [k for k in REQUIRED_METADATA if k not in raw]
+        if missing:
+            self.problem("metadata", f"episode record lacks {', '.join(missing)}")
+        try:
+            check_format_version(raw.get("format_version"), "episode")
+        except FormatError as exc:
+            self.problem("metadata", str(exc))
+        self.meta = parse_metadata(raw)
+        try:
+            self.tick_ns = int(self.meta["tick_ns"])
+            self.n_ticks = int(self.meta["n_ticks"])
+            if self.tick_ns <= 0 or self.n_ticks <= 0:
+                raise ValueError(f"tick_ns {self.tick_ns}, n_ticks {self.n_ticks}")
+        except (KeyError, ValueError, TypeError) as exc:
+            self.problem("metadata", f"unusable tick_ns / n_ticks ({exc}); time checks skipped")
+            self.tick_ns = self.n_ticks = None
+        agents = self.meta.get("agents", [])
+        self.agents = [str(a) for a in agents] if isinstance(agents, list) else []
+
+    def check_channel(self, ch: Channel) -> None:
+        schema = self.schemas.get(ch.schema_id)
+        name = schema.name if schema else ""
+        found = topic_spec(ch.topic)
+        if found is None:
+            self.problem("topics", f"topic is not part of the format (schema {name!r})", topic=ch.topic)
+            return
+        spec, parts = found
+        if "agent" in parts and self.meta is not None and parts["agent"] not in self.agents:
+            self.problem(
+                "topics", f"agent {parts['agent']!r} is not in the metadata's agents", topic=ch.topic
+            )
+        ok = name in spec.schemas or (
+            name.startswith("cosim.") and any(s.startswith("cosim.") for s in spec.schemas)
+        )
+        if not ok:
+            self.problem("topics", f"schema {name!r}, expected {' or '.join(spec.schemas)}", topic=ch.topic)
+        if name.startswith("foxglove.") and ch.message_encoding != "protobuf":
+            self.problem(
+                "topics", f"encoding {ch.message_encoding!r} for {name}, expected protobuf", topic=ch.topic
+            )
+
+    def on_message(self, m: Message) -> None:
+        ch = self.channels.get(m.channel_id)
+        if ch is None:
+            self.problem(
+                "structure", f"message on unknown channel id {m.channel_id} at log time {m.log_time} ns"
+            )
+            return
+        self.counts[m.channel_id] += 1
+        self.report.messages += 1
+        tick = self.tick_of(m.log_time, ch.topic)
+        if m.log_time < self.last_time:
+            self.problem(
+                "time",
+                f"log time {m.log_time} ns goes back from {self.last_time} ns (not monotonic)",
+                tick,
+                ch.topic,
+            )
+        self.last_time = max(self.last_time, m.log_time)
+        if m.publish_time != m.log_time:
+            self.problem(
+                "time", f"publish_time {m.publish_time} ns != log_time {m.log_time} ns", tick, ch.topic
+            )
+        if tick is not None:
+            self.topic_ticks[ch.topic].append(tick)
+        if self.group_t is not None and m.log_time != self.group_t:
+            self.flush_group()
+        if m.log_time in self.done_times and self.group_t != m.log_time:
+            self.problem(
+                "time", f"messages of t={m.log_time} ns are not contiguous in the file", tick, ch.topic
+            )
+        self.group_t = m.log_time
+        self.group.append((ch, m))
+
+    def tick_of(self, t_ns: int, topic: str) -> int | None:
+        if self.tick_ns is None:
+            return None
+        k, rem = divmod(t_ns, self.tick_ns)
+        if rem:
+            self.problem("time", f"log time {t_ns} ns is not on the {self.tick_ns} ns tick grid", None, topic)
+            return None
+        if self.n_ticks is not None and not 0 <= k < self.n_ticks:
+            self.problem(
+                "time", f"log time {t_ns} ns is outside the episode (ticks 0..{self.n_ticks - 1})", k, topic
+            )
+            return None
+        return k
+
+    # -- one tick ---------------------------------------------------------------------------------
+
+    def flush_group(self) -> None:
+        if self.group_t is None:
+            return
+        t_ns, group = self.group_t, self.group
+        self.group_t, self.group = None, []
+        self.done_times.add(t_ns)
+        tick = t_ns // self.tick_ns if self.tick_ns else None
+        if self.tick_ns and t_ns % self.tick_ns:
+            return  # already reported; contents cannot be placed on a tick
+        try:
+            self.check_tick(tick, t_ns, group)
+        except Exception as exc:  # a check must never take the whole run down
+            self.problem("structure", f"could not check this tick: {type(exc).__name__}: {exc}", tick)
+
+    def check_tick(self, tick: int | None, t_ns: int, group: list[tuple[Channel, Message]]) -> None:
+        by_topic: dict[str, list[Any]] = defaultdict(list)
+        decoded: dict[str, Any] = {}
+        for ch, m in group:
+            by_topic[ch.topic].append(m)
+        for topic, msgs in by_topic.items():
+            if len(msgs) > 1:
+                self.problem("completeness", f"{len(msgs)} messages on one tick (expected 1)", tick, topic)
+            ch = next(c for c, m in group if c.topic == topic)
+            schema = self.schemas.get(ch.schema_id)
+            value = self.parse(
+                tick, ch, schema.name if schema else "", schema.data if schema else b"", msgs[0]
+            )
+            if value is not None:
+                decoded[topic] = value
+                self.check_stamp(tick, topic, value, t_ns)
+        tree = self.check_tf(tick, decoded.get("/tf"))
+        live = self.check_labels(tick, decoded)
+        if tree is not None:
+            self.check_frames(tick, tree, decoded)
+        self.check_sensors(tick, decoded, live)
+
+    def parse(self, tick: int | None, ch: Channel, schema_name: str, schema_data: bytes, m: Message) -> Any:
+        try:
+            if ch.message_encoding == "protobuf":
+                return parse_proto(schema_name, m.data, schema_data)
+            if ch.message_encoding == "json":
+                return parse_json(schema_name, m.data)
+            self.problem("topics", f"unknown message encoding {ch.message_encoding!r}", tick, ch.topic)
+        except (FormatError, CosimError) as exc:
+            self.problem("structure", str(exc), tick, ch.topic)
+        return None
+
+    def check_stamp(self, tick: int | None, topic: str, value: Any, t_ns: int) -> None:
+        stamps: list[int] = []
+        if isinstance(value, dict):
+            if "timestamp_ns" in value:
+                stamps.append(value["timestamp_ns"])
+            if "tick" in value and tick is not None and value["tick"] != tick:
+                self.problem("time", f"payload says tick {value['tick']}", tick, topic)
+        elif hasattr(value, "DESCRIPTOR"):
+            names = {f.name for f in value.DESCRIPTOR.fields}
+            if "timestamp" in names and value.HasField("timestamp"):
+                stamps.append(value.timestamp.seconds * 1_000_000_000 + value.timestamp.nanos)
+            for rep in ("transforms", "entities"):
+                if rep in names:
+                    stamps += [
+                        x.timestamp.seconds * 1_000_000_000 + x.timestamp.nanos for x in getattr(value, rep)
+                    ]
+        bad = sorted({s for s in stamps if s != t_ns})
+        if bad:
+            self.problem("time", f"message timestamp {bad[0]} ns != log time {t_ns} ns", tick, topic)
+
+    def check_tf(self, tick: int | None, msg: Any) -> TransformTree | None:
+        if msg is None:
+            return None
+        tree = decode_transforms(msg)
+        parents: dict[str, list[str]] = defaultdict(list)
+        for t in tree.transforms:
+            parents[t.child].append(t.parent)
+        for child, ps in parents.items():
+            if len(ps) > 1:
+                self.problem(
+                    "transforms", f"frame {child!r} has {len(ps)} parents: {', '.join(ps)}", tick, "/tf"
+                )
+            if child == MAP_FRAME:
+                self.problem("transforms", f"the root {MAP_FRAME!r} has a parent {ps[0]!r}", tick, "/tf")
+        for frame in sorted(tree.frames - {MAP_FRAME}):
+            path, f = [frame], frame
+            while f != MAP_FRAME:
+                p = parents.get(f)
+                if not p:
+                    self.problem(
+                        "transforms",
+                        f"frame {frame!r} does not reach {MAP_FRAME!r}: {f!r} has no parent "
+                        f"(chain {' -> '.join(path)})",
+                        tick,
+                        "/tf",
+                    )
+                    break
+                f = p[0]
+                if f in path:
+                    self.problem("transforms", f"cycle through {f!r}: {' -> '.join([*path, f])}", tick, "/tf")
+                    break
+                path.append(f)
+        for agent in self.agents:
+            if f"{agent}/base_link" not in tree.frames:
+                self.problem("transforms", f"agent {agent!r} has no frame {agent}/base_link", tick, "/tf")
+        return tree
+
+    def check_frames(self, tick: int | None, tree: TransformTree, decoded: dict[str, Any]) -> None:
+        frames = tree.frames | {MAP_FRAME}
+        for topic, value in decoded.items():
+            ids: set[str] = set()
+            if hasattr(value, "DESCRIPTOR"):
+                names = {f.name for f in value.DESCRIPTOR.fields}
+                if "frame_id" in names and value.frame_id:
+                    ids.add(value.frame_id)
+                if "entities" in names:
+                    ids |= {e.frame_id for e in value.entities}
+            elif isinstance(value, dict) and isinstance(value.get("frame_id"), str):
+                ids.add(value["frame_id"])
+            for fid in sorted(ids - frames):
+                self.problem("transforms", f"frame_id {fid!r} is not in this tick's /tf tree", tick, topic)
+
+    def check_labels(self, tick: int | None, decoded: dict[str, Any]) -> set[int] | None:
+        objs = decoded.get("/labels/objects")
+        if not isinstance(objs, dict):
+            return None
+        try:
+            ids = [int(o["track_id"]) for o in objs["objects"]]
+            classes = [str(o["class"]) for o in objs["objects"]]
+            agents = list(objs.get("agents", []))
+        except (KeyError, TypeError, ValueError) as exc:
+            self.problem("labels", f"object without a usable track_id/class ({exc})", tick, "/labels/objects")
+            return None
+        live = set(ids)
+        if len(live) != len(ids):
+            dupes = sorted({i for i in ids if ids.count(i) > 1})
+            self.problem("labels", f"track ids repeated within the tick: {dupes}", tick, "/labels/objects")
+        for i, c in zip(ids, classes, strict=True):
+            if c not in OBJECT_CLASSES:
+                self.problem(
+                    "labels",
+                    f"track {i} has unknown class {c!r}; known: {', '.join(OBJECT_CLASSES)}",
+                    tick,
+                    "/labels/objects",
+                )
+            before = self.track_class.setdefault(i, c)
+            if before != c:
+                self.problem(
+                    "labels", f"track {i} changed class from {before!r} to {c!r}", tick, "/labels/objects"
+                )
+        for a in agents:
+            tid = a.get("track_id") if isinstance(a, dict) else None
+            if tid is not None and tid not in live:
+                self.problem(
+                    "labels",
+                    f"agent {a.get('agent_id')!r} references track {tid}, which is not "
+                    f"in /labels/objects at this tick",
+                    tick,
+                    "/labels/objects",
+                )
+        boxes = decoded.get("/labels/boxes")
+        if boxes is not None:
+            box_ids = [e.id for e in boxes.entities]
+            dangling = sorted(set(box_ids) - {str(i) for i in live}, key=lambda s: (len(s), s))
+            if dangling:
+                self.problem(
+                    "labels",
+                    f"box entities {', '.join(dangling)} reference tracks not in "
+                    f"/labels/objects at this tick",
+                    tick,
+                    "/labels/boxes",
+                )
+            missing = sorted(live - {int(b) for b in box_ids if b.lstrip("-").isdigit()})
+            if missing:
+                self.problem("labels", f"tracks {missing} have no box", tick, "/labels/boxes")
+            if not any(d.type == d.ALL for d in boxes.deletions):
+                self.problem("labels", "no delete-all before the boxes", tick, "/labels/boxes")
+        return live
+
+    def check_sensors(self, tick: int | None, decoded: dict[str, Any], live: set[int] | None) -> None:
+        for topic, value in decoded.items():
+            found = topic_spec(topic)
+            if found is None:
+                continue
+            spec, _ = found
+            if spec.pattern.endswith("/image"):
+                self.check_calibration(
+                    tick, topic, value, decoded.get(topic[: -len("image")] + "calibration")
+                )
+            if live is None:
+                continue
+            refs: set[int] = set()
+            if spec.pattern == "/<agent>/lidar":
+                refs = self.point_tracks(tick, topic, value)
+            elif spec.pattern == "/<agent>/<cam>/instance" and self.pixels:
+                refs = self.pixel_tracks(tick, topic, value)
+            elif spec.pattern == "/<agent>/visibility" and isinstance(value, dict):
+                refs = set(_track_ids_in(value))
+            dangling = sorted(refs - live)
+            if dangling:
+                self.problem(
+                    "labels",
+                    f"references tracks {dangling[:10]}{' ...' if len(dangling) > 10 else ''} "
+                    f"not in /labels/objects at this tick",
+                    tick,
+                    topic,
+                )
+
+    def point_tracks(self, tick: int | None, topic: str, msg: Any) -> set[int]:
+        try:
+            pc = PROTO_DECODERS["foxglove.PointCloud"](msg)
+        except FormatError as exc:
+            self.problem("structure", str(exc), tick, topic)
+            return set()
+        if "instance_id" not in pc.fields:
+            return set()
+        ids = np.unique(pc.points["instance_id"])
+        return {int(i) for i in ids if 0 < i < STATIC_INSTANCE_MIN}
+
+    def pixel_tracks(self, tick: int | None, topic: str, msg: Any) -> set[int]:
+        name = msg.DESCRIPTOR.full_name
+        try:
+            img = PROTO_DECODERS[name](msg)
+        except (FormatError, KeyError) as exc:
+            self.problem("structure", str(exc), tick, topic)
+            return set()
+        ids = np.unique(img.array)
+        return {int(i) for i in ids if 0 < i < STATIC_INSTANCE_MIN}
+
+    def check_calibration(self, tick: int | None, topic: str, image: Any, calib: Any) -> None:
+        if calib is None:
+            self.problem(
+                "calibration", f"image without {topic[: -len('image')]}calibration on this tick", tick, topic
+            )
+            return
+        if calib.frame_id != image.frame_id:
+            self.problem(
+                "calibration",
+                f"image frame {image.frame_id!r} != calibration frame {calib.frame_id!r}",
+                tick,
+                topic,
+            )
+        size = _image_size(image)
+        if size is not None and size != (calib.width, calib.height):
+            self.problem(
+                "calibration",
+                f"image is {size[0]}x{size[1]}, calibration says {calib.width}x{calib.height}",
+                tick,
+                topic,
+            )
+
+    # -- whole file -------------------------------------------------------------------------------
+
+    def finish(self) -> None:
+        r = self.report
+        if not self.seen_header:
+            self.problem("structure", "no MCAP header")
+        if not self.seen_data_end or not self.seen_footer:
+            self.problem(
+                "structure", "file ends before the data-end/footer records: truncated or not finished"
+            )
+        if self.meta is None:
+            self.problem("metadata", "no 'episode' metadata record")
+        missing = [a for a in REQUIRED_ATTACHMENTS if a not in self.attachments]
+        if missing and self.seen_footer:
+            self.problem("attachments", f"missing {', '.join(missing)}")
+        if self.statistics is not None:
+            for cid, n in self.statistics.channel_message_counts.items():
+                if self.counts.get(cid, 0) != n:
+                    ch = self.channels.get(cid)
+                    self.problem(
+                        "structure",
+                        f"summary counts {n} messages, the file holds {self.counts.get(cid, 0)}",
+                        topic=ch.topic if ch else f"channel {cid}",
+                    )
+        topics = {ch.topic for ch in self.channels.values()}
+        for t in LABEL_TOPICS:
+            if t not in topics and self.meta is not None:
+                self.problem("completeness", "topic missing from the file", topic=t)
+        r.topics = {t: len(self.topic_ticks.get(t, [])) for t in sorted(topics)}
+        if self.n_ticks is None:
+            return
+        all_ticks = set(range(self.n_ticks))
+        seen_ticks: set[int] = set()
+        truncated = not self.seen_footer
+        for topic in sorted(topics):
+            ticks = self.topic_ticks.get(topic, [])
+            seen_ticks.update(ticks)
+            missing_ticks = all_ticks - set(ticks)
+            if missing_ticks and not truncated:  # a truncated file's missing ticks are reported once, above
+                self.problem(
+                    "completeness",
+                    f"no message on ticks {_ranges(missing_ticks)} ({len(missing_ticks)} of {self.n_ticks})",
+                    topic=topic,
+                )
+        r.ticks = len(seen_ticks)
+
+
+def _image_size(msg: Any) -> tuple[int, int] | None:
+    if msg.DESCRIPTOR.full_name == "foxglove.RawImage":
+        return msg.width, msg.height
+    try:
+        import io
+
+        from PIL import Image
+
+        with Image.open(io.BytesIO(msg.data)) as im:
+            return im.size
+    except Exception:  # undecodable images are reported by the decode checks
+        return None
+
+
+def _track_ids_in(value: Any) -> Iterable[int]:
+    """Every integer under a ``track_id`` key anywhere in a JSON value."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            if k == "track_id" and isinstance(v, int):
+                yield v
+            else:
+                yield from _track_ids_in(v)
+    elif isinstance(value, list):
+        for v in value:
+            yield from _track_ids_in(v)
+
+
+def validate_episode(path: str | Path, *, pixels: bool = True) -> ValidationReport:
+    """Check one episode file; the report lists every problem found (empty = valid).
+
+    ``pixels=False`` skips decoding instance masks (the slowest check). Raises
+    :class:`~cosim.errors.InputError` only when ``path`` is not a file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"no episode file at {path}")
+    return _Validator(path, pixels).run()
+
+
+def report_json(report: ValidationReport) -> str:
+    return json.dumps(
+        {
+            "path": str(report.path),
+            "ok": report.ok,
+            "messages": report.messages,
+            "ticks": report.ticks,
+            "problems": [p.__dict__ for p in report.problems],
+        },
+        indent=2,
+    )

@@ -1,0 +1,188 @@
+"""Episode tools on the command line: ``cosim info | validate | replay | render``.
+
+Registered into ``cosim`` by :func:`register` (cosim/cli.py calls it). Each command parses its
+arguments and calls a typed function in :mod:`cosim.io`; errors are raised as
+:class:`~cosim.errors.InputError` (exit 2) or :class:`~cosim.errors.CosimError` (exit 1).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from cosim.errors import InputError
+
+log = logging.getLogger(__name__)
+
+EXIT_OK, EXIT_PROBLEMS = 0, 1
+
+
+def _episode(path: str) -> Path:
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"no episode file at {p}")
+    return p
+
+
+def parse_ticks(spec: str | None, n_ticks: int) -> list[int]:
+    """Ticks from ``"0,10,20"``, ``"0:50:10"`` (start:stop:step) or ``"-1"``; default first, middle, last."""
+    if not spec:
+        return sorted({0, n_ticks // 2, max(n_ticks - 1, 0)})
+    out: list[int] = []
+    for part in spec.split(","):
+        part = part.strip()
+        try:
+            if ":" in part:
+                nums = [int(x) if x else None for x in part.split(":")]
+                out.extend(range(n_ticks)[slice(*nums)])
+            else:
+                k = int(part)
+                out.append(k + n_ticks if k < 0 else k)
+        except ValueError:
+            raise InputError(f"bad --ticks entry {part!r}: use numbers, START:STOP[:STEP] or -1") from None
+    bad = [k for k in out if not 0 <= k < n_ticks]
+    if bad:
+        raise InputError(f"--ticks {bad} out of range: the episode has ticks 0..{n_ticks - 1}")
+    return sorted(set(out))
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from cosim.io.info import episode_info, format_info
+
+    info = episode_info(_episode(args.episode))
+    print(json.dumps(info.as_dict(), indent=2) if args.json else format_info(info))
+    return EXIT_OK
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    from cosim.io.validate import report_json, validate_episode
+
+    status = EXIT_OK
+    for path in args.episodes:
+        report = validate_episode(_episode(path), pixels=not args.no_pixels)
+        if args.json:
+            print(report_json(report))
+        elif report.ok:
+            print(
+                f"{path}: ok ({report.ticks} ticks, {report.messages} messages, {len(report.topics)} topics)"
+            )
+        else:
+            lines = report.lines()
+            print(
+                f"{path}: {len(report.problems)} problem(s)"
+                + (f" (+{sum(report.suppressed.values())} not shown)" if report.suppressed else "")
+            )
+            for line in lines:
+                print(f"  {line}")
+        if not report.ok:
+            status = EXIT_PROBLEMS
+    return status
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from cosim.io.replay import ReplayOptions, replay_episode
+    from cosim.transport import check_endpoint
+
+    if args.rate <= 0:
+        raise InputError(f"--rate must be > 0, got {args.rate}")
+    for e in (args.connect or []) + (args.listen or []):
+        check_endpoint(e)
+    opts = ReplayOptions(
+        rate=args.rate,
+        loop=args.loop,
+        topics=args.topics,
+        connect=args.connect or [],
+        listen=args.listen or [],
+        prefix=args.prefix,
+        wait_subscribers_s=args.wait,
+        foxglove_port=args.foxglove,
+    )
+    stats = replay_episode(_episode(args.episode), opts)
+    print(
+        f"replayed {stats.messages} messages ({stats.loops} pass{'es' if stats.loops != 1 else ''}) "
+        f"in {stats.wall_s:.2f} s under {opts.prefix}/"
+    )
+    return EXIT_OK
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from cosim.io.reader import open_episode
+    from cosim.io.render import render_episode
+
+    path = _episode(args.episode)
+    with open_episode(path) as ep:
+        ticks = parse_ticks(args.ticks, ep.n_ticks)
+        agents = args.agents or None
+        unknown = sorted(set(agents or []) - set(ep.agents))
+        if unknown:
+            raise InputError(f"--agents {unknown} not in the episode; it has {', '.join(ep.agents)}")
+        written = render_episode(ep, Path(args.out), ticks, agents=agents, dpi=args.dpi)
+    for p in written:
+        print(p)
+    return EXIT_OK
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``info``, ``validate``, ``replay`` and ``render`` to the ``cosim`` command."""
+    p = sub.add_parser("info", help="what an episode holds: scenario, conditions, agents, topics, size")
+    p.add_argument("episode", help="episode file (.mcap)")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("validate", help="check episodes against docs/episode_format.md (exit 1 on problems)")
+    p.add_argument("episodes", nargs="+", metavar="episode", help="episode file(s) (.mcap)")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--no-pixels", action="store_true", help="skip decoding instance masks (faster)")
+    p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("replay", help="re-publish an episode over Zenoh with its original timing")
+    p.add_argument("episode", help="episode file (.mcap)")
+    p.add_argument("--rate", type=float, default=1.0, help="speed factor (2 = twice as fast; default 1)")
+    p.add_argument("--loop", action="store_true", help="start again at the end until interrupted")
+    p.add_argument(
+        "--topics",
+        nargs="+",
+        metavar="TOPIC",
+        help="topics or patterns to send (default all), e.g. /tf '/vehicle_0/*'",
+    )
+    p.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)",
+    )
+    p.add_argument(
+        "--listen", action="append", metavar="ENDPOINT", help="Zenoh endpoint to listen on (repeatable)"
+    )
+    p.add_argument("--prefix", default="cosim/replay", help="key prefix (default cosim/replay)")
+    p.add_argument(
+        "--wait",
+        type=float,
+        default=5.0,
+        metavar="SECONDS",
+        help="wait this long for a subscriber before sending (default 5; 0 = do not wait)",
+    )
+    p.add_argument(
+        "--foxglove",
+        type=int,
+        nargs="?",
+        const=8765,
+        metavar="PORT",
+        help="also serve the replay to Foxglove over WebSocket (needs foxglove-sdk; default port 8765)",
+    )
+    p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser("render", help="PNG contact sheets per agent and a BEV plot for chosen ticks")
+    p.add_argument("episode", help="episode file (.mcap)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--ticks", help="ticks: '0,10,20', '0:50:10' or '-1' (default: first, middle, last)")
+    p.add_argument("--agents", nargs="+", metavar="AGENT", help="agents for contact sheets (default all)")
+    p.add_argument("--dpi", type=int, default=80, help="figure resolution (default 80)")
+    p.set_defaults(func=cmd_render)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit("use: cosim info|validate|replay|render")

@@ -1,0 +1,207 @@
+"""``cosim validate`` and ``cosim info``: a valid file passes; each defect class is found and named."""
+
+from __future__ import annotations
+
+import copy
+import random
+
+import pytest
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+from cosim.cli import main
+from cosim.io.synthetic import TICK_NS, write_synthetic_episode
+from cosim.io.validate import validate_episode
+
+
+def _only(report, check):
+    assert not report.ok
+    found = [p for p in report.problems if p.check == check]
+    assert found, f"expected a {check!r} problem, got: {report.lines()}"
+    return found
+
+
+@pytest.fixture(scope="module")
+def good(tmp_path_factory):
+    return write_synthetic_episode(tmp_path_factory.mktemp("val") / "good.mcap", ticks=8)
+
+
+def test_a_complete_episode_is_valid(good, capsys):
+    report = validate_episode(good)
+    assert report.ok, report.lines()
+    assert report.ticks == 8 and report.messages == 8 * len(report.topics)
+    assert main(["validate", str(good)]) == 0
+    assert "ok (8 ticks" in capsys.readouterr().out
+
+
+def test_info_lists_scenario_agents_topics_and_rates(good, capsys):
+    assert main(["info", str(good)]) == 0
+    out = capsys.readouterr().out
+    assert "synthetic (seed 0)" in out and "urban, clear, day; drones: hover" in out
+    assert "1.6 s, 8 ticks at 5 Hz" in out and "vehicle_0 rsu_0 drone_0" in out
+    line = next(ln for ln in out.splitlines() if ln.strip().startswith("/vehicle_0/lidar"))
+    assert line.split()[1:] == ["foxglove.PointCloud", "8", "msgs", "5.00", "Hz"]
+
+
+def test_missing_file_is_bad_input_exit_2(tmp_path, capsys):
+    assert main(["validate", str(tmp_path / "absent.mcap")]) == 2
+    assert main(["info", str(tmp_path / "absent.mcap")]) == 2
+    assert "no episode file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("keep_fraction", [0.97, 0.6, 0.3, 0.02])
+def test_truncated_file_is_reported_not_crashed(good, tmp_path, keep_fraction, capsys):
+    cut = tmp_path / "cut.mcap"
+    data = good.read_bytes()
+    cut.write_bytes(data[: int(len(data) * keep_fraction)])
+    found = _only(validate_episode(cut), "structure")
+    assert any("truncated" in p.message for p in found)
+    assert main(["validate", str(cut)]) == 1
+    assert "truncated" in capsys.readouterr().out
+    assert main(["info", str(cut)]) == 1  # runtime failure with a message, no traceback
+    assert "truncated or corrupt" in capsys.readouterr().err
+
+
+def test_corrupt_bytes_are_reported_not_crashed(good, tmp_path):
+    rng = random.Random(3)
+    data = bytearray(good.read_bytes())
+    for _ in range(40):
+        data[rng.randrange(100, len(data) - 100)] ^= 0xFF
+    bad = tmp_path / "flipped.mcap"
+    bad.write_bytes(bytes(data))
+    report = validate_episode(bad)
+    assert not report.ok and "structure" in report.checks_failed()
+
+
+def test_a_missing_message_on_one_tick_is_named(tmp_path):
+    path = write_synthetic_episode(
+        tmp_path / "drop.mcap", ticks=8, edit=lambda k, t, m: None if (k, t) == (3, "/labels/boxes") else m
+    )
+    found = _only(validate_episode(path), "completeness")
+    assert [(p.topic, p.message) for p in found] == [("/labels/boxes", "no message on ticks 3 (1 of 8)")]
+
+
+def test_a_missing_tick_is_named_for_every_topic(tmp_path):
+    path = write_synthetic_episode(
+        tmp_path / "gap.mcap", ticks=8, edit=lambda k, t, m: None if k in (5, 6) else m
+    )
+    found = _only(validate_episode(path), "completeness")
+    assert {p.topic for p in found} >= {"/tf", "/labels/objects", "/vehicle_0/lidar"}
+    assert all("ticks 5-6 (2 of 8)" in p.message for p in found)
+
+
+def test_a_dangling_box_label_is_named(tmp_path):
+    def edit(k, topic, msg):
+        if (k, topic) == (2, "/labels/boxes"):
+            msg = copy.deepcopy(msg)
+            msg.entities[0].id = "99"
+        return msg
+
+    found = _only(
+        validate_episode(write_synthetic_episode(tmp_path / "dangle.mcap", ticks=4, edit=edit)), "labels"
+    )
+    assert any(p.tick == 2 and p.topic == "/labels/boxes" and "99" in p.message for p in found)
+
+
+def test_a_dangling_track_in_lidar_and_visibility_is_named(tmp_path):
+    def edit(k, topic, msg):
+        if k == 1 and topic == "/rsu_0/visibility":
+            name, schema, payload = msg
+            return name, schema, {**payload, "objects": [{"track_id": 42, "lidar_points": 1, "pixels": {}}]}
+        if k == 1 and topic == "/drone_0/lidar":
+            msg = copy.deepcopy(msg)
+            data = bytearray(msg.data)
+            data[msg.point_stride - 4 : msg.point_stride] = (77).to_bytes(
+                4, "little"
+            )  # instance_id of point 0
+            msg.data = bytes(data)
+        return msg
+
+    found = _only(
+        validate_episode(write_synthetic_episode(tmp_path / "d2.mcap", ticks=3, edit=edit)), "labels"
+    )
+    assert {(p.tick, p.topic) for p in found} == {(1, "/rsu_0/visibility"), (1, "/drone_0/lidar")}
+    assert any("[42]" in p.message for p in found) and any("[77]" in p.message for p in found)
+
+
+def test_a_broken_transform_tree_is_named(tmp_path):
+    def edit(k, topic, msg):
+        if (k, topic) == (4, "/tf"):
+            msg = FrameTransforms.FromString(msg.SerializeToString())
+            for t in msg.transforms:
+                if t.child_frame_id == "vehicle_0/lidar":
+                    t.parent_frame_id = "vehicle_0/base_lnk"
+        return msg
+
+    found = _only(
+        validate_episode(write_synthetic_episode(tmp_path / "tf.mcap", ticks=6, edit=edit)), "transforms"
+    )
+    assert any(
+        p.tick == 4
+        and "'vehicle_0/lidar' does not reach 'map'" in p.message
+        and "vehicle_0/base_lnk" in p.message
+        for p in found
+    )
+    assert all(p.tick == 4 for p in found)
+
+
+def test_a_transform_cycle_and_a_second_parent_are_named(tmp_path):
+    def edit(k, topic, msg):
+        if (k, topic) == (1, "/tf"):
+            msg = FrameTransforms.FromString(msg.SerializeToString())
+            extra = msg.transforms.add()
+            extra.CopyFrom(msg.transforms[0])  # map -> vehicle_0/base_link, now with a second parent
+            extra.parent_frame_id = "vehicle_0/lidar"
+        return msg
+
+    found = _only(
+        validate_episode(write_synthetic_episode(tmp_path / "cyc.mcap", ticks=3, edit=edit)), "transforms"
+    )
+    assert any("'vehicle_0/base_link' has 2 parents" in p.message for p in found)
+
+
+def test_timestamps_off_the_grid_and_backwards_are_named(tmp_path):
+    def edit(k, topic, msg):
+        if (k, topic) == (2, "/labels/objects"):
+            return [(2 * TICK_NS + 1, topic, msg)]
+        if (k, topic) == (3, "/tf"):
+            return [(1 * TICK_NS, topic, msg)]
+        return msg
+
+    found = _only(
+        validate_episode(write_synthetic_episode(tmp_path / "time.mcap", ticks=5, edit=edit)), "time"
+    )
+    text = "\n".join(str(p) for p in found)
+    assert "400000001 ns is not on the 200000000 ns tick grid" in text
+    assert "goes back" in text
+
+
+def test_a_header_stamp_that_disagrees_with_log_time_is_named(tmp_path):
+    def edit(k, topic, msg):
+        if (k, topic) == (2, "/labels/boxes"):
+            msg = SceneUpdate.FromString(msg.SerializeToString())
+            msg.entities[0].timestamp.nanos += 5
+        return msg
+
+    found = _only(
+        validate_episode(write_synthetic_episode(tmp_path / "stamp.mcap", ticks=3, edit=edit)), "time"
+    )
+    assert found[0].tick == 2 and "400000005 ns != log time 400000000 ns" in found[0].message
+
+
+def test_an_image_without_calibration_is_named(tmp_path):
+    path = write_synthetic_episode(
+        tmp_path / "cal.mcap", ticks=3, edit=lambda k, t, m: None if t == "/drone_0/down/calibration" else m
+    )
+    found = _only(validate_episode(path), "calibration")
+    assert {p.tick for p in found} == {0, 1, 2} and all(p.topic == "/drone_0/down/image" for p in found)
+
+
+def test_an_unknown_format_version_is_named(tmp_path, capsys):
+    path = write_synthetic_episode(
+        tmp_path / "v9.mcap", ticks=2, sensors=False, metadata={"format_version": "9.1"}
+    )
+    found = _only(validate_episode(path), "metadata")
+    assert "9.1 is not supported" in found[0].message
+    assert main(["info", str(path)]) == 1
+    assert "9.1" in capsys.readouterr().err
