@@ -1,0 +1,271 @@
+"""Sensor frames -> (topic, message) pairs for the episode writer (design.md section 6).
+
+Foxglove protobuf messages wherever a schema exists; the IMU and visibility topics, which have
+none, come as ``(topic, (schema_name, json_schema, payload_dict))``. Every timestamp inside a
+message is the simulation time ``t_ns``. PNG/JPEG encoding runs in a thread pool (zlib and
+libjpeg release the GIL), so it overlaps with the rest of the tick's work.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+import struct
+import zlib
+from concurrent.futures import Future, ThreadPoolExecutor
+
+import numpy as np
+from cosim.sensors.suite import AgentFrames, SensorFrameSet
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.Grid_pb2 import Grid
+from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
+from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from PIL import Image
+
+from cosim.errors import CosimError
+
+_F = PackedElementField.NumericType
+
+#: LiDAR point record: x, y, z, intensity float32; ring uint16; class_id uint8; pad; instance_id uint32.
+POINT_DTYPE = np.dtype(
+    {"names": ["x", "y", "z", "intensity", "ring", "class_id", "instance_id"],
+     "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "u1", "<u4"],
+     "offsets": [0, 4, 8, 12, 16, 18, 20], "itemsize": 24}
+)
+_POINT_FIELDS = [("x", 0, _F.FLOAT32), ("y", 4, _F.FLOAT32), ("z", 8, _F.FLOAT32), ("intensity", 12, _F.FLOAT32),
+                 ("ring", 16, _F.UINT16), ("class_id", 18, _F.UINT8), ("instance_id", 20, _F.UINT32)]
+
+IMU_SCHEMA = {
+    "title": "cosim.Imu",
+    "type": "object",
+    "properties": {
+        "timestamp_ns": {"type": "integer", "description": "simulation time [ns]"},
+        "frame_id": {"type": "string"},
+        "linear_acceleration_mps2": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3,
+                                     "description": "specific force, body FLU [m/s^2]"},
+        "angular_velocity_radps": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3,
+                                   "description": "body rates, FLU [rad/s]"},
+        "orientation": {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4,
+                        "description": "map <- body quaternion (x, y, z, w)"},
+    },
+    "required": ["timestamp_ns", "frame_id", "linear_acceleration_mps2", "angular_velocity_radps"],
+}
+
+VISIBILITY_SCHEMA = {
+    "title": "cosim.Visibility",
+    "type": "object",
+    "properties": {
+        "timestamp_ns": {"type": "integer"},
+        "agent_id": {"type": "string"},
+        "objects": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "properties": {
+                    "track_id": {"type": "integer"},
+                    "lidar_points": {"type": "integer", "description": "LiDAR returns on the object"},
+                    "pixels": {"type": "object", "additionalProperties": {"type": "integer"},
+                               "description": "camera name -> instance pixels"},
+                },
+                "required": ["track_id", "lidar_points", "pixels"],
+            },
+        },
+    },
+    "required": ["timestamp_ns", "agent_id", "objects"],
+}
+
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _pool() -> ThreadPoolExecutor:
+    global _POOL
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(max_workers=max(2, min(8, os.cpu_count() or 2)), thread_name_prefix="cosim-enc")
+    return _POOL
+
+
+# ----------------------------------------------------------------------------------- encoders
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+
+def encode_png(img: np.ndarray, level: int = 1) -> bytes:
+    """Lossless PNG of ``img`` (H, W, 3) uint8 RGB or (H, W) uint8 grey.
+
+    Rows use the PNG "Up" filter (difference to the row above), which suits rendered images, and
+    zlib at ``level``; zlib releases the GIL, so this parallelises across threads.
+    """
+    if img.dtype != np.uint8 or img.ndim not in (2, 3):
+        raise CosimError(f"encode_png takes uint8 (H, W) or (H, W, 3), got {img.dtype} {img.shape}")
+    h, w = img.shape[:2]
+    ch = 1 if img.ndim == 2 else img.shape[2]
+    rows = img.reshape(h, w * ch)
+    filt = np.empty((h, w * ch + 1), np.uint8)
+    filt[:, 0] = 2
+    filt[0, 0] = 0
+    filt[0, 1:] = rows[0]
+    np.subtract(rows[1:], rows[:-1], out=filt[1:, 1:])
+    colour = {1: 0, 3: 2, 4: 6}[ch]
+    head = struct.pack(">IIBBBBB", w, h, 8, colour, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", head) + _png_chunk(b"IDAT", zlib.compress(filt.data, level)) \
+        + _png_chunk(b"IEND", b"")
+
+
+def encode_jpeg(img: np.ndarray, quality: int) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="JPEG", quality=quality)
+    return buf.getvalue()
+
+
+# ----------------------------------------------------------------------------------- messages
+
+
+def _stamp(msg, t_ns: int) -> None:
+    msg.timestamp.FromNanoseconds(int(t_ns))
+
+
+def lidar_message(agent_id: str, frame, t_ns: int) -> PointCloud:
+    rec = np.zeros(frame.n_points, POINT_DTYPE)
+    rec["x"], rec["y"], rec["z"] = frame.points[:, 0], frame.points[:, 1], frame.points[:, 2]
+    rec["intensity"] = frame.intensity
+    rec["ring"] = frame.ring
+    rec["class_id"] = frame.class_id
+    rec["instance_id"] = frame.instance_id
+    msg = PointCloud(frame_id=f"{agent_id}/lidar", point_stride=POINT_DTYPE.itemsize, data=rec.tobytes())
+    _stamp(msg, t_ns)
+    msg.pose.orientation.w = 1.0
+    for name, off, typ in _POINT_FIELDS:
+        msg.fields.add(name=name, offset=off, type=typ)
+    return msg
+
+
+def depth_mm(depth_m: np.ndarray) -> np.ndarray:
+    """Planar depth [m] float32 -> uint16 [mm]; 0 = no return (sky or beyond 65.535 m)."""
+    mm = np.where(np.isfinite(depth_m), np.rint(depth_m * 1000.0), 0.0)
+    return np.where(mm <= 65535, mm, 0).astype("<u2")
+
+
+def _raw(frame_id: str, t_ns: int, img: np.ndarray, encoding: str) -> RawImage:
+    h, w = img.shape[:2]
+    msg = RawImage(frame_id=frame_id, width=w, height=h, encoding=encoding, step=img.strides[0],
+                   data=np.ascontiguousarray(img).tobytes())
+    _stamp(msg, t_ns)
+    return msg
+
+
+def calibration_message(frame_id: str, cam, t_ns: int) -> CameraCalibration:
+    msg = CameraCalibration(frame_id=frame_id, width=cam.width, height=cam.height, distortion_model="plumb_bob")
+    _stamp(msg, t_ns)
+    msg.D.extend([0.0] * 5)
+    msg.K.extend(float(v) for v in cam.K.ravel())
+    msg.R.extend([1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
+    msg.P.extend(float(v) for v in cam.P.ravel())
+    return msg
+
+
+def gnss_message(agent_id: str, g, t_ns: int) -> LocationFix:
+    msg = LocationFix(frame_id=f"{agent_id}/gnss", latitude=g.latitude_deg, longitude=g.longitude_deg,
+                      altitude=g.altitude_m, position_covariance_type=LocationFix.DIAGONAL_KNOWN)
+    _stamp(msg, t_ns)
+    msg.position_covariance.extend(g.covariance_m2)
+    return msg
+
+
+def bev_message(agent_id: str, bev, t_ns: int) -> Grid:
+    """The BEV grid in ``map``: the pose puts the grid's corner cell (0, 0) where it lies in the world."""
+    _ny, nx, n_layers = bev.grid.shape
+    hx, hy = bev.half_extent_m
+    c, s = math.cos(bev.yaw_rad), math.sin(bev.yaw_rad)
+    ox, oy, oz = bev.origin_m
+    msg = Grid(frame_id="map", column_count=nx, row_stride=nx * n_layers, cell_stride=n_layers,
+               data=np.ascontiguousarray(bev.grid).tobytes())
+    _stamp(msg, t_ns)
+    msg.pose.position.x = ox + c * -hx - s * -hy
+    msg.pose.position.y = oy + s * -hx + c * -hy
+    msg.pose.position.z = oz
+    msg.pose.orientation.z = math.sin(bev.yaw_rad / 2)
+    msg.pose.orientation.w = math.cos(bev.yaw_rad / 2)
+    msg.cell_size.x = bev.cell_m
+    msg.cell_size.y = bev.cell_m
+    for k, name in enumerate(bev.layers):
+        msg.fields.add(name=name, offset=k, type=_F.UINT8)
+    return msg
+
+
+def imu_payload(agent_id: str, imu, t_ns: int) -> dict:
+    return {
+        "timestamp_ns": int(t_ns), "frame_id": f"{agent_id}/imu",
+        "linear_acceleration_mps2": list(imu.linear_acceleration_mps2),
+        "angular_velocity_radps": list(imu.angular_velocity_radps), "orientation": list(imu.orientation),
+    }
+
+
+def visibility_payload(agent_id: str, vis, t_ns: int) -> dict:
+    return {
+        "timestamp_ns": int(t_ns), "agent_id": agent_id,
+        "objects": [{"track_id": o.track_id, "lidar_points": o.lidar_points, "pixels": dict(o.pixels)}
+                    for o in vis.objects],
+    }
+
+
+def _agent_messages(af: AgentFrames, t_ns: int, image_format: str, jpeg_quality: int) -> list:
+    a = af.agent_id
+    out: list = []
+    if af.lidar is not None:
+        out.append((f"/{a}/lidar", lidar_message(a, af.lidar, t_ns)))
+    for name, cam in af.cameras.items():
+        fid = f"{a}/{name}/optical"
+        base = f"/{a}/{name}"
+        if cam.rgb is not None:
+            if image_format == "png":
+                fut = _pool().submit(encode_png, cam.rgb)
+            elif image_format == "jpeg":
+                fut = _pool().submit(encode_jpeg, cam.rgb, jpeg_quality)
+            else:
+                raise CosimError(f"unknown image format {image_format!r}; known: png, jpeg")
+            out.append((f"{base}/image", (fid, image_format, fut)))
+        if cam.depth is not None:
+            out.append((f"{base}/depth", _raw(fid, t_ns, depth_mm(cam.depth), "16UC1")))
+        if cam.semantic is not None:
+            out.append((f"{base}/semantic", _raw(fid, t_ns, cam.semantic, "mono8")))
+        if cam.instance is not None:
+            out.append((f"{base}/instance", _raw(fid, t_ns, cam.instance.astype("<i4"), "32SC1")))
+        out.append((f"{base}/calibration", calibration_message(fid, cam, t_ns)))
+    if af.gnss is not None:
+        out.append((f"/{a}/gnss", gnss_message(a, af.gnss, t_ns)))
+    if af.imu is not None:
+        out.append((f"/{a}/imu", ("cosim.Imu", IMU_SCHEMA, imu_payload(a, af.imu, t_ns))))
+    if af.bev is not None:
+        out.append((f"/{a}/bev", bev_message(a, af.bev, t_ns)))
+    if af.visibility is not None:
+        out.append((f"/{a}/visibility", ("cosim.Visibility", VISIBILITY_SCHEMA,
+                                         visibility_payload(a, af.visibility, t_ns))))
+    return out
+
+
+def frame_messages(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png",
+                   jpeg_quality: int = 90) -> list[tuple[str, object]]:
+    """Every sensor topic of one tick, agents in frame order (see the module docstring).
+
+    Image encoding is submitted to a thread pool first and collected last, so it runs while the
+    other messages are built.
+    """
+    pending = []
+    for af in frames.agents.values():
+        pending.extend(_agent_messages(af, t_ns, image_format, jpeg_quality))
+    out: list[tuple[str, object]] = []
+    for topic, msg in pending:
+        if isinstance(msg, tuple) and len(msg) == 3 and isinstance(msg[2], Future):
+            fid, fmt, fut = msg
+            img = CompressedImage(frame_id=fid, format=fmt, data=fut.result())
+            _stamp(img, t_ns)
+            out.append((topic, img))
+        else:
+            out.append((topic, msg))
+    return out

@@ -1,0 +1,333 @@
+"""Pinhole cameras: RGB, planar depth, semantic and instance images from one set of hits.
+
+Rays leave the optical centre through pixel centres (u + 0.5, v + 0.5) with direction
+``R @ K^-1 [u + 0.5, v + 0.5, 1]`` (optical z = 1), so the cast distance is the planar depth.
+
+Adaptive casting (``block_px`` > 1): rays are first cast on a coarse grid of pixel centres every
+``block_px`` pixels. A block whose four corner samples hit the same triangle, and that no actor, no
+thin static object (pole, light, RSU) and no static mesh vertex projects into, is filled from
+that triangle: its class, instance and material are the triangle's and its inverse depth, which is
+affine in the image over a plane, is interpolated exactly. Every other block is cast pixel by
+pixel. All outputs of a camera come from the same per-pixel triangle index, so they agree.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from cosim.scenario.model import CameraSpec
+
+from .environment import Atmosphere
+from .rig import Pose
+from .scene import TickScene
+
+#: Box edges (pairs of corner indices into the 8 corners of :func:`box_corners`).
+_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6],
+                   [3, 7]])
+_NEAR_M = 0.05
+
+
+@dataclass(frozen=True)
+class CameraFrame:
+    """One camera at one tick. H x W images; pixel (v, u) is row v, column u.
+
+    ``rgb`` (H, W, 3) uint8 sRGB or None; ``depth`` (H, W) float32 planar depth [m] along the optical
+    axis, inf where nothing was hit; ``semantic`` (H, W) uint8 class id; ``instance`` (H, W) uint32
+    (track id, static instance id, 0); ``K`` (3, 3) float64 and ``P`` (3, 4) float64 intrinsics;
+    ``pose``: map <- optical frame.
+    """
+
+    agent_id: str
+    name: str
+    width: int
+    height: int
+    K: np.ndarray
+    P: np.ndarray
+    pose: Pose
+    rgb: np.ndarray | None
+    depth: np.ndarray | None
+    semantic: np.ndarray | None
+    instance: np.ndarray | None
+
+
+def box_corners(center: np.ndarray, size: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """Corners (B, 8, 3) of boxes: centres (B, 3), sizes (B, 3) (l, w, h), rotations (B, 3, 3) map <- box."""
+    sgn = np.array([[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1], [-1, -1, 1], [1, -1, 1], [1, 1, 1],
+                    [-1, 1, 1]], np.float64) * 0.5
+    local = sgn[None] * size[:, None, :]
+    return np.einsum("bij,bkj->bki", rotation, local) + center[:, None, :]
+
+
+def project_boxes(corners_map: np.ndarray, pose: Pose, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Image bounding rectangles of boxes, clipped at the near plane.
+
+    ``corners_map`` (B, 8, 3) in map. Returns ``rects`` (B, 4) float64 (umin, vmin, umax, vmax) in pixels
+    and ``valid`` (B,) bool (False when the box is entirely behind the camera).
+    """
+    if len(corners_map) == 0:
+        return np.zeros((0, 4)), np.zeros(0, bool)
+    p = pose.to_frame(corners_map.reshape(-1, 3)).reshape(-1, 8, 3)
+    a, b = p[:, _EDGES[:, 0]], p[:, _EDGES[:, 1]]
+    straddle = (a[..., 2] - _NEAR_M) * (b[..., 2] - _NEAR_M) < 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tcut = (_NEAR_M - a[..., 2]) / (b[..., 2] - a[..., 2])
+    x = a + np.where(straddle, tcut, 0.0)[..., None] * (b - a)
+    pts = np.concatenate([p, x], axis=1)
+    ok = np.concatenate([p[..., 2] >= _NEAR_M, straddle], axis=1)
+    z = np.where(ok, pts[..., 2], 1.0)
+    u = K[0, 0] * pts[..., 0] / z + K[0, 2]
+    v = K[1, 1] * pts[..., 1] / z + K[1, 2]
+    inf = np.inf
+    rects = np.stack([np.where(ok, u, inf).min(1), np.where(ok, v, inf).min(1), np.where(ok, u, -inf).max(1),
+                      np.where(ok, v, -inf).max(1)], axis=1)
+    return rects, ok.any(axis=1)
+
+
+def project_points(points_map: np.ndarray, pose: Pose, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (N, 2) of map points and whether each lies in front of the camera (N,)."""
+    p = pose.to_frame(points_map)
+    front = p[:, 2] > _NEAR_M
+    z = np.where(front, p[:, 2], 1.0)
+    uv = np.stack([K[0, 0] * p[:, 0] / z + K[0, 2], K[1, 1] * p[:, 1] / z + K[1, 2]], axis=1)
+    return uv, front
+
+
+def _pixel_dirs(cam: CameraSpec, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Optical-frame x and y (per column (W,), per row (H,)) of pixel-centre rays with z = 1."""
+    x = (np.arange(cam.width) + 0.5 - K[0, 2]) / K[0, 0]
+    y = (np.arange(cam.height) + 0.5 - K[1, 2]) / K[1, 1]
+    return x, y
+
+
+def _rays(pose: Pose, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """Rays (N, 6) float32 through optical-frame points (xs, ys, 1) (each (N,))."""
+    r = pose.rotation
+    rays = np.empty((xs.shape[0], 6), np.float32)
+    rays[:, :3] = pose.position_m
+    rays[:, 3] = r[0, 0] * xs + r[0, 1] * ys + r[0, 2]
+    rays[:, 4] = r[1, 0] * xs + r[1, 1] * ys + r[1, 2]
+    rays[:, 5] = r[2, 0] * xs + r[2, 1] * ys + r[2, 2]
+    return rays
+
+
+@dataclass(frozen=True)
+class Occluders:
+    """What adaptive casting must not interpolate across: boxes (B, 8, 3) and points (V, 3) in map."""
+
+    boxes: np.ndarray
+    points: np.ndarray
+
+
+def forced_blocks(occ: Occluders, pose: Pose, K: np.ndarray, hb: int, wb: int, s: int) -> np.ndarray:
+    """(hb, wb) bool: blocks of ``s`` px that some occluder box or point projects into."""
+    forced = np.zeros((hb, wb), bool)
+    rects, valid = project_boxes(occ.boxes, pose, K)
+    w, h = wb * s, hb * s
+    for umin, vmin, umax, vmax in rects[valid]:
+        if umax < -1 or vmax < -1 or umin > w + 1 or vmin > h + 1:
+            continue
+        j0 = max(0, math.floor((umin - 1.0) / s))
+        i0 = max(0, math.floor((vmin - 1.0) / s))
+        j1 = min(wb - 1, math.floor(min(umax + 1.0, w) / s))
+        i1 = min(hb - 1, math.floor(min(vmax + 1.0, h) / s))
+        forced[i0:i1 + 1, j0:j1 + 1] = True
+    if len(occ.points):
+        uv, front = project_points(occ.points, pose, K)
+        m = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        forced[(uv[m, 1] // s).astype(np.int64), (uv[m, 0] // s).astype(np.int64)] = True
+    return forced
+
+
+def cast_image(
+    cam: CameraSpec,
+    K: np.ndarray,
+    pose: Pose,
+    scene: TickScene,
+    occ: Occluders,
+    exclude_track: int | None,
+    block_px: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel global triangle index (H, W) int32 and planar depth (H, W) float32 (inf on a miss)."""
+    h, w = cam.height, cam.width
+    xs, ys = _pixel_dirs(cam, K)
+    s = block_px
+    if s <= 1 or h % s or w % s:
+        gx, gy = np.meshgrid(xs, ys)
+        t, gid = scene.cast(_rays(pose, gx.ravel(), gy.ravel()), exclude_track)
+        return gid.reshape(h, w), t.reshape(h, w)
+    hb, wb = h // s, w // s
+    f = K[0, 0]
+    gxs = (np.arange(wb + 1) * s + 0.5 - K[0, 2]) / f
+    gys = (np.arange(hb + 1) * s + 0.5 - K[1, 2]) / K[1, 1]
+    gx, gy = np.meshgrid(gxs, gys)
+    tg, gg = scene.cast(_rays(pose, gx.ravel(), gy.ravel()), exclude_track)
+    tg, gg = tg.reshape(hb + 1, wb + 1), gg.reshape(hb + 1, wb + 1)
+    c00 = gg[:-1, :-1]
+    same = (c00 == gg[:-1, 1:]) & (c00 == gg[1:, :-1]) & (c00 == gg[1:, 1:])
+    mixed = ~same | forced_blocks(occ, pose, K, hb, wb, s)
+
+    gid = np.empty((h, w), np.int32)
+    gid.reshape(hb, s, wb, s)[:] = c00[:, None, :, None]
+    wgt = (np.arange(s, dtype=np.float32) / s)
+    with np.errstate(divide="ignore"):
+        inv = np.where(np.isfinite(tg), 1.0 / tg, 0.0).astype(np.float32)
+    rows = (inv[:-1, None, :] * (1 - wgt)[None, :, None] + inv[1:, None, :] * wgt[None, :, None]).reshape(h, wb + 1)
+    inv_full = (rows[:, :-1, None] * (1 - wgt) + rows[:, 1:, None] * wgt).reshape(h, w)
+    with np.errstate(divide="ignore"):
+        depth = np.where(inv_full > 0, 1.0 / inv_full, np.inf).astype(np.float32)
+
+    bi, bj = np.nonzero(mixed)
+    if len(bi):
+        d = np.arange(s)
+        rr = (bi[:, None, None] * s + d[None, :, None]).repeat(s, axis=2).ravel()
+        cc = (bj[:, None, None] * s + d[None, None, :]).repeat(s, axis=1).ravel()
+        t, g = scene.cast(_rays(pose, xs[cc], ys[rr]), exclude_track)
+        gid[rr, cc] = g
+        depth[rr, cc] = t
+    return gid, depth
+
+
+# ----------------------------------------------------------------------------------- shading
+
+
+@dataclass(frozen=True)
+class LightMap:
+    """Artificial irradiance on the ground (relative units, 1 = under a street lamp) on a raster.
+
+    ``values`` (ny, nx) float32; cell (i, j) covers x0 + j*res .. , y0 + i*res .. [m].
+    """
+
+    values: np.ndarray
+    x0: float
+    y0: float
+    res_m: float
+
+    def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        ny, nx = self.values.shape
+        j = np.clip((x - self.x0) * (1.0 / self.res_m), 0, nx - 1).astype(np.int32)
+        i = np.clip((y - self.y0) * (1.0 / self.res_m), 0, ny - 1).astype(np.int32)
+        return np.take(self.values, i * nx + j)
+
+
+LAMP_RGB = np.array([1.0, 0.82, 0.55], np.float32)  # sodium-ish street light colour
+_GAMMA_LUT = (np.linspace(0.0, 1.0, 4096) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
+SKY_LEVELS = 64
+
+
+def to_srgb(linear: np.ndarray, exposure: float = 1.0) -> np.ndarray:
+    """Linear colour (..., 3) float -> sRGB uint8 (gamma 2.2, clipped)."""
+    idx = np.clip(linear * np.float32(exposure * 4095.0), 0, 4095).astype(np.int16)
+    return np.take(_GAMMA_LUT, idx)
+
+
+def sky_table(atm: Atmosphere) -> np.ndarray:
+    """Sky colour (SKY_LEVELS, 3) float32, linear, from the horizon (level 0) to the zenith."""
+    k = np.sqrt(np.linspace(0.0, 1.0, SKY_LEVELS))[:, None]
+    return (atm.sky_horizon * (1 - k) + atm.sky_zenith * k).astype(np.float32)
+
+
+def _sky_level(cam: CameraSpec, K: np.ndarray, pose: Pose, s: int) -> np.ndarray:
+    """Sky level index (H, W) int32 from each pixel's ray elevation, computed per block of ``s`` px."""
+    h, w = cam.height, cam.width
+    s = s if s > 1 and h % s == 0 and w % s == 0 else 1
+    xs = (np.arange(0, w, s) + 0.5 * s - K[0, 2]) / K[0, 0]
+    ys = (np.arange(0, h, s) + 0.5 * s - K[1, 2]) / K[1, 1]
+    r = pose.rotation
+    dz = (r[2, 0] * xs[None, :] + r[2, 1] * ys[:, None] + r[2, 2]) / np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1)
+    lvl = np.clip(dz * (SKY_LEVELS - 1) + 0.5, 0, SKY_LEVELS - 1).astype(np.int32)
+    if s > 1:
+        lvl = np.repeat(np.repeat(lvl, s, axis=0), s, axis=1)
+    return lvl
+
+
+@dataclass(frozen=True)
+class ShadingTables:
+    """Per global triangle index (rows 0..miss-1), then ``miss`` (unused), then the sky levels.
+
+    ``linear`` (R, 3) float32 colour under sun and sky; ``srgb`` (R, 3) uint8 the same after exposure
+    and gamma; ``albedo`` (R, 3) float32; ``emissive`` (R,) float32.
+    """
+
+    linear: np.ndarray
+    srgb: np.ndarray
+    albedo: np.ndarray
+    emissive: np.ndarray
+    miss: int
+
+
+def shading_tables(lut_rgb: np.ndarray, lut_albedo: np.ndarray, lut_emissive: np.ndarray, miss: int,
+                   atm: Atmosphere) -> ShadingTables:
+    """Tables for :func:`shade` from per-global-index colour (miss + 1, 3), albedo and emissive rows."""
+    sky = sky_table(atm)
+    linear = np.concatenate([lut_rgb.astype(np.float32), sky])
+    albedo = np.concatenate([lut_albedo.astype(np.float32), np.zeros_like(sky)])
+    emissive = np.concatenate([lut_emissive.astype(np.float32), np.zeros(len(sky), np.float32)])
+    return ShadingTables(linear, to_srgb(linear, atm.exposure), albedo, emissive, miss)
+
+
+def shade(
+    gid: np.ndarray,
+    depth: np.ndarray,
+    cam: CameraSpec,
+    K: np.ndarray,
+    pose: Pose,
+    tables: ShadingTables,
+    atm: Atmosphere,
+    light: LightMap | None,
+    rng: np.random.Generator,
+    block_px: int = 4,
+) -> np.ndarray:
+    """sRGB image (H, W, 3) uint8 from per-pixel global triangle index ``gid`` (H, W) int32 and
+    planar ``depth`` (H, W) float32 [m].
+
+    Sun and sky light come baked per triangle; adds the sky gradient, artificial light (street
+    lights and headlights from ``light``, lamps' own glow), extinction by distance towards the fog
+    colour, and rain (darkening and streaks drawn from ``rng``).
+    """
+    h, w = gid.shape
+    sky = gid == tables.miss
+    g = np.where(sky, tables.miss + 1 + _sky_level(cam, K, pose, block_px), gid)
+    linear_needed = atm.artificial > 0 or atm.beta > 0 or atm.rain_rate_mm_h > 0
+    if not linear_needed:
+        return np.take(tables.srgb, g, axis=0)
+    rgb = np.take(tables.linear, g, axis=0)
+    xs = ((np.arange(w) + 0.5 - K[0, 2]) / K[0, 0]).astype(np.float32)
+    ys = ((np.arange(h) + 0.5 - K[1, 2]) / K[1, 1]).astype(np.float32)
+    r = pose.rotation.astype(np.float32)
+    if atm.artificial > 0:
+        if light is not None:
+            dep = np.where(sky, np.float32(0), depth)
+            px = pose.position_m[0] + dep * (r[0, 0] * xs[None, :] + (r[0, 1] * ys[:, None] + r[0, 2]))
+            py = pose.position_m[1] + dep * (r[1, 0] * xs[None, :] + (r[1, 1] * ys[:, None] + r[1, 2]))
+            e = light.sample(px, py) * np.float32(atm.artificial)
+            rgb += np.take(tables.albedo, g, axis=0) * (e[..., None] * LAMP_RGB)
+        glow = np.take(tables.emissive, g)
+        rgb += (glow * np.float32(2.0 * atm.artificial))[..., None] * LAMP_RGB
+    if atm.beta > 0:
+        norm = np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1.0)
+        with np.errstate(over="ignore", invalid="ignore"):
+            trans = np.exp(np.float32(-atm.beta) * (depth * norm))
+        trans[sky] = 0.0
+        rgb *= trans[..., None]
+        rgb += atm.fog_rgb.astype(np.float32) * (1.0 - trans)[..., None]
+    if atm.rain_rate_mm_h > 0:
+        rgb *= np.float32(0.8)
+        _rain_streaks(rgb, atm.rain_rate_mm_h, rng)
+    return to_srgb(rgb, atm.exposure)
+
+def _rain_streaks(rgb: np.ndarray, rate_mm_h: float, rng: np.random.Generator) -> None:
+    """Brighten thin slanted streaks in place (count and length grow with the rain rate)."""
+    h, w = rgb.shape[:2]
+    n = int(min(4000, 60 * rate_mm_h * (h * w) / (1280 * 720)))
+    length = max(4, int(0.03 * h))
+    u0 = rng.random(n) * w
+    v0 = rng.random(n) * h
+    slope = 0.15 + 0.1 * rng.random(n)
+    k = np.arange(length)
+    uu = (u0[:, None] + slope[:, None] * k).astype(np.int64).ravel()
+    vv = (v0[:, None] + k).astype(np.int64).ravel()
+    m = (uu < w) & (vv < h)
+    rgb[vv[m], uu[m]] = rgb[vv[m], uu[m]] * 0.7 + 0.12

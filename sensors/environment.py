@@ -1,0 +1,102 @@
+"""Weather and lighting as the sensors feel them: extinction, sun, sky, artificial light, rain.
+
+Fog follows Koschmieder's law: extinction ``beta = 3.0 / visibility`` [1/m] (5 % contrast at the
+visibility distance); light and laser pulses travel through it with transmittance ``exp(-beta d)``
+(two-way for LiDAR). Rain adds a weaker extinction ``beta_rain = 0.00045 * rate^0.63`` [1/m]
+(rate in mm/h), LiDAR dropout, range noise and spurious near returns, and darkens the cameras.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from cosim.scenario.model import EnvironmentSpec
+
+#: Defaults when the scenario leaves them open.
+DEFAULT_FOG_VISIBILITY_M = 60.0
+DEFAULT_RAIN_RATE_MM_H = 10.0
+CLEAR_VISIBILITY_M = 20_000.0
+
+
+@dataclass(frozen=True)
+class Atmosphere:
+    """Everything the LiDAR and camera models need from ``scenario.environment``."""
+
+    weather: str
+    lighting: str
+    visibility_m: float  # [m] meteorological visibility (fog); CLEAR_VISIBILITY_M otherwise
+    rain_rate_mm_h: float  # [mm/h]
+    sun_dir: np.ndarray  # (3,) unit vector towards the sun, map ENU
+    sun_rgb: np.ndarray  # (3,) direct light colour x intensity
+    ambient_rgb: np.ndarray  # (3,) sky/ambient light on every surface
+    sky_zenith: np.ndarray  # (3,) sky colour overhead (0..1)
+    sky_horizon: np.ndarray  # (3,) sky colour at the horizon
+    fog_rgb: np.ndarray  # (3,) colour that distant things fade to
+    artificial: float  # 0..1 how strongly street lights and headlights shine (night 1, dusk 0.5)
+    exposure: float  # camera gain
+
+    @property
+    def beta_fog(self) -> float:
+        """Fog extinction [1/m]."""
+        return 3.0 / self.visibility_m if self.visibility_m < CLEAR_VISIBILITY_M else 0.0
+
+    @property
+    def beta_rain(self) -> float:
+        """Rain extinction [1/m]."""
+        return 0.00045 * self.rain_rate_mm_h**0.63 if self.rain_rate_mm_h > 0 else 0.0
+
+    @property
+    def beta(self) -> float:
+        """Total extinction [1/m]."""
+        return self.beta_fog + self.beta_rain
+
+
+def _sun(elev_deg: float, azim_deg: float) -> np.ndarray:
+    e, a = math.radians(elev_deg), math.radians(azim_deg)
+    return np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
+
+
+def atmosphere(env: EnvironmentSpec) -> Atmosphere:
+    """The sensor-side view of ``env``."""
+    v = np.asarray
+    if env.lighting == "day":
+        sun_dir, sun, amb = _sun(50, 210), v([1.0, 0.97, 0.92]), v([0.38, 0.40, 0.45])
+        zen, hor, art, expo = v([0.25, 0.45, 0.85]), v([0.70, 0.80, 0.92]), 0.0, 1.0
+    elif env.lighting == "dusk":
+        sun_dir, sun, amb = _sun(6, 260), v([0.85, 0.50, 0.28]), v([0.16, 0.14, 0.18])
+        zen, hor, art, expo = v([0.18, 0.20, 0.40]), v([0.85, 0.50, 0.30]), 0.5, 1.1
+    else:
+        sun_dir, sun, amb = _sun(30, 120), v([0.03, 0.035, 0.05]), v([0.035, 0.04, 0.06])
+        zen, hor, art, expo = v([0.01, 0.01, 0.03]), v([0.04, 0.04, 0.07]), 1.0, 1.0
+    fog = np.clip(0.55 * hor + 0.45 * np.mean(hor), 0, 1)
+    visibility = CLEAR_VISIBILITY_M
+    rain = 0.0
+    if env.weather == "cloudy":
+        amb = amb * 1.15 + 0.5 * sun * max(sun_dir[2], 0.1)
+        sun = sun * 0.15
+        grey = np.mean(hor)
+        zen, hor = 0.35 * zen + 0.65 * grey * v([0.9, 0.9, 0.95]), 0.3 * hor + 0.7 * grey
+    elif env.weather == "foggy":
+        visibility = env.fog_visibility_m or DEFAULT_FOG_VISIBILITY_M
+        amb = amb * 1.2 + 0.4 * sun * max(sun_dir[2], 0.1)
+        sun = sun * 0.25
+        fog = np.clip(np.full(3, np.mean(hor)) * (0.95 if env.lighting == "day" else 0.8), 0, 1)
+        zen = hor = fog
+    elif env.weather == "rainy":
+        rain = env.rain_rate_mm_h if env.rain_rate_mm_h is not None else DEFAULT_RAIN_RATE_MM_H
+        amb = amb * 1.0 + 0.3 * sun * max(sun_dir[2], 0.1)
+        sun = sun * 0.1
+        grey = np.mean(hor) * 0.75
+        zen, hor = np.full(3, grey * 0.85), np.full(3, grey)
+        fog = np.full(3, grey)
+    if env.fog_visibility_m is not None and env.weather != "foggy":
+        visibility = env.fog_visibility_m
+    if env.rain_rate_mm_h is not None and env.weather != "rainy":
+        rain = env.rain_rate_mm_h
+    return Atmosphere(
+        env.weather, env.lighting, float(visibility), float(rain), sun_dir, v(sun, np.float64),
+        v(amb, np.float64), v(zen, np.float64), v(hor, np.float64), v(fog, np.float64), art, expo,
+    )

@@ -1,0 +1,448 @@
+"""Triangle meshes for the ray caster: static prisms (built once per episode) and actor shapes.
+
+Every mesh carries one row per triangle of labels and material:
+
+- ``semantic`` (T,) uint8: :data:`cosim.classes.SEMANTIC_ID` of the surface;
+- ``instance`` (T,) uint32: track id for actors, ``Prism.instance_id`` for static things (0 = stuff);
+- ``albedo`` (T, 3) float32 in [0, 1]: diffuse colour;
+- ``reflectivity`` (T,) float32 in [0, 1]: LiDAR reflectivity at normal incidence;
+- ``emissive`` (T,) float32 >= 0: self-luminance at night (lamp heads, headlights, tail lights).
+
+Vertices are float32 metres in ``map`` (static) or in the actor's body frame FLU, box-centred
+(templates); triangles are wound counter-clockwise seen from outside (normals point out).
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from cosim.classes import SEMANTIC_ID, semantic_id
+from cosim.errors import CosimError
+from cosim.world.types import Prism, StaticLayout
+
+
+@dataclass(frozen=True)
+class TriMesh:
+    """Triangles with per-triangle labels and material (see the module docstring)."""
+
+    vertices: np.ndarray  # (V, 3) float32 [m]
+    triangles: np.ndarray  # (T, 3) uint32 vertex indices
+    semantic: np.ndarray  # (T,) uint8
+    instance: np.ndarray  # (T,) uint32
+    albedo: np.ndarray  # (T, 3) float32
+    reflectivity: np.ndarray  # (T,) float32
+    emissive: np.ndarray  # (T,) float32
+
+    @property
+    def n_triangles(self) -> int:
+        return int(self.triangles.shape[0])
+
+    def normals(self) -> np.ndarray:
+        """Unit face normals (T, 3) float32 from the winding (outward)."""
+        v = self.vertices[self.triangles]
+        n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        norm = np.linalg.norm(n, axis=1, keepdims=True)
+        return (n / np.maximum(norm, 1e-12)).astype(np.float32)
+
+
+def empty_mesh() -> TriMesh:
+    return TriMesh(
+        np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32), np.zeros(0, np.uint8), np.zeros(0, np.uint32),
+        np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.float32),
+    )
+
+
+def concat(meshes: Sequence[TriMesh]) -> TriMesh:
+    """One mesh holding all of ``meshes`` in order (triangle order preserved)."""
+    meshes = [m for m in meshes if m.n_triangles]
+    if not meshes:
+        return empty_mesh()
+    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+    return TriMesh(
+        np.concatenate([m.vertices for m in meshes]).astype(np.float32),
+        np.concatenate([m.triangles + np.uint32(o) for m, o in zip(meshes, offsets, strict=True)]).astype(np.uint32),
+        np.concatenate([m.semantic for m in meshes]),
+        np.concatenate([m.instance for m in meshes]),
+        np.concatenate([m.albedo for m in meshes]),
+        np.concatenate([m.reflectivity for m in meshes]),
+        np.concatenate([m.emissive for m in meshes]),
+    )
+
+
+def _labelled(vertices: np.ndarray, triangles: np.ndarray, cls: str, instance: int, albedo, refl: float,
+              emissive: float = 0.0) -> TriMesh:
+    t = len(triangles)
+    alb = np.broadcast_to(np.asarray(albedo, np.float32), (t, 3))
+    return TriMesh(
+        np.asarray(vertices, np.float32), np.asarray(triangles, np.uint32).reshape(-1, 3),
+        np.full(t, semantic_id(cls), np.uint8), np.full(t, instance, np.uint32), np.array(alb, np.float32),
+        np.full(t, refl, np.float32), np.full(t, emissive, np.float32),
+    )
+
+
+# ------------------------------------------------------------------------------ triangulation
+
+
+def _clean_polygon(poly: np.ndarray) -> np.ndarray:
+    """Drop repeated and collinear points, make counter-clockwise. ``poly`` (N, 2) float64."""
+    p = np.asarray(poly, np.float64)
+    if len(p) > 1 and np.allclose(p[0], p[-1]):
+        p = p[:-1]
+    for _ in range(3):
+        if len(p) < 3:
+            return p
+        nxt = np.roll(p, -1, axis=0)
+        keep = np.linalg.norm(nxt - p, axis=1) > 1e-7
+        p = p[keep]
+        if len(p) < 3:
+            return p
+        prv, nxt = np.roll(p, 1, axis=0), np.roll(p, -1, axis=0)
+        cross = (p[:, 0] - prv[:, 0]) * (nxt[:, 1] - p[:, 1]) - (p[:, 1] - prv[:, 1]) * (nxt[:, 0] - p[:, 0])
+        scale = np.linalg.norm(p - prv, axis=1) * np.linalg.norm(nxt - p, axis=1)
+        keep = np.abs(cross) > 1e-9 * np.maximum(scale, 1e-12)
+        if keep.all():
+            break
+        p = p[keep]
+    x, y = p[:, 0], p[:, 1]
+    if np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y) < 0:
+        p = p[::-1].copy()
+    return p
+
+
+def triangulate_polygon(poly: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ear-clipping triangulation of a simple (possibly concave) polygon.
+
+    ``poly`` (N, 2) [m], any orientation, optionally with a repeated last point. Returns the cleaned
+    counter-clockwise points (M, 2) float64 and triangles (M - 2, 3) int64 into them, each triangle CCW.
+    Degenerate input (self-touching, slightly self-intersecting) still terminates: when no clean ear
+    exists the most convex vertex is clipped.
+    """
+    p = _clean_polygon(poly)
+    n = len(p)
+    if n < 3:
+        return p, np.zeros((0, 3), np.int64)
+    idx = list(range(n))
+    tris: list[tuple[int, int, int]] = []
+    x, y = p[:, 0], p[:, 1]
+    guard = 0
+    while len(idx) > 3:
+        guard += 1
+        if guard > 4 * n * n + 100:
+            raise CosimError(f"triangulation did not terminate for a polygon with {n} points")
+        m = len(idx)
+        ia = np.asarray(idx)
+        prv, nxt = np.roll(ia, 1), np.roll(ia, -1)
+        ax, ay, bx, by, cx, cy = x[prv], y[prv], x[ia], y[ia], x[nxt], y[nxt]
+        cross = (bx - ax) * (cy - by) - (by - ay) * (cx - bx)
+        convex = np.nonzero(cross > 1e-12)[0]
+        clipped = False
+        for k in convex:
+            a, b, c = prv[k], ia[k], nxt[k]
+            others = ia[(ia != a) & (ia != b) & (ia != c)]
+            ox, oy = x[others], y[others]
+            d1 = (x[b] - x[a]) * (oy - y[a]) - (y[b] - y[a]) * (ox - x[a])
+            d2 = (x[c] - x[b]) * (oy - y[b]) - (y[c] - y[b]) * (ox - x[b])
+            d3 = (x[a] - x[c]) * (oy - y[c]) - (y[a] - y[c]) * (ox - x[c])
+            inside = (d1 >= -1e-12) & (d2 >= -1e-12) & (d3 >= -1e-12)
+            if not inside.any():
+                tris.append((int(a), int(b), int(c)))
+                del idx[int(k)]
+                clipped = True
+                break
+        if not clipped:
+            k = int(np.argmax(cross)) if m else 0
+            if cross[k] > 1e-12:
+                tris.append((int(prv[k]), int(ia[k]), int(nxt[k])))
+            del idx[k]
+    a, b, c = idx
+    if (x[b] - x[a]) * (y[c] - y[a]) - (y[b] - y[a]) * (x[c] - x[a]) > 1e-12:
+        tris.append((a, b, c))
+    return p, np.asarray(tris, np.int64).reshape(-1, 3)
+
+
+def prism_geometry(footprint: np.ndarray, z0: float, z1: float, bottom: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (V, 3) and outward-wound triangles (T, 3) of a vertical extrusion.
+
+    Top cap at ``z1``, side walls from ``z0`` to ``z1`` (skipped when the prism is flat, thinner
+    than 1 mm), bottom cap only when ``bottom``.
+    """
+    pts, cap = triangulate_polygon(footprint)
+    n = len(pts)
+    if n < 3 or len(cap) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    top = np.column_stack([pts, np.full(n, z1)])
+    bot = np.column_stack([pts, np.full(n, z0)])
+    verts = np.concatenate([top, bot])
+    tris = [cap]
+    if z1 - z0 > 1e-3:
+        i = np.arange(n)
+        j = (i + 1) % n
+        # CCW footprint: the wall (i -> j) faces outward when wound bot_i, bot_j, top_j
+        tris.append(np.stack([n + i, n + j, j], axis=1))
+        tris.append(np.stack([n + i, j, i], axis=1))
+        if bottom:
+            tris.append(cap[:, ::-1] + n)
+    return verts, np.concatenate(tris)
+
+
+# --------------------------------------------------------------------------------- materials
+
+#: Diffuse albedo (linear RGB 0..1) and LiDAR reflectivity per semantic class.
+_MATERIAL: dict[str, tuple[tuple[float, float, float], float]] = {
+    "unlabelled": ((0.5, 0.5, 0.5), 0.3),
+    "road": ((0.16, 0.16, 0.17), 0.12),
+    "lane_marking": ((0.85, 0.85, 0.80), 0.75),
+    "sidewalk": ((0.50, 0.48, 0.45), 0.30),
+    "building": ((0.55, 0.50, 0.45), 0.35),
+    "vegetation": ((0.15, 0.35, 0.10), 0.45),
+    "terrain": ((0.32, 0.42, 0.18), 0.35),
+    "pole": ((0.45, 0.45, 0.47), 0.50),
+    "street_light": ((0.40, 0.40, 0.42), 0.50),
+    "rsu": ((0.70, 0.70, 0.20), 0.55),
+}
+
+_BUILDING_TINTS = np.array(
+    [(0.62, 0.55, 0.47), (0.50, 0.50, 0.52), (0.70, 0.64, 0.55), (0.45, 0.38, 0.33), (0.60, 0.60, 0.58),
+     (0.55, 0.45, 0.40)], np.float32,
+)
+_PAINTS = np.array(
+    [(0.75, 0.75, 0.78), (0.08, 0.08, 0.09), (0.55, 0.05, 0.05), (0.10, 0.20, 0.45), (0.85, 0.85, 0.85),
+     (0.35, 0.36, 0.38), (0.70, 0.55, 0.15), (0.15, 0.35, 0.20)], np.float32,
+)
+
+
+def _hash01(value: int, salt: int) -> float:
+    return (zlib.crc32(f"{salt}:{value}".encode()) & 0xFFFF) / 65535.0
+
+
+def material_of(cls: str, instance: int) -> tuple[np.ndarray, float]:
+    """Albedo (3,) and reflectivity of a static prism (buildings get a per-instance tint)."""
+    alb, refl = _MATERIAL.get(cls, _MATERIAL["unlabelled"])
+    if cls == "building":
+        alb = _BUILDING_TINTS[int(_hash01(instance, 1) * len(_BUILDING_TINTS)) % len(_BUILDING_TINTS)]
+    return np.asarray(alb, np.float32), refl
+
+
+# ------------------------------------------------------------------------------ static scene
+
+#: Lamp head of a street light: the top 0.4 m of a ``street_light`` prism glows at night.
+LAMP_HEAD_M = 0.4
+
+
+def static_mesh(layout: StaticLayout) -> TriMesh:
+    """Mesh of every prism of ``layout`` (map frame), in prism order."""
+    parts: list[TriMesh] = []
+    for prism in layout.prisms:
+        parts.extend(_prism_mesh(prism))
+    return concat(parts)
+
+
+def _prism_mesh(prism: Prism) -> list[TriMesh]:
+    if prism.cls not in SEMANTIC_ID:
+        raise CosimError(f"prism class {prism.cls!r} is not a semantic class")
+    fp = np.asarray(prism.footprint, np.float64)
+    alb, refl = material_of(prism.cls, prism.instance_id)
+    if prism.cls == "street_light" and prism.z1_m - prism.z0_m > 2 * LAMP_HEAD_M:
+        split = prism.z1_m - LAMP_HEAD_M
+        v0, t0 = prism_geometry(fp, prism.z0_m, split)
+        v1, t1 = prism_geometry(fp, split, prism.z1_m, bottom=True)
+        return [
+            _labelled(v0, t0, prism.cls, prism.instance_id, alb, refl),
+            _labelled(v1, t1, prism.cls, prism.instance_id, (0.9, 0.85, 0.7), refl, emissive=1.0),
+        ]
+    v, t = prism_geometry(fp, prism.z0_m, prism.z1_m)
+    return [_labelled(v, t, prism.cls, prism.instance_id, alb, refl)]
+
+
+# ------------------------------------------------------------------------------ actor shapes
+# Templates live in a unit box [-0.5, 0.5]^3 (body FLU, box centred) and are scaled by the actor's
+# (length, width, height), so every shape stays inside its labelled 3D box.
+
+_PART_BODY, _PART_GLASS, _PART_TYRE, _PART_LAMP_FRONT, _PART_LAMP_REAR, _PART_DARK = range(6)
+
+
+def _box(lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    (x0, y0, z0), (x1, y1, z1) = lo, hi
+    v = np.array(
+        [[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0], [x0, y0, z1], [x1, y0, z1], [x1, y1, z1],
+         [x0, y1, z1]], np.float64,
+    )
+    t = np.array(
+        [[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5], [2, 3, 7],
+         [2, 7, 6], [3, 0, 4], [3, 4, 7]], np.int64,
+    )
+    return v, t
+
+
+def _cylinder(center, radius: float, half_len: float, axis: str, n: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """Closed n-gon cylinder around ``axis`` ('x', 'y' or 'z') through ``center``."""
+    ang = np.arange(n) * (2 * math.pi / n)
+    ring = np.stack([radius * np.cos(ang), radius * np.sin(ang)], axis=1)
+    v, t = prism_geometry(ring, -half_len, half_len, bottom=True)
+    if axis == "y":  # local z -> y: (a, b, c) -> (a, c, -b) keeps handedness
+        v = np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1)
+    elif axis == "x":  # local z -> x: (a, b, c) -> (c, a, b)
+        v = np.stack([v[:, 2], v[:, 0], v[:, 1]], axis=1)
+    return v + np.asarray(center, np.float64), t
+
+
+@dataclass(frozen=True)
+class ActorTemplate:
+    """A class shape in the unit box: vertices (V, 3), triangles (T, 3), part id per triangle (T,)."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    part: np.ndarray
+
+
+def _assemble(parts: list[tuple[tuple[np.ndarray, np.ndarray], int]]) -> ActorTemplate:
+    vs, ts, ps, off = [], [], [], 0
+    for (v, t), part in parts:
+        vs.append(v)
+        ts.append(t + off)
+        ps.append(np.full(len(t), part, np.int64))
+        off += len(v)
+    v = np.concatenate(vs)
+    if np.abs(v).max() > 0.5 + 1e-9:
+        raise CosimError("actor template leaves its unit box")
+    return ActorTemplate(v.astype(np.float32), np.concatenate(ts).astype(np.uint32), np.concatenate(ps))
+
+
+def _wheels(xs: Sequence[float], radius: float, width: float) -> list:
+    out = []
+    for x in xs:
+        for side in (-1, 1):
+            yc = side * (0.5 - width / 2)
+            out.append((_cylinder((x, yc, -0.5 + radius), radius, width / 2, "y"), _PART_TYRE))
+    return out
+
+
+def _lamps(x_front: float, x_rear: float, z: float, h: float) -> list:
+    return [
+        (_box((x_front - 0.02, -0.42, z), (x_front, -0.28, z + h)), _PART_LAMP_FRONT),
+        (_box((x_front - 0.02, 0.28, z), (x_front, 0.42, z + h)), _PART_LAMP_FRONT),
+        (_box((x_rear, -0.42, z), (x_rear + 0.02, -0.30, z + h)), _PART_LAMP_REAR),
+        (_box((x_rear, 0.30, z), (x_rear + 0.02, 0.42, z + h)), _PART_LAMP_REAR),
+    ]
+
+
+def _car() -> ActorTemplate:
+    r = 0.16  # wheel radius as a fraction of height
+    return _assemble(
+        [
+            (_box((-0.5, -0.5, -0.5 + 0.6 * r), (0.5, 0.5, 0.02)), _PART_BODY),
+            (_box((-0.33, -0.44, 0.02), (0.17, 0.44, 0.5)), _PART_GLASS),
+            (_box((-0.32, -0.40, 0.46), (0.15, 0.40, 0.5)), _PART_BODY),
+            *_wheels((-0.32, 0.32), r * 1.0, 0.16),
+            *_lamps(0.5, -0.5, -0.12, 0.08),
+        ]
+    )
+
+
+def _van() -> ActorTemplate:
+    r = 0.13
+    return _assemble(
+        [
+            (_box((-0.5, -0.5, -0.5 + 0.6 * r), (0.5, 0.5, -0.1)), _PART_BODY),
+            (_box((-0.5, -0.49, -0.1), (0.22, 0.49, 0.5)), _PART_BODY),
+            (_box((0.22, -0.47, -0.1), (0.36, 0.47, 0.3)), _PART_GLASS),
+            *_wheels((-0.33, 0.33), r, 0.14),
+            *_lamps(0.5, -0.5, -0.25, 0.08),
+        ]
+    )
+
+
+def _truck() -> ActorTemplate:
+    r = 0.12
+    return _assemble(
+        [
+            (_box((0.22, -0.48, -0.5 + 0.7 * r), (0.5, 0.48, 0.25)), _PART_BODY),
+            (_box((0.40, -0.46, 0.0), (0.5, 0.46, 0.22)), _PART_GLASS),
+            (_box((-0.5, -0.5, -0.5 + 0.9 * r), (0.19, 0.5, 0.5)), _PART_DARK),
+            (_box((0.15, -0.2, -0.5 + 0.9 * r), (0.22, 0.2, -0.1)), _PART_TYRE),
+            *_wheels((-0.36, -0.22, 0.36), r, 0.14),
+            *_lamps(0.5, -0.5, -0.28, 0.06),
+        ]
+    )
+
+
+def _bus() -> ActorTemplate:
+    r = 0.1
+    return _assemble(
+        [
+            (_box((-0.5, -0.5, -0.5 + 0.8 * r), (0.5, 0.5, 0.05)), _PART_BODY),
+            (_box((-0.48, -0.5, 0.05), (0.49, 0.5, 0.35)), _PART_GLASS),
+            (_box((-0.5, -0.49, 0.05), (0.5, 0.49, 0.5)), _PART_BODY),
+            *_wheels((-0.32, 0.36), r, 0.12),
+            *_lamps(0.5, -0.5, -0.3, 0.05),
+        ]
+    )
+
+
+def _two_wheeler(motor: bool) -> ActorTemplate:
+    r = 0.19 if motor else 0.2
+    parts = [
+        (_cylinder((-0.5 + r, 0.0, -0.5 + r), r, 0.08, "y", 12), _PART_TYRE),
+        (_cylinder((0.5 - r, 0.0, -0.5 + r), r, 0.08, "y", 12), _PART_TYRE),
+    ]
+    if motor:
+        parts.append((_box((-0.3, -0.22, -0.35), (0.32, 0.22, -0.05)), _PART_BODY))
+        parts.append((_box((0.44, -0.1, -0.2), (0.5, 0.1, -0.12)), _PART_LAMP_FRONT))
+    else:
+        parts.append((_box((-0.3, -0.04, -0.25), (0.3, 0.04, -0.19)), _PART_BODY))
+        parts.append((_box((0.18, -0.04, -0.3), (0.24, 0.04, -0.05)), _PART_BODY))
+    parts.append((_box((0.2, -0.5, 0.0), (0.26, 0.5, 0.05)), _PART_DARK))  # handlebar
+    parts.append((_box((-0.18, -0.3, -0.08), (0.06, 0.3, 0.3)), _PART_DARK))  # rider torso
+    parts.append((_box((-0.10, -0.12, 0.3), (0.04, 0.12, 0.5)), _PART_GLASS))  # helmet/head
+    return _assemble(parts)
+
+
+def _drone() -> ActorTemplate:
+    parts = [(_box((-0.16, -0.16, -0.3), (0.16, 0.16, 0.12)), _PART_DARK)]  # fuselage
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            cx, cy = sx * 0.32, sy * 0.32
+            # arm: an L of two bars from the fuselage to the motor
+            parts.append((_box((min(0, cx) - 0.03, cy - 0.03, 0.02), (max(0, cx) + 0.03, cy + 0.03, 0.1)), _PART_BODY))
+            parts.append((_box((-0.03, min(0, cy), 0.02), (0.03, max(0, cy), 0.1)), _PART_BODY))
+            parts.append((_cylinder((cx, cy, 0.25), 0.04, 0.15, "z", 6), _PART_DARK))  # motor mast
+            parts.append((_cylinder((cx, cy, 0.44), 0.17, 0.03, "z", 12), _PART_GLASS))  # rotor disc
+    parts.append((_box((-0.08, -0.08, -0.5), (0.08, 0.08, -0.3)), _PART_DARK))  # camera gimbal
+    return _assemble(parts)
+
+
+ACTOR_TEMPLATES: dict[str, ActorTemplate] = {
+    "car": _car(),
+    "van": _van(),
+    "truck": _truck(),
+    "bus": _bus(),
+    "motorcycle": _two_wheeler(True),
+    "bicycle": _two_wheeler(False),
+    "drone": _drone(),
+}
+
+
+def template_for(cls: str) -> ActorTemplate:
+    try:
+        return ACTOR_TEMPLATES[cls]
+    except KeyError:
+        raise CosimError(f"no actor shape for class {cls!r}; known: {', '.join(ACTOR_TEMPLATES)}") from None
+
+
+def actor_material(cls: str, track_id: int, part: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Albedo (T, 3), reflectivity (T,), emissive (T,) of an actor's triangles from their part ids."""
+    paint = _PAINTS[int(_hash01(track_id, 7) * len(_PAINTS)) % len(_PAINTS)]
+    if cls == "bus":
+        paint = np.array((0.85, 0.65, 0.10), np.float32) if _hash01(track_id, 3) > 0.5 else paint
+    if cls == "drone":
+        paint = np.array((0.9, 0.9, 0.92), np.float32)
+    table = np.array([paint, (0.05, 0.07, 0.09), (0.03, 0.03, 0.03), (0.95, 0.95, 0.9), (0.7, 0.05, 0.05),
+                      (0.12, 0.12, 0.13)], np.float32)
+    refl_t = np.array([0.8, 0.15, 0.05, 0.9, 0.9, 0.2], np.float32)
+    emis_t = np.array([0.0, 0.0, 0.0, 1.0, 0.6, 0.0], np.float32)
+    return table[part], refl_t[part], emis_t[part]

@@ -1,0 +1,168 @@
+"""Ray casting over the static world (one Open3D scene per episode) plus the actors of one tick.
+
+The static scene's BVH is built once; the actors go into a small second scene rebuilt per tick
+(one per excluded own-actor, cached), and each ray takes the nearer of the two hits. Hits are
+reported as a *global triangle index*: static triangles first, then the tick's actor triangles,
+then one sentinel row meaning "no hit" (:attr:`TickScene.miss`), so every per-triangle table
+(class, instance, colour...) is a single gather.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+
+from cosim.classes import semantic_id
+from cosim.geometry import rotation_matrix
+from cosim.snapshot import Actor
+
+from .meshes import TriMesh, actor_material, concat, empty_mesh, template_for
+
+
+def _o3d_scene(mesh: TriMesh) -> o3d.t.geometry.RaycastingScene | None:
+    if mesh.n_triangles == 0:
+        return None
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(np.ascontiguousarray(mesh.vertices, np.float32)),
+        o3d.core.Tensor(np.ascontiguousarray(mesh.triangles, np.uint32)),
+    )
+    return scene
+
+
+def cast(scene: o3d.t.geometry.RaycastingScene | None, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest hits of ``rays`` (N, 6) float32 [origin, direction] in ``scene``.
+
+    Returns ``t`` (N,) float32 in units of the direction's length (inf on a miss) and the primitive
+    index (N,) int32 (-1 on a miss).
+    """
+    n = rays.shape[0]
+    if scene is None or n == 0:
+        return np.full(n, np.inf, np.float32), np.full(n, -1, np.int32)
+    ans = scene.cast_rays(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays, np.float32)))
+    t = ans["t_hit"].numpy()
+    prim = ans["primitive_ids"].numpy().view(np.int32)  # INVALID_ID (2^32 - 1) reads as -1
+    return t, prim
+
+
+@dataclass
+class CastTimer:
+    """Accumulates the seconds spent inside Open3D ``cast_rays`` and the rays cast (benchmarking)."""
+
+    seconds: float = 0.0
+    rays: int = 0
+
+
+def place_actors(actors: tuple[Actor, ...] | list[Actor]) -> tuple[TriMesh, np.ndarray]:
+    """Actor shapes placed in the map frame: mesh and the track id per triangle (T,) int64."""
+    parts: list[TriMesh] = []
+    tracks: list[np.ndarray] = []
+    for a in actors:
+        tpl = template_for(a.cls)
+        v = tpl.vertices.astype(np.float64) * np.asarray(a.size_m, np.float64)
+        v = v @ rotation_matrix(a.rotation).T + np.asarray(a.center_m, np.float64)
+        alb, refl, emis = actor_material(a.cls, a.track_id, tpl.part)
+        t = len(tpl.triangles)
+        parts.append(
+            TriMesh(v.astype(np.float32), tpl.triangles, np.full(t, semantic_id(a.cls), np.uint8),
+                    np.full(t, a.track_id, np.uint32), alb, refl, emis)
+        )
+        tracks.append(np.full(t, a.track_id, np.int64))
+    if not parts:
+        return empty_mesh(), np.zeros(0, np.int64)
+    return concat(parts), np.concatenate(tracks)
+
+
+class StaticScene:
+    """The episode's static mesh and its Open3D scene (BVH built on the first cast)."""
+
+    def __init__(self, mesh: TriMesh):
+        self.mesh = mesh
+        self.normals = mesh.normals()
+        self.scene = _o3d_scene(mesh)
+
+    @property
+    def n_triangles(self) -> int:
+        return self.mesh.n_triangles
+
+
+@dataclass
+class TickScene:
+    """Static scene plus one tick's actors; see the module docstring for the global index."""
+
+    static: StaticScene
+    actors: TriMesh
+    actor_track: np.ndarray  # (Ta,) int64 track id per actor triangle
+    timer: CastTimer = field(default_factory=CastTimer)
+    _cache: dict = field(default_factory=dict)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    @classmethod
+    def build(cls, static: StaticScene, actors) -> TickScene:
+        mesh, track = place_actors(actors)
+        return cls(static, mesh, track)
+
+    @property
+    def n_static(self) -> int:
+        return self.static.n_triangles
+
+    @property
+    def miss(self) -> int:
+        """Global index meaning "no hit" (one past the last triangle)."""
+        return self.static.n_triangles + self.actors.n_triangles
+
+    def table(self, static_values: np.ndarray, actor_values: np.ndarray, miss_value) -> np.ndarray:
+        """A per-global-index lookup table (miss + 1 rows): static rows, actor rows, the miss row."""
+        miss = np.asarray(miss_value, static_values.dtype).reshape((1, *static_values.shape[1:]))
+        return np.concatenate([static_values, actor_values.astype(static_values.dtype), miss])
+
+    def _actor_scene(self, exclude_track: int | None):
+        key = -1 if exclude_track is None else int(exclude_track)
+        with self._lock:
+            if key in self._cache:
+                return self._cache[key]
+            if exclude_track is None or not np.any(self.actor_track == exclude_track):
+                keep = np.arange(self.actors.n_triangles, dtype=np.int32)
+                sub = self.actors
+            else:
+                keep = np.nonzero(self.actor_track != exclude_track)[0].astype(np.int32)
+                sub = TriMesh(self.actors.vertices, self.actors.triangles[keep], self.actors.semantic[keep],
+                              self.actors.instance[keep], self.actors.albedo[keep],
+                              self.actors.reflectivity[keep], self.actors.emissive[keep])
+            entry = (_o3d_scene(sub), keep)
+            self._cache[key] = entry
+            return entry
+
+    def cast(self, rays: np.ndarray, exclude_track: int | None = None,
+             with_static: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest hit over static + actors (minus ``exclude_track``'s own shape).
+
+        ``rays`` (N, 6) float32. Returns ``t`` (N,) float32 (inf on a miss) and the global triangle
+        index (N,) int32 (``miss`` on a miss).
+        """
+        t0 = time.perf_counter()
+        if with_static:
+            t, prim = cast(self.static.scene, rays)
+            gid = np.where(prim >= 0, prim, np.int32(self.miss))
+        else:
+            t = np.full(rays.shape[0], np.inf, np.float32)
+            gid = np.full(rays.shape[0], self.miss, np.int32)
+        scene, keep = self._actor_scene(exclude_track)
+        if scene is not None and rays.shape[0]:
+            ta, pa = cast(scene, rays)
+            nearer = np.nonzero(ta < t)[0]
+            t[nearer] = ta[nearer]
+            gid[nearer] = self.n_static + keep[pa[nearer]]
+        self.timer.seconds += time.perf_counter() - t0
+        self.timer.rays += rays.shape[0]
+        return t, gid
+
+
+def static_bare_mesh(static: StaticScene, actors) -> TriMesh:
+    """Static + actor triangles in one mesh (the single-scene reference the benchmark casts against)."""
+    mesh, _ = place_actors(actors)
+    return concat([static.mesh, mesh])

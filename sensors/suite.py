@@ -1,0 +1,264 @@
+"""The sensor suite: every agent's rig rendered from one snapshot, as plain arrays.
+
+``SensorSuite(scenario, world)`` builds the static scene once (mesh, Open3D BVH, light map, BEV
+raster); ``render(snapshot, rng)`` places the tick's actors in a small second scene and renders all
+agents. ``render`` is pure with respect to its inputs: the same snapshot and generator state give
+bit-identical arrays (random draws happen in agent order: LiDAR, cameras, GNSS, IMU).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cosim.geometry import rotation_matrix
+from cosim.scenario.model import RigSpec, Scenario
+from cosim.snapshot import Actor, AgentState, WorldSnapshot
+from cosim.world.types import World
+
+from .bev import BevFrame, render_bev, static_raster
+from .camera import CameraFrame, LightMap, Occluders, box_corners, cast_image, shade, shading_tables
+from .environment import Atmosphere, atmosphere
+from .gnss import GnssFrame, render_gnss
+from .imu import ImuFrame, imu_biases, render_imu
+from .lidar import LidarFrame, render_lidar
+from .meshes import static_mesh
+from .rig import camera_pose, intrinsics, projection, sensor_pose
+from .scene import StaticScene, TickScene
+from .visibility import VisibilityFrame, render_visibility
+
+log = logging.getLogger(__name__)
+
+VEHICLE_CLASSES = ("car", "van", "truck", "bus", "motorcycle")
+
+
+@dataclass(frozen=True)
+class AgentFrames:
+    """One agent's outputs at one tick; a sensor its rig lacks is None (cameras: empty)."""
+
+    agent_id: str
+    kind: str
+    lidar: LidarFrame | None
+    cameras: dict[str, CameraFrame]
+    gnss: GnssFrame | None
+    imu: ImuFrame | None
+    bev: BevFrame | None
+    visibility: VisibilityFrame | None
+
+
+@dataclass(frozen=True)
+class SensorFrameSet:
+    """All agents' frames at ``t_ns``. ``timing_s`` is bookkeeping only (not data)."""
+
+    tick: int
+    t_ns: int
+    agents: dict[str, AgentFrames]
+    timing_s: dict[str, float] = field(default_factory=dict, compare=False)
+
+
+def _shaded(albedo: np.ndarray, normals: np.ndarray, atm: Atmosphere) -> np.ndarray:
+    """Linear colour (T, 3) float32 of triangles lit by the sun (Lambert, no shadows) and the sky."""
+    lam = np.clip(normals @ atm.sun_dir, 0.0, None)[:, None]
+    sky = (0.75 + 0.25 * normals[:, 2:3])  # surfaces facing up see more sky
+    return (albedo * (atm.ambient_rgb * sky + atm.sun_rgb * lam)).astype(np.float32)
+
+
+def _thin_boxes(world: World) -> np.ndarray:
+    """Axis-aligned corners (B, 8, 3) of the static things thinner than 1.5 m (poles, lights, RSUs)."""
+    out = []
+    for p in world.layout.prisms:
+        fp = np.asarray(p.footprint)
+        ext = fp.max(0) - fp.min(0)
+        if min(ext) < 1.5 and p.z1_m - p.z0_m > 0.3:
+            c = np.array([*(fp.max(0) + fp.min(0)) / 2, (p.z0_m + p.z1_m) / 2])
+            out.append((c, np.array([ext[0], ext[1], p.z1_m - p.z0_m])))
+    if not out:
+        return np.zeros((0, 8, 3))
+    c = np.array([o[0] for o in out])
+    s = np.array([o[1] for o in out])
+    return box_corners(c, s, np.broadcast_to(np.eye(3), (len(out), 3, 3)))
+
+
+def _street_light_map(world: World, bounds: np.ndarray, res_m: float) -> LightMap:
+    """Ground irradiance of the street lights: E = h^3 / (r^2 + h^2)^1.5 (1 under a lamp of height h)."""
+    x0, y0, x1, y1 = bounds
+    nx, ny = math.ceil((x1 - x0) / res_m), math.ceil((y1 - y0) / res_m)
+    values = np.zeros((ny, nx), np.float32)
+    xs = x0 + (np.arange(nx) + 0.5) * res_m
+    ys = y0 + (np.arange(ny) + 0.5) * res_m
+    reach = 30.0
+    for p in world.layout.prisms:
+        if p.cls != "street_light":
+            continue
+        fp = np.asarray(p.footprint)
+        lx, ly = fp.mean(0)
+        h = max(p.z1_m, 2.0)
+        j0, j1 = np.searchsorted(xs, [lx - reach, lx + reach])
+        i0, i1 = np.searchsorted(ys, [ly - reach, ly + reach])
+        r2 = (xs[None, j0:j1] - lx) ** 2 + (ys[i0:i1, None] - ly) ** 2
+        values[i0:i1, j0:j1] += (h**3 / (r2 + h * h) ** 1.5).astype(np.float32)
+    return LightMap(values, float(x0), float(y0), res_m)
+
+
+def _add_headlights(light: LightMap, actors: tuple[Actor, ...]) -> LightMap:
+    """A copy of ``light`` with a forward cone (40 m, about +-20 deg) for each road vehicle."""
+    values = light.values.copy()
+    ny, nx = values.shape
+    res = light.res_m
+    reach = 40.0
+    for a in actors:
+        if a.cls not in VEHICLE_CLASSES:
+            continue
+        r = rotation_matrix(a.rotation)
+        fx, fy = r[0, 0], r[1, 0]
+        norm = math.hypot(fx, fy) or 1.0
+        fx, fy = fx / norm, fy / norm
+        sx = a.center_m[0] + fx * a.size_m[0] / 2
+        sy = a.center_m[1] + fy * a.size_m[0] / 2
+        j0 = max(0, int((min(sx, sx + fx * reach) - 12 - light.x0) / res))
+        j1 = min(nx, int((max(sx, sx + fx * reach) + 12 - light.x0) / res) + 1)
+        i0 = max(0, int((min(sy, sy + fy * reach) - 12 - light.y0) / res))
+        i1 = min(ny, int((max(sy, sy + fy * reach) + 12 - light.y0) / res) + 1)
+        if j0 >= j1 or i0 >= i1:
+            continue
+        px = light.x0 + (np.arange(j0, j1) + 0.5) * res - sx
+        py = light.y0 + (np.arange(i0, i1) + 0.5) * res - sy
+        along = fx * px[None, :] + fy * py[:, None]
+        across = -fy * px[None, :] + fx * py[:, None]
+        d = np.sqrt(along**2 + across**2)
+        ang = np.arctan2(np.abs(across), np.maximum(along, 1e-6))
+        e = 1.2 * np.exp(-((ang / 0.35) ** 2)) * (6.0 / np.maximum(d, 6.0)) ** 2
+        values[i0:i1, j0:j1] += np.where((along > 0) & (d < reach), e, 0.0).astype(np.float32)
+    return LightMap(values, light.x0, light.y0, res)
+
+
+class SensorSuite:
+    """All rigs of a scenario over one world (see the module docstring).
+
+    ``block_px``: adaptive camera casting block (1 = one ray per pixel). ``noise``: False turns
+    every random sensor effect off (exact ranges, depths, fixes), for tests.
+    """
+
+    def __init__(self, scenario: Scenario, world: World, *, block_px: int = 4, noise: bool = True):
+        self.scenario = scenario
+        self.world = world
+        self.block_px = block_px
+        self.noise = noise
+        self.atm = atmosphere(scenario.environment)
+        t0 = time.perf_counter()
+        self.static = StaticScene(static_mesh(world.layout))
+        m = self.static.mesh
+        self._static_rgb = _shaded(m.albedo, self.static.normals, self.atm)
+        self._thin = _thin_boxes(world)
+        verts = m.vertices.astype(np.float64)
+        self._static_points = np.unique(verts, axis=0) if len(verts) else np.zeros((0, 3))
+        self._light: LightMap | None = None
+        if self.atm.artificial > 0:
+            if len(verts):
+                lo, hi = verts[:, :2].min(0) - 50, verts[:, :2].max(0) + 50
+            else:
+                lo, hi = np.array([-100.0, -100.0]), np.array([100.0, 100.0])
+            res = max(0.5, float(max(hi - lo)) / 4000)
+            self._light = _street_light_map(world, np.array([*lo, *hi]), res)
+        s = scenario.sensors
+        self._bev_raster = static_raster(world.layout, s.bev_cell_m)
+        self._biases: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        for i, agent_id in enumerate(scenario.agent_ids()):
+            rig = scenario.rig_for(agent_id)
+            if rig.imu is not None:
+                self._biases[agent_id] = imu_biases(rig.imu, np.random.default_rng([scenario.seed, 0x1B, i]))
+        log.info("static scene: %d triangles, built in %.2f s", m.n_triangles, time.perf_counter() - t0)
+
+    def rig(self, agent: AgentState) -> RigSpec:
+        return self.scenario.rig_for(agent.agent_id)
+
+    def render(self, snapshot: WorldSnapshot, rng: np.random.Generator) -> SensorFrameSet:
+        """Every agent's sensors at ``snapshot.t_ns`` (see the module docstring)."""
+        t_start = time.perf_counter()
+        timing = {"scene": 0.0, "lidar": 0.0, "camera_cast": 0.0, "shading": 0.0, "labels": 0.0}
+        scene = TickScene.build(self.static, snapshot.actors)
+        anorm = scene.actors.normals()
+        lut = {
+            "rgb": scene.table(self._static_rgb, _shaded(scene.actors.albedo, anorm, self.atm), (0.0, 0.0, 0.0)),
+            "albedo": scene.table(self.static.mesh.albedo, scene.actors.albedo, (0.0, 0.0, 0.0)),
+            "emissive": scene.table(self.static.mesh.emissive, scene.actors.emissive, 0.0),
+            "semantic": scene.table(self.static.mesh.semantic, scene.actors.semantic, 0),
+            "instance": scene.table(self.static.mesh.instance, scene.actors.instance, 0),
+        }
+        tables = shading_tables(lut["rgb"], lut["albedo"], lut["emissive"], scene.miss, self.atm)
+        light = _add_headlights(self._light, snapshot.actors) if self._light is not None else None
+        actors = snapshot.actors
+        if actors:
+            a_corners = box_corners(np.array([a.center_m for a in actors]), np.array([a.size_m for a in actors]),
+                                    np.array([rotation_matrix(a.rotation) for a in actors]))
+            a_tracks = np.array([a.track_id for a in actors])
+        else:
+            a_corners, a_tracks = np.zeros((0, 8, 3)), np.zeros(0, np.int64)
+        timing["scene"] += time.perf_counter() - t_start
+
+        out: dict[str, AgentFrames] = {}
+        for agent in snapshot.agents:
+            rig = self.rig(agent)
+            own = agent.track_id
+            t0 = time.perf_counter()
+            lidar = None
+            if rig.lidar is not None:
+                pose = sensor_pose(agent, rig.lidar.mount)
+                lidar = render_lidar(agent.agent_id, rig.lidar, pose, scene, self.atm, rng, own, self.noise)
+            timing["lidar"] += time.perf_counter() - t0
+            occ = Occluders(np.concatenate([self._thin, a_corners[a_tracks != own]]), self._static_points)
+            cams: dict[str, CameraFrame] = {}
+            for cam in rig.cameras:
+                t0 = time.perf_counter()
+                K = intrinsics(cam)
+                pose = camera_pose(agent, cam)
+                gid, depth = cast_image(cam, K, pose, scene, occ, own, self.block_px)
+                t1 = time.perf_counter()
+                timing["camera_cast"] += t1 - t0
+                rgb = None
+                if "rgb" in cam.outputs:
+                    rgb = shade(gid, depth, cam, K, pose, tables, self.atm, light, rng, self.block_px)
+                t2 = time.perf_counter()
+                timing["shading"] += t2 - t1
+                cams[cam.name] = CameraFrame(
+                    agent.agent_id, cam.name, cam.width, cam.height, K, projection(cam), pose, rgb,
+                    depth if "depth" in cam.outputs else None,
+                    np.take(lut["semantic"], gid) if "semantic" in cam.outputs else None,
+                    np.take(lut["instance"], gid),
+                )
+                timing["labels"] += time.perf_counter() - t2
+            t0 = time.perf_counter()
+            gnss = None
+            if rig.gnss is not None:
+                gnss = render_gnss(agent.agent_id, rig.gnss, np.asarray(agent.position_m), self.world.geo_origin, rng,
+                                   self.noise)
+            imu = None
+            if rig.imu is not None:
+                biases = self._biases.get(agent.agent_id, (np.zeros(3), np.zeros(3)))
+                imu = render_imu(agent, rig.imu, biases, rng, self.noise)
+            s = self.scenario.sensors
+            bev = render_bev(agent, self._bev_raster, actors, s.bev_cell_m, s.bev_range_m)
+            vis = render_visibility(agent.agent_id, lidar.instance_id if lidar is not None else None,
+                                    {n: c.instance for n, c in cams.items()})
+            cams = {n: c if "instance" in rig_cam_outputs(rig, n) else _drop_instance(c) for n, c in cams.items()}
+            timing["labels"] += time.perf_counter() - t0
+            out[agent.agent_id] = AgentFrames(agent.agent_id, agent.kind, lidar, cams, gnss, imu, bev, vis)
+        timing["cast_rays"] = scene.timer.seconds
+        timing["rays"] = float(scene.timer.rays)
+        timing["total"] = time.perf_counter() - t_start
+        return SensorFrameSet(snapshot.tick, snapshot.t_ns, out, timing)
+
+
+def rig_cam_outputs(rig: RigSpec, name: str) -> tuple[str, ...]:
+    for c in rig.cameras:
+        if c.name == name:
+            return c.outputs
+    return ()
+
+
+def _drop_instance(c: CameraFrame) -> CameraFrame:
+    return CameraFrame(c.agent_id, c.name, c.width, c.height, c.K, c.P, c.pose, c.rgb, c.depth, c.semantic, None)

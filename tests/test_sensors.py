@@ -1,0 +1,467 @@
+"""Sensors on synthetic scenes with known geometry: ranges, depths, labels, frames, messages."""
+
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+import pytest
+from cosim.sensors import SensorSuite
+from cosim.sensors.meshes import ACTOR_TEMPLATES, static_mesh, triangulate_polygon
+from cosim.sensors.rig import sensor_transforms
+from cosim.sensors.synthetic import actor, synthetic_snapshot, synthetic_world
+from PIL import Image
+
+from cosim.classes import SEMANTIC_ID
+from cosim.geometry import quat_from_rpy, rotation_matrix
+from cosim.scenario.model import (
+    AgentsSpec,
+    CameraSpec,
+    GnssSpec,
+    HoverDrone,
+    ImuSpec,
+    LidarSpec,
+    Mount,
+    RigSpec,
+    RsuAgents,
+    Scenario,
+    SensorsSpec,
+    VehicleAgents,
+)
+from cosim.snapshot import AgentState, WorldSnapshot
+from cosim.world.types import Prism, StaticLayout, World
+
+WALL_ID = 1_000_001
+
+
+def _rect(x0, y0, x1, y1):
+    return ((x0, y0), (x1, y0), (x1, y1), (x0, y1))
+
+
+def _wall_world(wall_x: float = 50.0) -> World:
+    prisms = (
+        Prism("terrain", _rect(-300, -300, 300, 300), -1.0, 0.0),
+        Prism("building", _rect(wall_x, -40, wall_x + 5, 40), 0.0, 30.0, WALL_ID),
+    )
+    return World("synthetic", b"", b"", (-300, -300, 300, 300), (), (), StaticLayout(prisms), (37.0, -122.0, 10.0))
+
+
+def _scenario(vehicle_rig: RigSpec, n_vehicles: int = 1, **env) -> Scenario:
+    return Scenario(
+        name="t",
+        environment=env or {},
+        agents=AgentsSpec(vehicles=VehicleAgents(count=n_vehicles), rsus=RsuAgents(count=0), drones=[]),
+        sensors=SensorsSpec(vehicle=vehicle_rig),
+    )
+
+
+def _ray_box(o, d, lo, hi):
+    """Entry distance of rays o (3,), d (N, 3) into the axis-aligned box [lo, hi] (inf if missed)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (np.asarray(lo) - o) / d
+        t2 = (np.asarray(hi) - o) / d
+    tmin = np.nanmax(np.minimum(t1, t2), axis=1)
+    tmax = np.nanmin(np.maximum(t1, t2), axis=1)
+    return np.where((tmax >= tmin) & (tmax > 0), np.maximum(tmin, 0), np.inf)
+
+
+# ------------------------------------------------------------------------------------- meshes
+
+
+def test_concave_footprint_triangulation_covers_exact_area():
+    poly = np.array([(0, 0), (10, 0), (10, 10), (6, 10), (6, 3), (4, 3), (4, 10), (0, 10)], float)  # U shape
+    pts, tris = triangulate_polygon(poly[::-1])  # clockwise input on purpose
+    assert len(tris) == len(pts) - 2
+    a, b, c = pts[tris[:, 0]], pts[tris[:, 1]], pts[tris[:, 2]]
+    cross = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    assert np.all(cross > 0)
+    assert math.isclose(0.5 * cross.sum(), 100 - 2 * 7, rel_tol=1e-9)
+    # centroids of all triangles lie inside the U (not in the notch)
+    cen = (a + b + c) / 3
+    assert not np.any((cen[:, 0] > 4) & (cen[:, 0] < 6) & (cen[:, 1] > 3))
+
+
+def test_static_mesh_labels_every_triangle():
+    world = synthetic_world()
+    mesh = static_mesh(world.layout)
+    assert mesh.n_triangles > 100
+    assert set(np.unique(mesh.semantic)) <= set(SEMANTIC_ID.values())
+    buildings = mesh.instance[mesh.semantic == SEMANTIC_ID["building"]]
+    assert np.all(buildings >= 1_000_000)
+
+
+@pytest.mark.parametrize("cls", sorted(ACTOR_TEMPLATES))
+def test_actor_templates_fill_their_box(cls):
+    tpl = ACTOR_TEMPLATES[cls]
+    lo, hi = tpl.vertices.min(0), tpl.vertices.max(0)
+    assert np.all(lo >= -0.5 - 1e-6) and np.all(hi <= 0.5 + 1e-6)
+    assert np.all(hi - lo > 0.85), f"{cls} shape does not span its box: {hi - lo}"
+    assert len(tpl.triangles) > 12, f"{cls} is a bare box"
+
+
+# -------------------------------------------------------------------------------------- LiDAR
+
+
+def test_lidar_ranges_match_analytic_distances_and_labels():
+    lidar = LidarSpec(channels=21, upper_fov_deg=10.0, lower_fov_deg=-10.0, horizontal_resolution_deg=1.0,
+                      range_m=200.0, mount=Mount(xyz_m=(0.0, 0.0, 2.0)))
+    sc = _scenario(RigSpec(lidar=lidar, cameras=[], gnss=None, imu=None))
+    suite = SensorSuite(sc, _wall_world(50.0), noise=False)
+    car = actor(7, "car", 20.0, 10.0, 30.0, z_ground=0.0)
+    ego = AgentState("vehicle_0", "vehicle", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    frames = suite.render(WorldSnapshot(0, 0, (car,), (ego,)), np.random.default_rng(0))
+    lf = frames.agents["vehicle_0"].lidar
+    assert lf.n_points > 500
+    pts = lf.points.astype(np.float64)
+    r = np.linalg.norm(pts, axis=1)
+    d = pts / r[:, None]
+    o = np.array([0.0, 0.0, 2.0])
+    t_ground = np.where(d[:, 2] < 0, -o[2] / np.where(d[:, 2] < 0, d[:, 2], -1), np.inf)
+    t_wall = _ray_box(o, d, (50, -40, 0), (55, 40, 30))
+    on_car = lf.instance_id == 7
+    # every return off the car is at the analytic distance of the nearer of ground and wall
+    analytic = np.minimum(t_ground, t_wall)
+    assert np.max(np.abs(r[~on_car] - analytic[~on_car])) < 0.01
+    expect_cls = np.where(t_wall < t_ground, SEMANTIC_ID["building"], SEMANTIC_ID["terrain"])
+    expect_inst = np.where(t_wall < t_ground, WALL_ID, 0)
+    assert np.array_equal(lf.class_id[~on_car], expect_cls[~on_car])
+    assert np.array_equal(lf.instance_id[~on_car], expect_inst[~on_car])
+    # returns on the car lie inside its box and carry its class
+    assert on_car.sum() > 10
+    assert np.all(lf.class_id[on_car] == SEMANTIC_ID["car"])
+    rot = rotation_matrix(car.rotation)
+    local = (pts[on_car] + o - np.asarray(car.center_m)) @ rot
+    assert np.all(np.abs(local) <= np.asarray(car.size_m) / 2 + 1e-3)
+    # the points are in the sensor frame: the horizontal ring straight ahead hits the wall at 50 m
+    ahead = (lf.ring == 10) & (np.abs(pts[:, 1]) < 1e-6) & (pts[:, 0] > 0)
+    assert np.allclose(pts[ahead, 0], 50.0, atol=0.01)
+
+
+def test_own_actor_is_invisible_to_own_sensors():
+    rig = RigSpec(lidar=LidarSpec(horizontal_resolution_deg=2.0, mount=Mount(xyz_m=(0.0, 0.0, 1.2))),
+                  cameras=[CameraSpec(name="front", width=64, height=48, mount=Mount(xyz_m=(0.0, 0.0, 1.0)))],
+                  gnss=None, imu=None)
+    sc = _scenario(rig, n_vehicles=2)
+    suite = SensorSuite(sc, _wall_world(), noise=False)
+    a0 = actor(1, "car", 0.0, 0.0, z_ground=0.0, agent_id="vehicle_0")
+    a1 = actor(2, "car", 10.0, 0.0, z_ground=0.0, agent_id="vehicle_1")
+    agents = (AgentState("vehicle_0", "vehicle", (0.0, 0.0, 0.0), a0.rotation, track_id=1),
+              AgentState("vehicle_1", "vehicle", (10.0, 0.0, 0.0), a1.rotation, track_id=2))
+    f = suite.render(WorldSnapshot(0, 0, (a0, a1), agents), np.random.default_rng(0))
+    v0 = f.agents["vehicle_0"]
+    assert not np.any(v0.lidar.instance_id == 1)
+    assert np.any(v0.lidar.instance_id == 2)
+    assert not np.any(v0.cameras["front"].instance == 1)
+    assert np.any(v0.cameras["front"].instance == 2)
+
+
+# ------------------------------------------------------------------------------------- camera
+
+
+@pytest.mark.parametrize("block_px", [1, 4])
+def test_camera_depth_matches_wall_at_50_m(block_px):
+    cam = CameraSpec(name="front", width=320, height=180, mount=Mount(xyz_m=(0.0, 0.0, 1.6)))
+    sc = _scenario(RigSpec(lidar=None, cameras=[cam], gnss=None, imu=None))
+    suite = SensorSuite(sc, _wall_world(50.0), noise=False, block_px=block_px)
+    ego = AgentState("vehicle_0", "vehicle", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    cf = suite.render(WorldSnapshot(0, 0, (), (ego,)), np.random.default_rng(0)).agents["vehicle_0"].cameras["front"]
+    wall = cf.instance == WALL_ID
+    assert wall.mean() > 0.15
+    assert np.max(np.abs(cf.depth[wall] - 50.0)) < 0.01
+    assert np.all(cf.semantic[wall] == SEMANTIC_ID["building"])
+    # ground pixels: planar depth of the ground plane z = 0 seen from 1.6 m
+    ground = cf.semantic == SEMANTIC_ID["terrain"]
+    v = np.nonzero(ground)[0] + 0.5
+    y = (v - cf.K[1, 2]) / cf.K[1, 1]
+    assert np.max(np.abs(cf.depth[ground] - 1.6 / y)) < 0.01 * np.max(1.6 / y)
+    sky = cf.semantic == 0
+    assert np.all(np.isinf(cf.depth[sky]))
+    assert sky.any() and ground.any()
+
+
+def test_adaptive_casting_agrees_with_full_casting():
+    from cosim.scenario.model import default_vehicle_rig
+
+    rig = default_vehicle_rig()
+    cams = [CameraSpec(name=c.name, width=320, height=180, mount=c.mount) for c in rig.cameras]
+    sc = _scenario(RigSpec(lidar=None, cameras=cams, gnss=None, imu=None), n_vehicles=5)
+    snap = synthetic_snapshot(5, 0, 0)
+    world = synthetic_world()
+    full = SensorSuite(sc, world, block_px=1, noise=False).render(snap, np.random.default_rng(0))
+    fast = SensorSuite(sc, world, block_px=4, noise=False).render(snap, np.random.default_rng(0))
+    same = total = 0
+    rel = []
+    for aid, af in full.agents.items():
+        for name, cf in af.cameras.items():
+            cg = fast.agents[aid].cameras[name]
+            eq = (cf.instance == cg.instance) & (cf.semantic == cg.semantic)
+            same += int(eq.sum())
+            total += eq.size
+            both = eq & np.isfinite(cf.depth)
+            rel.append(np.abs(cf.depth[both] - cg.depth[both]) / cf.depth[both])
+    rel = np.concatenate(rel)
+    assert same / total > 0.995
+    assert np.mean(rel < 1e-4) > 0.995 and rel.max() < 0.05
+
+
+def _convex_hull(p: np.ndarray) -> np.ndarray:
+    pts = sorted(map(tuple, p))
+    def half(seq):
+        h = []
+        for q in seq:
+            while len(h) >= 2 and ((h[-1][0] - h[-2][0]) * (q[1] - h[-2][1])
+                                   - (h[-1][1] - h[-2][1]) * (q[0] - h[-2][0])) <= 0:
+                h.pop()
+            h.append(q)
+        return h
+    lower, upper = half(pts), half(pts[::-1])
+    return np.array(lower[:-1] + upper[:-1])
+
+
+def _signed_dist_inside(hull: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Min signed distance of points q (N, 2) to the edges of a CCW convex hull (positive inside)."""
+    a, b = hull, np.roll(hull, -1, axis=0)
+    e = b - a
+    n = np.stack([-e[:, 1], e[:, 0]], axis=1) / np.linalg.norm(e, axis=1)[:, None]
+    return np.min(np.einsum("nij,ij->ni", q[:, None, :] - a[None], n), axis=1)
+
+
+def _compose(transforms, child: str):
+    """map <- child from an agent's base_link pose and its sensor_transforms list."""
+    by_child = {c: (p, np.asarray(t), rotation_matrix(q)) for p, c, t, q in transforms}
+    rot, pos = np.eye(3), np.zeros(3)
+    chain = []
+    while child in by_child:
+        chain.append(by_child[child])
+        child = by_child[child][0]
+    for _, t, r in reversed(chain):
+        pos = pos + rot @ t
+        rot = rot @ r
+    return child, rot, pos
+
+
+def test_labels_poses_calibration_and_pixels_agree():
+    """Projected 3D boxes (via /tf transforms and calibration) contain the instance pixels."""
+    from cosim.scenario.model import default_drone_rig, default_rsu_rig, default_vehicle_rig
+
+    def small(rig):
+        cams = [CameraSpec(name=c.name, width=320, height=180, mount=c.mount, gimbal=c.gimbal) for c in rig.cameras]
+        return RigSpec(lidar=None, cameras=cams, gnss=None, imu=None)
+
+    sc = Scenario(name="t", agents=AgentsSpec(vehicles=VehicleAgents(count=5), rsus=RsuAgents(count=5),
+                                              drones=[HoverDrone()] * 5),
+                  sensors=SensorsSpec(vehicle=small(default_vehicle_rig()), rsu=small(default_rsu_rig()),
+                                      drone=small(default_drone_rig())))
+    snap = synthetic_snapshot()
+    frames = SensorSuite(sc, synthetic_world(), noise=False).render(snap, np.random.default_rng(0))
+    checked = 0
+    for agent in snap.agents:
+        tfs = sensor_transforms(sc, agent)
+        rb, pb = rotation_matrix(agent.rotation), np.asarray(agent.position_m)
+        for name, cf in frames.agents[agent.agent_id].cameras.items():
+            root, r_rel, p_rel = _compose(tfs, f"{agent.agent_id}/{name}/optical")
+            assert root == f"{agent.agent_id}/base_link"
+            rot, pos = rb @ r_rel, pb + rb @ p_rel
+            assert np.allclose(rot, cf.pose.rotation, atol=1e-9) and np.allclose(pos, cf.pose.position_m)
+            for a in snap.actors:
+                if a.agent_id == agent.agent_id:
+                    continue
+                sgn = np.array([[i, j, k] for i in (-.5, .5) for j in (-.5, .5) for k in (-.5, .5)])
+                corners = sgn * np.asarray(a.size_m) @ rotation_matrix(a.rotation).T + np.asarray(a.center_m)
+                pc = (corners - pos) @ rot
+                if np.any(pc[:, 2] < 0.5):
+                    continue
+                uvw = pc @ cf.K.T
+                uv = uvw[:, :2] / uvw[:, 2:3]
+                if np.any(uv < 0) or np.any(uv[:, 0] > cf.width) or np.any(uv[:, 1] > cf.height):
+                    continue
+                vv, uu = np.nonzero(cf.instance == a.track_id)
+                if len(vv) < 20:
+                    continue
+                hull = _convex_hull(uv)
+                d = _signed_dist_inside(hull, np.stack([uu + 0.5, vv + 0.5], axis=1))
+                assert np.all(d >= -2.0), f"{a.track_id} pixels outside its box in {agent.agent_id}/{name}"
+                assert np.mean(d >= 0) >= 0.9
+                checked += 1
+    assert checked >= 10
+
+
+# --------------------------------------------------------------------------- weather, lighting
+
+
+def _town_lidar_scenario(**env) -> Scenario:
+    rig = RigSpec(lidar=LidarSpec(horizontal_resolution_deg=0.7, range_m=200.0), cameras=[], gnss=None, imu=None)
+    return Scenario(name="t", environment=env, agents=AgentsSpec(vehicles=VehicleAgents(count=1),
+                                                                rsus=RsuAgents(count=2), drones=[]),
+                    sensors=SensorsSpec(vehicle=rig, rsu=rig))
+
+
+def test_fog_removes_far_returns_and_adds_backscatter():
+    snap = synthetic_snapshot(1, 2, 0)
+    world = synthetic_world()
+    clear = SensorSuite(_town_lidar_scenario(weather="clear"), world).render(snap, np.random.default_rng(1))
+    fog = SensorSuite(_town_lidar_scenario(weather="foggy", fog_visibility_m=50.0), world).render(
+        snap, np.random.default_rng(1))
+    far_clear = sum(int((np.linalg.norm(a.lidar.points, axis=1) > 100).sum()) for a in clear.agents.values())
+    far_fog = sum(int((np.linalg.norm(a.lidar.points, axis=1) > 100).sum()) for a in fog.agents.values())
+    assert far_clear > 500
+    assert far_fog <= 0.1 * far_clear
+    near_spurious = sum(int(((a.lidar.class_id == 0) & (np.linalg.norm(a.lidar.points, axis=1) < 6)).sum())
+                        for a in fog.agents.values())
+    assert near_spurious > 50
+    # intensity falls with distance in fog more than in clear air (same surfaces, 20-40 m)
+    def mean_int(fs):
+        vals = [a.lidar.intensity[(np.linalg.norm(a.lidar.points, axis=1) > 20)
+                                  & (np.linalg.norm(a.lidar.points, axis=1) < 40) & (a.lidar.class_id > 0)]
+                for a in fs.agents.values()]
+        return float(np.mean(np.concatenate(vals)))
+    assert mean_int(fog) < 0.5 * mean_int(clear)
+
+
+def test_rain_adds_dropout_and_spurious_near_returns():
+    snap = synthetic_snapshot(1, 2, 0)
+    world = synthetic_world()
+    clear = SensorSuite(_town_lidar_scenario(weather="clear"), world).render(snap, np.random.default_rng(1))
+    rain = SensorSuite(_town_lidar_scenario(weather="rainy", rain_rate_mm_h=25.0), world).render(
+        snap, np.random.default_rng(1))
+    n_clear = sum(a.lidar.n_points for a in clear.agents.values())
+    real_rain = sum(int((a.lidar.class_id > 0).sum()) for a in rain.agents.values())
+    spur = sum(int((a.lidar.class_id == 0).sum()) for a in rain.agents.values())
+    assert real_rain < 0.95 * n_clear
+    assert spur > 20
+
+
+def _camera_scenario(lighting: str, weather: str = "clear") -> Scenario:
+    cams = [CameraSpec(name="front", width=240, height=136, mount=Mount(xyz_m=(0, 0, 1.6), rpy_deg=(0, 8, 0)))]
+    return Scenario(name="t", environment={"lighting": lighting, "weather": weather},
+                    agents=AgentsSpec(vehicles=VehicleAgents(count=5), rsus=RsuAgents(count=0), drones=[]),
+                    sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=cams, gnss=None, imu=None)))
+
+
+def test_night_is_darker_with_lit_pools_under_street_lights():
+    snap = synthetic_snapshot(5, 0, 0)
+    world = synthetic_world()
+    day = SensorSuite(_camera_scenario("day"), world).render(snap, np.random.default_rng(0))
+    night = SensorSuite(_camera_scenario("night"), world).render(snap, np.random.default_rng(0))
+    d = np.concatenate([a.cameras["front"].rgb.ravel() for a in day.agents.values()]).astype(float)
+    n = np.concatenate([a.cameras["front"].rgb.ravel() for a in night.agents.values()]).astype(float)
+    assert n.mean() < 0.5 * d.mean()
+    # under the street lights (y = 8, x = -60, -30, 30, 60) the road is much brighter than between them
+    lit, dark = [], []
+    for af in night.agents.values():
+        cf = af.cameras["front"]
+        road = (cf.semantic == SEMANTIC_ID["road"]) | (cf.semantic == SEMANTIC_ID["sidewalk"])
+        v, u = np.nonzero(road & np.isfinite(cf.depth))
+        x = (u + 0.5 - cf.K[0, 2]) / cf.K[0, 0] * cf.depth[v, u]
+        y = (v + 0.5 - cf.K[1, 2]) / cf.K[1, 1] * cf.depth[v, u]
+        p = np.stack([x, y, cf.depth[v, u]], axis=1) @ cf.pose.rotation.T + cf.pose.position_m
+        lum = cf.rgb[v, u].mean(axis=1)
+        dist = np.min(np.hypot(p[:, None, 0] - np.array([-60, -30, 30, 60]), p[:, None, 1] - 8.0), axis=1)
+        lit.append(lum[dist < 4])
+        dark.append(lum[(dist > 14) & (np.abs(p[:, 1]) > 3)])
+    assert np.concatenate(lit).mean() > 2.0 * np.concatenate(dark).mean()
+
+
+# ------------------------------------------------------------------------- GNSS, IMU, BEV, ...
+
+
+def test_gnss_and_imu_without_noise_are_exact():
+    rig = RigSpec(lidar=None, cameras=[], gnss=GnssSpec(noise_m=0.0), imu=ImuSpec())
+    sc = _scenario(rig)
+    suite = SensorSuite(sc, _wall_world(), noise=False)
+    ego = AgentState("vehicle_0", "vehicle", (0.0, 1000.0, 5.0), quat_from_rpy(0, 0, 0.3),
+                     angular_rate_radps=(0.0, 0.0, 0.2), specific_force_mps2=(1.0, 0.5, 9.8))
+    af = suite.render(WorldSnapshot(0, 0, (), (ego,)), np.random.default_rng(0)).agents["vehicle_0"]
+    assert abs(af.gnss.latitude_deg - 37.0 - 1000.0 / 110_996.0) < 2e-5  # ~111 km per degree of latitude
+    assert af.gnss.longitude_deg == pytest.approx(-122.0, abs=1e-9)
+    assert af.gnss.altitude_m == pytest.approx(15.0)
+    assert af.imu.linear_acceleration_mps2 == (1.0, 0.5, 9.8)
+    assert af.imu.angular_velocity_radps == (0.0, 0.0, 0.2)
+    noisy = SensorSuite(sc, _wall_world()).render(WorldSnapshot(0, 0, (), (ego,)), np.random.default_rng(0))
+    acc = np.array(noisy.agents["vehicle_0"].imu.linear_acceleration_mps2)
+    assert 0 < np.abs(acc - (1.0, 0.5, 9.8)).max() < 1.0
+
+
+def test_bev_has_road_under_ego_and_boxes_of_the_right_area():
+    sc = _scenario(RigSpec(lidar=None, cameras=[], gnss=None, imu=None), n_vehicles=5)
+    snap = synthetic_snapshot(5, 0, 0)
+    f = SensorSuite(sc, synthetic_world(), noise=False).render(snap, np.random.default_rng(0))
+    bev = f.agents["vehicle_0"].bev
+    ny, nx, _ = bev.grid.shape
+    assert (ny, nx) == (320, 512)
+    road = bev.grid[..., bev.layers.index("road")]
+    assert road[ny // 2, nx // 2] == 1
+    cars = bev.grid[..., bev.layers.index("car")]
+    # the ego car: 4.5 x 1.9 m at 0.25 m cells -> ~137 cells around the centre
+    ego_cells = cars[ny // 2 - 6:ny // 2 + 6, nx // 2 - 12:nx // 2 + 12].sum()
+    assert abs(ego_cells - 4.5 * 1.9 / 0.0625) < 25
+    assert bev.grid[..., bev.layers.index("bus")].sum() > 0
+
+
+def test_visibility_counts_match_frames_and_render_is_deterministic():
+    from cosim.scenario.model import default_vehicle_rig
+
+    rig = default_vehicle_rig()
+    cams = [CameraSpec(name=c.name, width=160, height=96, mount=c.mount) for c in rig.cameras[:2]]
+    sc = _scenario(RigSpec(lidar=LidarSpec(horizontal_resolution_deg=1.0), cameras=cams, gnss=GnssSpec(),
+                           imu=ImuSpec()), n_vehicles=5, weather="rainy")
+    snap = synthetic_snapshot(5, 0, 0)
+    suite = SensorSuite(sc, synthetic_world())
+    a = suite.render(snap, np.random.default_rng(5))
+    b = suite.render(snap, np.random.default_rng(5))
+    for aid, fa in a.agents.items():
+        fb = b.agents[aid]
+        assert np.array_equal(fa.lidar.points, fb.lidar.points)
+        assert fa.gnss == fb.gnss and fa.imu == fb.imu
+        for name, ca in fa.cameras.items():
+            assert np.array_equal(ca.rgb, fb.cameras[name].rgb)
+        for o in fa.visibility.objects:
+            assert o.lidar_points == int((fa.lidar.instance_id == o.track_id).sum())
+            for name, cnt in o.pixels.items():
+                assert cnt == int((fa.cameras[name].instance == o.track_id).sum())
+    assert any(o.visible for f in a.agents.values() for o in f.visibility.objects)
+
+
+# -------------------------------------------------------------------------------- messages
+
+
+def test_frame_messages_topics_and_round_trips():
+    from cosim.exporters.sensor_messages import POINT_DTYPE, frame_messages
+
+    cams = [CameraSpec(name="front", width=96, height=64, mount=Mount(xyz_m=(0, 0, 1.6)))]
+    sc = _scenario(RigSpec(lidar=LidarSpec(horizontal_resolution_deg=2.0), cameras=cams, gnss=GnssSpec(),
+                           imu=ImuSpec()), n_vehicles=1)
+    snap = synthetic_snapshot(1, 0, 0)
+    f = SensorSuite(sc, synthetic_world()).render(snap, np.random.default_rng(0))
+    msgs = dict(frame_messages(f, 123_000_000_000))
+    expect = {"/vehicle_0/lidar", "/vehicle_0/front/image", "/vehicle_0/front/depth", "/vehicle_0/front/semantic",
+              "/vehicle_0/front/instance", "/vehicle_0/front/calibration", "/vehicle_0/gnss", "/vehicle_0/imu",
+              "/vehicle_0/bev", "/vehicle_0/visibility"}
+    assert set(msgs) == expect
+    af = f.agents["vehicle_0"]
+    cf = af.cameras["front"]
+    img = msgs["/vehicle_0/front/image"]
+    assert img.timestamp.ToNanoseconds() == 123_000_000_000 and img.format == "png"
+    assert img.frame_id == "vehicle_0/front/optical"
+    assert np.array_equal(np.asarray(Image.open(io.BytesIO(img.data))), cf.rgb)
+    depth = msgs["/vehicle_0/front/depth"]
+    mm = np.frombuffer(depth.data, "<u2").reshape(depth.height, depth.width)
+    fin = np.isfinite(cf.depth) & (cf.depth < 65)
+    assert np.max(np.abs(mm[fin] / 1000.0 - cf.depth[fin])) <= 0.0005 + 1e-6
+    inst = msgs["/vehicle_0/front/instance"]
+    assert inst.encoding == "32SC1"
+    assert np.array_equal(np.frombuffer(inst.data, "<i4").reshape(64, 96), cf.instance.astype(np.int32))
+    pc = msgs["/vehicle_0/lidar"]
+    assert pc.frame_id == "vehicle_0/lidar" and [fl.name for fl in pc.fields][-1] == "instance_id"
+    rec = np.frombuffer(pc.data, POINT_DTYPE)
+    assert np.array_equal(rec["instance_id"], af.lidar.instance_id)
+    assert np.allclose(rec["x"], af.lidar.points[:, 0])
+    cal = msgs["/vehicle_0/front/calibration"]
+    assert list(cal.K) == list(cf.K.ravel()) and len(cal.P) == 12
+    schema_name, _schema, payload = msgs["/vehicle_0/imu"]
+    assert schema_name == "cosim.Imu" and payload["timestamp_ns"] == 123_000_000_000
+    grid = msgs["/vehicle_0/bev"]
+    assert grid.column_count == 512 and len(grid.data) == 512 * 320 * len(grid.fields)
+    jpeg = dict(frame_messages(f, 0, image_format="jpeg"))["/vehicle_0/front/image"]
+    assert jpeg.format == "jpeg" and jpeg.data[:2] == b"\xff\xd8"
