@@ -66,9 +66,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
         if args.json:
             print(report_json(report))
         elif report.ok:
-            print(
-                f"{path}: ok ({report.ticks} ticks, {report.messages} messages, {len(report.topics)} topics)"
-            )
+            print(f"{path}: ok ({report.ticks} ticks, {report.messages} messages, {len(report.topics)} topics)")
         else:
             lines = report.lines()
             print(
@@ -154,9 +152,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="ENDPOINT",
         help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)",
     )
-    p.add_argument(
-        "--listen", action="append", metavar="ENDPOINT", help="Zenoh endpoint to listen on (repeatable)"
-    )
+    p.add_argument("--listen", action="append", metavar="ENDPOINT", help="Zenoh endpoint to listen on (repeatable)")
     p.add_argument("--prefix", default="cosim/replay", help="key prefix (default cosim/replay)")
     p.add_argument(
         "--wait",

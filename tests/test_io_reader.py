@@ -71,9 +71,7 @@ def test_decoded_arrays_equal_what_was_written(recorded):
 
         img = tick.image("vehicle_0", "front")
         assert isinstance(img, Image) and img.array.shape == (24, 32, 3) and img.array.dtype == np.uint8
-        assert (img.array[:, :, 0] == np.arange(32, dtype=np.uint8)).all() and (
-            img.array[:, :, 1] == 40
-        ).all()
+        assert (img.array[:, :, 0] == np.arange(32, dtype=np.uint8)).all() and (img.array[:, :, 1] == 40).all()
         depth = tick.depth("vehicle_0", "front")
         assert depth.encoding == "16UC1" and depth.array.dtype == np.uint16 and (depth.array == 12_345).all()
         sem = tick.semantic("rsu_0", "front")
@@ -102,9 +100,7 @@ def test_decoded_arrays_equal_what_was_written(recorded):
         assert labels.classes == ("drone", "truck", "car")
         car = labels.classes.index("car")
         assert labels.centers_m[car] == pytest.approx([10 + 10 * 0.8, 0.0, 0.75])
-        assert labels.sizes_m[car] == pytest.approx([4.5, 1.9, 1.5]) and labels.yaws_rad[
-            car
-        ] == pytest.approx(0)
+        assert labels.sizes_m[car] == pytest.approx([4.5, 1.9, 1.5]) and labels.yaws_rad[car] == pytest.approx(0)
         boxes = tick.boxes
         assert sorted(boxes.ids) == sorted(str(i) for i in labels.track_ids) and boxes.delete_all
 
@@ -171,14 +167,10 @@ def test_reading_one_tick_reads_only_the_chunks_around_it(tmp_path):
 
 
 def test_unknown_major_format_version_is_refused_with_a_clear_message(tmp_path):
-    path = write_synthetic_episode(
-        tmp_path / "v2.mcap", ticks=2, sensors=False, metadata={"format_version": "2.0"}
-    )
+    path = write_synthetic_episode(tmp_path / "v2.mcap", ticks=2, sensors=False, metadata={"format_version": "2.0"})
     with pytest.raises(FormatError, match=r"format version 2\.0 is not supported.*1\.x"):
         open_episode(path)
-    minor = write_synthetic_episode(
-        tmp_path / "v1_7.mcap", ticks=2, sensors=False, metadata={"format_version": "1.7"}
-    )
+    minor = write_synthetic_episode(tmp_path / "v1_7.mcap", ticks=2, sensors=False, metadata={"format_version": "1.7"})
     with open_episode(minor) as ep:
         assert ep.format_version == "1.7"
 

@@ -82,9 +82,7 @@ def test_a_missing_message_on_one_tick_is_named(tmp_path):
 
 
 def test_a_missing_tick_is_named_for_every_topic(tmp_path):
-    path = write_synthetic_episode(
-        tmp_path / "gap.mcap", ticks=8, edit=lambda k, t, m: None if k in (5, 6) else m
-    )
+    path = write_synthetic_episode(tmp_path / "gap.mcap", ticks=8, edit=lambda k, t, m: None if k in (5, 6) else m)
     found = _only(validate_episode(path), "completeness")
     assert {p.topic for p in found} >= {"/tf", "/labels/objects", "/vehicle_0/lidar"}
     assert all("ticks 5-6 (2 of 8)" in p.message for p in found)
@@ -97,9 +95,7 @@ def test_a_dangling_box_label_is_named(tmp_path):
             msg.entities[0].id = "99"
         return msg
 
-    found = _only(
-        validate_episode(write_synthetic_episode(tmp_path / "dangle.mcap", ticks=4, edit=edit)), "labels"
-    )
+    found = _only(validate_episode(write_synthetic_episode(tmp_path / "dangle.mcap", ticks=4, edit=edit)), "labels")
     assert any(p.tick == 2 and p.topic == "/labels/boxes" and "99" in p.message for p in found)
 
 
@@ -111,15 +107,11 @@ def test_a_dangling_track_in_lidar_and_visibility_is_named(tmp_path):
         if k == 1 and topic == "/drone_0/lidar":
             msg = copy.deepcopy(msg)
             data = bytearray(msg.data)
-            data[msg.point_stride - 4 : msg.point_stride] = (77).to_bytes(
-                4, "little"
-            )  # instance_id of point 0
+            data[msg.point_stride - 4 : msg.point_stride] = (77).to_bytes(4, "little")  # instance_id of point 0
             msg.data = bytes(data)
         return msg
 
-    found = _only(
-        validate_episode(write_synthetic_episode(tmp_path / "d2.mcap", ticks=3, edit=edit)), "labels"
-    )
+    found = _only(validate_episode(write_synthetic_episode(tmp_path / "d2.mcap", ticks=3, edit=edit)), "labels")
     assert {(p.tick, p.topic) for p in found} == {(1, "/rsu_0/visibility"), (1, "/drone_0/lidar")}
     assert any("[42]" in p.message for p in found) and any("[77]" in p.message for p in found)
 
@@ -133,13 +125,9 @@ def test_a_broken_transform_tree_is_named(tmp_path):
                     t.parent_frame_id = "vehicle_0/base_lnk"
         return msg
 
-    found = _only(
-        validate_episode(write_synthetic_episode(tmp_path / "tf.mcap", ticks=6, edit=edit)), "transforms"
-    )
+    found = _only(validate_episode(write_synthetic_episode(tmp_path / "tf.mcap", ticks=6, edit=edit)), "transforms")
     assert any(
-        p.tick == 4
-        and "'vehicle_0/lidar' does not reach 'map'" in p.message
-        and "vehicle_0/base_lnk" in p.message
+        p.tick == 4 and "'vehicle_0/lidar' does not reach 'map'" in p.message and "vehicle_0/base_lnk" in p.message
         for p in found
     )
     assert all(p.tick == 4 for p in found)
@@ -154,9 +142,7 @@ def test_a_transform_cycle_and_a_second_parent_are_named(tmp_path):
             extra.parent_frame_id = "vehicle_0/lidar"
         return msg
 
-    found = _only(
-        validate_episode(write_synthetic_episode(tmp_path / "cyc.mcap", ticks=3, edit=edit)), "transforms"
-    )
+    found = _only(validate_episode(write_synthetic_episode(tmp_path / "cyc.mcap", ticks=3, edit=edit)), "transforms")
     assert any("'vehicle_0/base_link' has 2 parents" in p.message for p in found)
 
 
@@ -168,9 +154,7 @@ def test_timestamps_off_the_grid_and_backwards_are_named(tmp_path):
             return [(1 * TICK_NS, topic, msg)]
         return msg
 
-    found = _only(
-        validate_episode(write_synthetic_episode(tmp_path / "time.mcap", ticks=5, edit=edit)), "time"
-    )
+    found = _only(validate_episode(write_synthetic_episode(tmp_path / "time.mcap", ticks=5, edit=edit)), "time")
     text = "\n".join(str(p) for p in found)
     assert "400000001 ns is not on the 200000000 ns tick grid" in text
     assert "goes back" in text
@@ -183,9 +167,7 @@ def test_a_header_stamp_that_disagrees_with_log_time_is_named(tmp_path):
             msg.entities[0].timestamp.nanos += 5
         return msg
 
-    found = _only(
-        validate_episode(write_synthetic_episode(tmp_path / "stamp.mcap", ticks=3, edit=edit)), "time"
-    )
+    found = _only(validate_episode(write_synthetic_episode(tmp_path / "stamp.mcap", ticks=3, edit=edit)), "time")
     assert found[0].tick == 2 and "400000005 ns != log time 400000000 ns" in found[0].message
 
 
@@ -198,9 +180,7 @@ def test_an_image_without_calibration_is_named(tmp_path):
 
 
 def test_an_unknown_format_version_is_named(tmp_path, capsys):
-    path = write_synthetic_episode(
-        tmp_path / "v9.mcap", ticks=2, sensors=False, metadata={"format_version": "9.1"}
-    )
+    path = write_synthetic_episode(tmp_path / "v9.mcap", ticks=2, sensors=False, metadata={"format_version": "9.1"})
     found = _only(validate_episode(path), "metadata")
     assert "9.1 is not supported" in found[0].message
     assert main(["info", str(path)]) == 1

@@ -328,9 +328,7 @@ def decode_point_cloud(msg: Any) -> PointCloud:
     what = f"PointCloud in {msg.frame_id!r}"
     dtype = packed_dtype(msg.fields, msg.point_stride, what)
     if msg.point_stride == 0 or len(msg.data) % msg.point_stride:
-        raise FormatError(
-            f"{what}: {len(msg.data)} data bytes is not a multiple of point_stride {msg.point_stride}"
-        )
+        raise FormatError(f"{what}: {len(msg.data)} data bytes is not a multiple of point_stride {msg.point_stride}")
     points = np.frombuffer(msg.data, dtype=dtype)
     return PointCloud(
         _ns(msg.timestamp),
@@ -366,16 +364,9 @@ def decode_raw_image(msg: Any) -> Image:
     itemsize = np.dtype(dt).itemsize
     row = msg.width * ch * itemsize
     if msg.step < row or len(msg.data) < msg.step * msg.height:
-        raise FormatError(
-            f"{what}: {msg.width}x{msg.height} step {msg.step} does not fit {len(msg.data)} bytes"
-        )
+        raise FormatError(f"{what}: {msg.width}x{msg.height} step {msg.step} does not fit {len(msg.data)} bytes")
     rows = np.frombuffer(msg.data, dtype=np.uint8, count=msg.step * msg.height).reshape(msg.height, msg.step)
-    arr = (
-        rows[:, :row]
-        .copy()
-        .view(dt)
-        .reshape((msg.height, msg.width, ch) if ch > 1 else (msg.height, msg.width))
-    )
+    arr = rows[:, :row].copy().view(dt).reshape((msg.height, msg.width, ch) if ch > 1 else (msg.height, msg.width))
     return Image(_ns(msg.timestamp), msg.frame_id, msg.encoding, arr)
 
 
@@ -395,9 +386,7 @@ def decode_compressed_image(msg: Any) -> Image:
             else:
                 arr = np.asarray(im)
     except (OSError, ValueError, SyntaxError) as exc:
-        raise FormatError(
-            f"CompressedImage {msg.format!r} in {msg.frame_id!r}: cannot decode ({exc})"
-        ) from None
+        raise FormatError(f"CompressedImage {msg.format!r} in {msg.frame_id!r}: cannot decode ({exc})") from None
     return Image(_ns(msg.timestamp), msg.frame_id, msg.format, arr)
 
 
@@ -406,9 +395,7 @@ def decode_calibration(msg: Any) -> Calibration:
     p = np.asarray(msg.P, dtype=np.float64)
     r = np.asarray(msg.R, dtype=np.float64)
     if k.size != 9 or p.size != 12:
-        raise FormatError(
-            f"CameraCalibration in {msg.frame_id!r}: K has {k.size} values (9), P {p.size} (12)"
-        )
+        raise FormatError(f"CameraCalibration in {msg.frame_id!r}: K has {k.size} values (9), P {p.size} (12)")
     return Calibration(
         _ns(msg.timestamp),
         msg.frame_id,
@@ -425,9 +412,7 @@ def decode_calibration(msg: Any) -> Calibration:
 def decode_transforms(msg: Any) -> TransformTree:
     return TransformTree(
         tuple(
-            Transform(
-                t.parent_frame_id, t.child_frame_id, _vec(t.translation), _quat(t.rotation), _ns(t.timestamp)
-            )
+            Transform(t.parent_frame_id, t.child_frame_id, _vec(t.translation), _quat(t.rotation), _ns(t.timestamp))
             for t in msg.transforms
         )
     )
@@ -443,11 +428,7 @@ def decode_scene_update(msg: Any) -> Boxes:
             sizes.append(_vec(c.size))
             rots.append(_quat(c.pose.orientation))
     delete_all = any(d.type == d.ALL for d in msg.deletions)
-    t_ns = (
-        _ns(msg.entities[0].timestamp)
-        if msg.entities
-        else (_ns(msg.deletions[0].timestamp) if msg.deletions else 0)
-    )
+    t_ns = _ns(msg.entities[0].timestamp) if msg.entities else (_ns(msg.deletions[0].timestamp) if msg.deletions else 0)
     return Boxes(
         t_ns,
         tuple(ids),
@@ -545,9 +526,7 @@ def parse_json(schema_name: str, data: bytes) -> Any:
     try:
         return json.loads(data)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise FormatError(
-            f"cannot decode a {schema_name or 'JSON'} message ({len(data)} bytes): {exc}"
-        ) from None
+        raise FormatError(f"cannot decode a {schema_name or 'JSON'} message ({len(data)} bytes): {exc}") from None
 
 
 def decode(schema_name: str, message_encoding: str, data: bytes, schema_data: bytes = b"") -> Any:
@@ -560,6 +539,4 @@ def decode(schema_name: str, message_encoding: str, data: bytes, schema_data: by
         payload = parse_json(schema_name, data)
         dec = JSON_DECODERS.get(schema_name)
         return dec(payload) if dec is not None else payload
-    raise FormatError(
-        f"unknown message encoding {message_encoding!r} (schema {schema_name!r}); known: protobuf, json"
-    )
+    raise FormatError(f"unknown message encoding {message_encoding!r} (schema {schema_name!r}); known: protobuf, json")

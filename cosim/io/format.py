@@ -41,9 +41,7 @@ TOPICS: tuple[TopicSpec, ...] = (
         "map -> <agent>/base_link -> <agent>/<sensor> (-> <agent>/<cam>/optical)",
     ),
     TopicSpec("/labels/objects", ("cosim.ObjectArray",), "map", "every actor's 3D box; every agent's pose"),
-    TopicSpec(
-        "/labels/boxes", ("foxglove.SceneUpdate",), "map", "the same boxes for viewers; entity id = track id"
-    ),
+    TopicSpec("/labels/boxes", ("foxglove.SceneUpdate",), "map", "the same boxes for viewers; entity id = track id"),
     TopicSpec(
         "/<agent>/lidar",
         ("foxglove.PointCloud",),
@@ -83,9 +81,7 @@ TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec("/<agent>/gnss", ("foxglove.LocationFix",), "<agent>/gnss", "WGS84 fix"),
     TopicSpec("/<agent>/imu", ("cosim.Imu",), "<agent>/imu", "specific force, angular rate (body FLU)"),
     TopicSpec("/<agent>/bev", ("foxglove.Grid",), "<agent>/base_link (level)", "ego-centred semantic BEV"),
-    TopicSpec(
-        "/<agent>/visibility", ("cosim.Visibility",), "-", "per object seen: LiDAR hits, pixels per camera"
-    ),
+    TopicSpec("/<agent>/visibility", ("cosim.Visibility",), "-", "per object seen: LiDAR hits, pixels per camera"),
 )
 
 #: Every episode has these topics on every tick.

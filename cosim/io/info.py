@@ -53,9 +53,7 @@ def episode_info(path: str | Path) -> EpisodeInfo:
         m = ep.metadata
         duration = ep.duration_s
         topics = [
-            TopicLine(
-                t.topic, t.schema_name, t.message_count, t.message_count / duration if duration else 0.0
-            )
+            TopicLine(t.topic, t.schema_name, t.message_count, t.message_count / duration if duration else 0.0)
             for t in ep.topics.values()
         ]
         return EpisodeInfo(
@@ -99,8 +97,7 @@ def format_info(info: EpisodeInfo) -> str:
         f"episode      {info.path}",
         f"size         {human_size(info.size_bytes)} ({info.messages} messages)",
         f"format       {info.format_version} ({info.generator})",
-        f"scenario     {info.scenario} (seed {info.seed})"
-        + (f": {info.description}" if info.description else ""),
+        f"scenario     {info.scenario} (seed {info.seed})" + (f": {info.description}" if info.description else ""),
         f"conditions   {info.environment}, {info.weather}, {info.lighting}; drones: "
         f"{', '.join(info.strategies) or 'none'}",
         f"duration     {info.duration_s:g} s, {info.n_ticks} ticks at {info.tick_hz:g} Hz",
@@ -112,7 +109,5 @@ def format_info(info: EpisodeInfo) -> str:
     width = max((len(t.topic) for t in info.topics), default=10)
     schema_w = max((len(t.schema_name) for t in info.topics), default=10)
     for t in info.topics:
-        lines.append(
-            f"  {t.topic:<{width}}  {t.schema_name:<{schema_w}}  {t.messages:>6} msgs  {t.rate_hz:6.2f} Hz"
-        )
+        lines.append(f"  {t.topic:<{width}}  {t.schema_name:<{schema_w}}  {t.messages:>6} msgs  {t.rate_hz:6.2f} Hz")
     return "\n".join(lines)

@@ -62,14 +62,10 @@ LABEL_TOPICS = ("/tf", "/labels/objects", "/labels/boxes")
 def check_format_version(version: str | None, source: str = "episode") -> str:
     """Raise :class:`FormatError` unless ``version`` is a format version this reader can read."""
     if version is None:
-        raise FormatError(
-            f"{source}: no 'format_version' in the 'episode' metadata record; not a cosim episode?"
-        )
+        raise FormatError(f"{source}: no 'format_version' in the 'episode' metadata record; not a cosim episode?")
     major, _, _ = str(version).partition(".")
     if not major.isdigit():
-        raise FormatError(
-            f"{source}: malformed format_version {version!r}; expected MAJOR.MINOR such as '1.0'"
-        )
+        raise FormatError(f"{source}: malformed format_version {version!r}; expected MAJOR.MINOR such as '1.0'")
     if int(major) != SUPPORTED_MAJOR:
         import cosim
 
@@ -213,9 +209,7 @@ class Tick:
 class Episode:
     """An open episode file. Use :func:`open_episode`; close it (or use ``with``) when done."""
 
-    def __init__(
-        self, path: Path, stream: BinaryIO, reader: SeekingReader, summary: Any, raw_metadata: dict[str, str]
-    ):
+    def __init__(self, path: Path, stream: BinaryIO, reader: SeekingReader, summary: Any, raw_metadata: dict[str, str]):
         self.path = path
         self._stream = stream
         self._reader = reader
@@ -283,6 +277,14 @@ class Episode:
             if t.startswith(prefix) and t.endswith("/image") and t.count("/") == 3
         )
 
+    def schemas(self) -> dict[str, tuple[str, str, bytes]]:
+        """Per topic: (schema name, schema encoding, schema bytes) as stored in the file."""
+        out: dict[str, tuple[str, str, bytes]] = {}
+        for ch in self._summary.channels.values():
+            s = self._summary.schemas.get(ch.schema_id)
+            out[ch.topic] = (s.name, s.encoding, s.data) if s else ("", "", b"")
+        return out
+
     # -- attachments ------------------------------------------------------------------------------
 
     @property
@@ -313,9 +315,7 @@ class Episode:
         for pattern in topics:
             hits = [t for t in self.topics if fnmatch.fnmatchcase(t, pattern)]
             if not hits:
-                raise KeyError(
-                    f"no topic matches {pattern!r} in {self.path}; topics: {', '.join(sorted(self.topics))}"
-                )
+                raise KeyError(f"no topic matches {pattern!r} in {self.path}; topics: {', '.join(sorted(self.topics))}")
             out.update(hits)
         return sorted(out)
 
@@ -342,9 +342,7 @@ class Episode:
                     schema.data if schema else b"",
                 )
         except (McapError, EOFError, ValueError) as exc:
-            raise FormatError(
-                f"{self.path}: cannot read messages ({exc}); run `cosim validate` on it"
-            ) from None
+            raise FormatError(f"{self.path}: cannot read messages ({exc}); run `cosim validate` on it") from None
 
     def ticks(
         self, topics: Iterable[str] | str | None = None, start: int = 0, stop: int | None = None
@@ -412,8 +410,7 @@ def open_episode(path: str | Path) -> Episode:
             summary = reader.get_summary()
         except (McapError, EOFError, ValueError, OSError) as exc:
             raise FormatError(
-                f"{path}: truncated or corrupt MCAP (no readable footer/summary: {exc}); "
-                f"run `cosim validate` on it"
+                f"{path}: truncated or corrupt MCAP (no readable footer/summary: {exc}); run `cosim validate` on it"
             ) from None
         if summary is None:
             raise FormatError(f"{path}: MCAP without a summary section; the writer did not finish it")

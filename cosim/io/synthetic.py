@@ -61,9 +61,7 @@ def synthetic_world() -> World:
 def synthetic_snapshot(tick: int, tracks: TrackRegistry, world: World) -> WorldSnapshot:
     t = tick * TICK_NS / 1e9
     cars = [
-        VehicleState(
-            "bg.1", "truck", (5 + t, 3.0, 1.7), (8.0, 2.5, 3.4), 0.0, 0.0, 1.0, (1.0, 0, 0), 0.0, 0.0
-        ),
+        VehicleState("bg.1", "truck", (5 + t, 3.0, 1.7), (8.0, 2.5, 3.4), 0.0, 0.0, 1.0, (1.0, 0, 0), 0.0, 0.0),
         VehicleState(
             "vehicle_0",
             "car",
@@ -103,9 +101,7 @@ def _rig(agent: str, kind: str) -> list[tuple[str, str, tuple[float, ...], tuple
     ]
     for i, cam in enumerate(CAMERAS[kind]):
         yaw = math.pi * i
-        out.append(
-            (base, f"{agent}/{cam}", (0.0, 0.0, 1.6), (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)))
-        )
+        out.append((base, f"{agent}/{cam}", (0.0, 0.0, 1.6), (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))))
         out.append((f"{agent}/{cam}", f"{agent}/{cam}/optical", (0.0, 0.0, 0.0), _OPTICAL_FROM_FLU_Q))
     if kind != "rsu":
         out.append((base, f"{agent}/imu", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
@@ -172,9 +168,7 @@ def sensor_messages(snapshot: WorldSnapshot, width: int, height: int) -> list[tu
             out.append(
                 (
                     f"/{a}/{cam}/image",
-                    CompressedImage(
-                        timestamp=ts, frame_id=frame, format="png", data=_png(np.ascontiguousarray(rgb))
-                    ),
+                    CompressedImage(timestamp=ts, frame_id=frame, format="png", data=_png(np.ascontiguousarray(rgb))),
                 )
             )
             depth = np.full((height, width), 12_345, np.uint16)
@@ -300,9 +294,7 @@ def sensor_messages(snapshot: WorldSnapshot, width: int, height: int) -> list[tu
                     {
                         "timestamp_ns": snapshot.t_ns,
                         "agent_id": a,
-                        "objects": [
-                            {"track_id": live[0], "lidar_points": 16, "pixels": {CAMERAS[agent.kind][0]: 10}}
-                        ],
+                        "objects": [{"track_id": live[0], "lidar_points": 16, "pixels": {CAMERAS[agent.kind][0]: 10}}],
                     },
                 ),
             )

@@ -92,8 +92,7 @@ class ValidationReport:
     def lines(self) -> list[str]:
         out = [str(p) for p in self.problems]
         out += [
-            f"[{c}] {t or '(file)'}: {n} more problems of this kind not shown"
-            for (c, t), n in self.suppressed.items()
+            f"[{c}] {t or '(file)'}: {n} more problems of this kind not shown" for (c, t), n in self.suppressed.items()
         ]
         return out
 
@@ -166,9 +165,7 @@ class _Validator:
                 if self.last_time >= 0 and self.tick_ns
                 else "; no message could be read"
             )
-            self.problem(
-                "structure", f"file is truncated or corrupt after byte {offset_hint} of {size} ({what}){last}"
-            )
+            self.problem("structure", f"file is truncated or corrupt after byte {offset_hint} of {size} ({what}){last}")
         self.flush_group()
         self.finish()
         return self.report
@@ -226,25 +223,17 @@ class _Validator:
             return
         spec, parts = found
         if "agent" in parts and self.meta is not None and parts["agent"] not in self.agents:
-            self.problem(
-                "topics", f"agent {parts['agent']!r} is not in the metadata's agents", topic=ch.topic
-            )
-        ok = name in spec.schemas or (
-            name.startswith("cosim.") and any(s.startswith("cosim.") for s in spec.schemas)
-        )
+            self.problem("topics", f"agent {parts['agent']!r} is not in the metadata's agents", topic=ch.topic)
+        ok = name in spec.schemas or (name.startswith("cosim.") and any(s.startswith("cosim.") for s in spec.schemas))
         if not ok:
             self.problem("topics", f"schema {name!r}, expected {' or '.join(spec.schemas)}", topic=ch.topic)
         if name.startswith("foxglove.") and ch.message_encoding != "protobuf":
-            self.problem(
-                "topics", f"encoding {ch.message_encoding!r} for {name}, expected protobuf", topic=ch.topic
-            )
+            self.problem("topics", f"encoding {ch.message_encoding!r} for {name}, expected protobuf", topic=ch.topic)
 
     def on_message(self, m: Message) -> None:
         ch = self.channels.get(m.channel_id)
         if ch is None:
-            self.problem(
-                "structure", f"message on unknown channel id {m.channel_id} at log time {m.log_time} ns"
-            )
+            self.problem("structure", f"message on unknown channel id {m.channel_id} at log time {m.log_time} ns")
             return
         self.counts[m.channel_id] += 1
         self.report.messages += 1
@@ -258,17 +247,13 @@ class _Validator:
             )
         self.last_time = max(self.last_time, m.log_time)
         if m.publish_time != m.log_time:
-            self.problem(
-                "time", f"publish_time {m.publish_time} ns != log_time {m.log_time} ns", tick, ch.topic
-            )
+            self.problem("time", f"publish_time {m.publish_time} ns != log_time {m.log_time} ns", tick, ch.topic)
         if tick is not None:
             self.topic_ticks[ch.topic].append(tick)
         if self.group_t is not None and m.log_time != self.group_t:
             self.flush_group()
         if m.log_time in self.done_times and self.group_t != m.log_time:
-            self.problem(
-                "time", f"messages of t={m.log_time} ns are not contiguous in the file", tick, ch.topic
-            )
+            self.problem("time", f"messages of t={m.log_time} ns are not contiguous in the file", tick, ch.topic)
         self.group_t = m.log_time
         self.group.append((ch, m))
 
@@ -280,9 +265,7 @@ class _Validator:
             self.problem("time", f"log time {t_ns} ns is not on the {self.tick_ns} ns tick grid", None, topic)
             return None
         if self.n_ticks is not None and not 0 <= k < self.n_ticks:
-            self.problem(
-                "time", f"log time {t_ns} ns is outside the episode (ticks 0..{self.n_ticks - 1})", k, topic
-            )
+            self.problem("time", f"log time {t_ns} ns is outside the episode (ticks 0..{self.n_ticks - 1})", k, topic)
             return None
         return k
 
@@ -312,9 +295,7 @@ class _Validator:
                 self.problem("completeness", f"{len(msgs)} messages on one tick (expected 1)", tick, topic)
             ch = next(c for c, m in group if c.topic == topic)
             schema = self.schemas.get(ch.schema_id)
-            value = self.parse(
-                tick, ch, schema.name if schema else "", schema.data if schema else b"", msgs[0]
-            )
+            value = self.parse(tick, ch, schema.name if schema else "", schema.data if schema else b"", msgs[0])
             if value is not None:
                 decoded[topic] = value
                 self.check_stamp(tick, topic, value, t_ns)
@@ -348,9 +329,7 @@ class _Validator:
                 stamps.append(value.timestamp.seconds * 1_000_000_000 + value.timestamp.nanos)
             for rep in ("transforms", "entities"):
                 if rep in names:
-                    stamps += [
-                        x.timestamp.seconds * 1_000_000_000 + x.timestamp.nanos for x in getattr(value, rep)
-                    ]
+                    stamps += [x.timestamp.seconds * 1_000_000_000 + x.timestamp.nanos for x in getattr(value, rep)]
         bad = sorted({s for s in stamps if s != t_ns})
         if bad:
             self.problem("time", f"message timestamp {bad[0]} ns != log time {t_ns} ns", tick, topic)
@@ -364,9 +343,7 @@ class _Validator:
             parents[t.child].append(t.parent)
         for child, ps in parents.items():
             if len(ps) > 1:
-                self.problem(
-                    "transforms", f"frame {child!r} has {len(ps)} parents: {', '.join(ps)}", tick, "/tf"
-                )
+                self.problem("transforms", f"frame {child!r} has {len(ps)} parents: {', '.join(ps)}", tick, "/tf")
             if child == MAP_FRAME:
                 self.problem("transforms", f"the root {MAP_FRAME!r} has a parent {ps[0]!r}", tick, "/tf")
         for frame in sorted(tree.frames - {MAP_FRAME}):
@@ -432,16 +409,13 @@ class _Validator:
                 )
             before = self.track_class.setdefault(i, c)
             if before != c:
-                self.problem(
-                    "labels", f"track {i} changed class from {before!r} to {c!r}", tick, "/labels/objects"
-                )
+                self.problem("labels", f"track {i} changed class from {before!r} to {c!r}", tick, "/labels/objects")
         for a in agents:
             tid = a.get("track_id") if isinstance(a, dict) else None
             if tid is not None and tid not in live:
                 self.problem(
                     "labels",
-                    f"agent {a.get('agent_id')!r} references track {tid}, which is not "
-                    f"in /labels/objects at this tick",
+                    f"agent {a.get('agent_id')!r} references track {tid}, which is not in /labels/objects at this tick",
                     tick,
                     "/labels/objects",
                 )
@@ -452,8 +426,7 @@ class _Validator:
             if dangling:
                 self.problem(
                     "labels",
-                    f"box entities {', '.join(dangling)} reference tracks not in "
-                    f"/labels/objects at this tick",
+                    f"box entities {', '.join(dangling)} reference tracks not in /labels/objects at this tick",
                     tick,
                     "/labels/boxes",
                 )
@@ -471,9 +444,7 @@ class _Validator:
                 continue
             spec, _ = found
             if spec.pattern.endswith("/image"):
-                self.check_calibration(
-                    tick, topic, value, decoded.get(topic[: -len("image")] + "calibration")
-                )
+                self.check_calibration(tick, topic, value, decoded.get(topic[: -len("image")] + "calibration"))
             if live is None:
                 continue
             refs: set[int] = set()
@@ -516,9 +487,7 @@ class _Validator:
 
     def check_calibration(self, tick: int | None, topic: str, image: Any, calib: Any) -> None:
         if calib is None:
-            self.problem(
-                "calibration", f"image without {topic[: -len('image')]}calibration on this tick", tick, topic
-            )
+            self.problem("calibration", f"image without {topic[: -len('image')]}calibration on this tick", tick, topic)
             return
         if calib.frame_id != image.frame_id:
             self.problem(
@@ -543,9 +512,7 @@ class _Validator:
         if not self.seen_header:
             self.problem("structure", "no MCAP header")
         if not self.seen_data_end or not self.seen_footer:
-            self.problem(
-                "structure", "file ends before the data-end/footer records: truncated or not finished"
-            )
+            self.problem("structure", "file ends before the data-end/footer records: truncated or not finished")
         if self.meta is None:
             self.problem("metadata", "no 'episode' metadata record")
         missing = [a for a in REQUIRED_ATTACHMENTS if a not in self.attachments]

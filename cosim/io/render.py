@@ -1,0 +1,236 @@
+"""``cosim render``: PNG previews of chosen ticks (matplotlib, Agg backend, no display needed).
+
+- ``contact_<agent>_t<tick>.png``: one row per camera of the agent: RGB, depth, semantic classes.
+- ``bev_t<tick>.png``: top view of the map frame: every agent, every labelled box, and every agent's
+  LiDAR points moved into ``map`` through ``/tf`` (coloured by semantic class when the cloud has a
+  ``class_id`` field, else by height).
+
+Pictures are palette-quantised PNGs (256 colours) so they stay small enough for documentation.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cosim.classes import SEMANTIC_CLASSES, SEMANTIC_COLOURS
+from cosim.errors import CosimError
+from cosim.io.reader import Episode, Tick
+
+log = logging.getLogger(__name__)
+
+AGENT_STYLE = {"vehicle": ("o", "#1f77b4"), "rsu": ("s", "#d4a000"), "drone": ("^", "#d62728")}
+MAX_BEV_POINTS = 60_000  # per plot, subsampled evenly
+DEPTH_MAX_M = 120.0
+
+
+def semantic_palette(class_table: dict[str, Any] | None = None) -> np.ndarray:
+    """(256, 3) uint8 colour per semantic id, from the episode's class table (or cosim.classes)."""
+    pal = np.zeros((256, 3), np.uint8)
+    entries = (class_table or {}).get("semantic_classes") or [
+        {"id": i, "colour": SEMANTIC_COLOURS[n]} for i, n in enumerate(SEMANTIC_CLASSES)
+    ]
+    for e in entries:
+        if 0 <= int(e["id"]) < 256:
+            pal[int(e["id"])] = e["colour"]
+    return pal
+
+
+def colourise_semantic(ids: np.ndarray, palette: np.ndarray) -> np.ndarray:
+    """Class ids (H, W) -> RGB (H, W, 3) uint8."""
+    return palette[np.clip(ids.astype(np.int64), 0, 255)]
+
+
+def depth_metres(img: Any) -> np.ndarray:
+    """Depth image (H, W) in metres (float32, NaN where nothing was hit) from 16UC1 mm or 32FC1 m."""
+    a = img.array
+    if a.ndim == 3:
+        a = a[..., 0]
+    if a.dtype == np.uint16 or a.dtype.kind in "iu":
+        m = a.astype(np.float32) / 1000.0
+        m[a == 0] = np.nan
+        m[a == np.iinfo(a.dtype).max] = np.nan
+        return m
+    m = a.astype(np.float32)
+    m[~np.isfinite(m) | (m <= 0)] = np.nan
+    return m
+
+
+def _save(fig: Any, path: Path, dpi: int) -> Path:
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    buf.seek(0)
+    with Image.open(buf) as im:
+        im.convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT).save(path, optimize=True)
+    return path
+
+
+def contact_sheet(ep: Episode, tick: Tick, agent: str, path: Path, dpi: int = 80) -> Path | None:
+    """One agent's cameras at one tick: RGB | depth | semantic per row. None when it has no camera."""
+    import matplotlib.pyplot as plt
+
+    cams = [c for c in ep.cameras(agent) if f"/{agent}/{c}/image" in tick]
+    if not cams:
+        return None
+    palette = semantic_palette(ep.class_table)
+    kinds = [("image", "RGB"), ("depth", "depth [m]"), ("semantic", "semantic")]
+    aspect = 9 / 16
+    first = tick.image(agent, cams[0]).array
+    if first.ndim >= 2 and first.shape[1]:
+        aspect = first.shape[0] / first.shape[1]
+    fig, axes = plt.subplots(len(cams), 3, figsize=(12, 4 * aspect * len(cams) + 0.6), squeeze=False)
+    for r, cam in enumerate(cams):
+        for c, (kind, title) in enumerate(kinds):
+            ax = axes[r][c]
+            ax.set_xticks([])
+            ax.set_yticks([])
+            topic = f"/{agent}/{cam}/{kind}"
+            if topic not in tick:
+                ax.text(0.5, 0.5, "not recorded", ha="center", va="center", transform=ax.transAxes)
+                continue
+            img = tick[topic]
+            if kind == "image":
+                ax.imshow(img.array, cmap=None if img.array.ndim == 3 else "gray")
+            elif kind == "depth":
+                d = depth_metres(img)
+                shown = ax.imshow(d, cmap="turbo_r", vmin=0.0, vmax=min(DEPTH_MAX_M, float(np.nanmax(d, initial=1.0))))
+                fig.colorbar(shown, ax=ax, fraction=0.03, pad=0.01)
+            else:
+                ax.imshow(colourise_semantic(img.array if img.array.ndim == 2 else img.array[..., 0], palette))
+            if r == 0:
+                ax.set_title(title, fontsize=10)
+            if c == 0:
+                ax.set_ylabel(cam, fontsize=10)
+    fig.suptitle(f"{ep.scenario}  {agent}  tick {tick.index} (t = {tick.t_ns / 1e9:.1f} s)", fontsize=11)
+    fig.tight_layout()
+    out = _save(fig, path, dpi)
+    plt.close(fig)
+    return out
+
+
+def _box_corners_xy(center: np.ndarray, size: np.ndarray, yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    half = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1], [1, 1]]) * (size[:2] / 2)
+    return center[:2] + half @ np.array([[c, s], [-s, c]])
+
+
+def bev_points(ep: Episode, tick: Tick) -> tuple[np.ndarray, np.ndarray | None]:
+    """All agents' LiDAR points in map (N, 3) and their class ids (N,) (None when a cloud has none)."""
+    xyz_all, cls_all = [], []
+    have_cls = True
+    tree = tick.transforms if "/tf" in tick else None
+    for agent in ep.agents:
+        topic = f"/{agent}/lidar"
+        if topic not in tick or tree is None:
+            continue
+        pc = tick[topic]
+        if len(pc) == 0:
+            continue
+        try:
+            m = tree.to_root(pc.frame_id)
+        except CosimError as exc:
+            log.warning("tick %d: %s; %s not drawn", tick.index, exc, topic)
+            continue
+        xyz_all.append(pc.xyz @ m[:3, :3].T + m[:3, 3])
+        if "class_id" in pc.fields:
+            cls_all.append(np.asarray(pc.points["class_id"], np.int64))
+        else:
+            have_cls = False
+    if not xyz_all:
+        return np.zeros((0, 3)), None
+    return np.concatenate(xyz_all), (np.concatenate(cls_all) if have_cls and cls_all else None)
+
+
+def bev_plot(ep: Episode, tick: Tick, path: Path, dpi: int = 80) -> Path:
+    """Top view of one tick (see the module docstring)."""
+    import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+
+    palette = semantic_palette(ep.class_table)
+    fig, ax = plt.subplots(figsize=(10, 10))
+    xyz, cls = bev_points(ep, tick)
+    if len(xyz):
+        step = max(1, len(xyz) // MAX_BEV_POINTS)
+        p = xyz[::step]
+        dot = float(np.clip(20_000 / len(p), 0.3, 4.0))  # [pt^2] bigger dots for sparse clouds
+        if cls is not None:
+            colours = palette[np.clip(cls[::step], 0, 255)] / 255.0
+            ax.scatter(p[:, 0], p[:, 1], s=dot, c=colours, linewidths=0, rasterized=True)
+        else:
+            ax.scatter(p[:, 0], p[:, 1], s=dot, c=p[:, 2], cmap="viridis", linewidths=0, rasterized=True)
+    extent = [p for p in xyz[:, :2]] if len(xyz) else []
+    if "/labels/objects" in tick:
+        labels = tick.labels
+        for center, size, yaw, name in zip(
+            labels.centers_m, labels.sizes_m, labels.yaws_rad, labels.classes, strict=True
+        ):
+            colour = np.array(SEMANTIC_COLOURS.get(name, (0, 0, 0))) / 255.0
+            corners = _box_corners_xy(center, size, yaw)
+            ax.plot(corners[:, 0], corners[:, 1], color=colour, lw=1.2)
+            ax.plot(
+                [center[0], (corners[0, 0] + corners[1, 0]) / 2],
+                [center[1], (corners[0, 1] + corners[1, 1]) / 2],
+                color=colour,
+                lw=0.8,
+            )
+        extent += list(labels.centers_m[:, :2])
+        for a in labels.agents:
+            kind = a.get("kind", "vehicle")
+            marker, colour = AGENT_STYLE.get(kind, ("x", "k"))
+            x, y = a["position_m"][0], a["position_m"][1]
+            ax.scatter([x], [y], marker=marker, s=60, c=colour, edgecolors="k", zorder=5)
+            ax.annotate(a["agent_id"], (x, y), textcoords="offset points", xytext=(5, 5), fontsize=8, zorder=6)
+            extent.append(np.array([x, y]))
+    if extent:
+        e = np.asarray(extent)
+        lo, hi = np.percentile(e, 1, axis=0) - 20, np.percentile(e, 99, axis=0) + 20
+        centre, half = (lo + hi) / 2, max(hi - lo) / 2
+        ax.set_xlim(centre[0] - half, centre[0] + half)
+        ax.set_ylim(centre[1] - half, centre[1] + half)
+    ax.set_aspect("equal")
+    ax.set_xlabel("map x (east) [m]")
+    ax.set_ylabel("map y (north) [m]")
+    handles = [Line2D([], [], marker=m, color=c, ls="", label=k) for k, (m, c) in AGENT_STYLE.items()]
+    ax.legend(handles=handles, loc="upper right", fontsize=8)
+    n_boxes = len(tick.labels) if "/labels/objects" in tick else 0
+    ax.set_title(
+        f"{ep.scenario}  tick {tick.index} (t = {tick.t_ns / 1e9:.1f} s): {n_boxes} boxes, {len(xyz)} LiDAR points"
+    )
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    out = _save(fig, path, dpi)
+    plt.close(fig)
+    return out
+
+
+def render_episode(
+    ep: Episode, out_dir: Path, ticks: Sequence[int], agents: Sequence[str] | None = None, dpi: int = 80
+) -> list[Path]:
+    """Contact sheets of ``agents`` (default all with cameras) and a BEV plot for each tick; returns the files."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    agents = list(agents) if agents else ep.agents
+    written: list[Path] = []
+    wanted = ["/tf", "/labels/objects", *[f"/{a}/lidar" for a in ep.agents]]
+    for a in agents:
+        wanted += [f"/{a}/{c}/{k}" for c in ep.cameras(a) for k in ("image", "depth", "semantic")]
+    wanted = [t for t in wanted if t in ep.topics]
+    for k in ticks:
+        tick = ep.tick(k, topics=wanted)
+        for a in agents:
+            sheet = contact_sheet(ep, tick, a, out_dir / f"contact_{a}_t{k:04d}.png", dpi)
+            if sheet is not None:
+                written.append(sheet)
+        written.append(bev_plot(ep, tick, out_dir / f"bev_t{k:04d}.png", dpi))
+    return written
