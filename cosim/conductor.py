@@ -36,6 +36,19 @@ class _Reply:
     tick: int
     ok: bool
     data: Any
+    received_s: float  # time.perf_counter() when the reply arrived (telemetry)
+
+
+@dataclass(frozen=True)
+class _Pending:
+    """Queries sent for one tick whose replies have not been collected yet."""
+
+    verb: str
+    tick: int
+    roles: tuple[str, ...]
+    deadline: float  # time.monotonic() by which every reply must be in
+    timeout_s: float
+    sent_s: float  # time.perf_counter() when the queries went out (telemetry)
 
 
 @dataclass(frozen=True)
@@ -159,13 +172,27 @@ class Conductor:
 
     def step(self, tick: int, t_ns: int, escort_targets: dict[str, protocol.EscortTarget]) -> dict[str, Any]:
         """Advance every worker to ``t_ns``; returns {role: reply data} once all have answered."""
+        return self.collect(self.send_step(tick, t_ns, escort_targets))
+
+    def send_step(self, tick: int, t_ns: int, escort_targets: dict[str, protocol.EscortTarget]) -> _Pending:
+        """Send tick ``tick``'s step requests without waiting (collect the replies with :meth:`collect`).
+
+        This lets the workers compute the next tick while the caller writes and renders this one.
+        """
         requests = {
             "traffic": protocol.StepRequest(tick, t_ns),
             "drones": protocol.StepRequest(tick, t_ns, escort_targets),
         }
-        return self._query_all("step", tick, requests, self._tick_timeout_s)
+        return self._send("step", tick, requests, self._tick_timeout_s)
+
+    def collect(self, pending: _Pending) -> dict[str, Any]:
+        """Wait for every reply of ``pending``; raises WorkerError / SyncTimeout naming worker and tick."""
+        return self._collect(pending)
 
     def _query_all(self, verb: str, tick: int, requests: dict[str, Any], timeout_s: float) -> dict[str, Any]:
+        return self._collect(self._send(verb, tick, requests, timeout_s))
+
+    def _send(self, verb: str, tick: int, requests: dict[str, Any], timeout_s: float) -> _Pending:
         assert self._session is not None, "Conductor used outside its with-block"
         shown_tick = tick if tick >= 0 else None
         for role, request in requests.items():
@@ -177,26 +204,33 @@ class Conductor:
                 payload=protocol.encode(request),
                 timeout=timeout_s + 1.0,
             )
+        return _Pending(verb, tick, tuple(requests), time.monotonic() + timeout_s, timeout_s, time.perf_counter())
+
+    def _collect(self, pending: _Pending) -> dict[str, Any]:
+        tick = pending.tick
+        shown_tick = tick if tick >= 0 else None
         results: dict[str, Any] = {}
-        deadline = time.monotonic() + timeout_s
-        while len(results) < len(requests):
-            remaining = deadline - time.monotonic()
+        while len(results) < len(pending.roles):
+            remaining = pending.deadline - time.monotonic()
             if remaining <= 0:
-                late = [r for r in requests if r not in results]
-                raise SyncTimeout(late[0], f"no reply to {verb} within {timeout_s:g} s", tick=shown_tick)
+                late = [r for r in pending.roles if r not in results]
+                raise SyncTimeout(late[0], f"no reply to {pending.verb} within {pending.timeout_s:g} s",
+                                  tick=shown_tick)
             try:
                 event = self._inbox.get(timeout=min(remaining, 0.25))
             except queue.Empty:
                 self._check_processes(shown_tick)
                 continue
             if isinstance(event, _Liveliness):
-                if not event.alive and event.role in requests:
+                if not event.alive and event.role in pending.roles:
                     raise WorkerError(event.role, self._death_reason(event.role), tick=shown_tick)
                 continue
             if event.tick != tick:
                 continue  # a late reply from an earlier query
             if not event.ok:
                 raise WorkerError(event.role, event.data.get("error", "failed"), tick=shown_tick)
+            # round trip of this query: what Zenoh, encoding and scheduling add on top of the worker's compute
+            event.data["round_trip_s"] = event.received_s - pending.sent_s
             results[event.role] = event.data
         return results
 
@@ -204,13 +238,13 @@ class Conductor:
 
     def _on_reply(self, role: str, tick: int, reply: zenoh.Reply) -> None:
         if reply.ok is not None:
-            self._inbox.put(_Reply(role, tick, True, protocol.decode(reply.ok.payload.to_bytes())))
+            self._inbox.put(_Reply(role, tick, True, protocol.decode(reply.ok.payload.to_bytes()), time.perf_counter()))
         else:
             try:
                 data = protocol.decode(reply.err.payload.to_bytes())
             except ValueError:
                 data = {"error": reply.err.payload.to_string()}
-            self._inbox.put(_Reply(role, tick, False, data))
+            self._inbox.put(_Reply(role, tick, False, data, time.perf_counter()))
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         role = str(sample.key_expr).rsplit("/", 1)[-1]

@@ -52,9 +52,10 @@ class EpisodeResult:
     messages: int
     size_bytes: int
     wall_time_s: float
-    tick_times_s: list[float] = field(default_factory=list)  # wall time of the lockstep step per tick
-    sync_costs_s: list[float] = field(default_factory=list)  # step wall time minus the slowest worker's compute
+    tick_times_s: list[float] = field(default_factory=list)  # wall time the tick loop waited for the workers
+    sync_costs_s: list[float] = field(default_factory=list)  # per tick, max over workers of round trip - compute
     compute_s: dict[str, list[float]] = field(default_factory=dict)  # per worker role: its own step time
+    loop_wall_s: float = 0.0  # the tick loop alone (no world build, worker start-up or finishing)
 
     @property
     def real_time_factor(self) -> float:
@@ -134,7 +135,6 @@ def run_episode(
     tick_times: list[float] = []
     sync_costs: list[float] = []
     compute: dict[str, list[float]] = {}
-    snapshot: WorldSnapshot | None = None
 
     with EpisodeWriter(final, compression=s.output.compression) as writer, Conductor(
         loaded.resolved,
@@ -148,19 +148,22 @@ def run_episode(
     ) as conductor:
         writer.add_metadata("episode", episode_metadata(loaded, world))
         conductor.start()
+        loop_started = time.perf_counter()
+        pending = conductor.send_step(0, 0, {})
         for tick in range(s.n_ticks):
             t_ns = tick * s.tick_ns
             t0 = time.perf_counter()
-            targets = escort_targets(snapshot, escorts) if snapshot is not None else {}
-            replies = conductor.step(tick, t_ns, targets)
-            step_s = time.perf_counter() - t0
-            tick_times.append(step_s)
-            sync_costs.append(step_s - max(r.get("compute_ns", 0) for r in replies.values()) / 1e9)
-            for role, reply in replies.items():
-                compute.setdefault(role, []).append(reply.get("compute_ns", 0) / 1e9)
+            replies = conductor.collect(pending)
             vehicles = [vehicle_from_dict(v) for v in replies["traffic"]["vehicles"]]
             drones = [drone_from_dict(d) for d in replies["drones"]["drones"]]
             snapshot = build_snapshot(tick, t_ns, vehicles, drones, world, tracks)
+            if tick + 1 < s.n_ticks:  # the workers compute the next tick while this one is written
+                pending = conductor.send_step(tick + 1, t_ns + s.tick_ns, escort_targets(snapshot, escorts))
+            step_s = time.perf_counter() - t0
+            tick_times.append(step_s)
+            sync_costs.append(max(r["round_trip_s"] - r.get("compute_ns", 0) / 1e9 for r in replies.values()))
+            for role, reply in replies.items():
+                compute.setdefault(role, []).append(reply.get("compute_ns", 0) / 1e9)
             rig_tf = suite.transforms(snapshot) if suite is not None else []
             for topic, message in label_messages(snapshot, rig_tf):
                 writer.write(topic, message, t_ns)
@@ -169,6 +172,7 @@ def run_episode(
                     writer.write(topic, message, t_ns)
             if progress is not None:
                 progress(tick + 1, s.n_ticks)
+        loop_wall_s = time.perf_counter() - loop_started
         _attach(writer, loaded, world)
         messages = writer.message_count
         path = writer.finish()
@@ -183,6 +187,7 @@ def run_episode(
         tick_times_s=tick_times,
         sync_costs_s=sync_costs,
         compute_s=compute,
+        loop_wall_s=loop_wall_s,
     )
 
 

@@ -129,3 +129,37 @@ def test_ctrl_c_stops_cleanly(tmp_path):
     assert list(tmp_path.iterdir()) == []
     for p in workers.values():
         assert not p.is_running() or p.status() == psutil.STATUS_ZOMBIE
+
+
+def test_external_workers_started_by_hand_connect_and_serve_the_episode(tmp_path):
+    from cosim.transport import free_loopback_endpoint
+
+    endpoint = free_loopback_endpoint()
+    conductor = subprocess.Popen(
+        [sys.executable, "-m", "cosim.cli", "run", "scenarios/default.yaml", "--duration", "2", "--out", str(tmp_path),
+         "--listen", endpoint, "--external-workers", "--prefix", "cosim/test-ext", *FAST],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    workers = [subprocess.Popen([sys.executable, "-m", "cosim.cli", "worker", role, "--connect", endpoint,
+                                 "--prefix", "cosim/test-ext"], cwd=REPO, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+               for role in ("traffic", "drones")]
+    try:
+        out, err = conductor.communicate(timeout=120)
+        assert conductor.returncode == 0, err
+        assert "ticks    10 at 5 Hz" in out
+        for w in workers:  # each worker serves one episode and exits when the conductor closes it
+            w.communicate(timeout=10)
+            assert w.returncode == 0
+    finally:
+        for p in (conductor, *workers):
+            if p.poll() is None:
+                p.kill()
+    topics = read_topics(tmp_path / "default_s0.mcap")
+    assert len(topics["/labels/objects"]) == 10
+
+
+def test_external_mode_needs_listen():
+    r = run_cli("run", "scenarios/default.yaml", "--external-workers", timeout=60)
+    assert r.returncode == 2 and "--listen" in r.stderr
+    r = run_cli("run", "scenarios/default.yaml", "--listen", "nonsense", timeout=60)
+    assert r.returncode == 2 and "invalid endpoint" in r.stderr
