@@ -9,7 +9,7 @@ of gravity. Rotor ``i`` sits at ``ROTOR_DIRS[i] * arm_m`` and spins with ``ROTOR
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -75,8 +75,8 @@ def airframe_for_mass(mass_kg: float) -> Airframe:
         rotor_tau_s=0.04,
         rotor_torque_m=0.016 * s,
         rotor_diameter_m=0.38 * s,
-        drag_area_m2=0.09 * s * s,
-        drag_linear_nspm=0.08 * mass_kg,
+        drag_area_m2=0.06 * s * s,
+        drag_linear_nspm=0.06 * mass_kg,
         hover_power_share=0.65 * 0.8,
         avionics_power_w=30.0,
     )
@@ -104,6 +104,12 @@ class RotorBank:
     frame: Airframe
     dt_s: float
     thrust_n: np.ndarray
+    _hubs: np.ndarray = field(init=False)
+    _alpha: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self._hubs = self.frame.rotor_positions_m()
+        self._alpha = 1.0 - math.exp(-self.dt_s / self.frame.rotor_tau_s)
 
     @classmethod
     def hovering(cls, frame: Airframe, dt_s: float) -> RotorBank:
@@ -112,8 +118,7 @@ class RotorBank:
     def step(self, command_n: np.ndarray) -> np.ndarray:
         """Advance one step toward ``command_n`` (4,) [N] (clipped to [0, max]); returns the thrusts."""
         cmd = np.clip(command_n, 0.0, self.frame.rotor_max_thrust_n)
-        alpha = 1.0 - math.exp(-self.dt_s / self.frame.rotor_tau_s)
-        self.thrust_n = self.thrust_n + alpha * (cmd - self.thrust_n)
+        self.thrust_n = self.thrust_n + self._alpha * (cmd - self.thrust_n)
         return self.thrust_n
 
     def body_wrench(self) -> tuple[np.ndarray, np.ndarray]:
@@ -122,7 +127,7 @@ class RotorBank:
         Each rotor pushes along body +z; its reaction (drag) torque is -spin * k_q * T about +z.
         """
         t = self.thrust_n
-        pos = self.frame.rotor_positions_m()
+        pos = self._hubs
         force = np.array([0.0, 0.0, float(np.sum(t))])
         # r x (0, 0, T) = (y T, -x T, 0)
         torque = np.array(

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cosim.drones.airframe import G_MPS2, ROTOR_SPIN, Airframe
+from cosim.drones.airframe import G_MPS2, RHO_KGPM3, ROTOR_SPIN, Airframe
 from cosim.geometry import wrap_angle
 
 E_Z = np.array([0.0, 0.0, 1.0])
@@ -73,6 +73,11 @@ def yaw_of(rotation: np.ndarray) -> float:
     return math.atan2(rotation[1, 0], rotation[0, 0])
 
 
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product of two (3,) vectors (numpy.cross is slow on tiny arrays)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
 def _limit_norm(v: np.ndarray, limit: float) -> np.ndarray:
     n = math.hypot(v[0], v[1])
     return v * (limit / n) if n > limit else v
@@ -117,6 +122,10 @@ class Controller:
         a_cmd = ref.accel_mps2 + kv * e_v + ki * self.vel_integral
         a_cmd = _limit_norm(a_cmd, lim.max_accel_mps2)
         a_cmd[2] = min(max(a_cmd[2], -lim.max_vert_accel_mps2), lim.max_vert_accel_mps2)
+        # Drag feed-forward at the commanded velocity (still air assumed; the integrator learns the wind).
+        fr = self.frame
+        speed = float(np.linalg.norm(v_cmd))
+        a_cmd = a_cmd + (0.5 * RHO_KGPM3 * fr.drag_area_m2 * speed + fr.drag_linear_nspm) / fr.mass_kg * v_cmd
         # Acceleration -> thrust vector, tilt-limited.
         f = self.frame.mass_kg * (a_cmd + G_MPS2 * E_Z)
         f_xy = math.hypot(f[0], f[1])
@@ -132,9 +141,9 @@ class Controller:
         dyaw = wrap_angle(ref.yaw_rad - self.yaw_setpoint_rad)
         self.yaw_setpoint_rad = wrap_angle(self.yaw_setpoint_rad + min(max(dyaw, -step), step))
         x_c = np.array([math.cos(self.yaw_setpoint_rad), math.sin(self.yaw_setpoint_rad), 0.0])
-        y_des = np.cross(z_des, x_c)
+        y_des = cross3(z_des, x_c)
         y_des /= np.linalg.norm(y_des)
-        x_des = np.cross(y_des, z_des)
+        x_des = cross3(y_des, z_des)
         r_des = np.column_stack([x_des, y_des, z_des])
         r = s.rotation
         thrust = float(f @ r[:, 2])
@@ -146,7 +155,7 @@ class Controller:
         # Rate -> torque.
         w = s.rate_radps
         alpha = np.array([k.rate[0], k.rate[0], k.rate[1]]) * (w_cmd - w)
-        torque = self._inertia * alpha + np.cross(w, self._inertia * w)
+        torque = self._inertia * alpha + cross3(w, self._inertia * w)
         return self.mix(thrust, torque)
 
     def mix(self, thrust_n: float, torque_nm: np.ndarray) -> np.ndarray:

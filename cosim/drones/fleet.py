@@ -44,46 +44,47 @@ class _Drone:
     radius_m: float
     size_m: tuple[float, float, float]
     energy_j: float = 0.0
+    state: BodyState | None = None  # the backend's state after the last reset or step
 
 
-def _clearance(spec: HoverDrone | PatrolDrone | EscortDrone) -> float | None:
-    """Clearance above obstacles [m], or None when the scenario turns altitude planning off."""
-    if not getattr(spec, "avoid_obstacles", True):
-        return None
-    return float(getattr(spec, "clearance_m", 10.0))
+def _densify(points_xy: np.ndarray, step_m: float = 5.0) -> np.ndarray:
+    """(M, 2) points every ``step_m`` or closer along the open polyline ``points_xy`` (N, 2)."""
+    if len(points_xy) < 2:
+        return points_xy
+    return np.concatenate(
+        [np.linspace(a, b, max(2, int(np.linalg.norm(b - a) // step_m) + 2)) for a, b in itertools.pairwise(points_xy)]
+    )
 
 
 def build_strategy(
     spec: HoverDrone | PatrolDrone | EscortDrone, kind_index: int, world: World, obstacles: Obstacles
 ) -> Strategy:
-    """The strategy of one drone; ``kind_index`` counts drones of the same strategy (0, 1, ...)."""
-    clearance = _clearance(spec)
+    """The strategy of one drone; ``kind_index`` counts drones of the same strategy (0, 1, ...).
+
+    The planned altitude covers the whole path the strategy flies, including the transit from
+    ``spec.start`` when one is given.
+    """
+    clearance = spec.clearance_m if spec.plan_altitude else None
+    start = None if spec.start is None else np.array([spec.start], dtype=np.float64)
     if isinstance(spec, HoverDrone):
-        xy = np.array(
-            spec.point if spec.point is not None else hover_point(world, kind_index), dtype=np.float64
-        )
-        z = planned_altitude(obstacles, xy[None, :], spec.altitude_m, clearance)
+        xy = np.array(spec.point if spec.point is not None else hover_point(world, kind_index), dtype=np.float64)
+        path = xy[None, :] if start is None else np.vstack([start, xy[None, :]])
+        z = planned_altitude(obstacles, _densify(path), spec.altitude_m, clearance)
         return Hover(np.array([xy[0], xy[1], z]))
     if isinstance(spec, PatrolDrone):
         if spec.waypoints is not None:
             wps = np.array(spec.waypoints, dtype=np.float64)
         else:
             wps = patrol_loop(world, kind_index, spec.loop_length_m)
-        closed = np.vstack([wps, wps[:1]])
-        dense = np.concatenate(
-            [
-                np.linspace(a, b, max(2, int(np.linalg.norm(b - a) // 5) + 2))
-                for a, b in itertools.pairwise(closed)
-            ]
-        )
-        z = planned_altitude(obstacles, dense, spec.altitude_m, clearance)
+        path = np.vstack([wps, wps[:1]]) if start is None else np.vstack([start, wps, wps[:1]])
+        z = planned_altitude(obstacles, _densify(path), spec.altitude_m, clearance)
         return Patrol(np.column_stack([wps, np.full(len(wps), z)]), spec.speed_mps, spec.reach_radius_m)
     if isinstance(spec, EscortDrone):
-        if spec.start is not None:
-            xy = np.array(spec.start, dtype=np.float64)
+        if start is not None:
+            xy = start[0]
         else:
             js = ranked_junctions(world)
-            xy = np.array(js[0].position_m) if js else world_centre(world)
+            xy = np.array(js[0].position_m, dtype=np.float64) if js else world_centre(world)
         z = planned_altitude(obstacles, xy[None, :], spec.altitude_m, clearance)
         return Escort(spec.offset_m, spec.altitude_m, clearance, obstacles, np.array([xy[0], xy[1], z]))
     raise TypeError(f"unknown drone spec {type(spec).__name__}")
@@ -115,9 +116,7 @@ class DroneFleet:
                 strategy = build_strategy(spec, k, self.world, self.obstacles)
                 backend = backend_class(a.drone_backend_of(i))(self.frame, self.dt_s, world)
                 limits = Limits(max_speed_mps=spec.max_speed_mps)
-                wind = Wind.create(
-                    env.wind_mps, wind_dir, env.gust_mps, self.dt_s, np.random.default_rng(seeds[i + 1])
-                )
+                wind = Wind.create(env.wind_mps, wind_dir, env.gust_mps, self.dt_s, np.random.default_rng(seeds[i + 1]))
                 drone = _Drone(
                     f"drone_{i}",
                     backend,
@@ -139,6 +138,7 @@ class DroneFleet:
         if start is not None:
             pos = np.array([start[0], start[1], pos[2]])
         d.backend.reset(pos, yaw)
+        d.state = d.backend.state()
         d.controller.yaw_setpoint_rad = yaw
         d.controller.vel_integral[:] = 0.0
 
@@ -165,8 +165,7 @@ class DroneFleet:
         if span <= 0 or span % self.tick_ns:
             raise WorkerError(
                 "drones",
-                f"step to t_ns={t_ns} from t_ns={self._t_ns} is not a whole number of "
-                f"{self.tick_ns} ns ticks",
+                f"step to t_ns={t_ns} from t_ns={self._t_ns} is not a whole number of {self.tick_ns} ns ticks",
                 tick=tick,
             )
         t_prev_s = self._t_ns * 1e-9
@@ -174,7 +173,7 @@ class DroneFleet:
             if isinstance(d.strategy, Escort):
                 d.strategy.observe(t_prev_s, escort_targets.get(d.agent_id))
         n_steps = (span // self.tick_ns) * self.substeps
-        for k in range(1, n_steps + 1):
+        for k in range(n_steps):
             t_s = t_prev_s + k * self.dt_s
             for d in self._drones:
                 self._physics_step(d, t_s, tick)
@@ -182,17 +181,19 @@ class DroneFleet:
         return [self._state_of(d) for d in self._drones]
 
     def _physics_step(self, d: _Drone, t_s: float, tick: int) -> None:
-        s = d.backend.state()
+        """One physics step of ``dt_s`` starting at ``t_s``: guidance, control, dynamics, checks."""
+        s = d.state
         ref = d.strategy.reference(t_s, s)
         cmd = d.controller.update(s, ref)
         d.backend.step(cmd, d.wind.step())
         d.energy_j += rotor_power_w(d.backend.rotors.thrust_n, self.frame) * self.dt_s
-        what = d.backend.contact() or self.obstacles.hit(d.backend.state().position_m, d.radius_m)
+        d.state = d.backend.state()
+        what = d.backend.contact() or self.obstacles.hit(d.state.position_m, d.radius_m)
         if what is not None:
             raise CollisionError(d.agent_id, tick, what)
 
     def _state_of(self, d: _Drone) -> DroneState:
-        s: BodyState = d.backend.state()
+        s: BodyState = d.state
         return DroneState(
             agent_id=d.agent_id,
             position_m=tuple(float(v) for v in s.position_m),

@@ -96,9 +96,7 @@ class Obstacles:
 
     def top_along(self, points_xy: np.ndarray, radius_m: float) -> float:
         """Highest obstacle top [m] within ``radius_m`` of any of ``points_xy`` (N, 2)."""
-        return max(
-            (self.top_near(float(p[0]), float(p[1]), radius_m) for p in points_xy), default=self.ground_z_m
-        )
+        return max((self.top_near(float(p[0]), float(p[1]), radius_m) for p in points_xy), default=self.ground_z_m)
 
     def hit(self, position_m: np.ndarray, radius_m: float) -> str | None:
         """What a sphere of ``radius_m`` at ``position_m`` (3,) overlaps: obstacle label, "ground" or None."""

@@ -29,9 +29,7 @@ HOLD_RADIUS_M = 2.0  # [m] within this of its point a hovering drone is "hold"
 TRACK_RADIUS_M = 5.0  # [m] within this of the offset point an escort is "tracking"
 
 
-def planned_altitude(
-    obstacles: Obstacles, points_xy: np.ndarray, height_m: float, clearance_m: float | None
-) -> float:
+def planned_altitude(obstacles: Obstacles, points_xy: np.ndarray, height_m: float, clearance_m: float | None) -> float:
     """Flight z [m]: ``height_m`` above the ground, raised to clear obstacle tops along ``points_xy``
     (N, 2) by ``clearance_m`` (None: no planning, fly at ``height_m`` whatever is there)."""
     z = obstacles.ground_z_m + height_m
@@ -99,9 +97,7 @@ class Patrol(Strategy):
         seg = np.roll(w, -1, axis=0) - w  # segment i: waypoint i -> i+1
         self._seg_len = np.linalg.norm(seg, axis=1)
         self._seg_dir = seg / self._seg_len[:, None]
-        self._s_wp = np.concatenate(
-            [[0.0], np.cumsum(self._seg_len)]
-        )  # arc length at waypoint i (and loop end)
+        self._s_wp = np.concatenate([[0.0], np.cumsum(self._seg_len)])  # arc length at waypoint i (and loop end)
         self._loop_m = float(self._s_wp[-1])
         self._v_corner = np.array(
             [corner_speed(self._seg_dir[(i - 1) % n], self._seg_dir[i], self.cruise_mps) for i in range(n)]
@@ -126,9 +122,10 @@ class Patrol(Strategy):
         dt = 0.0 if self._last_t is None else t_s - self._last_t
         self._last_t = t_s
         n = len(self.waypoints_m)
-        # Waypoint bookkeeping: the drone itself must come within the reach radius, in order.
+        # Waypoint bookkeeping: the drone itself must come within the reach radius, in order (with a
+        # margin: half the radius, so that sampled positions and gusts still count as reached).
         wp = self.waypoints_m[self._next]
-        if math.hypot(s.position_m[0] - wp[0], s.position_m[1] - wp[1]) <= self.reach_radius_m:
+        if math.hypot(s.position_m[0] - wp[0], s.position_m[1] - wp[1]) <= 0.5 * self.reach_radius_m:
             self.reached.append((t_s, self._next))
             self._next = (self._next + 1) % n
             self._next_s += float(self._seg_len[(self._next - 1) % n])
@@ -180,12 +177,15 @@ class Escort(Strategy):
         """The target's state at ``t_s`` (the previous tick), or None when the conductor sent none."""
         if target is None:
             self._obs = None
+            self._label = "lost"
             return
         c = np.array(target.center_m, dtype=np.float64)
         v = np.array(target.velocity_mps, dtype=np.float64)
         if self._obs is not None and t_s > self._obs[0]:
             self._yaw_rate = wrap_angle(target.yaw_rad - self._obs[2]) / (t_s - self._obs[0])
         self._obs = (t_s, c, float(target.yaw_rad), v)
+        if self._label == "lost":
+            self._label = "approach"
         q = self._predict(t_s)[0]
         ahead = np.array([q[:2] + v[:2] * tau for tau in (0.0, 2.0, 4.0, 6.0)])
         self._z_m = planned_altitude(self.obstacles, ahead, self.height_m, self.clearance_m)
@@ -208,9 +208,7 @@ class Escort(Strategy):
         a = speed * w * np.array([-math.sin(h), math.cos(h)])
         yaw = yaw0 + w * dt
         cy, sy = math.cos(yaw), math.sin(yaw)
-        o = np.array(
-            [cy * self.offset_m[0] - sy * self.offset_m[1], sy * self.offset_m[0] + cy * self.offset_m[1]]
-        )
+        o = np.array([cy * self.offset_m[0] - sy * self.offset_m[1], sy * self.offset_m[0] + cy * self.offset_m[1]])
         q = p + o
         q_dot = v + w * np.array([-o[1], o[0]])
         q_ddot = a - w * w * o

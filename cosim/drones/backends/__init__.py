@@ -15,9 +15,7 @@ def register_backend(name: str) -> Callable[[type[DynamicsBackend]], type[Dynami
 
     def add(cls: type[DynamicsBackend]) -> type[DynamicsBackend]:
         if name in _REGISTRY:
-            raise ValueError(
-                f"drone dynamics backend {name!r} is already registered ({_REGISTRY[name].__name__})"
-            )
+            raise ValueError(f"drone dynamics backend {name!r} is already registered ({_REGISTRY[name].__name__})")
         cls.name = name
         _REGISTRY[name] = cls
         return cls

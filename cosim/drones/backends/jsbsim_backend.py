@@ -38,9 +38,7 @@ def _geodetic_to_ecef(lat: float, lon: float, h: float) -> np.ndarray:
     """(3,) ECEF [m] of geodetic latitude, longitude [rad] and ellipsoidal height [m] (WGS84)."""
     s, c = math.sin(lat), math.cos(lat)
     n = _WGS84_A / math.sqrt(1.0 - _WGS84_E2 * s * s)
-    return np.array(
-        [(n + h) * c * math.cos(lon), (n + h) * c * math.sin(lon), (n * (1.0 - _WGS84_E2) + h) * s]
-    )
+    return np.array([(n + h) * c * math.cos(lon), (n + h) * c * math.sin(lon), (n * (1.0 - _WGS84_E2) + h) * s])
 
 
 def _ecef_to_geodetic(p: np.ndarray) -> tuple[float, float, float]:
@@ -178,9 +176,7 @@ class JSBSimBackend(DynamicsBackend):
         self.fdm.run()
         fdm = self.fdm
         m_slug = fdm["inertia/mass-slugs"]
-        f_frd = np.array(
-            [fdm["forces/fbx-total-lbs"], fdm["forces/fby-total-lbs"], fdm["forces/fbz-total-lbs"]]
-        )
+        f_frd = np.array([fdm["forces/fbx-total-lbs"], fdm["forces/fby-total-lbs"], fdm["forces/fbz-total-lbs"]])
         self._specific_force = _FLU_FROM_FRD @ (f_frd / m_slug * FT_TO_M)
 
     def state(self) -> BodyState:
@@ -188,13 +184,9 @@ class JSBSimBackend(DynamicsBackend):
         lat, lon = fdm["position/lat-geod-rad"], fdm["position/long-gc-rad"]
         h = fdm["position/geod-alt-ft"] * FT_TO_M
         map_from_ned = self.local.map_from_ned(lat, lon)
-        v_ned = np.array(
-            [fdm["velocities/v-north-fps"], fdm["velocities/v-east-fps"], fdm["velocities/v-down-fps"]]
-        )
+        v_ned = np.array([fdm["velocities/v-north-fps"], fdm["velocities/v-east-fps"], fdm["velocities/v-down-fps"]])
         r_ned_frd = _ned_from_frd(fdm["attitude/phi-rad"], fdm["attitude/theta-rad"], fdm["attitude/psi-rad"])
-        pqr = np.array(
-            [fdm["velocities/p-rad_sec"], fdm["velocities/q-rad_sec"], fdm["velocities/r-rad_sec"]]
-        )
+        pqr = np.array([fdm["velocities/p-rad_sec"], fdm["velocities/q-rad_sec"], fdm["velocities/r-rad_sec"]])
         return BodyState(
             position_m=self.local.to_map(lat, lon, h),
             rotation=map_from_ned @ r_ned_frd @ _FLU_FROM_FRD,

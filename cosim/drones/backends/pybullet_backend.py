@@ -98,12 +98,8 @@ class PyBulletBackend(DynamicsBackend):
         force_w = r @ force_b + drag_w
         self._specific_force = force_b + r.T @ drag_w
         self._specific_force = self._specific_force / self.frame.mass_kg
-        pybullet.applyExternalForce(
-            self._body, -1, force_w.tolist(), pos, pybullet.WORLD_FRAME, physicsClientId=c
-        )
-        pybullet.applyExternalTorque(
-            self._body, -1, (r @ torque_b).tolist(), pybullet.WORLD_FRAME, physicsClientId=c
-        )
+        pybullet.applyExternalForce(self._body, -1, force_w.tolist(), pos, pybullet.WORLD_FRAME, physicsClientId=c)
+        pybullet.applyExternalTorque(self._body, -1, (r @ torque_b).tolist(), pybullet.WORLD_FRAME, physicsClientId=c)
         pybullet.stepSimulation(physicsClientId=c)
         self._contact = None
         for cp in pybullet.getContactPoints(bodyA=self._body, physicsClientId=c):
