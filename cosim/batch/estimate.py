@@ -1,0 +1,63 @@
+"""``--dry-run`` estimates: run one short calibration episode and extrapolate to the plan.
+
+Model per episode: wall = startup + per_tick * ticks, size = bytes_per_tick * ticks. Startup and the
+per-tick cost come from the times of the calibration episode's first and last ticks. The wall time of
+the batch is the summed episode time divided by the workers (episodes are independent).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from cosim.batch.executors import LocalExecutor
+from cosim.batch.job import EpisodeFn, Job, run_real_episode
+from cosim.batch.plan import Plan
+from cosim.batch.runner import n_ticks
+from cosim.errors import CosimError
+
+
+@dataclass(frozen=True)
+class Estimate:
+    episode: str
+    calibration_s: float  # simulated seconds of the calibration run
+    startup_s: float
+    per_tick_s: float
+    bytes_per_tick: float
+    cpu_s: float  # summed episode wall time of the plan
+    wall_s: float  # with the given workers
+    bytes: float
+
+
+def calibrate(plan: Plan, tmp_dir: Path, *, seconds: float = 2.0, workers: int = 1,
+              episode_fn: EpisodeFn = run_real_episode) -> Estimate:
+    ep = plan.episodes[0]
+    tick_hz = float(ep.scenario.get("tick_hz", 5.0))
+    ticks = max(2, round(min(seconds, ep.duration_s) * tick_hz))
+    scenario = {**ep.scenario, "duration_s": ticks / tick_hz}
+    job = Job(episode_id=ep.id, file=ep.file, out_dir=str(tmp_dir), scenario=scenario, base_dir=ep.base_dir,
+              n_ticks=ticks)
+    ex = LocalExecutor(1, episode_fn)
+    ex.submit(job)
+    outcome = None
+    try:
+        while outcome is None:
+            for ev in ex.poll(1.0):
+                if ev.kind == "finished":
+                    outcome = ev.outcome
+    finally:
+        ex.shutdown()
+    if not outcome or not outcome.get("ok"):
+        raise CosimError(f"calibration episode {ep.id} failed: {(outcome or {}).get('error')}")
+    marks = outcome.get("tick_marks_s") or [outcome["wall_time_s"]]
+    first, last = marks[0], outcome["wall_time_s"]
+    per_tick = (marks[-1] - first) / (ticks - 1) if len(marks) > 1 else last / ticks
+    startup = max(0.0, last - per_tick * ticks)
+    bytes_per_tick = outcome["size_bytes"] / ticks
+    cpu = sum(startup + per_tick * n_ticks(e) for e in plan.episodes)
+    total_bytes = sum(bytes_per_tick * n_ticks(e) for e in plan.episodes)
+    return Estimate(episode=ep.id, calibration_s=ticks / tick_hz, startup_s=startup, per_tick_s=per_tick,
+                    bytes_per_tick=bytes_per_tick, cpu_s=cpu, wall_s=cpu / max(1, workers), bytes=total_bytes)
+
+
+__all__ = ["Estimate", "calibrate"]

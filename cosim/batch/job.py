@@ -1,0 +1,97 @@
+"""What an executor runs: one :class:`Job` (one attempt at one episode) through an episode function.
+
+An episode function has the signature ``fn(job, progress) -> dict`` and must write exactly the file
+``job.out_dir / job.file`` (atomically: complete or absent). The default, :func:`run_real_episode`,
+runs the real pipeline; tests inject fakes. Functions are passed to worker processes by reference,
+so they must be importable module-level functions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import socket
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from cosim.batch.manifest import sha256_file
+from cosim.errors import CosimError
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
+class Job:
+    """One attempt at one episode; plain data so it pickles to any worker (process or Ray node)."""
+
+    episode_id: str
+    file: str  # relative to out_dir
+    out_dir: str
+    scenario: dict[str, Any]  # resolved scenario data (validated again in the worker)
+    base_dir: str  # folder that relative paths in the scenario resolve against
+    attempt: int = 1  # 1-based, within this run of the batch
+    n_ticks: int = 1
+
+    @property
+    def path(self) -> Path:
+        return Path(self.out_dir) / self.file
+
+
+EpisodeFn = Callable[[Job, Progress], dict[str, Any]]
+
+
+def run_real_episode(job: Job, progress: Progress) -> dict[str, Any]:
+    """The production episode function: the full pipeline through :func:`cosim.runner.run_episode`."""
+    from cosim.runner import run_episode
+    from cosim.scenario.loader import load_scenario_data
+
+    loaded = dataclasses.replace(load_scenario_data(job.scenario), base_dir=Path(job.base_dir))
+    result = run_episode(loaded, job.path.parent, progress=progress)
+    if result.path.resolve() != job.path.resolve():
+        raise CosimError(f"episode {job.episode_id} was written to {result.path}, expected {job.path}")
+    return {"ticks": result.ticks, "sim_time_s": result.sim_time_s, "actors": result.actors,
+            "messages": result.messages}
+
+
+def versions() -> dict[str, str]:
+    import cosim
+    from cosim.runner import dependency_versions
+
+    return {"cosim": cosim.__version__, **dependency_versions()}
+
+
+def execute(job: Job, fn: EpisodeFn, progress: Progress) -> dict[str, Any]:
+    """Run one attempt and describe it: ``ok``, ``wall_time_s``, ``size_bytes``, ``sha256`` or ``error``.
+
+    Never raises for an episode failure (the message goes into the outcome); a process crash is
+    detected by the executor instead.
+    """
+    started = time.perf_counter()
+    ticks_at: list[float] = []
+
+    def on_progress(done: int, total: int) -> None:
+        if len(ticks_at) < 2 or done >= total:
+            ticks_at.append(time.perf_counter() - started)
+        progress(done, total)
+
+    outcome: dict[str, Any] = {"episode": job.episode_id, "host": socket.gethostname(), "pid": os.getpid()}
+    try:
+        info = fn(job, on_progress)
+        path = job.path
+        if not path.is_file():
+            raise CosimError(f"episode {job.episode_id} finished without writing {path}")
+        outcome.update(ok=True, info=info, size_bytes=path.stat().st_size, sha256=sha256_file(path))
+    except Exception as exc:  # any failure of one episode is recorded; the batch goes on
+        outcome.update(ok=False, error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc(limit=8))
+    outcome["wall_time_s"] = round(time.perf_counter() - started, 3)
+    outcome["first_tick_s"] = ticks_at[0] if ticks_at else None
+    outcome["tick_marks_s"] = ticks_at
+    try:
+        outcome["versions"] = versions()
+    except Exception as exc:
+        outcome["versions"] = {"error": str(exc)}
+    return outcome

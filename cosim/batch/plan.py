@@ -1,0 +1,272 @@
+"""Planning: a sweep becomes a deterministic list of episodes, each with its id, split, parameters and seed.
+
+The plan depends only on the sweep file, the size (count or hours) and the command-line overrides:
+never on the number of workers, the backend or the order episodes finish in. An episode's seed is
+derived from the sweep seed and the episode id, so growing a sweep keeps the episodes it already had.
+
+Allocation: the total is shared between the splits by largest remainder over the split weights; in
+each split the combinations of the axes get their share of episodes by largest remainder over the
+product of their level weights (ties broken by a hash, not by axis order), with at least one episode
+each when ``cover_all`` and the split has room for every combination.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import itertools
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cosim.batch.sweep import Choice, Level, Sweep, SweepError, load_sweep
+from cosim.errors import ScenarioError
+from cosim.scenario.loader import _apply_set, _Doc, _load_with_extends, _validate, find_scenario
+
+VARY_STREAM = 0x7A5  # random stream of the per-episode draws (``vary``)
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One planned episode. ``params`` are the values that differ between episodes of the sweep."""
+
+    id: str
+    index: int  # position in the full plan (sharding uses it)
+    split: str
+    labels: dict[str, str]  # axis name -> level label
+    params: dict[str, Any]  # dotted scenario key -> value (axes, vary draws and the seed)
+    seed: int
+    duration_s: float  # simulated [s]
+    scenario: dict[str, Any] = field(repr=False)  # the resolved, validated scenario data
+    base_dir: str = field(repr=False)  # folder relative map files resolve against
+
+    @property
+    def file(self) -> str:
+        """Path of the episode file relative to the output folder."""
+        return f"{self.split}/{self.id}.mcap"
+
+
+@dataclass(frozen=True)
+class Plan:
+    sweep: Sweep
+    episodes: tuple[Episode, ...]
+    combinations: int
+    warnings: tuple[str, ...] = ()
+    shard: tuple[int, int] = (0, 1)
+
+    @property
+    def sim_seconds(self) -> float:
+        return sum(e.duration_s for e in self.episodes)
+
+    def sharded(self, index: int, count: int) -> Plan:
+        """Episodes ``index, index + count, ...`` of this plan (round robin over the plan order)."""
+        if count < 1 or not 0 <= index < count:
+            raise SweepError(f"shard must be i/k with 0 <= i < k, got {index}/{count}", source="--shard")
+        picked = tuple(e for e in self.episodes if e.index % count == index)
+        return replace(self, episodes=picked, shard=(index, count))
+
+
+def derive_seed(sweep_seed: int, episode_id: str) -> int:
+    """Scenario seed of an episode: a hash of the sweep seed and the episode id, in [0, 2**31)."""
+    digest = hashlib.sha256(f"{sweep_seed}/{episode_id}".encode()).digest()
+    return int.from_bytes(digest[:8], "big") % (2**31)
+
+
+def _tiebreak(seed: int, key: str) -> int:
+    return int.from_bytes(hashlib.sha256(f"tie/{seed}/{key}".encode()).digest()[:8], "big")
+
+
+def largest_remainder(total: int, weights: Sequence[float], keys: Sequence[str], seed: int = 0) -> list[int]:
+    """Whole numbers summing to ``total`` proportional to ``weights`` (Hamilton's method).
+
+    Equal remainders are ordered by a hash of ``keys`` so no key wins merely by coming first.
+    """
+    if total < 0:
+        raise ValueError(f"total must be >= 0, got {total}")
+    w = np.asarray(weights, dtype=float)
+    quota = total * w / w.sum()
+    out = np.floor(quota).astype(int)
+    rest = total - int(out.sum())
+    order = sorted(range(len(w)), key=lambda i: (-(quota[i] - out[i]), _tiebreak(seed, keys[i])))
+    for i in order[:rest]:
+        out[i] += 1
+    return [int(x) for x in out]
+
+
+def cover_allocation(total: int, weights: Sequence[float], keys: Sequence[str], seed: int = 0) -> list[int]:
+    """Like :func:`largest_remainder`, but every key gets at least one when ``total >= len(keys)``."""
+    n = len(weights)
+    if total < n:
+        return largest_remainder(total, weights, keys, seed)
+    extra = largest_remainder(total - n, weights, keys, seed)
+    return [1 + e for e in extra]
+
+
+def _resolve_base(name: str, sweep_dir: Path) -> Path:
+    p = Path(name)
+    cand = p if p.is_absolute() else sweep_dir / p
+    if cand.is_file():
+        return cand.resolve()
+    return find_scenario(name).resolve()
+
+
+def _assignment(key: str, value: Any) -> str:
+    return f"{key}={json.dumps(value)}"
+
+
+class _Builder:
+    """Validates episode scenarios: each base parsed once, overrides applied with the loader's ``--set``."""
+
+    def __init__(self, sweep: Sweep, sweep_doc: _Doc | None, sweep_source: str, sweep_dir: Path,
+                 cli_set: Sequence[str]):
+        self.sweep, self.doc, self.source, self.dir = sweep, sweep_doc, sweep_source, sweep_dir
+        self.cli_set = list(cli_set)
+        self._bases: dict[str, tuple[Path, _Doc]] = {}
+
+    def base(self, name: str, origin: tuple[str | int, ...]) -> tuple[Path, _Doc]:
+        if name not in self._bases:
+            try:
+                path = _resolve_base(name, self.dir)
+                self._bases[name] = (path, _load_with_extends(path))
+            except ScenarioError as exc:
+                raise self._error(f"base scenario {name!r}: {exc}", origin) from None
+        return self._bases[name]
+
+    def _error(self, message: str, origin: tuple[str | int, ...]) -> SweepError:
+        line = None
+        if self.doc is not None:
+            for n in range(len(origin), -1, -1):
+                mark = self.doc.marks.get(tuple(origin[:n]))
+                if mark is not None:
+                    line = mark[1]
+                    break
+        return SweepError(message, path=".".join(str(p) for p in origin), line=line, source=self.source)
+
+    def build(self, base: str, base_origin: tuple[str | int, ...],
+              overrides: list[tuple[str, tuple[str | int, ...]]], what: str) -> tuple[dict[str, Any], float, str]:
+        """Validate one scenario; returns (resolved data, duration_s, base folder)."""
+        path, doc = self.base(base, base_origin)
+        work = _Doc(copy.deepcopy(doc.data), dict(doc.marks))
+        for assignment, origin in overrides:
+            try:
+                _apply_set(work, assignment)
+            except ScenarioError as exc:
+                raise self._error(f"{what}: {exc.detail} ({assignment})", origin) from None
+        try:
+            loaded = _validate(work, path)
+        except ScenarioError as exc:
+            origin = next((o for a, o in reversed(overrides) if exc.path and
+                           (exc.path == a.split("=", 1)[0] or exc.path.startswith(a.split("=", 1)[0] + "."))),
+                          base_origin)
+            raise self._error(f"{what}: {exc}", origin) from None
+        return loaded.resolved, loaded.scenario.duration_s, str(path.parent)
+
+
+def _common_overrides(sweep: Sweep, cli_set: Sequence[str]) -> list[tuple[str, tuple[str | int, ...]]]:
+    out = [(_assignment(k, v), ("set", k)) for k, v in sweep.set.items()]
+    out += [(a, ("--set",)) for a in cli_set]
+    return out
+
+
+def _draw(sweep: Sweep, seed: int) -> dict[str, Any]:
+    rng = np.random.default_rng([sweep.seed, seed, VARY_STREAM])
+    out: dict[str, Any] = {}
+    for key, spec in sweep.vary.items():
+        if isinstance(spec, Choice):
+            p = None
+            if spec.weights is not None:
+                w = np.asarray(spec.weights, dtype=float)
+                p = w / w.sum()
+            out[key] = spec.choice[int(rng.choice(len(spec.choice), p=p))]
+        else:
+            lo, hi = spec.uniform
+            value = round(float(rng.uniform(lo, hi)), spec.decimals)
+            out[key] = int(value) if spec.decimals == 0 else value
+    return out
+
+
+def episode_total(sweep: Sweep, nominal_duration_s: float, *, count: int | None = None,
+                  hours: float | None = None, scale: float = 1.0) -> int:
+    """How many episodes: ``count``, else ``hours`` of driving at the nominal episode length, times ``scale``."""
+    if count is None and hours is None:
+        count, hours = sweep.count, sweep.hours
+    if count is not None:
+        total = count * scale
+    elif hours is not None:
+        total = hours * 3600.0 * scale / nominal_duration_s
+    else:
+        total = math.prod(len(levels) for levels in sweep.all_axes().values()) * len(sweep.split) * scale
+    return max(1, round(total))
+
+
+def plan_sweep(
+    sweep: Sweep,
+    *,
+    sweep_dir: Path | str = ".",
+    sweep_doc: _Doc | None = None,
+    source: str = "sweep",
+    count: int | None = None,
+    hours: float | None = None,
+    scale: float = 1.0,
+    cli_set: Sequence[str] = (),
+) -> Plan:
+    """Expand a sweep into its episodes (validating every episode's scenario)."""
+    if scale <= 0:
+        raise SweepError(f"scale must be > 0, got {scale}", source="--scale")
+    builder = _Builder(sweep, sweep_doc, source, Path(sweep_dir), cli_set)
+    common = _common_overrides(sweep, cli_set)
+    _, nominal_s, _ = builder.build(sweep.default_base, ("base",), common, "the base scenario")
+    total = episode_total(sweep, nominal_s, count=count, hours=hours, scale=scale)
+
+    axes = sweep.all_axes()
+    names = list(axes)
+    combos: list[tuple[Level, ...]] = list(itertools.product(*axes.values()))
+    keys = ["-".join(lv.label for lv in combo) for combo in combos]
+    weights = [math.prod(lv.weight for lv in combo) for combo in combos]
+    splits = list(sweep.split)
+    per_split = largest_remainder(total, list(sweep.split.values()), splits, sweep.seed)
+
+    warnings: list[str] = []
+    episodes: list[Episode] = []
+    for split, n_split in zip(splits, per_split, strict=True):
+        if sweep.cover_all and 0 < n_split < len(combos):
+            warnings.append(f"split {split}: {n_split} episodes cannot cover all {len(combos)} combinations")
+        alloc = (cover_allocation if sweep.cover_all else largest_remainder)(n_split, weights, keys, sweep.seed)
+        for combo, key, n in zip(combos, keys, alloc, strict=True):
+            for r in range(n):
+                episode_id = "-".join(p for p in (split, key, f"{r:04d}") if p)
+                seed = derive_seed(sweep.seed, episode_id)
+                base, base_origin = sweep.default_base, ("base",)
+                overrides = list(common)
+                overrides.append((f"seed={seed}", ("seed",)))
+                params: dict[str, Any] = {}
+                for name, level in zip(names, combo, strict=True):
+                    origin = ("axes", name)
+                    if level.base is not None:
+                        base, base_origin = level.base, ("base",) if name == "base" else origin
+                    for k, v in level.set.items():
+                        overrides.append((_assignment(k, v), origin))
+                        params[k] = v
+                for k, v in _draw(sweep, seed).items():
+                    overrides.append((_assignment(k, v), ("vary", k)))
+                    params[k] = v
+                params["seed"] = seed
+                overrides.append((_assignment("output.name", episode_id), ("name",)))
+                resolved, duration_s, base_dir = builder.build(base, base_origin, overrides, f"episode {episode_id}")
+                episodes.append(Episode(
+                    id=episode_id, index=len(episodes), split=split,
+                    labels={n: lv.label for n, lv in zip(names, combo, strict=True)},
+                    params=params, seed=seed, duration_s=duration_s, scenario=resolved, base_dir=base_dir,
+                ))
+    return Plan(sweep=sweep, episodes=tuple(episodes), combinations=len(combos), warnings=tuple(warnings))
+
+
+def plan_file(path: str | Path, **kwargs: Any) -> Plan:
+    """Load a sweep file and plan it (``kwargs`` as :func:`plan_sweep`)."""
+    sweep, doc = load_sweep(path)
+    return plan_sweep(sweep, sweep_dir=Path(path).parent, sweep_doc=doc, source=str(path), **kwargs)

@@ -1,0 +1,345 @@
+"""Batch generation with injected fake episodes: sweep validation, deterministic plans, the local
+process pool, retries, crashes, the manifest and resume (the real pipeline is in test_batch_real.py)."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from cosim.batch.executors import LocalExecutor, make_executor
+from cosim.batch.manifest import (
+    Manifest,
+    deterministic_view,
+    latest_records,
+    read_records,
+    sha256_file,
+    verify,
+)
+from cosim.batch.plan import cover_allocation, derive_seed, largest_remainder, plan_file
+from cosim.batch.runner import run_batch
+from cosim.batch.sweep import SweepError, load_sweep
+from cosim.errors import CosimError, InputError
+
+from .conftest import REPO, run_cli
+
+PAPER = REPO / "scenarios" / "base" / "paper.yaml"
+
+
+# ------------------------------------------------------------------------- fake episode functions
+# Module-level so spawn children import them by name. Behaviour comes from the scenario's
+# ``description`` (a real schema field), set per level in the test sweeps: no hooks in production code.
+
+
+def _write_atomically(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.partial")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def fake_episode(job, progress):
+    """Deterministic bytes from the scenario; behaviour from ``description``."""
+    s = job.scenario
+    how = s.get("description", "")
+    ticks = round(s["duration_s"] * s["tick_hz"])
+    marker = Path(job.out_dir) / f".crashed-{job.episode_id}"
+    if how == "crash_once" and not marker.exists():
+        marker.write_text("x")
+        os._exit(3)  # a hard crash: no exception, no result
+    if how == "always_fail":
+        raise CosimError(f"forced failure of {job.episode_id}")
+    for k in range(ticks):
+        if how == "slow":
+            time.sleep(0.15)
+        progress(k + 1, ticks)
+    payload = json.dumps({"seed": s["seed"], "env": s["environment"], "map": s["map"],
+                          "vehicles": s["agents"]["vehicles"]["count"]}, sort_keys=True).encode()
+    _write_atomically(job.path, payload * 50)
+    return {"ticks": ticks}
+
+
+def _child_ok() -> None:
+    pass
+
+
+def spawning_episode(job, progress):
+    """An episode that starts its own process, as the real conductor does (needs a non-daemonic parent)."""
+    p = mp.get_context("spawn").Process(target=_child_ok)
+    p.start()
+    p.join(30)
+    if p.exitcode != 0:
+        raise CosimError(f"grandchild exited with {p.exitcode}")
+    return fake_episode(job, progress)
+
+
+# ------------------------------------------------------------------------------------ helpers
+
+
+def write_sweep(tmp_path: Path, body: str, name: str = "sweep.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(f"base: {PAPER}\n" + body)
+    return path
+
+
+SIX = """\
+name: six
+set: {sensors.enabled: false, duration_s: 1}
+axes:
+  weather: {key: environment.weather, values: [clear, foggy, rainy]}
+  env: {key: map.kind, values: [urban, rural]}
+vary:
+  agents.vehicles.count: {choice: [3, 4, 5]}
+count: 6
+"""
+
+
+def six_plan(tmp_path: Path, body: str = SIX, **kw):
+    return plan_file(write_sweep(tmp_path, body), **kw)
+
+
+def run(plan, out, fn=fake_episode, workers=2, retries=1):
+    return run_batch(plan, out, LocalExecutor(workers, fn), retries=retries, show_progress=False)
+
+
+# ------------------------------------------------------------------------------ sweep files
+
+
+def test_sweep_unknown_key_names_path_line_and_suggestion(tmp_path):
+    path = write_sweep(tmp_path, "name: s\naxes:\n  weather:\n    key: environment.weather\n    valuse: [clear]\n")
+    with pytest.raises(SweepError) as err:
+        load_sweep(path)
+    assert err.value.path == "axes.weather.valuse"
+    assert err.value.line == 6
+    assert "did you mean 'values'" in str(err.value)
+    assert isinstance(err.value, InputError)
+
+
+def test_sweep_rule_errors_and_duplicate_keys(tmp_path):
+    p = write_sweep(tmp_path, "name: s\naxes:\n  w: {key: environment.weather, values: [clear, foggy], weights: [1]}\n")
+    with pytest.raises(SweepError, match="1 weights for 2 values") as err:
+        load_sweep(p)
+    assert err.value.path == "axes.w.weights" and err.value.line == 4
+    p = write_sweep(tmp_path, "name: s\ncount: 2\ncount: 3\n", "dup.yaml")
+    with pytest.raises(SweepError, match="appears twice") as err:
+        load_sweep(p)
+    assert err.value.line == 4
+    p = write_sweep(tmp_path, "name: s\ncount: 2\nhours: 1\n", "both.yaml")
+    with pytest.raises(SweepError, match="count or hours"):
+        load_sweep(p)
+
+
+def test_invalid_episode_scenario_points_at_the_sweep_line(tmp_path):
+    body = "name: s\ncount: 2\naxes:\n  weather: {key: environment.weather, values: [clear, snowy]}\n"
+    with pytest.raises(SweepError) as err:
+        plan_file(write_sweep(tmp_path, body))
+    assert err.value.path == "axes.weather" and err.value.line == 5
+    assert "snowy" in str(err.value) and "environment.weather" in str(err.value)
+
+
+# ------------------------------------------------------------------------------------- planner
+
+
+def test_largest_remainder_sums_and_is_proportional():
+    alloc = largest_remainder(1000, [2.19, 1.02, 3.52], ["train", "val", "test"])
+    assert sum(alloc) == 1000
+    assert alloc == [325, 152, 523]
+    assert cover_allocation(5, [100, 1, 1], ["a", "b", "c"]) == [3, 1, 1]
+    assert sum(cover_allocation(2, [1, 1, 1], ["a", "b", "c"])) == 2
+
+
+def test_plan_is_deterministic_and_seeds_depend_only_on_the_id(tmp_path):
+    a, b = six_plan(tmp_path), six_plan(tmp_path)
+    assert [(e.id, e.seed, e.params) for e in a.episodes] == [(e.id, e.seed, e.params) for e in b.episodes]
+    assert len(a.episodes) == 6 and a.combinations == 6
+    assert {e.labels["weather"] for e in a.episodes} == {"clear", "foggy", "rainy"}
+    for e in a.episodes:
+        assert e.seed == derive_seed(0, e.id) == e.scenario["seed"]
+        assert e.scenario["environment"]["weather"] == e.labels["weather"]
+        assert e.scenario["output"]["name"] == e.id
+        assert e.scenario["agents"]["vehicles"]["count"] == e.params["agents.vehicles.count"] in (3, 4, 5)
+    # growing the sweep keeps the episodes it had (same ids, seeds and draws)
+    bigger = {e.id: e for e in six_plan(tmp_path, count=18).episodes}
+    assert all(bigger[e.id].seed == e.seed and bigger[e.id].params == e.params for e in a.episodes)
+
+
+def test_split_proportions_hours_budget_and_cover_all(tmp_path):
+    body = SIX.replace("count: 6\n", "hours: 0.1\nsplit: {train: 2.19, val: 1.02, test: 3.52}\n")
+    plan = six_plan(tmp_path, body)
+    assert len(plan.episodes) == 360  # 0.1 h of 1 s episodes
+    per = {s: [e for e in plan.episodes if e.split == s] for s in ("train", "val", "test")}
+    assert [len(v) for v in per.values()] == largest_remainder(360, [2.19, 1.02, 3.52], list(per))
+    for eps in per.values():  # every split sees every combination
+        assert len({(e.labels["weather"], e.labels["env"]) for e in eps}) == 6
+    assert len({e.id for e in plan.episodes}) == 360
+    assert abs(plan.sim_seconds - 360.0) < 1e-9
+
+
+def test_shards_partition_the_plan(tmp_path):
+    plan = six_plan(tmp_path, count=20)
+    shards = [plan.sharded(i, 3) for i in range(3)]
+    ids = [e.id for s in shards for e in s.episodes]
+    assert sorted(ids) == sorted(e.id for e in plan.episodes)
+    assert len(set(ids)) == len(ids)
+    with pytest.raises(SweepError):
+        plan.sharded(3, 3)
+
+
+def test_multiple_bases_become_an_axis(tmp_path):
+    body = (f"name: s\nbase: [{PAPER}, {REPO / 'scenarios' / 'town_rural_night.yaml'}]\n"
+            "set: {sensors.enabled: false}\ncount: 4\n")
+    path = tmp_path / "bases.yaml"
+    path.write_text(body)
+    plan = plan_file(path)
+    assert sorted({e.labels["base"] for e in plan.episodes}) == ["paper", "town_rural_night"]
+    lighting = {e.labels["base"]: e.scenario["environment"]["lighting"] for e in plan.episodes}
+    assert lighting == {"paper": "day", "town_rural_night": "night"}
+
+
+# ------------------------------------------------------------------------------ local executor
+
+
+def test_six_episodes_two_workers_complete_and_verify(tmp_path):
+    plan = six_plan(tmp_path)
+    out = tmp_path / "out"
+    summary = run(plan, out)
+    assert summary.ok and summary.done == 6 and summary.skipped == 0
+    recs = latest_records(out)
+    assert len(recs) == 6 and all(r["status"] == "done" and verify(out, r) for r in recs.values())
+    for e in plan.episodes:
+        assert recs[e.id]["sha256"] == sha256_file(out / e.file)
+        assert recs[e.id]["seed"] == e.seed and recs[e.id]["attempts"] == 1
+        assert "python" in recs[e.id]["versions"]
+    # running again does nothing
+    again = run(plan, out)
+    assert again.skipped == 6 and again.done == 0
+
+
+def test_episode_processes_may_start_their_own_processes(tmp_path):
+    """Pool processes are not daemonic: an episode can spawn workers as the conductor does."""
+    plan = six_plan(tmp_path, count=2)
+    out = tmp_path / "out"
+    summary = run(plan, out, fn=spawning_episode, retries=0)
+    assert summary.ok, summary.failed
+    assert all(verify(out, r) for r in latest_records(out).values())
+
+
+def test_crash_is_retried_and_permanent_failure_is_reported(tmp_path):
+    sweep = ("name: faults\nset: {sensors.enabled: false, duration_s: 1}\naxes:\n"
+             "  weather: {key: environment.weather, values: [clear, foggy]}\n"
+             "  mode:\n    levels:\n      - {label: ok}\n"
+             "      - {label: crash, set: {description: crash_once}}\n"
+             "      - {label: fail, set: {description: always_fail}}\ncount: 6\n")
+    plan = plan_file(write_sweep(tmp_path, sweep))
+    out = tmp_path / "out"
+    summary = run(plan, out, retries=2)
+    assert not summary.ok
+    assert sorted(summary.failed) == sorted(e.id for e in plan.episodes if e.labels["mode"] == "fail")
+    assert all("forced failure" in err for err in summary.failed.values())
+    assert summary.done == 4
+    recs = latest_records(out)
+    for e in plan.episodes:
+        r = recs[e.id]
+        if e.labels["mode"] == "crash":
+            assert r["status"] == "done" and r["attempts"] == 2 and verify(out, r)
+        elif e.labels["mode"] == "fail":
+            assert r["status"] == "failed" and r["attempts"] == 3 and not (out / e.file).exists()
+    crashes = [r for r in read_records(out / "manifest.jsonl") if r.get("retrying")]
+    assert any("exited with code 3" in r["error"] for r in crashes)
+
+
+def test_resume_redoes_missing_and_corrupt_files_only(tmp_path):
+    plan = six_plan(tmp_path)
+    out = tmp_path / "out"
+    assert run(plan, out).ok
+    before = deterministic_view(latest_records(out).values())
+    first, second = plan.episodes[0], plan.episodes[1]
+    (out / first.file).unlink()
+    data = bytearray((out / second.file).read_bytes())
+    data[10] ^= 0xFF  # same size, different content: presence alone must not count
+    (out / second.file).write_bytes(bytes(data))
+    summary = run(plan, out)
+    assert summary.skipped == 4 and summary.done == 2
+    assert deterministic_view(latest_records(out).values()) == before
+    assert latest_records(out)[second.id]["attempts"] == 2
+
+
+def test_manifest_tolerates_a_torn_last_line_and_last_record_wins(tmp_path):
+    path = tmp_path / "manifest.jsonl"
+    with Manifest(path) as m:
+        m.append({"episode": "a", "status": "running"})
+        m.append({"episode": "a", "status": "done"})
+    with open(path, "ab") as f:
+        f.write(b'{"episode": "a", "status": "fai')  # a crash mid-write
+    assert latest_records(tmp_path)["a"]["status"] == "done"
+    with Manifest(path) as m:  # appending after a torn line starts a fresh line
+        m.append({"episode": "b", "status": "done"})
+    assert set(latest_records(tmp_path)) == {"a", "b"}
+
+
+_KILL_DRIVER = """
+import sys
+from cosim.batch.executors import LocalExecutor
+from cosim.batch.plan import plan_file
+from cosim.batch.runner import run_batch
+from tests.test_batch import fake_episode
+plan = plan_file(sys.argv[1])
+run_batch(plan, sys.argv[2], LocalExecutor(2, fake_episode), retries=0, show_progress=False)
+"""
+
+
+def test_killed_batch_resumes_to_the_same_manifest_and_files(tmp_path):
+    sweep = write_sweep(tmp_path, SIX.replace("duration_s: 1}", "duration_s: 1, description: slow}"))
+    plan = plan_file(sweep)
+    ref = tmp_path / "ref"
+    assert run(plan, ref).ok
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-c", _KILL_DRIVER, str(sweep), str(out)], cwd=REPO,
+                            start_new_session=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:  # kill once at least one episode finished, before all did
+        done = [r for r in latest_records(out).values() if r["status"] == "done"] if out.exists() else []
+        if done:
+            break
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(30)
+    interrupted = latest_records(out)
+    assert 1 <= sum(r["status"] == "done" for r in interrupted.values()) < 6
+    summary = run(plan, out)
+    assert summary.ok and summary.skipped >= 1 and summary.skipped + summary.done == 6
+    assert deterministic_view(latest_records(out).values()) == deterministic_view(latest_records(ref).values())
+    for e in plan.episodes:
+        assert (out / e.file).read_bytes() == (ref / e.file).read_bytes()
+    assert not list(out.rglob("*.partial"))
+
+
+def test_unknown_backend_lists_the_known_ones():
+    with pytest.raises(InputError, match="known: local, ray"):
+        make_executor("slurm")
+
+
+# ------------------------------------------------------------------------------------------ CLI
+
+
+def test_cli_bad_sweep_exits_2_with_line(tmp_path):
+    path = write_sweep(tmp_path, "name: s\ncount: -1\n")
+    r = run_cli("batch", str(path), "--out", str(tmp_path / "o"), "--dry-run", timeout=120)
+    assert r.returncode == 2
+    assert "count" in r.stderr and ":3:" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_cli_dry_run_prints_the_plan(tmp_path):
+    path = write_sweep(tmp_path, SIX)
+    r = run_cli("batch", str(path), "--out", str(tmp_path / "o"), "--dry-run", "--calibrate-s", "0",
+                "--shard", "1/2", timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "3 episodes" in r.stdout and "shard 1/2" in r.stdout
+    assert not (tmp_path / "o").exists()
