@@ -91,7 +91,8 @@ def test_decoded_arrays_equal_what_was_written(recorded):
         assert np.diag(gnss.covariance_m2) == pytest.approx([0.25] * 3)
         bev = tick.bev("rsu_0")
         assert isinstance(bev, Grid) and bev.array.shape == (8, 16) and bev.array[3:5].min() == 1
-        assert bev.cell_size_m == pytest.approx([1.0, 1.0]) and bev.origin_m == pytest.approx([-8, -4, 0])
+        assert bev.cells.dtype.names == ("road", "car") and bev.cells["car"].max() == 0
+        assert bev.cell_size_m == pytest.approx([1.0, 1.0]) and bev.origin_m == pytest.approx([37, 41, 8])
         assert tick.imu("vehicle_0")["linear_acceleration_mps2"] == pytest.approx([0, 0, 9.80665])
         vis = tick.visibility("rsu_0")
         assert vis["objects"][0]["track_id"] in labels.track_ids

@@ -80,7 +80,7 @@ TOPICS: tuple[TopicSpec, ...] = (
     ),
     TopicSpec("/<agent>/gnss", ("foxglove.LocationFix",), "<agent>/gnss", "WGS84 fix"),
     TopicSpec("/<agent>/imu", ("cosim.Imu",), "<agent>/imu", "specific force, angular rate (body FLU)"),
-    TopicSpec("/<agent>/bev", ("foxglove.Grid",), "<agent>/base_link (level)", "ego-centred semantic BEV"),
+    TopicSpec("/<agent>/bev", ("foxglove.Grid",), "map", "ego-centred semantic BEV, one uint8 field per layer"),
     TopicSpec("/<agent>/visibility", ("cosim.Visibility",), "-", "per object seen: LiDAR hits, pixels per camera"),
 )
 

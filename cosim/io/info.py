@@ -92,7 +92,8 @@ def format_info(info: EpisodeInfo) -> str:
     for a in info.agents:
         kind = a.rsplit("_", 1)[0]
         kinds[kind] = kinds.get(kind, 0) + 1
-    agents = ", ".join(f"{n} {k}{'s' if n != 1 else ''}" for k, n in kinds.items()) or "none"
+    names = {"vehicle": ("vehicle", "vehicles"), "rsu": ("RSU", "RSUs"), "drone": ("drone", "drones")}
+    agents = ", ".join(f"{n} {names.get(k, (k, k + 's'))[n != 1]}" for k, n in kinds.items()) or "none"
     lines = [
         f"episode      {info.path}",
         f"size         {human_size(info.size_bytes)} ({info.messages} messages)",

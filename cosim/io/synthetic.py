@@ -267,24 +267,24 @@ def sensor_messages(snapshot: WorldSnapshot, width: int, height: int) -> list[tu
                     ),
                 )
             )
-        cells = np.zeros((8, 16), np.uint8)
-        cells[3:5] = 1
-        out.append(
-            (
-                f"/{a}/bev",
-                Grid(
-                    timestamp=ts,
-                    frame_id=f"{a}/base_link",
-                    pose=Pose(position=Vector3(x=-8.0, y=-4.0), orientation=Quaternion(w=1.0)),
-                    column_count=16,
-                    cell_size=Vector2(x=1.0, y=1.0),
-                    row_stride=16,
-                    cell_stride=1,
-                    fields=[PackedElementField(name="class_id", offset=0, type=1)],
-                    data=cells.tobytes(),
-                ),
-            )
+        cells = np.zeros((8, 16, 2), np.uint8)  # layers: road, car (the exporter writes one per class)
+        cells[3:5, :, 0] = 1
+        x, y, z = agent.position_m
+        grid = Grid(
+            timestamp=ts,
+            frame_id="map",
+            pose=Pose(position=Vector3(x=x - 8.0, y=y - 4.0, z=z), orientation=Quaternion(w=1.0)),
+            column_count=16,
+            cell_size=Vector2(x=1.0, y=1.0),
+            row_stride=32,
+            cell_stride=2,
+            fields=[
+                PackedElementField(name="road", offset=0, type=1),
+                PackedElementField(name="car", offset=1, type=1),
+            ],
+            data=cells.tobytes(),
         )
+        out.append((f"/{a}/bev", grid))
         out.append(
             (
                 f"/{a}/visibility",
