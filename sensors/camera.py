@@ -28,6 +28,9 @@ from .scene import TickScene
 _EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6],
                    [3, 7]])
 _NEAR_M = 0.05
+#: [m] planar near clip of the cameras: surfaces closer than this (housing, an RSU's own pole top)
+#: are not seen.
+NEAR_CLIP_M = 0.5
 
 
 @dataclass(frozen=True)
@@ -156,14 +159,14 @@ def cast_image(
     s = block_px
     if s <= 1 or h % s or w % s:
         gx, gy = np.meshgrid(xs, ys)
-        t, gid = scene.cast(_rays(pose, gx.ravel(), gy.ravel()), exclude_track)
+        t, gid = scene.cast(_rays(pose, gx.ravel(), gy.ravel()), exclude_track, NEAR_CLIP_M)
         return gid.reshape(h, w), t.reshape(h, w)
     hb, wb = h // s, w // s
     f = K[0, 0]
     gxs = (np.arange(wb + 1) * s + 0.5 - K[0, 2]) / f
     gys = (np.arange(hb + 1) * s + 0.5 - K[1, 2]) / K[1, 1]
     gx, gy = np.meshgrid(gxs, gys)
-    tg, gg = scene.cast(_rays(pose, gx.ravel(), gy.ravel()), exclude_track)
+    tg, gg = scene.cast(_rays(pose, gx.ravel(), gy.ravel()), exclude_track, NEAR_CLIP_M)
     tg, gg = tg.reshape(hb + 1, wb + 1), gg.reshape(hb + 1, wb + 1)
     c00 = gg[:-1, :-1]
     same = (c00 == gg[:-1, 1:]) & (c00 == gg[1:, :-1]) & (c00 == gg[1:, 1:])
@@ -181,12 +184,13 @@ def cast_image(
 
     bi, bj = np.nonzero(mixed)
     if len(bi):
-        d = np.arange(s)
-        rr = (bi[:, None, None] * s + d[None, :, None]).repeat(s, axis=2).ravel()
-        cc = (bj[:, None, None] * s + d[None, None, :]).repeat(s, axis=1).ravel()
-        t, g = scene.cast(_rays(pose, xs[cc], ys[rr]), exclude_track)
-        gid[rr, cc] = g
-        depth[rr, cc] = t
+        d = np.arange(s, dtype=np.int32)
+        rr = (bi.astype(np.int32)[:, None, None] * s + d[None, :, None]).repeat(s, axis=2).ravel()
+        cc = (bj.astype(np.int32)[:, None, None] * s + d[None, None, :]).repeat(s, axis=1).ravel()
+        t, g = scene.cast(_rays(pose, xs[cc], ys[rr]), exclude_track, NEAR_CLIP_M)
+        flat = rr * w + cc
+        np.put(gid, flat, g)
+        np.put(depth, flat, t)
     return gid, depth
 
 
@@ -302,7 +306,10 @@ def shade(
             dep = np.where(sky, np.float32(0), depth)
             px = pose.position_m[0] + dep * (r[0, 0] * xs[None, :] + (r[0, 1] * ys[:, None] + r[0, 2]))
             py = pose.position_m[1] + dep * (r[1, 0] * xs[None, :] + (r[1, 1] * ys[:, None] + r[1, 2]))
-            e = light.sample(px, py) * np.float32(atm.artificial)
+            pz = pose.position_m[2] + dep * (r[2, 0] * xs[None, :] + (r[2, 1] * ys[:, None] + r[2, 2]))
+            # the pools light the ground and the lower few metres of walls
+            e = light.sample(px, py) * np.clip(np.float32(1.0) - pz * np.float32(1 / 8), 0, 1)
+            e *= np.float32(atm.artificial)
             rgb += np.take(tables.albedo, g, axis=0) * (e[..., None] * LAMP_RGB)
         glow = np.take(tables.emissive, g)
         rgb += (glow * np.float32(2.0 * atm.artificial))[..., None] * LAMP_RGB

@@ -16,7 +16,7 @@ import numpy as np
 from cosim.scenario.model import EnvironmentSpec
 
 #: Defaults when the scenario leaves them open.
-DEFAULT_FOG_VISIBILITY_M = 60.0
+DEFAULT_FOG_VISIBILITY_M = 100.0
 DEFAULT_RAIN_RATE_MM_H = 10.0
 CLEAR_VISIBILITY_M = 20_000.0
 
@@ -69,8 +69,8 @@ def atmosphere(env: EnvironmentSpec) -> Atmosphere:
         sun_dir, sun, amb = _sun(6, 260), v([0.85, 0.50, 0.28]), v([0.16, 0.14, 0.18])
         zen, hor, art, expo = v([0.18, 0.20, 0.40]), v([0.85, 0.50, 0.30]), 0.5, 1.1
     else:
-        sun_dir, sun, amb = _sun(30, 120), v([0.03, 0.035, 0.05]), v([0.035, 0.04, 0.06])
-        zen, hor, art, expo = v([0.01, 0.01, 0.03]), v([0.04, 0.04, 0.07]), 1.0, 1.0
+        sun_dir, sun, amb = _sun(30, 120), v([0.006, 0.007, 0.010]), v([0.006, 0.007, 0.011])
+        zen, hor, art, expo = v([0.002, 0.002, 0.008]), v([0.012, 0.012, 0.02]), 1.0, 1.0
     fog = np.clip(0.55 * hor + 0.45 * np.mean(hor), 0, 1)
     visibility = CLEAR_VISIBILITY_M
     rain = 0.0
@@ -83,7 +83,7 @@ def atmosphere(env: EnvironmentSpec) -> Atmosphere:
         visibility = env.fog_visibility_m or DEFAULT_FOG_VISIBILITY_M
         amb = amb * 1.2 + 0.4 * sun * max(sun_dir[2], 0.1)
         sun = sun * 0.25
-        fog = np.clip(np.full(3, np.mean(hor)) * (0.95 if env.lighting == "day" else 0.8), 0, 1)
+        fog = np.clip(np.full(3, np.mean(hor)) * (0.75 if env.lighting == "day" else 0.8), 0, 1)
         zen = hor = fog
     elif env.weather == "rainy":
         rain = env.rain_rate_mm_h if env.rain_rate_mm_h is not None else DEFAULT_RAIN_RATE_MM_H

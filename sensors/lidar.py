@@ -21,6 +21,8 @@ from .environment import Atmosphere
 from .rig import Pose
 from .scene import TickScene
 
+MIN_RANGE_M = 0.3  # [m] returns closer than this are not reported (housing, mount)
+
 
 @dataclass(frozen=True)
 class LidarFrame:
@@ -81,16 +83,18 @@ def render_lidar(
     rays = np.empty((n, 6), np.float32)
     rays[:, :3] = pose.position_m
     rays[:, 3:] = d_map
-    t, gid = scene.cast(rays, exclude_track)
+    t, gid = scene.cast(rays, exclude_track, MIN_RANGE_M)
     hit = t <= spec.range_m
     r = np.where(hit, t, 0.0).astype(np.float64)
 
-    normals = scene.table(scene.static.normals, scene.actors.normals(), (0.0, 0.0, 1.0))[gid]
-    cos_inc = np.abs(np.einsum("ij,ij->i", normals, d_map))
-    refl = scene.table(scene.static.mesh.reflectivity, scene.actors.reflectivity, 0.0)[gid]
-    intensity = refl * cos_inc * np.exp(-2.0 * atm.beta * r)
-    cls = scene.table(scene.static.mesh.semantic, scene.actors.semantic, 0)[gid]
-    inst = scene.table(scene.static.mesh.instance, scene.actors.instance, 0)[gid]
+    lab = scene.labels
+    normals = np.take(lab["normal"], gid, axis=0)
+    cos_inc = np.abs((normals * rays[:, 3:]).sum(axis=1))
+    intensity = np.take(lab["reflectivity"], gid) * cos_inc
+    if atm.beta > 0:
+        intensity = intensity * np.exp(-2.0 * atm.beta * r)
+    cls = np.take(lab["semantic"], gid)
+    inst = np.take(lab["instance"], gid)
 
     if noise:
         u_noise = rng.standard_normal(n)

@@ -230,33 +230,31 @@ def material_of(cls: str, instance: int) -> tuple[np.ndarray, float]:
 
 # ------------------------------------------------------------------------------ static scene
 
-#: Lamp head of a street light: the top 0.4 m of a ``street_light`` prism glows at night.
-LAMP_HEAD_M = 0.4
+#: A ``street_light`` prism that starts this high is a lamp arm: it glows at night.
+LAMP_ARM_MIN_Z_M = 2.0
+LAMP_ALBEDO = (0.9, 0.85, 0.7)
+
+
+def is_lamp(prism: Prism) -> bool:
+    """True for the luminous part of a street light (its arm, above :data:`LAMP_ARM_MIN_Z_M`)."""
+    return prism.cls == "street_light" and prism.z0_m >= LAMP_ARM_MIN_Z_M
 
 
 def static_mesh(layout: StaticLayout) -> TriMesh:
     """Mesh of every prism of ``layout`` (map frame), in prism order."""
-    parts: list[TriMesh] = []
-    for prism in layout.prisms:
-        parts.extend(_prism_mesh(prism))
-    return concat(parts)
+    return concat([_prism_mesh(p) for p in layout.prisms])
 
 
-def _prism_mesh(prism: Prism) -> list[TriMesh]:
+def _prism_mesh(prism: Prism) -> TriMesh:
     if prism.cls not in SEMANTIC_ID:
-        raise CosimError(f"prism class {prism.cls!r} is not a semantic class")
+        raise CosimError(f"prism class {prism.cls!r} is not a semantic class; known: {', '.join(SEMANTIC_ID)}")
     fp = np.asarray(prism.footprint, np.float64)
     alb, refl = material_of(prism.cls, prism.instance_id)
-    if prism.cls == "street_light" and prism.z1_m - prism.z0_m > 2 * LAMP_HEAD_M:
-        split = prism.z1_m - LAMP_HEAD_M
-        v0, t0 = prism_geometry(fp, prism.z0_m, split)
-        v1, t1 = prism_geometry(fp, split, prism.z1_m, bottom=True)
-        return [
-            _labelled(v0, t0, prism.cls, prism.instance_id, alb, refl),
-            _labelled(v1, t1, prism.cls, prism.instance_id, (0.9, 0.85, 0.7), refl, emissive=1.0),
-        ]
-    v, t = prism_geometry(fp, prism.z0_m, prism.z1_m)
-    return [_labelled(v, t, prism.cls, prism.instance_id, alb, refl)]
+    lamp = is_lamp(prism)
+    v, t = prism_geometry(fp, prism.z0_m, prism.z1_m, bottom=lamp or prism.z0_m > 0.5)
+    if lamp:
+        return _labelled(v, t, prism.cls, prism.instance_id, LAMP_ALBEDO, refl, emissive=1.0)
+    return _labelled(v, t, prism.cls, prism.instance_id, alb, refl)
 
 
 # ------------------------------------------------------------------------------ actor shapes

@@ -12,6 +12,7 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import open3d as o3d
@@ -137,14 +138,32 @@ class TickScene:
             self._cache[key] = entry
             return entry
 
-    def cast(self, rays: np.ndarray, exclude_track: int | None = None,
+    @cached_property
+    def labels(self) -> dict[str, np.ndarray]:
+        """Per-global-index tables: ``semantic`` uint8, ``instance`` uint32, ``reflectivity`` float32,
+        ``normal`` (3,) float32, ``albedo`` (3,) float32, ``emissive`` float32 (each miss + 1 rows)."""
+        a = self.actors
+        return {
+            "semantic": self.table(self.static.mesh.semantic, a.semantic, 0),
+            "instance": self.table(self.static.mesh.instance, a.instance, 0),
+            "reflectivity": self.table(self.static.mesh.reflectivity, a.reflectivity, 0.0),
+            "normal": self.table(self.static.normals, a.normals(), (0.0, 0.0, 1.0)),
+            "albedo": self.table(self.static.mesh.albedo, a.albedo, (0.0, 0.0, 0.0)),
+            "emissive": self.table(self.static.mesh.emissive, a.emissive, 0.0),
+        }
+
+    def cast(self, rays: np.ndarray, exclude_track: int | None = None, near_m: float = 0.0,
              with_static: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Nearest hit over static + actors (minus ``exclude_track``'s own shape).
 
-        ``rays`` (N, 6) float32. Returns ``t`` (N,) float32 (inf on a miss) and the global triangle
-        index (N,) int32 (``miss`` on a miss).
+        ``rays`` (N, 6) float32. Surfaces closer than ``near_m`` (in units of each ray's direction
+        length) are skipped (sensor housings, the RSU's own pole top). Returns ``t`` (N,) float32
+        (inf on a miss) and the global triangle index (N,) int32 (``miss`` on a miss).
         """
         t0 = time.perf_counter()
+        if near_m > 0:
+            rays = rays.copy()
+            rays[:, :3] += np.float32(near_m) * rays[:, 3:]
         if with_static:
             t, prim = cast(self.static.scene, rays)
             gid = np.where(prim >= 0, prim, np.int32(self.miss))
@@ -157,6 +176,8 @@ class TickScene:
             nearer = np.nonzero(ta < t)[0]
             t[nearer] = ta[nearer]
             gid[nearer] = self.n_static + keep[pa[nearer]]
+        if near_m > 0:
+            t += np.float32(near_m)
         self.timer.seconds += time.perf_counter() - t0
         self.timer.rays += rays.shape[0]
         return t, gid

@@ -26,7 +26,7 @@ from .environment import Atmosphere, atmosphere
 from .gnss import GnssFrame, render_gnss
 from .imu import ImuFrame, imu_biases, render_imu
 from .lidar import LidarFrame, render_lidar
-from .meshes import static_mesh
+from .meshes import is_lamp, static_mesh
 from .rig import camera_pose, intrinsics, projection, sensor_pose
 from .scene import StaticScene, TickScene
 from .visibility import VisibilityFrame, render_visibility
@@ -92,7 +92,7 @@ def _street_light_map(world: World, bounds: np.ndarray, res_m: float) -> LightMa
     ys = y0 + (np.arange(ny) + 0.5) * res_m
     reach = 30.0
     for p in world.layout.prisms:
-        if p.cls != "street_light":
+        if not is_lamp(p):
             continue
         fp = np.asarray(p.footprint)
         lx, ly = fp.mean(0)
@@ -181,15 +181,10 @@ class SensorSuite:
         t_start = time.perf_counter()
         timing = {"scene": 0.0, "lidar": 0.0, "camera_cast": 0.0, "shading": 0.0, "labels": 0.0}
         scene = TickScene.build(self.static, snapshot.actors)
-        anorm = scene.actors.normals()
-        lut = {
-            "rgb": scene.table(self._static_rgb, _shaded(scene.actors.albedo, anorm, self.atm), (0.0, 0.0, 0.0)),
-            "albedo": scene.table(self.static.mesh.albedo, scene.actors.albedo, (0.0, 0.0, 0.0)),
-            "emissive": scene.table(self.static.mesh.emissive, scene.actors.emissive, 0.0),
-            "semantic": scene.table(self.static.mesh.semantic, scene.actors.semantic, 0),
-            "instance": scene.table(self.static.mesh.instance, scene.actors.instance, 0),
-        }
-        tables = shading_tables(lut["rgb"], lut["albedo"], lut["emissive"], scene.miss, self.atm)
+        lut = scene.labels
+        n_act = lut["normal"][scene.n_static:scene.miss]
+        rgb = scene.table(self._static_rgb, _shaded(scene.actors.albedo, n_act, self.atm), (0.0, 0.0, 0.0))
+        tables = shading_tables(rgb, lut["albedo"], lut["emissive"], scene.miss, self.atm)
         light = _add_headlights(self._light, snapshot.actors) if self._light is not None else None
         actors = snapshot.actors
         if actors:

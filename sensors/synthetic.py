@@ -2,7 +2,8 @@
 
 Layout (map frame, metres): terrain over [-L, L]^2 with its top at z = 0; a road cross (x and y
 axes, 14 m wide, top at 0.02 m) with dashed centre lines; sidewalks; buildings in the four quadrants
-(one L-shaped, i.e. concave); poles and street lights along the roads.
+(one L-shaped, i.e. concave); poles and street lights (pole + lamp arm reaching over the road
+towards y = 6.2 m) along the roads.
 """
 
 from __future__ import annotations
@@ -58,7 +59,8 @@ def synthetic_world(half_m: float = 150.0) -> World:
         if x == 0:
             continue
         prisms.append(Prism("street_light", _octagon(x, r + 1.0, 0.15), 0.0, 8.0, inst))
-        inst += 1
+        prisms.append(Prism("street_light", _rect(x - 0.12, r - 0.8, x + 0.12, r + 1.0), 7.7, 8.0, inst + 1))
+        inst += 2
         prisms.append(Prism("pole", _octagon(x + 15, -(r + 1.0), 0.12), 0.0, 4.0 + k % 2, inst))
         inst += 1
     prisms.append(Prism("vegetation", _octagon(-40, -80, 3.0), 0.0, 6.0, 0))
@@ -130,3 +132,64 @@ def synthetic_snapshot(n_vehicles: int = 5, n_rsus: int = 5, n_drones: int = 5, 
                                  angular_rate_radps=(0.01, -0.02, 0.05), specific_force_mps2=(0.1, 0.0, 9.81)))
         track += 1
     return WorldSnapshot(tick, tick * 200_000_000, tuple(actors), tuple(agents))
+
+
+def world_snapshot(world: World, n_vehicles: int, n_drones: int, n_background: int, seed: int = 0,
+                   tick: int = 0) -> WorldSnapshot:
+    """Actors and agents placed on a built world (benchmarks, pictures): vehicles on road polygons
+    along their long axis, RSUs at ``world.rsus``, drones 40-80 m above junctions."""
+    import numpy as np
+    from matplotlib.path import Path as MplPath
+
+    rng = np.random.default_rng(seed)
+    roads = [p for p in world.layout.prisms if p.cls == "road"]
+    roads.sort(key=lambda p: -_area(p.footprint))
+    classes = ["car", "car", "car", "van", "truck", "bus", "motorcycle", "bicycle"]
+    actors: list[Actor] = []
+    agents: list[AgentState] = []
+    taken: list[tuple[float, float]] = []
+    track = 1
+    n_total = n_vehicles + n_background
+    tries = 0
+    while len(actors) < n_total and roads and tries < 50 * n_total:
+        tries += 1
+        road = roads[int(rng.integers(0, min(len(roads), 40)))]
+        fp = np.asarray(road.footprint)
+        c = fp.mean(0)
+        u, _, _ = np.linalg.svd(np.cov((fp - c).T))
+        axis = u[:, 0]
+        along = (fp - c) @ axis
+        lateral = rng.choice([-1.7, 1.7])
+        pos = c + axis * rng.uniform(along.min() + 4, along.max() - 4) + np.array([-axis[1], axis[0]]) * lateral
+        if not MplPath(fp).contains_point(pos) or any(math.hypot(pos[0] - x, pos[1] - y) < 9 for x, y in taken):
+            continue
+        taken.append((float(pos[0]), float(pos[1])))
+        yaw = math.degrees(math.atan2(axis[1], axis[0])) + (0.0 if lateral < 0 else 180.0)
+        connected = len(actors) < n_vehicles
+        cls = "car" if connected else classes[int(rng.integers(0, len(classes)))]
+        aid = f"vehicle_{len(actors)}" if connected else None
+        a = actor(track, cls, float(pos[0]), float(pos[1]), yaw, z_ground=road.z1_m, agent_id=aid)
+        actors.append(a)
+        if connected:
+            agents.append(AgentState(aid, "vehicle", (a.center_m[0], a.center_m[1], road.z1_m), a.rotation,
+                                     track_id=track, specific_force_mps2=(0.2, 0.0, 9.81)))
+        track += 1
+    for r in world.rsus:
+        agents.append(AgentState(r.agent_id, "rsu", r.position_m, quat_from_rpy(0.0, 0.0, r.yaw_rad)))
+    spots = [j.position_m for j in world.junctions] or [tuple(np.asarray(roads[0].footprint).mean(0))]
+    for i in range(n_drones):
+        x, y = spots[(i * 3) % len(spots)]
+        z = 40.0 + 10.0 * (i % 5)
+        yaw = rng.uniform(-math.pi, math.pi)
+        q = quat_from_rpy(0.0, 0.0, yaw)
+        actors.append(Actor(track, "drone", (x, y, z), SIZES["drone"], q, (0.0, 0.0, 0.0), f"drone_{i}"))
+        agents.append(AgentState(f"drone_{i}", "drone", (x, y, z), q, track_id=track, gimbal_rotation=q))
+        track += 1
+    return WorldSnapshot(tick, tick * 200_000_000, tuple(actors), tuple(agents))
+
+
+def _area(fp) -> float:
+    s = 0.0
+    for (x0, y0), (x1, y1) in zip(fp, (*fp[1:], fp[0]), strict=True):
+        s += x0 * y1 - x1 * y0
+    return abs(s) / 2
