@@ -207,3 +207,22 @@ def test_metadata_and_attachments(recorded):
         assert ep.cameras("vehicle_0") == ["front", "rear"] and ep.cameras("drone_0") == ["down"]
         with pytest.raises(KeyError, match=r"scenario\.yaml"):
             ep.attachment("nope.txt")
+
+
+def test_the_runnable_example_reads_an_episode(recorded):
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    path, _ = recorded
+    r = subprocess.run(
+        [sys.executable, str(REPO / "examples" / "read_episode.py"), str(path), "--ticks", "2"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=REPO,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "tick   1 t=  0.2 s: 3 boxes (1 car, 1 drone, 1 truck)" in r.stdout
+    assert "drone_0    64 points, mean height 60.0 m; down 32x24, median depth 12.3 m" in r.stdout
