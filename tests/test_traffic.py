@@ -81,9 +81,7 @@ def test_box_centre_on_east_west_lane_centre(tmp_path: Path) -> None:
 
 @pytest.mark.integration
 def test_urban_run_invariants(tmp_path: Path) -> None:
-    loaded = load_scenario_data(
-        {"name": "u", "seed": 5, "duration_s": 20, "map": {"kind": "urban", "size_m": 250}}
-    )
+    loaded = load_scenario_data({"name": "u", "seed": 5, "duration_s": 20, "map": {"kind": "urban", "size_m": 250}})
     sc = loaded.scenario
     world = build_world(loaded, tmp_path / "w")
     road = road_raster(read_network(world.net_xml), world.bounds_m, 0.25)

@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 WARMUP_S = 4  # [s] SUMO time before episode t = 0 (a whole number of seconds)
 REROUTE_EDGES_LEFT = 2  # extend a route when the vehicle is on one of its last edges
 LANE_CHANGE_S = 1.5  # [s] duration of a lane change (continuous, not a sideways jump)
+TRAIL_M = 40.0  # [m] of driven path kept per vehicle (longer than the longest vehicle)
 SEED_SALT = 7919  # SUMO's --seed = (scenario seed * salt + 1) mod 2^31
 
 
@@ -44,9 +45,7 @@ class TrafficSim:
 
     def __init__(self, scenario: Scenario, world: World, workdir: Path) -> None:
         if libsumo.simulation.isLoaded():
-            raise WorkerError(
-                "traffic", "a SUMO simulation is already running in this process (libsumo allows one)"
-            )
+            raise WorkerError("traffic", "a SUMO simulation is already running in this process (libsumo allows one)")
         self.scenario = scenario
         workdir = Path(workdir)
         workdir.mkdir(parents=True, exist_ok=True)
@@ -95,12 +94,11 @@ class TrafficSim:
         self._step = 0  # SUMO steps done
         self._warmup_steps = int(WARMUP_S * self.step_hz)
         self._prev_yaw: dict[str, float] = {}
+        self._trails: dict[str, list[tuple[float, str, float, int]]] = {}
         self._closed = False
         self._advance_to(self._warmup_steps)
         present = set(libsumo.vehicle.getIDList())
-        missing = [
-            f"vehicle_{i}" for i in range(scenario.agents.vehicles.count) if f"vehicle_{i}" not in present
-        ]
+        missing = [f"vehicle_{i}" for i in range(scenario.agents.vehicles.count) if f"vehicle_{i}" not in present]
         if missing:
             self.close()
             raise WorkerError("traffic", f"connected vehicles not on the road at t=0: {', '.join(missing)}")
@@ -111,10 +109,12 @@ class TrafficSim:
         while self._step < target_step:
             if self._step == target_step - 1:
                 self._prev_yaw = {
-                    v: math.radians(90.0 - libsumo.vehicle.getAngle(v)) for v in libsumo.vehicle.getIDList()
+                    v: math.radians(90.0 - self._heading_deg(v, libsumo.vehicle.getLength(v)))
+                    for v in libsumo.vehicle.getIDList()
                 }
             libsumo.simulationStep()
             self._step += 1
+            self._record_trails()
             self._extend_routes()
         self._dt = dt
 
@@ -142,20 +142,68 @@ class TrafficSim:
             raise WorkerError("traffic", "step_to after close")
         steps = Fraction(t_ns, 1_000_000_000) * self.step_hz
         if steps.denominator != 1:
-            raise WorkerError(
-                "traffic", f"t_ns = {t_ns} is not a whole number of SUMO steps at {self.step_hz} Hz"
-            )
+            raise WorkerError("traffic", f"t_ns = {t_ns} is not a whole number of SUMO steps at {self.step_hz} Hz")
         target = self._warmup_steps + int(steps)
         if target < self._step:
             raise WorkerError("traffic", f"cannot step back to t_ns = {t_ns}")
         self._advance_to(target)
         return [self._read(v) for v in sorted(libsumo.vehicle.getIDList())]
 
+    def _record_trails(self) -> None:
+        """Append every vehicle's (odometer, road, lane position, lane index) to its trail."""
+        v = libsumo.vehicle
+        ids = v.getIDList()
+        if len(self._trails) > 2 * len(ids) + 16:
+            self._trails = {k: self._trails[k] for k in ids if k in self._trails}
+        for vid in ids:
+            odo, road, pos, idx = v.getDistance(vid), v.getRoadID(vid), v.getLanePosition(vid), v.getLaneIndex(vid)
+            trail = self._trails.setdefault(vid, [])
+            if trail and trail[-1][1] == road and trail[-1][3] != idx and not road.startswith(":"):
+                # a lane change: the part of the trail on this edge moves to the new lane with it
+                trail[:] = [(o, r, p, idx if r == road else i) for o, r, p, i in trail]
+            if not trail or odo > trail[-1][0] + 0.05 or trail[-1][1] != road:
+                trail.append((odo, road, pos, idx))
+            while len(trail) > 2 and trail[1][0] < odo - TRAIL_M:
+                trail.pop(0)
+
+    def _heading_deg(self, vid: str, length_m: float) -> float:
+        """Heading [deg clockwise from north] of the chord from the vehicle's back to its front, both
+        on the lane centre lines of the path it drove (its trail).
+
+        SUMO's own angle also turns a vehicle by its lateral motion and keeps that turn when a lane change
+        ends standing still, so a long vehicle's box would reach into the next lane; the lane chord does
+        not, and it follows curves and junctions like SUMO's. Before a vehicle has driven its own length
+        on a lane, SUMO's angle is used."""
+        v = libsumo.vehicle
+        road, pos, idx = v.getRoadID(vid), v.getLanePosition(vid), v.getLaneIndex(vid)
+        odo = v.getDistance(vid)
+        target = odo - length_m
+        trail = self._trails.get(vid, [])
+        k = max((i for i, e in enumerate(trail) if e[0] <= target), default=None)
+        if k is None:
+            if road.startswith(":") or pos < length_m:
+                return v.getAngle(vid)
+            back = libsumo.simulation.convert2D(road, pos - length_m, idx)
+        else:
+            o0, r0, p0, i0 = trail[k]
+            back_pos = p0 + (target - o0)
+            lane_len = libsumo.lane.getLength(f"{r0}_{i0}")
+            if back_pos > lane_len and k + 1 < len(trail):
+                o1, r1, p1, i1 = trail[k + 1]
+                r0, i0, back_pos = r1, i1, max(0.0, p1 - (o1 - target))
+                lane_len = libsumo.lane.getLength(f"{r0}_{i0}")
+            back = libsumo.simulation.convert2D(r0, min(back_pos, lane_len), i0)
+        front = libsumo.simulation.convert2D(road, pos, idx)
+        dx, dy = front[0] - back[0], front[1] - back[1]
+        if math.hypot(dx, dy) < 0.5 * length_m:
+            return v.getAngle(vid)
+        return math.degrees(math.atan2(dx, dy)) % 360.0
+
     def _read(self, vid: str) -> VehicleState:
         v = libsumo.vehicle
         length, width, height = v.getLength(vid), v.getWidth(vid), v.getHeight(vid)
         fx, fy, fz = v.getPosition3D(vid)
-        cx, cy, yaw = sumo_front_to_center(fx, fy, v.getAngle(vid), length)
+        cx, cy, yaw = sumo_front_to_center(fx, fy, self._heading_deg(vid, length), length)
         slope = math.radians(v.getSlope(vid))
         pitch = -slope  # FLU: a positive pitch is nose down
         cz = fz - 0.5 * length * math.sin(slope) + 0.5 * height

@@ -48,6 +48,8 @@ def build_world(loaded: LoadedScenario, workdir: Path) -> World:
     net = read_network(result.net_xml)
     margin = MARGIN_M.get(spec.kind, 20.0)
     xmin, ymin, xmax, ymax = net.bounds_m
+    if spec.kind not in ("net", "osm"):  # the generated square, even where no road reaches its edge
+        xmin, ymin, xmax, ymax = min(xmin, 0.0), min(ymin, 0.0), max(xmax, spec.size_m), max(ymax, spec.size_m)
     bounds = (
         round(xmin - margin, 3),
         round(ymin - margin, 3),
@@ -59,17 +61,18 @@ def build_world(loaded: LoadedScenario, workdir: Path) -> World:
     junctions = net.real_junctions() or [j for j in net.junctions.values() if j.kind != "internal"]
     junctions = sorted(junctions, key=lambda j: j.junction_id)
     centre = (0.5 * (xmin + xmax), 0.5 * (ymin + ymax))
+    degree: dict[str, int] = {}
+    for e in net.road_edges():
+        degree[e.to_node] = degree.get(e.to_node, 0) + 1
     rsus = place_rsus(
-        junctions, sc.agents.rsus.count, sc.agents.rsus.height_m, road, centre, stage_rng(sc.seed, STAGE_RSU)
+        junctions, degree, sc.agents.rsus.count, sc.agents.rsus.height_m, road, centre, stage_rng(sc.seed, STAGE_RSU)
     )
     next_id = max((p.instance_id for p in prisms), default=999_999) + 1
     for k, r in enumerate(rsus):
         foot = geom.rect(r.position_m[0], r.position_m[1], RSU_POLE_M, RSU_POLE_M, r.yaw_rad)
         prisms.append(prism("rsu", foot, GROUND_Z, r.height_m, next_id + k))
 
-    planned = plan_vehicles(
-        read_sumolib(result.net_xml), sc, net.road_length_km(), stage_rng(sc.seed, STAGE_ROUTES)
-    )
+    planned = plan_vehicles(read_sumolib(result.net_xml), sc, net.road_length_km(), stage_rng(sc.seed, STAGE_ROUTES))
     geo = (sc.geo_origin.lat_deg, sc.geo_origin.lon_deg, sc.geo_origin.alt_m)
     if spec.kind in ("net", "osm") and net.geo_origin is not None:
         geo = (net.geo_origin[0], net.geo_origin[1], sc.geo_origin.alt_m)
@@ -88,8 +91,7 @@ def build_world(loaded: LoadedScenario, workdir: Path) -> World:
         routes_xml=routes_xml(planned),
         bounds_m=bounds,
         junctions=tuple(
-            Junction(j.junction_id, (round(j.position_m[0], 3), round(j.position_m[1], 3)), j.kind)
-            for j in junctions
+            Junction(j.junction_id, (round(j.position_m[0], 3), round(j.position_m[1], 3)), j.kind) for j in junctions
         ),
         rsus=tuple(rsus),
         layout=StaticLayout(tuple(prisms), 0.0),

@@ -111,9 +111,7 @@ def strip(line: np.ndarray, width_m: float) -> np.ndarray:
 
 def points_in_polygon(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
     """Bool (M,) whether each point (M, 2) lies inside polygon (N, 2) (boundary counts as inside)."""
-    return MplPath(poly).contains_points(points, radius=1e-9) | MplPath(poly[::-1]).contains_points(
-        points, radius=1e-9
-    )
+    return MplPath(poly).contains_points(points, radius=1e-9) | MplPath(poly[::-1]).contains_points(points, radius=1e-9)
 
 
 @dataclass(frozen=True)
@@ -138,6 +136,8 @@ class Raster:
         img = Image.fromarray(self.mask.astype(np.uint8) * 255, mode="L")
         draw = ImageDraw.Draw(img)
         for poly in polys:
+            if len(poly) < 3:
+                continue
             pix = (np.asarray(poly) - [self.x0, self.y0]) / self.cell_m
             draw.polygon([tuple(q) for q in pix.tolist()], fill=255, outline=255)
         return Raster(self.x0, self.y0, self.cell_m, np.asarray(img) > 0)

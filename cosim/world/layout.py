@@ -159,9 +159,7 @@ def road_polygons(net: RoadNetwork) -> list[np.ndarray]:
     return polys
 
 
-def road_raster(
-    net: RoadNetwork, bounds_m: tuple[float, float, float, float], cell_m: float = CELL_M
-) -> Raster:
+def road_raster(net: RoadNetwork, bounds_m: tuple[float, float, float, float], cell_m: float = CELL_M) -> Raster:
     """Occupancy grid of the drivable surface (lanes of non-internal edges, internal lanes, junctions)."""
     polys = road_polygons(net)
     polys += [geom.strip(ln.shape, ln.width_m) for ln in net.lanes(internal=True) if ln.is_road]
@@ -184,9 +182,7 @@ def markings(net: RoadNetwork, style: LayoutStyle) -> list[Prism]:
             length = geom.polyline_length(border)
             s = 1.0
             while s + dash < length - 1.0:
-                out.append(
-                    prism("lane_marking", geom.strip(geom.resample(border, s, s + dash), 0.15), *MARKING_Z)
-                )
+                out.append(prism("lane_marking", geom.strip(geom.resample(border, s, s + dash), 0.15), *MARKING_Z))
                 s += dash + gap
         top = road[-1]
         if (e.to_node, e.from_node) in pairs or style.edge_lines:
@@ -203,9 +199,7 @@ def markings(net: RoadNetwork, style: LayoutStyle) -> list[Prism]:
                     continue
                 p = geom.point_at(ln.shape, length - 1.0)
                 yaw = geom.direction_at(ln.shape, length - 1.0)
-                out.append(
-                    prism("lane_marking", geom.rect(p[0], p[1], 0.4, ln.width_m - 0.2, yaw), *MARKING_Z)
-                )
+                out.append(prism("lane_marking", geom.rect(p[0], p[1], 0.4, ln.width_m - 0.2, yaw), *MARKING_Z))
     return out
 
 
@@ -381,9 +375,7 @@ class _Builder:
                 # a planting pit at the sidewalk's outer third
                 off = 0.2 * ln.width_m
                 x, y = p[0] + off * math.sin(yaw), p[1] - off * math.cos(yaw)
-                self.add_tree(
-                    x, y, float(self.rng.uniform(1.4, 2.0)), float(self.rng.uniform(7.0, 12.0)), True
-                )
+                self.add_tree(x, y, float(self.rng.uniform(1.4, 2.0)), float(self.rng.uniform(7.0, 12.0)), True)
                 s += spacing
 
     def scatter_trees(self) -> None:
@@ -443,11 +435,7 @@ class _Builder:
                 yaw = geom.direction_at(base, s)
                 x, y = p[0] + 0.8 * math.sin(yaw), p[1] - 0.8 * math.cos(yaw)
                 foot = geom.rect(x, y, 0.3, 0.3, yaw)
-                if (
-                    self.inside(foot, 0.0)
-                    and not self.road.lookup(foot).any()
-                    and self.canopy_block.free(foot)
-                ):
+                if self.inside(foot, 0.0) and not self.road.lookup(foot).any() and self.canopy_block.free(foot):
                     self.prisms.append(prism("street_light", foot, GROUND_Z, 8.0, self.ids()))
                     arm = geom.rect(x - 0.9 * math.sin(yaw), y + 0.9 * math.cos(yaw), 0.25, 1.8, yaw)
                     self.prisms.append(prism("street_light", arm, 7.7, 8.0, self.ids()))

@@ -11,6 +11,7 @@ Registry: :data:`MAP_GENERATORS`, name -> function; :func:`generate_network` loo
 from __future__ import annotations
 
 import logging
+import math
 import os
 import re
 import subprocess
@@ -60,9 +61,7 @@ def generate_network(req: MapRequest, rng: np.random.Generator) -> NetworkResult
     try:
         gen = MAP_GENERATORS[req.kind]
     except KeyError:
-        raise InputError(
-            f"unknown map kind {req.kind!r}; known: {', '.join(sorted(MAP_GENERATORS))}"
-        ) from None
+        raise InputError(f"unknown map kind {req.kind!r}; known: {', '.join(sorted(MAP_GENERATORS))}") from None
     req.workdir.mkdir(parents=True, exist_ok=True)
     return gen(req, rng)
 
@@ -76,9 +75,7 @@ def sumo_binary(name: str) -> str:
 
 def _run_tool(name: str, args: list[str], cwd: Path) -> None:
     env = {**os.environ, "SUMO_HOME": sumo.SUMO_HOME}
-    proc = subprocess.run(
-        [sumo_binary(name), *args], cwd=cwd, env=env, capture_output=True, text=True, check=False
-    )
+    proc = subprocess.run([sumo_binary(name), *args], cwd=cwd, env=env, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         msg = (proc.stderr or proc.stdout).strip().splitlines()
         raise InputError(f"{name} failed (exit {proc.returncode}): {' | '.join(msg[-5:])}")
@@ -162,10 +159,12 @@ class GridStyle:
     sidewalk_m: float
     drop_fraction: float  # share of interior street segments removed (irregular blocks)
     tls_main_only: bool
+    minor_disallow: str  # vClasses kept off the minor streets (besides pedestrians, who use sidewalks)
 
 
-URBAN = GridStyle((75.0, 95.0), 3, 2, 13.89, 13.89, 3.2, 3.0, 0.0, False)
-SUBURBAN = GridStyle((130.0, 170.0), 2, 1, 13.89, 11.11, 3.1, 2.0, 0.2, True)
+URBAN = GridStyle((75.0, 95.0), 3, 2, 13.89, 13.89, 3.2, 3.0, 0.0, False, "")
+# residential streets: no buses or lorries (they also could not turn in such narrow junctions)
+SUBURBAN = GridStyle((100.0, 130.0), 2, 1, 13.89, 11.11, 3.3, 2.0, 0.2, True, "bus truck")
 
 
 def _grid_network(req: MapRequest, rng: np.random.Generator, style: GridStyle) -> NetworkResult:
@@ -175,9 +174,7 @@ def _grid_network(req: MapRequest, rng: np.random.Generator, style: GridStyle) -
     ys = _grid_lines(s, block, rng, 0.12)
     nx, ny = len(xs), len(ys)
     main_lanes = req.lanes or style.main_lanes
-    minor_lanes = (
-        max(1, main_lanes - (style.main_lanes - style.minor_lanes)) if req.lanes else style.minor_lanes
-    )
+    minor_lanes = max(1, main_lanes - (style.main_lanes - style.minor_lanes)) if req.lanes else style.minor_lanes
 
     # main roads: the interior lines nearest the middle (one per direction, two on large maps)
     def mains(n: int) -> set[int]:
@@ -195,6 +192,8 @@ def _grid_network(req: MapRequest, rng: np.random.Generator, style: GridStyle) -
 
     def is_main(seg: tuple[str, int, int]) -> bool:
         d, i, j = seg
+        if style.minor_disallow and ((d == "h" and j in (0, ny - 1)) or (d == "v" and i in (0, nx - 1))):
+            return True  # where minor streets are restricted, the outer ring is a main road
         return (d == "h" and j in main_y) or (d == "v" and i in main_x)
 
     def is_perimeter(seg: tuple[str, int, int]) -> bool:
@@ -239,7 +238,7 @@ def _grid_network(req: MapRequest, rng: np.random.Generator, style: GridStyle) -
             "priority": 3 if main else 1,
             "width": style.lane_width_m,
             "sidewalkWidth": style.sidewalk_m,
-            "disallow": "pedestrian",
+            "disallow": "pedestrian" if main or not style.minor_disallow else f"pedestrian {style.minor_disallow}",
         }
         edges.append({"id": f"{a}_{b}", "from": a, "to": b, **attrs})
         edges.append({"id": f"{b}_{a}", "from": b, "to": a, **attrs})
@@ -273,7 +272,7 @@ def urban(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
 
 @register("suburban")
 def suburban(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
-    """Irregular grid of 130-170 m blocks, 2-lane main roads, 1-lane streets, few traffic lights."""
+    """Irregular grid of 100-130 m blocks, 2-lane main roads, 1-lane streets, few traffic lights."""
     return _grid_network(req, rng, SUBURBAN)
 
 
@@ -286,9 +285,7 @@ def from_net_file(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
     assert req.file is not None
     data = req.file.read_bytes()
     if b"<net" not in data[:4096]:
-        raise InputError(
-            f"map.file {req.file} is not a SUMO network (.net.xml): no <net> element at its start"
-        )
+        raise InputError(f"map.file {req.file} is not a SUMO network (.net.xml): no <net> element at its start")
     return NetworkResult(data)
 
 
@@ -304,9 +301,7 @@ def from_osm(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
     assert req.file is not None
     head = req.file.read_bytes()[:4096]
     if b"<osm" not in head:
-        raise InputError(
-            f"map.file {req.file} is not an OpenStreetMap XML file: no <osm> element at its start"
-        )
+        raise InputError(f"map.file {req.file} is not an OpenStreetMap XML file: no <osm> element at its start")
     out = req.workdir / "osm.net.xml"
     _run_tool(
         "netconvert",
@@ -362,3 +357,223 @@ def from_osm(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
                 buildings.append(pts)
     log.info("OSM import: %d building outlines", len(buildings))
     return NetworkResult(net_xml, buildings)
+
+
+# ------------------------------------------------------------------------------ countryside
+
+
+def _arc(cx: float, cy: float, r: float, a0: float, a1: float, n: int) -> list[tuple[float, float]]:
+    """Points strictly between angles a0 and a1 [rad] on a circle (edge shape without its end nodes)."""
+    return [(cx + r * math.cos(a), cy + r * math.sin(a)) for a in np.linspace(a0, a1, n + 2)[1:-1]]
+
+
+def _bezier(
+    p0: tuple[float, float],
+    d0: tuple[float, float],
+    p1: tuple[float, float],
+    d1: tuple[float, float],
+    n: int = 8,
+) -> list[tuple[float, float]]:
+    """Inner points of a cubic Bezier from p0 (heading d0) to p1 (arriving with heading d1)."""
+    k = 0.45 * math.dist(p0, p1)
+    c0 = (p0[0] + k * d0[0], p0[1] + k * d0[1])
+    c1 = (p1[0] - k * d1[0], p1[1] - k * d1[1])
+    out = []
+    for t in np.linspace(0, 1, n + 2)[1:-1]:
+        u = 1 - t
+        out.append(
+            (
+                u**3 * p0[0] + 3 * u * u * t * c0[0] + 3 * u * t * t * c1[0] + t**3 * p1[0],
+                u**3 * p0[1] + 3 * u * u * t * c0[1] + 3 * u * t * t * c1[1] + t**3 * p1[1],
+            )
+        )
+    return out
+
+
+def _segment_intersection(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> np.ndarray | None:
+    """Crossing point of segments p0-p1 and q0-q1 away from their ends (20 %..80 %), or None."""
+    d, e = p1 - p0, q1 - q0
+    den = d[0] * e[1] - d[1] * e[0]
+    if abs(den) < 1e-9:
+        return None
+    w = q0 - p0
+    t = (w[0] * e[1] - w[1] * e[0]) / den
+    u = (w[0] * d[1] - w[1] * d[0]) / den
+    return p0 + t * d if 0.2 < t < 0.8 and 0.2 < u < 0.8 else None
+
+
+def _two_way(edges: list[dict], a: str, b: str, shape: list[tuple[float, float]] | None, **attrs: object) -> None:
+    fwd = {"id": f"{a}_{b}", "from": a, "to": b, **attrs}
+    back = {"id": f"{b}_{a}", "from": b, "to": a, **attrs}
+    if shape:
+        fwd["shape"] = shape
+        back["shape"] = shape[::-1]
+    edges += [fwd, back]
+
+
+@register("rural")
+def rural(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
+    """A winding country-road loop with one or two cross roads: few junctions, long roads, 80 km/h."""
+    s = req.size_m
+    c = 0.5 * s
+    lanes = req.lanes or 1
+    k = int(rng.integers(5, 8))
+    angles = np.sort(2 * math.pi * (np.arange(k) + rng.uniform(-0.25, 0.25, k)) / k + rng.uniform(0, 2 * math.pi))
+    amp = rng.uniform(0.0, [0.06, 0.08, 0.04])
+    phase = rng.uniform(0.0, 2 * math.pi, 3)
+
+    def r_of(theta: np.ndarray | float) -> np.ndarray:
+        """Smooth loop radius [m] (low harmonics only: no kinks at the junctions)."""
+        wav = sum(amp[h] * np.cos((h + 1) * np.asarray(theta) - phase[h]) for h in range(3))
+        return 0.36 * s * (1.0 + wav)
+
+    radius = r_of(angles)
+    nodes = [
+        {
+            "id": f"r{i}",
+            "x": c + radius[i] * math.cos(angles[i]),
+            "y": c + radius[i] * math.sin(angles[i]),
+            "type": "priority",
+        }
+        for i in range(k)
+    ]
+    edges: list[dict] = []
+    ring = {"numLanes": lanes, "speed": 22.22, "priority": 3, "width": 3.75, "disallow": "pedestrian"}
+    for i in range(k):
+        j = (i + 1) % k
+        a0, a1 = angles[i], angles[j] + (2 * math.pi if j == 0 else 0.0)
+        n = max(3, int((a1 - a0) * radius.mean() / 25.0))
+        rr = r_of(np.linspace(a0, a1, n + 2)[1:-1])
+        aa = np.linspace(a0, a1, n + 2)[1:-1]
+        shape = [(c + r * math.cos(a), c + r * math.sin(a)) for r, a in zip(rr, aa, strict=True)]
+        _two_way(edges, f"r{i}", f"r{j}", shape, **ring)
+    # a straight cross road r0 - r(k//2); a second one crossing it near square on, when there is one
+    cross = {"numLanes": lanes, "speed": 16.67, "priority": 2, "width": 3.75, "disallow": "pedestrian"}
+    xy = np.array([[n["x"], n["y"]] for n in nodes])
+    a0, a1 = 0, k // 2
+    da = (xy[a1] - xy[a0]) / np.linalg.norm(xy[a1] - xy[a0])
+    best = None
+    for p in range(1, k // 2):
+        for q in range(k // 2 + 1, k):
+            db = (xy[q] - xy[p]) / np.linalg.norm(xy[q] - xy[p])
+            cos = abs(float(np.dot(da, db)))
+            hit = _segment_intersection(xy[a0], xy[a1], xy[p], xy[q])
+            if hit is not None and cos < 0.35 and (best is None or cos < best[0]):
+                best = (cos, p, q, hit)
+
+    def square_on(i: int) -> list[tuple[float, float]]:
+        """A shape point 25 m inside the loop along its inward normal at node i: T-junctions meet square on."""
+        eps = 1e-3
+        pa = np.array(
+            [
+                c + r_of(angles[i] - eps) * math.cos(angles[i] - eps),
+                c + r_of(angles[i] - eps) * math.sin(angles[i] - eps),
+            ]
+        )
+        pb = np.array(
+            [
+                c + r_of(angles[i] + eps) * math.cos(angles[i] + eps),
+                c + r_of(angles[i] + eps) * math.sin(angles[i] + eps),
+            ]
+        )
+        t = (pb - pa) / np.linalg.norm(pb - pa)
+        inward = np.array([-t[1], t[0]])  # the loop runs counter-clockwise: left is inside
+        q = xy[i] + 25.0 * inward
+        return [(float(q[0]), float(q[1]))]
+
+    if best is None:
+        _two_way(edges, f"r{a1}", "r0", square_on(a1) + square_on(a0)[::-1], **cross)
+    else:
+        _, p, q, hit = best
+        nodes.append({"id": "m", "x": float(hit[0]), "y": float(hit[1]), "type": "priority"})
+        for end in (a0, a1, p, q):
+            _two_way(edges, f"r{end}", "m", square_on(end), **cross)
+    # generous corner radii: long vehicles turning at speed sweep less into the other lane
+    return NetworkResult(_netconvert_plain(nodes, edges, req, ["--default.junctions.radius", "8"]))
+
+
+@register("highway")
+def highway(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
+    """A dual carriageway (3 lanes each way, 120 km/h) with a wide median, an exit and an entry ramp per
+    direction to parallel local roads, and turning loops at both ends of the map so that traffic can stay."""
+    s = req.size_m
+    c = 0.5 * s + rng.uniform(-0.05, 0.05) * s
+    lanes = req.lanes or 3
+    lw = 3.6
+    g = 0.5 * lanes * lw + 9.6  # carriageway centre line to the middle of the median [m]
+    x_w, x_e = 0.02 * s + g, s - 0.02 * s - g
+    dx = min(45.0, 0.15 * s)
+    x_d = 0.3 * s + rng.uniform(-0.03, 0.03) * s
+    x_m = 0.7 * s + rng.uniform(-0.03, 0.03) * s
+    off = min(50.0, 0.2 * s)
+    y_s, y_n = c - g - off, c + g + off
+    east, west, north, south = (1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)
+    pts = {
+        "we": (x_w, c - g),
+        "de": (x_d, c - g),
+        "me": (x_m, c - g),
+        "ee": (x_e, c - g),
+        "ew": (x_e, c + g),
+        "dw": (x_m, c + g),
+        "mw": (x_d, c + g),
+        "ww": (x_w, c + g),
+        "sa": (0.04 * s, y_s),
+        "s1": (x_d + dx, y_s),
+        "s2": (x_m - dx, y_s),
+        "sb": (0.96 * s, y_s),
+        "na": (0.04 * s, y_n),
+        "n2": (x_d + dx, y_n),
+        "n1": (x_m - dx, y_n),
+        "nb": (0.96 * s, y_n),
+    }
+    nodes = [{"id": k, "x": x, "y": y, "type": "priority"} for k, (x, y) in pts.items()]
+    motorway = {
+        "numLanes": lanes,
+        "speed": 33.33,
+        "priority": 5,
+        "width": lw,
+        "spreadType": "center",
+        "disallow": "pedestrian bicycle",
+    }
+    edges: list[dict] = []
+    for a, b in (("we", "de"), ("de", "me"), ("me", "ee"), ("ew", "dw"), ("dw", "mw"), ("mw", "ww")):
+        edges.append({"id": f"{a}_{b}", "from": a, "to": b, **motorway})
+    loop = {**motorway, "numLanes": 2, "speed": 11.0, "priority": 4}
+    edges.append(
+        {
+            "id": "ee_ew",
+            "from": "ee",
+            "to": "ew",
+            **loop,
+            "shape": _arc(x_e, c, g, -math.pi / 2, math.pi / 2, 12),
+        }
+    )
+    edges.append(
+        {
+            "id": "ww_we",
+            "from": "ww",
+            "to": "we",
+            **loop,
+            "shape": _arc(x_w, c, g, math.pi / 2, 1.5 * math.pi, 12),
+        }
+    )
+    ramp = {
+        "numLanes": 1,
+        "speed": 16.67,
+        "priority": 3,
+        "width": lw,
+        "spreadType": "center",
+        "disallow": "pedestrian bicycle",
+    }
+    for a, da, b, db in (
+        ("de", east, "s1", south),
+        ("s2", north, "me", east),
+        ("dw", west, "n1", north),
+        ("n2", south, "mw", west),
+    ):
+        edges.append({"id": f"{a}_{b}", "from": a, "to": b, **ramp, "shape": _bezier(pts[a], da, pts[b], db)})
+    local = {"numLanes": 1, "speed": 13.89, "priority": 1, "width": 3.25, "disallow": "pedestrian"}
+    for a, b in (("sa", "s1"), ("s1", "s2"), ("s2", "sb"), ("na", "n2"), ("n2", "n1"), ("n1", "nb")):
+        _two_way(edges, a, b, None, **local)
+    ramps = ["--ramps.guess", "--ramps.ramp-length", f"{min(100.0, 0.2 * s):.0f}"]
+    return NetworkResult(_netconvert_plain(nodes, edges, req, ramps))

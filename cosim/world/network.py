@@ -72,9 +72,7 @@ class RoadNetwork:
     geo_origin: tuple[float, float] | None  # lat, lon of map (0, 0) when geo-referenced
 
     def lanes(self, *, internal: bool | None = None) -> list[Lane]:
-        return [
-            ln for e in self.edges.values() for ln in e.lanes if internal is None or ln.internal == internal
-        ]
+        return [ln for e in self.edges.values() for ln in e.lanes if internal is None or ln.internal == internal]
 
     def road_edges(self) -> list[Edge]:
         """Non-internal edges that carry vehicles."""

@@ -45,9 +45,7 @@ COLOURS = {
 }
 
 
-def draw_world(
-    world: World, vehicles: list[VehicleState], path: Path, title: str = "", dpi: int = 110
-) -> None:
+def draw_world(world: World, vehicles: list[VehicleState], path: Path, title: str = "", dpi: int = 110) -> None:
     """Write a top view of ``world`` with ``vehicles`` to ``path`` (PNG)."""
     from cosim.traffic.metrics import bev_corners
 
@@ -70,13 +68,9 @@ def draw_world(
         if key == "building":
             top = max(heights)
             shade = [(0.55 - 0.35 * h / top,) * 3 for h in heights]
-            ax.add_collection(
-                PolyCollection(polys, facecolors=shade, edgecolors=(0.1, 0.1, 0.1), linewidths=0.3)
-            )
+            ax.add_collection(PolyCollection(polys, facecolors=shade, edgecolors=(0.1, 0.1, 0.1), linewidths=0.3))
         else:
-            ax.add_collection(
-                PolyCollection(polys, facecolors=COLOURS.get(key, (1, 0, 1)), edgecolors="none")
-            )
+            ax.add_collection(PolyCollection(polys, facecolors=COLOURS.get(key, (1, 0, 1)), edgecolors="none"))
     for r in world.rsus:
         ax.plot(r.position_m[0], r.position_m[1], marker="^", color="gold", markeredgecolor="k", markersize=9)
         ax.annotate(r.agent_id, r.position_m[:2], xytext=(4, 4), textcoords="offset points", fontsize=7)
@@ -106,9 +100,7 @@ def draw_world(
     ax.set_aspect("equal")
     ax.set_xlabel("x east [m]")
     ax.set_ylabel("y north [m]")
-    ax.set_title(
-        title or f"{world.map_kind}: {len(vehicles)} vehicles, {len(world.rsus)} RSUs ({span:.0f} m)"
-    )
+    ax.set_title(title or f"{world.map_kind}: {len(vehicles)} vehicles, {len(world.rsus)} RSUs ({span:.0f} m)")
     fig.tight_layout()
     fig.savefig(path, dpi=dpi)
     plt.close(fig)

@@ -41,12 +41,20 @@ class PlannedVehicle:
 
 
 def class_counts(mix: dict[str, float], n: int) -> dict[str, int]:
-    """Vehicles per class for ``n`` vehicles: largest-remainder rounding of ``mix`` (shares sum to 1)."""
+    """Vehicles per class for ``n`` vehicles: largest-remainder rounding of ``mix`` (shares sum to 1),
+    except that every class with a positive share gets at least one vehicle when ``n`` allows."""
     raw = {c: mix[c] * n for c in sorted(mix)}
     counts = {c: math.floor(v) for c, v in raw.items()}
     rest = n - sum(counts.values())
     for c in sorted(raw, key=lambda c: (-(raw[c] - counts[c]), c))[:rest]:
         counts[c] += 1
+    for c in sorted(raw, key=lambda c: raw[c]):
+        if counts[c] == 0 and mix[c] > 0:
+            donors = [d for d in counts if counts[d] > 1]
+            if donors:
+                donor = max(donors, key=lambda d: (counts[d] - raw[d], counts[d], d))
+                counts[donor] -= 1
+                counts[c] += 1
     return counts
 
 
@@ -164,8 +172,7 @@ def plan_vehicles(
         if placed is None:
             if vid.startswith("vehicle_"):
                 raise InputError(
-                    f"no free place to insert connected vehicle {vid}: the map is too small "
-                    f"for {len(wanted)} vehicles"
+                    f"no free place to insert connected vehicle {vid}: the map is too small for {len(wanted)} vehicles"
                 )
             log.info("no free place for %s; traffic is denser than the map holds", vid)
             continue

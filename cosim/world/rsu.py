@@ -15,16 +15,23 @@ POLE_CLEARANCE_M = 0.6  # [m] pole to road surface
 
 
 def choose_junctions(
-    junctions: list[JunctionGeom], count: int, centre: tuple[float, float]
+    junctions: list[JunctionGeom], degree: dict[str, int], count: int, centre: tuple[float, float]
 ) -> list[JunctionGeom]:
-    """``count`` junctions spread over the map (farthest-point order from the one nearest ``centre``;
-    signalised junctions first). Repeats junctions when there are fewer than ``count``."""
+    """``count`` junctions spread over the map (farthest-point order from the one nearest ``centre``),
+    preferring signalised junctions, then junctions with three or more incoming roads (``degree``:
+    incoming road edges per junction id). Repeats junctions when there are fewer than ``count``."""
     if not junctions or count <= 0:
         return []
-    pool = sorted(junctions, key=lambda j: (j.kind != "traffic_light", j.junction_id))
-    n_tls = sum(j.kind == "traffic_light" for j in pool)
-    if n_tls >= count:
-        pool = pool[:n_tls]
+
+    def rank(j: JunctionGeom) -> int:
+        return 0 if j.kind == "traffic_light" else 1 if degree.get(j.junction_id, 0) >= 3 else 2
+
+    pool = sorted(junctions, key=lambda j: (rank(j), j.junction_id))
+    for level in (0, 1):
+        n = sum(rank(j) <= level for j in pool)
+        if n >= count:
+            pool = pool[:n]
+            break
     pts = np.array([j.position_m for j in pool])
     first = int(np.argmin(np.linalg.norm(pts - np.array(centre), axis=1)))
     chosen = [first]
@@ -43,6 +50,7 @@ def choose_junctions(
 
 def place_rsus(
     junctions: list[JunctionGeom],
+    degree: dict[str, int],
     count: int,
     height_range_m: tuple[float, float],
     road: Raster,
@@ -53,7 +61,7 @@ def place_rsus(
     sites: list[RsuSite] = []
     blocked = road.dilated(POLE_CLEARANCE_M)
     used: list[tuple[float, float]] = []
-    for i, j in enumerate(choose_junctions(junctions, count, centre)):
+    for i, j in enumerate(choose_junctions(junctions, degree, count, centre)):
         jx, jy = j.position_m
         phase = float(rng.uniform(0, 2 * math.pi))
         best = None
