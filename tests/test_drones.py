@@ -19,7 +19,8 @@ from cosim.drones.demo import demo_world
 from cosim.drones.fleet import build_strategy
 from cosim.drones.obstacles import Obstacles
 from cosim.drones.report import fly_escort, fly_hover, fly_patrol, rms
-from cosim.drones.strategies import Escort, Hover, Patrol
+from cosim.drones.routes import road_graph
+from cosim.drones.strategies import SWING_FEEDFORWARD, Escort, Hover, Patrol
 from cosim.drones.wind import Wind
 from cosim.errors import CollisionError, InputError, WorkerError
 from cosim.geometry import rotation_matrix
@@ -145,7 +146,27 @@ def test_default_hover_points_spread_over_junctions():
     assert points[0] == (200.0, 200.0)  # the central crossing first
 
 
-def test_generated_patrol_loop_circles_junctions():
+def test_generated_patrol_loops_go_around_blocks_along_roads():
+    world = demo_world(with_roads=True)
+    obs = Obstacles.from_layout(world.layout)
+    graph = road_graph(world.net_xml)
+    assert sorted(b for b, _ in graph["j11"]) == ["j01", "j10", "j12", "j21"]
+    taken: set = set()
+    loops = [build_strategy(PatrolDrone(), k, world, obs, graph, taken).waypoints_m[:, :2] for k in range(4)]
+    corners = {j.position_m for j in world.junctions}
+    for wps in loops:
+        # A 100 m block: 4 junctions joined by roads (axis-aligned legs of 100 m), counter-clockwise.
+        assert len(wps) == 4 and {tuple(w) for w in wps} <= corners
+        legs = np.roll(wps, -1, axis=0) - wps
+        assert np.allclose(np.sort(np.abs(legs), axis=1), [[0.0, 100.0]] * 4)
+        assert np.min(legs[:-1, 0] * legs[1:, 1] - legs[:-1, 1] * legs[1:, 0]) > 0
+    assert len({frozenset(map(tuple, w.tolist())) for w in loops}) == 4  # four different blocks
+    # A longer loop goes around the centre junction along the roads.
+    big = build_strategy(PatrolDrone(loop_length_m=800.0), 0, world, obs, graph, set()).waypoints_m
+    assert len(big) == 8 and (200.0, 200.0) not in {tuple(w) for w in big[:, :2]}
+
+
+def test_generated_patrol_loop_without_roads_circles_junctions():
     world = demo_world()
     obs = Obstacles.from_layout(world.layout)
     p = build_strategy(PatrolDrone(loop_length_m=600.0), 0, world, obs)
@@ -177,9 +198,11 @@ def test_escort_extrapolates_a_turning_target():
     ref = esc.reference(0.4, level_state())
     truth = esc.offset_point(car(0.4))
     assert ref.position_m[:2] == pytest.approx(truth, abs=0.02)
-    # Feed-forward velocity is the offset point's velocity (finite difference of the truth).
-    v_truth = (esc.offset_point(car(0.401)) - esc.offset_point(car(0.399))) / 0.002
-    assert ref.velocity_mps[:2] == pytest.approx(v_truth, abs=0.02)
+    # Feed-forward velocity: the car's, plus a share of the offset point's swing about the car.
+    v_point = (esc.offset_point(car(0.401)) - esc.offset_point(car(0.399))) / 0.002
+    v_car = np.array(car(0.4).velocity_mps[:2])
+    expected = v_car + SWING_FEEDFORWARD * (v_point - v_car)
+    assert ref.velocity_mps[:2] == pytest.approx(expected, abs=0.02)
 
 
 # ------------------------------------------------------------------------ with real engines

@@ -32,9 +32,9 @@ class Limits:
     max_speed_mps: float = 15.0  # horizontal
     max_climb_mps: float = 4.0
     max_descent_mps: float = 3.0
-    max_accel_mps2: float = 5.0  # horizontal (bounds the tilt to ~27 deg)
+    max_accel_mps2: float = 7.0  # horizontal, before drag compensation
     max_vert_accel_mps2: float = 4.0
-    max_tilt_rad: float = math.radians(35.0)
+    max_tilt_rad: float = math.radians(40.0)
     max_yaw_rate_radps: float = math.radians(60.0)
 
 

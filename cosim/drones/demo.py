@@ -21,9 +21,31 @@ def box(x0: float, y0: float, x1: float, y1: float, top_m: float, instance_id: i
     return Prism("building", ((x0, y0), (x1, y0), (x1, y1), (x0, y1)), 0.0, top_m, instance_id)
 
 
-def demo_world() -> World:
+def grid_net_xml(junctions: tuple[Junction, ...], spacing_m: float) -> bytes:
+    """A minimal SUMO network: two-way single-lane roads between junctions ``spacing_m`` apart."""
+    lines = ['<net version="1.20">']
+    for a in junctions:
+        for b in junctions:
+            d = math.dist(a.position_m, b.position_m)
+            if a is b or abs(d - spacing_m) > 1e-6:
+                continue
+            eid = f"{a.junction_id}_{b.junction_id}"
+            shape = f"{a.position_m[0]},{a.position_m[1]} {b.position_m[0]},{b.position_m[1]}"
+            lines.append(
+                f'  <edge id="{eid}" from="{a.junction_id}" to="{b.junction_id}" priority="1">'
+                f'<lane id="{eid}_0" index="0" speed="13.89" length="{d}" shape="{shape}"/></edge>'
+            )
+    for j in junctions:
+        x, y = j.position_m
+        lines.append(f'  <junction id="{j.junction_id}" type="{j.kind}" x="{x}" y="{y}" incLanes="" intLanes=""/>')
+    lines.append("</net>")
+    return "\n".join(lines).encode()
+
+
+def demo_world(with_roads: bool = False) -> World:
     """400 m square; a 3x3 grid of junctions 100 m apart at x, y in {100, 200, 300}; three buildings
-    between the roads (25 m, a 70 m tower, 15 m) and a flat road strip (not an obstacle)."""
+    between the roads (25 m, a 70 m tower, 15 m) and a flat road strip (not an obstacle). With
+    ``with_roads`` it carries a SUMO network of two-way roads along the grid lines."""
     junctions = tuple(
         Junction(f"j{i}{j}", (100.0 * i + 100.0, 100.0 * j + 100.0), "priority") for i in range(3) for j in range(3)
     )
@@ -33,7 +55,8 @@ def demo_world() -> World:
         box(120, 220, 180, 280, 15.0, 1_000_003),
         Prism("road", ((0, 95), (400, 95), (400, 105), (0, 105)), 0.0, 0.02, 0),
     )
-    return World("urban", b"", b"", (0.0, 0.0, 400.0, 400.0), junctions, (), StaticLayout(prisms), GEO_ORIGIN)
+    net = grid_net_xml(junctions, 100.0) if with_roads else b""
+    return World("urban", net, b"", (0.0, 0.0, 400.0, 400.0), junctions, (), StaticLayout(prisms), GEO_ORIGIN)
 
 
 #: A route on the demo world's roads with five 90-degree turns.

@@ -20,7 +20,7 @@ from cosim.drones.backends.base import DynamicsBackend
 from cosim.drones.backends.pybullet_backend import body_half_extents_m
 from cosim.drones.control import BodyState, Controller, Limits, yaw_of
 from cosim.drones.obstacles import Obstacles
-from cosim.drones.routes import hover_point, patrol_loop, ranked_junctions, world_centre
+from cosim.drones.routes import RoadGraph, hover_point, patrol_loop, ranked_junctions, road_graph, world_centre
 from cosim.drones.strategies import Escort, Hover, Patrol, Strategy, planned_altitude
 from cosim.drones.wind import Wind
 from cosim.errors import CollisionError, WorkerError
@@ -57,9 +57,16 @@ def _densify(points_xy: np.ndarray, step_m: float = 5.0) -> np.ndarray:
 
 
 def build_strategy(
-    spec: HoverDrone | PatrolDrone | EscortDrone, kind_index: int, world: World, obstacles: Obstacles
+    spec: HoverDrone | PatrolDrone | EscortDrone,
+    kind_index: int,
+    world: World,
+    obstacles: Obstacles,
+    roads: RoadGraph | None = None,
+    taken: set | None = None,
 ) -> Strategy:
-    """The strategy of one drone; ``kind_index`` counts drones of the same strategy (0, 1, ...).
+    """The strategy of one drone; ``kind_index`` counts drones of the same strategy (0, 1, ...);
+    generated patrol loops follow ``roads`` (:func:`road_graph`) when given, avoiding blocks in
+    ``taken`` (see :func:`patrol_loop`).
 
     The planned altitude covers the whole path the strategy flies, including the transit from
     ``spec.start`` when one is given.
@@ -75,7 +82,7 @@ def build_strategy(
         if spec.waypoints is not None:
             wps = np.array(spec.waypoints, dtype=np.float64)
         else:
-            wps = patrol_loop(world, kind_index, spec.loop_length_m)
+            wps = patrol_loop(world, kind_index, spec.loop_length_m, roads, taken)
         path = np.vstack([wps, wps[:1]]) if start is None else np.vstack([start, wps, wps[:1]])
         z = planned_altitude(obstacles, _densify(path), spec.altitude_m, clearance)
         return Patrol(np.column_stack([wps, np.full(len(wps), z)]), spec.speed_mps, spec.reach_radius_m)
@@ -106,6 +113,9 @@ class DroneFleet:
         wind_dir = float(np.random.default_rng(seeds[0]).uniform(-math.pi, math.pi))
         env = scenario.environment
         half = body_half_extents_m(self.frame)
+        needs_roads = any(isinstance(d, PatrolDrone) and d.waypoints is None for d in a.drones)
+        roads = road_graph(world.net_xml) if needs_roads else {}
+        taken: set = set()
         counts: dict[str, int] = {}
         self._drones: list[_Drone] = []
         self._t_ns: int | None = None
@@ -113,7 +123,7 @@ class DroneFleet:
             for i, spec in enumerate(a.drones):
                 k = counts.get(spec.strategy, 0)
                 counts[spec.strategy] = k + 1
-                strategy = build_strategy(spec, k, self.world, self.obstacles)
+                strategy = build_strategy(spec, k, self.world, self.obstacles, roads, taken)
                 backend = backend_class(a.drone_backend_of(i))(self.frame, self.dt_s, world)
                 limits = Limits(max_speed_mps=spec.max_speed_mps)
                 wind = Wind.create(env.wind_mps, wind_dir, env.gust_mps, self.dt_s, np.random.default_rng(seeds[i + 1]))
