@@ -124,3 +124,111 @@ def test_fake_traffic_moves_straight(tmp_path: Path) -> None:
     assert {s.agent_id for s in a if s.agent_id} == {
         f"vehicle_{i}" for i in range(loaded.scenario.agents.vehicles.count)
     }
+
+
+# ------------------------------------------------------------------------------ 60 s episodes per map kind
+
+KINDS = ("urban", "suburban", "rural", "highway")
+_EPISODES: dict[str, tuple] = {}
+
+
+def _episode(kind: str, tmp: Path) -> tuple:
+    """World and every tick's states of a 60 s episode (300 ticks) on a default 400 m map, cached."""
+    if kind not in _EPISODES:
+        loaded = load_scenario_data({"name": f"acc_{kind}", "seed": 11, "duration_s": 60, "map": {"kind": kind}})
+        sc = loaded.scenario
+        world = build_world(loaded, tmp / "w")
+        sim = TrafficSim(sc, world, tmp / "s")
+        try:
+            ticks = [sim.step_to(k * sc.tick_ns) for k in range(sc.n_ticks)]
+        finally:
+            sim.close()
+        _EPISODES[kind] = (loaded, world, ticks)
+    return _EPISODES[kind]
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("kind", KINDS)
+def test_episode_acceptance(kind: str, tmp_path: Path) -> None:
+    loaded, world, ticks = _episode(kind, tmp_path)
+    sc = loaded.scenario
+    assert len(ticks) == 300
+    connected = {f"vehicle_{i}" for i in range(sc.agents.vehicles.count)}
+    road = road_raster(read_network(world.net_xml), world.bounds_m, 0.25)
+    on = total = 0
+    seen: set[str] = set()
+    for k, states in enumerate(ticks):
+        ids = {s.sumo_id for s in states}
+        assert connected <= ids, f"tick {k}: missing {sorted(connected - ids)}"
+        overlap, pair = max_pairwise_overlap(states)
+        assert overlap <= 0.05, f"tick {k}: {pair} overlap {overlap:.3f} m^2"
+        pts = np.array([s.center_m[:2] for s in states])
+        on += int(road.lookup(pts).sum())
+        total += len(pts)
+        seen |= {s.cls for s in states}
+        for s in states:
+            assert s.size_m[0] > s.size_m[1] > 0 and s.size_m[2] > 0
+            assert s.center_m[2] == pytest.approx(0.5 * s.size_m[2], abs=1e-6)  # flat generated maps
+    assert on / total >= 0.99, f"{on / total:.4f} of box centres on the road"
+    assert {c for c, share in sc.traffic.mix.items() if share > 0} <= seen
+    junctions = {j.junction_id: j.position_m for j in world.junctions}
+    assert all(math.dist(r.position_m[:2], junctions[r.junction_id]) <= 15.0 for r in world.rsus)
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("kind", KINDS)
+def test_class_mix_over_episode(kind: str, tmp_path: Path) -> None:
+    loaded, _world, ticks = _episode(kind, tmp_path)
+    mix = loaded.scenario.traffic.mix
+    vehicles = {s.sumo_id: s.cls for states in ticks for s in states}
+    n = len(vehicles)
+    for cls, share in mix.items():
+        got = sum(c == cls for c in vehicles.values()) / n
+        assert abs(got - share) <= 0.10, f"{kind}: {cls} {got:.2f} of {n} vehicles, configured {share:.2f}"
+    # per-tick shares too (every vehicle stays for the whole episode on these maps)
+    per_tick = [s.cls for states in ticks for s in states]
+    for cls, share in mix.items():
+        assert abs(per_tick.count(cls) / len(per_tick) - share) <= 0.10
+
+
+@pytest.mark.integration
+def test_traffic_is_deterministic(tmp_path: Path) -> None:
+    def run(seed: int, sub: str) -> list:
+        loaded = load_scenario_data(
+            {"name": "d", "seed": seed, "duration_s": 20, "map": {"kind": "urban", "size_m": 250}}
+        )
+        world = build_world(loaded, tmp_path / sub / "w")
+        sim = TrafficSim(loaded.scenario, world, tmp_path / sub / "s")
+        try:
+            return [sim.step_to(k * TICK_NS) for k in range(100)]
+        finally:
+            sim.close()
+
+    a, b, c = run(4, "a"), run(4, "b"), run(5, "c")
+    assert a == b
+    assert a != c
+
+
+@pytest.mark.integration
+def test_speed_and_yaw_rate_are_consistent_with_motion(tmp_path: Path) -> None:
+    _loaded, _world, ticks = _episode("urban", tmp_path)
+    dt = 0.2
+    straight = 0
+    rate_dt, dyaw = [], []
+    for prev, cur in zip(ticks[20:299], ticks[21:300], strict=True):
+        before = {s.sumo_id: s for s in prev}
+        for s in cur:
+            p = before.get(s.sumo_id)
+            if p is None:
+                continue
+            d = math.remainder(s.yaw_rad - p.yaw_rad, 2 * math.pi)
+            if abs(d) > 0.02:
+                rate_dt.append(0.5 * (s.yaw_rate_radps + p.yaw_rate_radps) * dt)
+                dyaw.append(d)
+            elif s.speed_mps > 2.0:  # straight: the displacement is the mean speed times dt
+                moved = math.dist(s.center_m[:2], p.center_m[:2])
+                assert moved == pytest.approx(0.5 * (s.speed_mps + p.speed_mps) * dt, abs=0.35)
+                straight += 1
+    assert straight > 100 and len(dyaw) > 20
+    x, y = np.array(rate_dt), np.array(dyaw)
+    assert float(np.dot(x, y) / np.dot(y, y)) == pytest.approx(1.0, abs=0.25)  # yaw rate explains turning

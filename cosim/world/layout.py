@@ -156,7 +156,7 @@ def road_polygons(net: RoadNetwork) -> list[np.ndarray]:
     """Drivable surface: every non-internal edge's road lanes and every junction outline."""
     polys = [p for e in net.edges.values() if not e.internal and (p := edge_road_polygon(e)) is not None]
     polys += [geom.ccw(j.shape) for j in net.junctions.values() if len(j.shape) >= 3 and j.kind != "internal"]
-    return polys
+    return [p for p in polys if len(p) >= 3 and geom.signed_area(p) > 0.01]
 
 
 def road_raster(net: RoadNetwork, bounds_m: tuple[float, float, float, float], cell_m: float = CELL_M) -> Raster:

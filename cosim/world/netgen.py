@@ -330,7 +330,7 @@ def from_osm(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
     net_xml = strip_header(out.read_bytes())
     buildings: list[np.ndarray] = []
     osm_text = req.file.read_bytes()
-    if b'k="building"' in osm_text:
+    if re.search(rb"""k=["']building["']""", osm_text):
         (req.workdir / "buildings.typ.xml").write_bytes(_POLY_TYPES)
         polys = req.workdir / "buildings.poly.xml"
         _run_tool(
@@ -572,8 +572,8 @@ def highway(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
         ("n2", south, "mw", west),
     ):
         edges.append({"id": f"{a}_{b}", "from": a, "to": b, **ramp, "shape": _bezier(pts[a], da, pts[b], db)})
-    local = {"numLanes": 1, "speed": 13.89, "priority": 1, "width": 3.25, "disallow": "pedestrian"}
+    local = {"numLanes": 1, "speed": 13.89, "priority": 1, "width": 3.75, "disallow": "pedestrian"}
     for a, b in (("sa", "s1"), ("s1", "s2"), ("s2", "sb"), ("na", "n2"), ("n2", "n1"), ("n1", "nb")):
         _two_way(edges, a, b, None, **local)
-    ramps = ["--ramps.guess", "--ramps.ramp-length", f"{min(100.0, 0.2 * s):.0f}"]
+    ramps = ["--ramps.guess", "--ramps.ramp-length", f"{min(100.0, 0.2 * s):.0f}", "--default.junctions.radius", "8"]
     return NetworkResult(_netconvert_plain(nodes, edges, req, ramps))

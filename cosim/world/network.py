@@ -7,6 +7,7 @@ not SUMO's XML, so it can be tested on small hand-made networks.
 from __future__ import annotations
 
 import logging
+import re
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -93,6 +94,32 @@ class RoadNetwork:
         return [j for j in self.junctions.values() if j.kind not in ("internal", "dead_end")]
 
 
+_LOCATION = re.compile(rb"<location\s([^>]*)/?>")
+_ATTR = re.compile(rb'(\w+)="([^"]*)"')
+
+
+def geo_origin_of(net_xml: bytes) -> tuple[float, float] | None:
+    """(lat, lon) [deg] of map (0, 0) for a geo-referenced network, else None.
+
+    Interpolates linearly between the network's projected (``convBoundary``) and geographic
+    (``origBoundary``) bounds: over a town-sized map the projection is linear to well under a metre,
+    and no projection library is needed.
+    """
+    m = _LOCATION.search(net_xml[:20000])
+    if m is None:
+        return None
+    attrs = {k.decode(): v.decode() for k, v in _ATTR.findall(m.group(1))}
+    if attrs.get("projParameter", "!") == "!" or "origBoundary" not in attrs or "convBoundary" not in attrs:
+        return None
+    lon0, lat0, lon1, lat1 = (float(v) for v in attrs["origBoundary"].split(","))
+    x0, y0, x1, y1 = (float(v) for v in attrs["convBoundary"].split(","))
+    if x1 <= x0 or y1 <= y0:
+        return None
+    lon = lon0 + (0.0 - x0) / (x1 - x0) * (lon1 - lon0)
+    lat = lat0 + (0.0 - y0) / (y1 - y0) * (lat1 - lat0)
+    return (lat, lon)
+
+
 def read_network(net_xml: bytes) -> RoadNetwork:
     """Parse a SUMO .net.xml; raises InputError when it is not a usable network."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -133,10 +160,7 @@ def read_network(net_xml: bytes) -> RoadNetwork:
         x, y = n.getCoord()[:2]
         junctions[n.getID()] = JunctionGeom(n.getID(), (float(x), float(y)), n.getType(), shape)
     xmin, ymin, xmax, ymax = net.getBoundary()
-    origin = None
-    if net.hasGeoProj():
-        lon, lat = net.convertXY2LonLat(0.0, 0.0)
-        origin = (float(lat), float(lon))
+    origin = geo_origin_of(net_xml)
     road_net = RoadNetwork(edges, junctions, (float(xmin), float(ymin), float(xmax), float(ymax)), origin)
     if not road_net.road_edges():
         raise InputError("the SUMO network has no edge that vehicles may use")

@@ -124,7 +124,11 @@ def plan_vehicles(
 ) -> list[PlannedVehicle]:
     """Connected vehicles first (ids vehicle_<i>), then background (ids bg_<nnnn>)."""
     n_bg = round(scenario.traffic.density_veh_per_km * road_km)
-    counts = class_counts(dict(scenario.traffic.mix), n_bg)
+    n_conn = scenario.agents.vehicles.count
+    # the mix holds for all vehicles on the road, connected ones included
+    counts = class_counts(dict(scenario.traffic.mix), n_bg + n_conn)
+    conn_cls = scenario.agents.vehicles.vclass
+    counts[conn_cls] = max(0, counts.get(conn_cls, 0) - n_conn)
     wanted: list[tuple[str, str]] = [
         (f"vehicle_{i}", scenario.agents.vehicles.vclass) for i in range(scenario.agents.vehicles.count)
     ]

@@ -77,15 +77,8 @@ def place_rsus(
         if best is None:  # the junction is all asphalt: stand at its edge
             best = (jx + MAX_OFFSET_M * math.cos(phase), jy + MAX_OFFSET_M * math.sin(phase))
         used.append(best)
-        h = float(rng.uniform(*height_range_m))
-        yaw = math.atan2(jy - best[1], jx - best[0])
-        sites.append(
-            RsuSite(
-                f"rsu_{i}",
-                j.junction_id,
-                (round(float(best[0]), 3), round(float(best[1]), 3), round(h, 3)),
-                yaw,
-                round(h, 3),
-            )
-        )
+        h = round(float(rng.uniform(*height_range_m)), 3)
+        x, y = round(float(best[0]), 3), round(float(best[1]), 3)
+        yaw = math.atan2(jy - y, jx - x)
+        sites.append(RsuSite(f"rsu_{i}", j.junction_id, (x, y, h), yaw, h))
     return sites
