@@ -160,3 +160,12 @@ def test_cli_lists_shipped_scenarios_and_version():
     assert "INVALID" not in r.stdout
     v = run_cli("--version", timeout=60)
     assert v.returncode == 0 and v.stdout.startswith("cosim ")
+
+
+def test_image_scale_shrinks_every_camera_of_every_rig():
+    s = load_scenario(SCENARIOS / "default.yaml", ["sensors.image_scale=0.25"]).scenario
+    for agent in ("vehicle_0", "rsu_1", "drone_2"):
+        cams = s.rig_for(agent).cameras
+        assert cams and all((c.width, c.height) == (320, 180) for c in cams)
+        assert [c.fov_deg for c in cams] == [c.fov_deg for c in Scenario(name="x").rig_for(agent).cameras]
+    assert all(c.width == 1280 for c in Scenario(name="x").rig_for("vehicle_0").cameras)

@@ -305,6 +305,7 @@ class SensorsSpec(Model):
     vehicle: RigSpec = Field(default_factory=default_vehicle_rig)
     rsu: RigSpec = Field(default_factory=default_rsu_rig)
     drone: RigSpec = Field(default_factory=default_drone_rig)
+    image_scale: float = Field(1.0, gt=0.0, le=1.0)  # scales every camera's width and height (previews, tests)
     bev_cell_m: float = Field(0.25, gt=0.01, le=5)
     bev_range_m: tuple[float, float] = (64.0, 40.0)  # [m] half extents x, y (paper section 4.2)
 
@@ -377,5 +378,12 @@ class Scenario(Model):
         )
 
     def rig_for(self, agent_id: str) -> RigSpec:
+        """The sensor rig of an agent (by id prefix), with ``sensors.image_scale`` applied to its cameras."""
         kind = agent_id.rsplit("_", 1)[0]
-        return {"vehicle": self.sensors.vehicle, "rsu": self.sensors.rsu, "drone": self.sensors.drone}[kind]
+        rig = {"vehicle": self.sensors.vehicle, "rsu": self.sensors.rsu, "drone": self.sensors.drone}[kind]
+        scale = self.sensors.image_scale
+        if scale == 1.0:
+            return rig
+        cams = [c.model_copy(update={"width": max(16, round(c.width * scale / 2) * 2),
+                                     "height": max(16, round(c.height * scale / 2) * 2)}) for c in rig.cameras]
+        return rig.model_copy(update={"cameras": cams})
