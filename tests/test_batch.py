@@ -6,9 +6,6 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import os
-import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -282,43 +279,6 @@ def test_manifest_tolerates_a_torn_last_line_and_last_record_wins(tmp_path):
     with Manifest(path) as m:  # appending after a torn line starts a fresh line
         m.append({"episode": "b", "status": "done"})
     assert set(latest_records(tmp_path)) == {"a", "b"}
-
-
-_KILL_DRIVER = """
-import sys
-from cosim.batch.executors import LocalExecutor
-from cosim.batch.plan import plan_file
-from cosim.batch.runner import run_batch
-from tests.test_batch import fake_episode
-plan = plan_file(sys.argv[1])
-run_batch(plan, sys.argv[2], LocalExecutor(2, fake_episode), retries=0, show_progress=False)
-"""
-
-
-def test_killed_batch_resumes_to_the_same_manifest_and_files(tmp_path):
-    sweep = write_sweep(tmp_path, SIX.replace("duration_s: 1}", "duration_s: 1, description: slow}"))
-    plan = plan_file(sweep)
-    ref = tmp_path / "ref"
-    assert run(plan, ref).ok
-    out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-c", _KILL_DRIVER, str(sweep), str(out)], cwd=REPO,
-                            start_new_session=True)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:  # kill once at least one episode finished, before all did
-        done = [r for r in latest_records(out).values() if r["status"] == "done"] if out.exists() else []
-        if done:
-            break
-        time.sleep(0.05)
-    os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait(30)
-    interrupted = latest_records(out)
-    assert 1 <= sum(r["status"] == "done" for r in interrupted.values()) < 6
-    summary = run(plan, out)
-    assert summary.ok and summary.skipped >= 1 and summary.skipped + summary.done == 6
-    assert deterministic_view(latest_records(out).values()) == deterministic_view(latest_records(ref).values())
-    for e in plan.episodes:
-        assert (out / e.file).read_bytes() == (ref / e.file).read_bytes()
-    assert not list(out.rglob("*.partial"))
 
 
 def test_unknown_backend_lists_the_known_ones():

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from cosim.batch.manifest import sha256_file
-from cosim.errors import CosimError
+from cosim.errors import CosimError, InputError
 
 Progress = Callable[[int, int], None]
 
@@ -68,7 +68,8 @@ def execute(job: Job, fn: EpisodeFn, progress: Progress) -> dict[str, Any]:
     """Run one attempt and describe it: ``ok``, ``wall_time_s``, ``size_bytes``, ``sha256`` or ``error``.
 
     Never raises for an episode failure (the message goes into the outcome); a process crash is
-    detected by the executor instead.
+    detected by the executor instead. Bad input found at run time (an :class:`InputError`, e.g. a
+    missing map file) is marked ``retryable: False``: running it again cannot help.
     """
     started = time.perf_counter()
     ticks_at: list[float] = []
@@ -86,7 +87,8 @@ def execute(job: Job, fn: EpisodeFn, progress: Progress) -> dict[str, Any]:
             raise CosimError(f"episode {job.episode_id} finished without writing {path}")
         outcome.update(ok=True, info=info, size_bytes=path.stat().st_size, sha256=sha256_file(path))
     except Exception as exc:  # any failure of one episode is recorded; the batch goes on
-        outcome.update(ok=False, error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc(limit=8))
+        outcome.update(ok=False, error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc(limit=8),
+                       retryable=not isinstance(exc, InputError))
     outcome["wall_time_s"] = round(time.perf_counter() - started, 3)
     outcome["first_tick_s"] = ticks_at[0] if ticks_at else None
     outcome["tick_marks_s"] = ticks_at

@@ -49,7 +49,7 @@ class RayExecutor:
                 ray.init(address=address, log_to_driver=False)
         cpus = int(ray.cluster_resources().get("CPU", 1))
         self.max_in_flight = max_in_flight or max(1, 2 * int(cpus / cpus_per_episode))
-        self._remote = ray.remote(_task).options(max_calls=1, max_retries=0, num_cpus=cpus_per_episode)
+        self._remote = ray.remote(max_calls=1, max_retries=0, num_cpus=cpus_per_episode)(_task)
         self._fn_ref = ray.put(episode_fn)
         self._pending: dict[Any, Job] = {}
 

@@ -118,7 +118,7 @@ def run_batch(plan: Plan, out_dir: Path | str, executor: Executor, *, retries: i
                     display.settled(ep.id, job.n_ticks, "done")
                     continue
                 error = str(outcome.get("error") or "unknown error")
-                if job.attempt <= retries:
+                if job.attempt <= retries and outcome.get("retryable", True):
                     manifest.append({**rec, "status": "failed", "error": error, "retrying": True})
                     summary.retried += 1
                     display.settled(ep.id, job.n_ticks, "retry", error)

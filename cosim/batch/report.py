@@ -1,0 +1,244 @@
+"""``cosim report DIR``: the dataset statistics the AirV2X-Perception paper shows, for a batch folder.
+
+Hours per split; shares of weather, lighting, environment (by driving time) and drone strategy (by
+drone time); objects per class (unique track ids per episode, summed); agents per scene. Written as
+Markdown plus PNG plots (matplotlib, Agg backend).
+
+The episode list comes from the manifest (last record per episode, status ``done``); each episode's
+conditions come from its own ``episode`` metadata record and its objects from ``/labels/objects``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from cosim.batch.manifest import latest_records
+from cosim.errors import FormatError, InputError
+
+log = logging.getLogger(__name__)
+
+OBJECTS_TOPIC = "/labels/objects"
+CONDITIONS = ("weather", "lighting", "environment")
+
+
+@dataclass(frozen=True)
+class EpisodeStats:
+    episode: str
+    split: str
+    duration_s: float
+    weather: str
+    lighting: str
+    environment: str
+    strategies: tuple[str, ...]
+    agents: dict[str, int]  # kind (vehicle, rsu, drone) -> count
+    objects: dict[str, int]  # class -> unique track ids
+
+
+@dataclass
+class Report:
+    md_path: Path
+    images: list[Path] = field(default_factory=list)
+    episodes: int = 0
+    hours: float = 0.0
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+def episode_stats(path: Path, episode: str = "", split: str = "all", duration_s: float | None = None) -> EpisodeStats:
+    """Read one episode's metadata and count unique track ids per class in ``/labels/objects``."""
+    from mcap.reader import make_reader
+
+    tracks: dict[str, set[int]] = defaultdict(set)
+    try:
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+            for _schema, _channel, message in reader.iter_messages(topics=[OBJECTS_TOPIC]):
+                for obj in json.loads(message.data).get("objects", []):
+                    tracks[obj["class"]].add(int(obj["track_id"]))
+    except (OSError, ValueError, KeyError) as exc:
+        raise FormatError(f"{path}: cannot read episode statistics: {exc}") from exc
+    ep = meta.get("episode")
+    if ep is None:
+        raise FormatError(f"{path}: no 'episode' metadata record")
+    agents = Counter(a.rsplit("_", 1)[0] for a in json.loads(ep.get("agents", "[]")))
+    return EpisodeStats(
+        episode=episode or path.stem, split=split,
+        duration_s=float(duration_s if duration_s is not None else ep.get("duration_s", 0.0)),
+        weather=ep.get("weather", "?"), lighting=ep.get("lighting", "?"), environment=ep.get("environment", "?"),
+        strategies=tuple(json.loads(ep.get("strategies", "[]"))),
+        agents={k: agents.get(k, 0) for k in ("vehicle", "rsu", "drone")},
+        objects={k: len(v) for k, v in sorted(tracks.items())},
+    )
+
+
+def collect(out_dir: Path) -> tuple[list[EpisodeStats], dict[str, int]]:
+    """Stats of every finished episode in the manifest, and the manifest's status counts."""
+    records = latest_records(out_dir)
+    if not records:
+        raise InputError(f"no manifest records in {out_dir} (expected manifest*.jsonl from `cosim batch`)")
+    status = Counter(r.get("status", "?") for r in records.values())
+    out = []
+    for rec in records.values():
+        if rec.get("status") != "done":
+            continue
+        path = Path(out_dir) / rec["file"]
+        if not path.is_file():
+            raise FormatError(f"{path}: listed as done in the manifest but missing")
+        out.append(episode_stats(path, rec["episode"], rec.get("split", "all"), rec.get("duration_s")))
+    return out, dict(status)
+
+
+def summarize(episodes: list[EpisodeStats]) -> dict[str, Any]:
+    """The numbers of the report (also what the tests compare with the manifest)."""
+    hours: Counter[str] = Counter()
+    count: Counter[str] = Counter()
+    shares: dict[str, Counter[str]] = {c: Counter() for c in (*CONDITIONS, "strategy")}
+    objects: Counter[str] = Counter()
+    agents_per_scene: Counter[int] = Counter()
+    per_kind: dict[str, list[int]] = defaultdict(list)
+    for e in episodes:
+        h = e.duration_s / 3600.0
+        hours[e.split] += h
+        count[e.split] += 1
+        for c in CONDITIONS:
+            shares[c][getattr(e, c)] += h
+        for s in e.strategies:
+            shares["strategy"][s] += h  # drone-hours
+        objects.update(e.objects)
+        agents_per_scene[sum(e.agents.values())] += 1
+        for k, n in e.agents.items():
+            per_kind[k].append(n)
+    return {
+        "episodes": len(episodes),
+        "hours": sum(hours.values()),
+        "hours_per_split": dict(hours),
+        "episodes_per_split": dict(count),
+        "shares": {c: _fractions(v) for c, v in shares.items()},
+        "hours_by": {c: dict(v) for c, v in shares.items()},
+        "objects_per_class": dict(sorted(objects.items(), key=lambda kv: -kv[1])),
+        "agents_per_scene": dict(sorted(agents_per_scene.items())),
+        "agents_per_kind": {k: (min(v), sum(v) / len(v), max(v)) for k, v in per_kind.items()},
+    }
+
+
+def _fractions(c: Counter[str]) -> dict[str, float]:
+    total = sum(c.values())
+    return {k: v / total for k, v in sorted(c.items(), key=lambda kv: -kv[1])} if total else {}
+
+
+# ------------------------------------------------------------------------------------- plots
+
+
+def _plots(stats: dict[str, Any], img_dir: Path, prefix: str) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    img_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+
+    def save(fig: Any, name: str) -> None:
+        path = img_dir / f"{prefix}{name}.png"
+        fig.tight_layout()
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        paths.append(path)
+
+    fig, ax = plt.subplots(figsize=(5, 3))
+    splits = list(stats["hours_per_split"])
+    vals = [stats["hours_per_split"][s] for s in splits]
+    bars = ax.bar(splits, vals, color="#4c72b0")
+    for b, s in zip(bars, splits, strict=True):
+        ax.annotate(f"{stats['episodes_per_split'][s]} ep.", (b.get_x() + b.get_width() / 2, b.get_height()),
+                    ha="center", va="bottom", fontsize=8)
+    ax.set_ylabel("driving time [h]")
+    ax.set_title(f"Hours per split ({stats['hours']:.3f} h, {stats['episodes']} episodes)")
+    save(fig, "hours_per_split")
+
+    fig, axes = plt.subplots(1, 4, figsize=(13, 3.2))
+    titles = {"weather": "Weather", "lighting": "Lighting", "environment": "Environment",
+              "strategy": "Drone strategy (drone time)"}
+    for ax, (key, title) in zip(axes, titles.items(), strict=True):
+        share = stats["shares"][key]
+        if share:
+            ax.pie(list(share.values()), labels=list(share), autopct="%1.0f%%", startangle=90,
+                   textprops={"fontsize": 8})
+        ax.set_title(title, fontsize=10)
+    save(fig, "conditions")
+
+    fig, ax = plt.subplots(figsize=(6, 3))
+    objs = stats["objects_per_class"]
+    ax.bar(list(objs), list(objs.values()), color="#55a868")
+    ax.set_ylabel("unique objects (tracks)")
+    ax.set_title("Objects per class")
+    save(fig, "objects_per_class")
+
+    fig, ax = plt.subplots(figsize=(5, 3))
+    aps = stats["agents_per_scene"]
+    ax.bar([str(k) for k in aps], list(aps.values()), color="#c44e52")
+    ax.set_xlabel("connected agents per scene (vehicles + RSUs + drones)")
+    ax.set_ylabel("episodes")
+    ax.set_title("Agents per scene")
+    save(fig, "agents_per_scene")
+    return paths
+
+
+# ---------------------------------------------------------------------------------- markdown
+
+
+def _pct_table(title: str, share: dict[str, float], hours: dict[str, float], unit: str) -> list[str]:
+    lines = [f"| {title} | {unit} | share |", "|---|---:|---:|"]
+    lines += [f"| {k} | {hours[k]:.4f} | {v * 100:.1f} % |" for k, v in share.items()]
+    return [*lines, ""]
+
+
+def _markdown(stats: dict[str, Any], status: dict[str, int], images: list[Path], md_path: Path, name: str) -> str:
+    import os
+
+    out = [f"# Dataset report: {name}", ""]
+    failed = status.get("failed", 0)
+    unfinished = sum(v for k, v in status.items() if k not in ("done", "failed"))
+    out += [f"{stats['episodes']} episodes, {stats['hours']:.4f} hours of driving "
+            f"(manifest: {status.get('done', 0)} done, {failed} failed, {unfinished} unfinished).", ""]
+    out += ["| split | episodes | hours |", "|---|---:|---:|"]
+    for s, h in stats["hours_per_split"].items():
+        out.append(f"| {s} | {stats['episodes_per_split'][s]} | {h:.4f} |")
+    out.append("")
+    for key, title, unit in (("weather", "weather", "hours"), ("lighting", "lighting", "hours"),
+                             ("environment", "environment", "hours"), ("strategy", "drone strategy", "drone-hours")):
+        out += _pct_table(title, stats["shares"][key], stats["hours_by"][key], unit)
+    out += ["| class | objects (unique tracks) |", "|---|---:|"]
+    out += [f"| {k} | {v} |" for k, v in stats["objects_per_class"].items()]
+    out += ["", "| agents per scene | episodes |", "|---:|---:|"]
+    out += [f"| {k} | {v} |" for k, v in stats["agents_per_scene"].items()]
+    out += ["", "| agent kind | min | mean | max |", "|---|---:|---:|---:|"]
+    out += [f"| {k} | {lo} | {mean:.2f} | {hi} |" for k, (lo, mean, hi) in stats["agents_per_kind"].items()]
+    out.append("")
+    for p in images:
+        rel = os.path.relpath(p, md_path.parent)
+        out.append(f"![{p.stem}]({rel})")
+    out.append("")
+    return "\n".join(out)
+
+
+def build_report(out_dir: Path, *, md_path: Path | None = None, img_dir: Path | None = None,
+                 img_prefix: str = "report_") -> Report:
+    """Write ``report.md`` (default in ``out_dir``) and the plots; returns what was written."""
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        raise InputError(f"not a folder: {out_dir}")
+    episodes, status = collect(out_dir)
+    if not episodes:
+        raise InputError(f"{out_dir}: the manifest lists no finished episode")
+    stats = summarize(episodes)
+    md = Path(md_path) if md_path else out_dir / "report.md"
+    images = _plots(stats, Path(img_dir) if img_dir else md.parent, img_prefix)
+    md.parent.mkdir(parents=True, exist_ok=True)
+    md.write_text(_markdown(stats, status, images, md, out_dir.name))
+    return Report(md_path=md, images=images, episodes=stats["episodes"], hours=stats["hours"], stats=stats)
