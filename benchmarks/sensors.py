@@ -269,7 +269,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=2)
     ap.add_argument("--background", type=int, default=40, help="background road users")
-    ap.add_argument("--block-px", type=int, default=4, help="adaptive casting block (1 = a ray per pixel)")
+    ap.add_argument("--block-px", type=int, default=8, help="adaptive casting block (1 = a ray per pixel)")
     ap.add_argument("--no-pybullet", action="store_true")
     ap.add_argument("--pictures", type=Path, help="write the weather x lighting pictures here and exit")
     args = ap.parse_args()

@@ -5,10 +5,11 @@ Rays leave the optical centre through pixel centres (u + 0.5, v + 0.5) with dire
 
 Adaptive casting (``block_px`` > 1): rays are first cast on a coarse grid of pixel centres every
 ``block_px`` pixels. A block whose four corner samples hit the same triangle, and that no actor, no
-thin static object (pole, light, RSU) and no static mesh vertex projects into, is filled from
-that triangle: its class, instance and material are the triangle's and its inverse depth, which is
-affine in the image over a plane, is interpolated exactly. Every other block is cast pixel by
-pixel. All outputs of a camera come from the same per-pixel triangle index, so they agree.
+thin static object (pole, light, marking, RSU) and no static mesh vertex projects into, is filled
+from that triangle: its class, instance and material are the triangle's and its inverse depth,
+which is affine in the image over a plane, is interpolated exactly. Every other block is split in
+four and refined the same way, down to single pixels (a quadtree). All outputs of a camera come
+from the same per-pixel triangle index, so they agree.
 """
 
 from __future__ import annotations
@@ -118,30 +119,73 @@ def _rays(pose: Pose, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Occluders:
-    """What adaptive casting must not interpolate across: boxes (B, 8, 3) and points (V, 3) in map."""
+    """What adaptive casting must not interpolate across, in map: centre lines of thin static
+    things (S, 2, 3) (poles, lamp arms, lane markings, trunks), static mesh vertices (V, 3), and the
+    tick's actor boxes (A, 8, 3)."""
 
-    boxes: np.ndarray
+    segments: np.ndarray
     points: np.ndarray
+    actor_boxes: np.ndarray
 
 
-def forced_blocks(occ: Occluders, pose: Pose, K: np.ndarray, hb: int, wb: int, s: int) -> np.ndarray:
-    """(hb, wb) bool: blocks of ``s`` px that some occluder box or point projects into."""
-    forced = np.zeros((hb, wb), bool)
-    rects, valid = project_boxes(occ.boxes, pose, K)
-    w, h = wb * s, hb * s
-    for umin, vmin, umax, vmax in rects[valid]:
-        if umax < -1 or vmax < -1 or umin > w + 1 or vmin > h + 1:
+_MAX_SEGMENT_SAMPLES = 4096
+
+
+def segment_pixels(segs: np.ndarray, pose: Pose, K: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (rows, cols) along the projections of 3D segments ``segs`` (S, 2, 3), clipped at the
+    near plane, sampled every pixel (at most 4096 samples per segment) and kept inside the image."""
+    if len(segs) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    p = pose.to_frame(segs.reshape(-1, 3)).reshape(-1, 2, 3)
+    a, b = p[:, 0], p[:, 1]
+    keep = (a[:, 2] > _NEAR_M) | (b[:, 2] > _NEAR_M)
+    a, b = a[keep], b[keep]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tcut = (_NEAR_M - a[:, 2]) / (b[:, 2] - a[:, 2])
+        a = np.where((a[:, 2] < _NEAR_M)[:, None], a + tcut[:, None] * (b - a), a)
+        tcut = (_NEAR_M - b[:, 2]) / (a[:, 2] - b[:, 2])
+        b = np.where((b[:, 2] < _NEAR_M)[:, None], b + tcut[:, None] * (a - b), b)
+    za, zb = np.maximum(a[:, 2], _NEAR_M), np.maximum(b[:, 2], _NEAR_M)
+    ua = np.stack([K[0, 0] * a[:, 0] / za + K[0, 2], K[1, 1] * a[:, 1] / za + K[1, 2]], axis=1)
+    ub = np.stack([K[0, 0] * b[:, 0] / zb + K[0, 2], K[1, 1] * b[:, 1] / zb + K[1, 2]], axis=1)
+    # Liang-Barsky clip to the image rectangle
+    d = ub - ua
+    t0, t1 = np.zeros(len(d)), np.ones(len(d))
+    ok = np.ones(len(d), bool)
+    for p_, q_ in ((-d[:, 0], ua[:, 0]), (d[:, 0], w - ua[:, 0]), (-d[:, 1], ua[:, 1]), (d[:, 1], h - ua[:, 1])):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = q_ / p_
+        ok &= ~((p_ == 0) & (q_ < 0))
+        t0 = np.where(p_ < 0, np.maximum(t0, r), t0)
+        t1 = np.where(p_ > 0, np.minimum(t1, r), t1)
+    ok &= t0 <= t1
+    ua, ub = ua[ok] + t0[ok, None] * d[ok], ua[ok] + t1[ok, None] * d[ok]
+    n = np.minimum(np.ceil(np.linalg.norm(ub - ua, axis=1)).astype(np.int64) + 1, _MAX_SEGMENT_SAMPLES)
+    seg = np.repeat(np.arange(len(n)), n)
+    start = np.concatenate([[0], np.cumsum(n)[:-1]]).astype(np.int64)
+    t = (np.arange(int(n.sum())) - start[seg]) / np.maximum(n[seg] - 1, 1)
+    uv = ua[seg] + t[:, None] * (ub[seg] - ua[seg])
+    m = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    return uv[m, 1].astype(np.int64), uv[m, 0].astype(np.int64)
+
+
+def _clip_rects(rects: np.ndarray, h: int, w: int, margin: float = 1.0) -> list[tuple[int, int, int, int]]:
+    """Pixel rectangles (umin, vmin, umax, vmax) grown by ``margin`` and clipped to the sample grid
+    (h + 1) x (w + 1), as inclusive (i0, i1, j0, j1); rectangles outside it are dropped."""
+    out = []
+    for umin, vmin, umax, vmax in rects:
+        if umax < -margin or vmax < -margin or umin > w + margin or vmin > h + margin:
             continue
-        j0 = max(0, math.floor((umin - 1.0) / s))
-        i0 = max(0, math.floor((vmin - 1.0) / s))
-        j1 = min(wb - 1, math.floor(min(umax + 1.0, w) / s))
-        i1 = min(hb - 1, math.floor(min(vmax + 1.0, h) / s))
-        forced[i0:i1 + 1, j0:j1 + 1] = True
-    if len(occ.points):
-        uv, front = project_points(occ.points, pose, K)
-        m = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-        forced[(uv[m, 1] // s).astype(np.int64), (uv[m, 0] // s).astype(np.int64)] = True
-    return forced
+        out.append((max(0, math.floor(vmin - margin)), min(h, math.ceil(vmax + margin)),
+                    max(0, math.floor(umin - margin)), min(w, math.ceil(umax + margin))))
+    return out
+
+
+def _largest_block(h: int, w: int, block_px: int) -> int:
+    s = 1
+    while s * 2 <= block_px and h % (s * 2) == 0 and w % (s * 2) == 0:
+        s *= 2
+    return s
 
 
 def cast_image(
@@ -153,45 +197,142 @@ def cast_image(
     exclude_track: int | None,
     block_px: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel global triangle index (H, W) int32 and planar depth (H, W) float32 (inf on a miss)."""
+    """Per-pixel global triangle index (H, W) int32 and planar depth (H, W) float32 (inf on a miss).
+
+    With ``block_px`` > 1 the image is refined as a quadtree from blocks of ``block_px`` (a power of
+    two dividing H and W, else the largest that does) down to single pixels (module docstring).
+    Actor triangles are only cast for samples inside some actor's projected box.
+    """
     h, w = cam.height, cam.width
     xs, ys = _pixel_dirs(cam, K)
-    s = block_px
-    if s <= 1 or h % s or w % s:
+    top = _largest_block(h, w, block_px)
+    if top == 1:
         gx, gy = np.meshgrid(xs, ys)
         t, gid = scene.cast(_rays(pose, gx.ravel(), gy.ravel()), exclude_track, NEAR_CLIP_M)
         return gid.reshape(h, w), t.reshape(h, w)
-    hb, wb = h // s, w // s
-    f = K[0, 0]
-    gxs = (np.arange(wb + 1) * s + 0.5 - K[0, 2]) / f
-    gys = (np.arange(hb + 1) * s + 0.5 - K[1, 2]) / K[1, 1]
-    gx, gy = np.meshgrid(gxs, gys)
-    tg, gg = scene.cast(_rays(pose, gx.ravel(), gy.ravel()), exclude_track, NEAR_CLIP_M)
-    tg, gg = tg.reshape(hb + 1, wb + 1), gg.reshape(hb + 1, wb + 1)
-    c00 = gg[:-1, :-1]
-    same = (c00 == gg[:-1, 1:]) & (c00 == gg[1:, :-1]) & (c00 == gg[1:, 1:])
-    mixed = ~same | forced_blocks(occ, pose, K, hb, wb, s)
+
+    # samples live on the (h + 1) x (w + 1) grid of pixel centres (the last row/column just outside)
+    gw = w + 1
+    xs_ext = (np.arange(w + 1) + 0.5 - K[0, 2]) / K[0, 0]
+    ys_ext = (np.arange(h + 1) + 0.5 - K[1, 2]) / K[1, 1]
+    a_rects, a_valid = project_boxes(occ.actor_boxes, pose, K)
+    a_rects = _clip_rects(a_rects[a_valid], h, w)
+    actor_px = np.zeros((h + 1, w + 1), bool)
+    for i0, i1, j0, j1 in a_rects:
+        actor_px[i0:i1 + 1, j0:j1 + 1] = True
+    actor_px = actor_px.ravel()
+    rr, cc = segment_pixels(occ.segments, pose, K, h, w)
+    if len(occ.points):
+        uv, front = project_points(occ.points, pose, K)
+        m = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        rr = np.concatenate([rr, uv[m, 1].astype(np.int64)])
+        cc = np.concatenate([cc, uv[m, 0].astype(np.int64)])
+    any_actor = len(a_rects) > 0
+
+    G = np.full((h + 1) * gw, -2, np.int32)
+    T = np.full((h + 1) * gw, np.inf, np.float32)
+
+    def sample(idx: np.ndarray) -> None:
+        rr, cc = np.divmod(idx, gw)
+        rays = _rays(pose, xs_ext[cc], ys_ext[rr])
+        t, g = scene.cast(rays, exclude_track, NEAR_CLIP_M, with_actors=False)
+        if any_actor:
+            sel = np.nonzero(actor_px[idx])[0]
+            if len(sel):
+                ta, ga = scene.cast(rays[sel], exclude_track, NEAR_CLIP_M, with_static=False)
+                nearer = ta < t[sel]
+                t[sel[nearer]] = ta[nearer]
+                g[sel[nearer]] = ga[nearer]
+        G[idx] = g
+        T[idx] = t
+
+    sample((np.arange(0, h + 1, top)[:, None] * gw + np.arange(0, w + 1, top)[None, :]).ravel())
+
+    def forced_at(s: int) -> np.ndarray:
+        """(h / s, w / s) bool: blocks holding a forced pixel or touching an actor rectangle."""
+        f = np.zeros((h // s, w // s), bool)
+        f[rr // s, cc // s] = True
+        f[np.minimum(rr + 1, h - 1) // s, cc // s] = True
+        f[rr // s, np.minimum(cc + 1, w - 1) // s] = True
+        for i0, i1, j0, j1 in a_rects:
+            f[i0 // s:min(i1, h - 1) // s + 1, j0 // s:min(j1, w - 1) // s + 1] = True
+        return f
 
     gid = np.empty((h, w), np.int32)
-    gid.reshape(hb, s, wb, s)[:] = c00[:, None, :, None]
-    wgt = (np.arange(s, dtype=np.float32) / s)
+    depth = np.empty((h, w), np.float32)
+    Gv, Tv = G.reshape(h + 1, gw), T.reshape(h + 1, gw)
+    # top level: dense fill of the whole image (pixels of mixed blocks are overwritten below)
+    s = top
+    hb, wb = h // s, w // s
+    gs = Gv[::s, ::s]
     with np.errstate(divide="ignore"):
-        inv = np.where(np.isfinite(tg), 1.0 / tg, 0.0).astype(np.float32)
+        inv = np.where(np.isfinite(Tv[::s, ::s]), 1.0 / Tv[::s, ::s], 0.0).astype(np.float32)
+    gid.reshape(hb, s, wb, s)[:] = gs[:-1, :-1][:, None, :, None]
+    wgt = np.arange(s, dtype=np.float32) / s
     rows = (inv[:-1, None, :] * (1 - wgt)[None, :, None] + inv[1:, None, :] * wgt[None, :, None]).reshape(h, wb + 1)
     inv_full = (rows[:, :-1, None] * (1 - wgt) + rows[:, 1:, None] * wgt).reshape(h, w)
     with np.errstate(divide="ignore"):
-        depth = np.where(inv_full > 0, 1.0 / inv_full, np.inf).astype(np.float32)
+        np.divide(np.float32(1.0), inv_full, out=depth)
+    depth[inv_full <= 0] = np.inf
 
-    bi, bj = np.nonzero(mixed)
-    if len(bi):
-        d = np.arange(s, dtype=np.int32)
-        rr = (bi.astype(np.int32)[:, None, None] * s + d[None, :, None]).repeat(s, axis=2).ravel()
-        cc = (bj.astype(np.int32)[:, None, None] * s + d[None, None, :]).repeat(s, axis=1).ravel()
-        t, g = scene.cast(_rays(pose, xs[cc], ys[rr]), exclude_track, NEAR_CLIP_M)
-        flat = rr * w + cc
-        np.put(gid, flat, g)
-        np.put(depth, flat, t)
+    active = np.ones((hb, wb), bool)
+    while s >= 2:
+        gs = Gv[::s, ::s]
+        c00 = gs[:-1, :-1]
+        same = (c00 == gs[:-1, 1:]) & (c00 == gs[1:, :-1]) & (c00 == gs[1:, 1:])
+        coherent = active & same & ~forced_at(s)
+        if s != top:
+            _fill_blocks(gid, depth, np.nonzero(coherent), s, Gv, Tv, w)
+        mixed = active & ~coherent
+        bi, bj = np.nonzero(mixed)
+        half = s // 2
+        if len(bi):
+            # new samples of each mixed block: centre, top and left midpoints, and the bottom/right
+            # midpoints unless the neighbour there is mixed too (it adds them as its top/left)
+            below = np.ones_like(mixed)
+            below[:-1] = ~mixed[1:]
+            right = np.ones_like(mixed)
+            right[:, :-1] = ~mixed[:, 1:]
+            r0, c0 = bi * s, bj * s
+            db, dr = below[bi, bj], right[bi, bj]
+            cand = np.concatenate([
+                (r0 + half) * gw + c0 + half, r0 * gw + c0 + half, (r0 + half) * gw + c0,
+                (r0[db] + s) * gw + c0[db] + half, (r0[dr] + half) * gw + c0[dr] + s,
+            ])
+            sample(cand)
+        active = np.repeat(np.repeat(mixed, 2, axis=0), 2, axis=1)
+        s = half
+    # pixels of mixed 2-px blocks are samples themselves
+    pi, pj = np.nonzero(active)
+    if len(pi):
+        src = pi * gw + pj
+        flat = pi * w + pj
+        np.put(gid, flat, G[src])
+        np.put(depth, flat, T[src])
     return gid, depth
+
+
+def _fill_blocks(gid: np.ndarray, depth: np.ndarray, blocks, s: int, Gv: np.ndarray, Tv: np.ndarray, w: int) -> None:
+    """Fill coherent ``blocks`` (rows, cols) of size ``s`` from their corner samples (exact for planes)."""
+    bi, bj = blocks
+    if len(bi) == 0:
+        return
+    r0, c0 = bi * s, bj * s
+    with np.errstate(divide="ignore"):
+        inv = [np.where(np.isfinite(t), 1.0 / t, 0.0).astype(np.float32)
+               for t in (Tv[r0, c0], Tv[r0, c0 + s], Tv[r0 + s, c0], Tv[r0 + s, c0 + s])]
+    f = np.arange(s, dtype=np.float32) / s
+    fy, fx = np.meshgrid(f, f, indexing="ij")
+    fy, fx = fy.ravel()[None, :], fx.ravel()[None, :]
+    val = (inv[0][:, None] * (1 - fy) * (1 - fx) + inv[1][:, None] * (1 - fy) * fx
+           + inv[2][:, None] * fy * (1 - fx) + inv[3][:, None] * fy * fx)
+    with np.errstate(divide="ignore"):
+        d = np.where(val > 0, 1.0 / val, np.inf).astype(np.float32)
+    off = np.arange(s)
+    flat = ((r0[:, None, None] + off[None, :, None]) * w + (c0[:, None, None] + off[None, None, :]))
+    flat = flat.reshape(len(bi), -1)
+    np.put(gid, flat, np.broadcast_to(Gv[r0, c0][:, None], flat.shape))
+    np.put(depth, flat, d)
 
 
 # ----------------------------------------------------------------------------------- shading

@@ -153,11 +153,12 @@ class TickScene:
         }
 
     def cast(self, rays: np.ndarray, exclude_track: int | None = None, near_m: float = 0.0,
-             with_static: bool = True) -> tuple[np.ndarray, np.ndarray]:
+             with_static: bool = True, with_actors: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Nearest hit over static + actors (minus ``exclude_track``'s own shape).
 
         ``rays`` (N, 6) float32. Surfaces closer than ``near_m`` (in units of each ray's direction
-        length) are skipped (sensor housings, the RSU's own pole top). Returns ``t`` (N,) float32
+        length) are skipped (sensor housings, the RSU's own pole top); ``with_static`` and
+        ``with_actors`` choose the scenes. Returns ``t`` (N,) float32
         (inf on a miss) and the global triangle index (N,) int32 (``miss`` on a miss).
         """
         t0 = time.perf_counter()
@@ -170,7 +171,7 @@ class TickScene:
         else:
             t = np.full(rays.shape[0], np.inf, np.float32)
             gid = np.full(rays.shape[0], self.miss, np.int32)
-        scene, keep = self._actor_scene(exclude_track)
+        scene, keep = self._actor_scene(exclude_track) if with_actors else (None, None)
         if scene is not None and rays.shape[0]:
             ta, pa = cast(scene, rays)
             nearer = np.nonzero(ta < t)[0]

@@ -67,20 +67,26 @@ def _shaded(albedo: np.ndarray, normals: np.ndarray, atm: Atmosphere) -> np.ndar
     return (albedo * (atm.ambient_rgb * sky + atm.sun_rgb * lam)).astype(np.float32)
 
 
-def _thin_boxes(world: World) -> np.ndarray:
-    """Axis-aligned corners (B, 8, 3) of the static things thinner than 1.5 m (poles, lights, RSUs)."""
+def _thin_segments(world: World) -> np.ndarray:
+    """Centre lines (S, 2, 3) of the static things narrower than 1.5 m (poles, lamp arms, RSU
+    poles, lane markings, trunks): adaptive casting refines along them instead of interpolating."""
     out = []
     for p in world.layout.prisms:
-        fp = np.asarray(p.footprint)
+        fp = np.asarray(p.footprint, np.float64)
         ext = fp.max(0) - fp.min(0)
-        if min(ext) < 1.5 and p.z1_m - p.z0_m > 0.3:
-            c = np.array([*(fp.max(0) + fp.min(0)) / 2, (p.z0_m + p.z1_m) / 2])
-            out.append((c, np.array([ext[0], ext[1], p.z1_m - p.z0_m])))
-    if not out:
-        return np.zeros((0, 8, 3))
-    c = np.array([o[0] for o in out])
-    s = np.array([o[1] for o in out])
-    return box_corners(c, s, np.broadcast_to(np.eye(3), (len(out), 3, 3)))
+        if min(ext) >= 1.5:
+            continue
+        c = fp.mean(0)
+        height = p.z1_m - p.z0_m
+        if height >= max(ext):
+            out.append([[c[0], c[1], p.z0_m], [c[0], c[1], p.z1_m]])
+            continue
+        u, _, _ = np.linalg.svd(np.cov((fp - c).T))
+        along = (fp - c) @ u[:, 0]
+        z = p.z1_m if height < 0.1 else 0.5 * (p.z0_m + p.z1_m)
+        a, b = c + u[:, 0] * along.min(), c + u[:, 0] * along.max()
+        out.append([[a[0], a[1], z], [b[0], b[1], z]])
+    return np.asarray(out, np.float64).reshape(-1, 2, 3)
 
 
 def _street_light_map(world: World, bounds: np.ndarray, res_m: float) -> LightMap:
@@ -143,7 +149,7 @@ class SensorSuite:
     every random sensor effect off (exact ranges, depths, fixes), for tests.
     """
 
-    def __init__(self, scenario: Scenario, world: World, *, block_px: int = 4, noise: bool = True):
+    def __init__(self, scenario: Scenario, world: World, *, block_px: int = 8, noise: bool = True):
         self.scenario = scenario
         self.world = world
         self.block_px = block_px
@@ -153,7 +159,7 @@ class SensorSuite:
         self.static = StaticScene(static_mesh(world.layout))
         m = self.static.mesh
         self._static_rgb = _shaded(m.albedo, self.static.normals, self.atm)
-        self._thin = _thin_boxes(world)
+        self._thin = _thin_segments(world)
         verts = m.vertices.astype(np.float64)
         self._static_points = np.unique(verts, axis=0) if len(verts) else np.zeros((0, 3))
         self._light: LightMap | None = None
@@ -205,7 +211,7 @@ class SensorSuite:
                 pose = sensor_pose(agent, rig.lidar.mount)
                 lidar = render_lidar(agent.agent_id, rig.lidar, pose, scene, self.atm, rng, own, self.noise)
             timing["lidar"] += time.perf_counter() - t0
-            occ = Occluders(np.concatenate([self._thin, a_corners[a_tracks != own]]), self._static_points)
+            occ = Occluders(self._thin, self._static_points, a_corners[a_tracks != own])
             cams: dict[str, CameraFrame] = {}
             for cam in rig.cameras:
                 t0 = time.perf_counter()
