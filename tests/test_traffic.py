@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -215,7 +216,7 @@ def test_speed_and_yaw_rate_are_consistent_with_motion(tmp_path: Path) -> None:
     dt = 0.2
     straight = 0
     rate_dt, dyaw = [], []
-    for prev, cur in zip(ticks[20:299], ticks[21:300], strict=True):
+    for prev, cur in itertools.pairwise(ticks[20:300]):
         before = {s.sumo_id: s for s in prev}
         for s in cur:
             p = before.get(s.sumo_id)

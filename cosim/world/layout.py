@@ -38,6 +38,7 @@ class LayoutStyle:
     building_gap_m: tuple[float, float]
     building_probability: float  # chance that a frontage slot gets a building
     downtown_boost: float  # extra height factor at the map centre (0: none)
+    infill_per_ha: float  # tries per hectare to fill block interiors with more buildings
     street_tree_spacing_m: float | None
     scatter_trees_per_ha: float  # trees scattered in free space
     hedges: bool
@@ -50,72 +51,76 @@ class LayoutStyle:
 
 STYLES: dict[str, LayoutStyle] = {
     "urban": LayoutStyle(
-        (14, 30),
-        (14, 24),
-        (12, 36),
-        (1.0, 2.5),
-        (0.0, 2.0),
-        0.95,
-        2.2,
-        14.0,
-        4.0,
-        False,
-        False,
-        30.0,
-        (3.0, 6.0),
-        False,
-        True,
+        building_frontage_m=(14, 30),
+        building_depth_m=(14, 24),
+        building_height_m=(12, 36),
+        building_setback_m=(1.0, 2.5),
+        building_gap_m=(0.0, 2.0),
+        building_probability=0.95,
+        downtown_boost=1.2,
+        infill_per_ha=25.0,
+        street_tree_spacing_m=14.0,
+        scatter_trees_per_ha=4.0,
+        hedges=False,
+        fields=False,
+        street_light_spacing_m=30.0,
+        dash_m=(3.0, 6.0),
+        edge_lines=False,
+        stop_lines=True,
     ),
     "suburban": LayoutStyle(
-        (9, 13),
-        (8, 12),
-        (5, 8.5),
-        (6.0, 10.0),
-        (7.0, 14.0),
-        0.85,
-        0.0,
-        None,
-        25.0,
-        True,
-        False,
-        40.0,
-        (3.0, 6.0),
-        True,
-        True,
+        building_frontage_m=(9, 13),
+        building_depth_m=(8, 12),
+        building_height_m=(5, 8.5),
+        building_setback_m=(6.0, 10.0),
+        building_gap_m=(7.0, 14.0),
+        building_probability=0.85,
+        downtown_boost=0.0,
+        infill_per_ha=0.0,
+        street_tree_spacing_m=None,
+        scatter_trees_per_ha=25.0,
+        hedges=True,
+        fields=False,
+        street_light_spacing_m=40.0,
+        dash_m=(3.0, 6.0),
+        edge_lines=True,
+        stop_lines=True,
     ),
     "rural": LayoutStyle(
-        (10, 24),
-        (8, 16),
-        (4, 9),
-        (12.0, 30.0),
-        (30.0, 120.0),
-        0.25,
-        0.0,
-        None,
-        10.0,
-        False,
-        True,
-        None,
-        (4.5, 9.0),
-        True,
-        False,
+        building_frontage_m=(10, 24),
+        building_depth_m=(8, 16),
+        building_height_m=(4, 9),
+        building_setback_m=(12.0, 30.0),
+        building_gap_m=(30.0, 120.0),
+        building_probability=0.25,
+        downtown_boost=0.0,
+        infill_per_ha=0.0,
+        street_tree_spacing_m=None,
+        scatter_trees_per_ha=10.0,
+        hedges=False,
+        fields=True,
+        street_light_spacing_m=None,
+        dash_m=(4.5, 9.0),
+        edge_lines=True,
+        stop_lines=False,
     ),
     "highway": LayoutStyle(
-        (25, 50),
-        (18, 35),
-        (7, 13),
-        (10.0, 20.0),
-        (15.0, 40.0),
-        0.5,
-        0.0,
-        None,
-        8.0,
-        False,
-        True,
-        45.0,
-        (6.0, 12.0),
-        True,
-        False,
+        building_frontage_m=(25, 50),
+        building_depth_m=(18, 35),
+        building_height_m=(7, 13),
+        building_setback_m=(10.0, 20.0),
+        building_gap_m=(15.0, 40.0),
+        building_probability=0.5,
+        downtown_boost=0.0,
+        infill_per_ha=0.0,
+        street_tree_spacing_m=None,
+        scatter_trees_per_ha=8.0,
+        hedges=False,
+        fields=True,
+        street_light_spacing_m=45.0,
+        dash_m=(6.0, 12.0),
+        edge_lines=True,
+        stop_lines=False,
     ),
 }
 
@@ -312,11 +317,7 @@ class _Builder:
         poly = geom.rect(p[0] + off * nx, p[1] + off * ny, f, d, yaw)
         if not self.inside(poly) or not self.solid.free(poly):
             return False
-        h = float(rng.uniform(*st.building_height_m))
-        if st.downtown_boost:
-            r = math.dist(p, self.centre) / max(self.half, 1.0)
-            h *= 1.0 + st.downtown_boost * math.exp(-((r / 0.45) ** 2))
-        self.add_building(poly, round(h, 2))
+        self.add_building(poly, round(self._height(p), 2))
         if st.hedges:
             hedge_off = 0.5 * setback
             hedge = geom.rect(p[0] + hedge_off * nx, p[1] + hedge_off * ny, 0.7 * f, 0.8, yaw)
@@ -347,6 +348,36 @@ class _Builder:
                 if self.inside(barn) and self.solid.free(barn):
                     self.add_building(barn, round(float(rng.uniform(5, 9)), 2))
         return True
+
+    def infill_buildings(self) -> None:
+        """More buildings inside the blocks, aligned with the nearest road, where there is room."""
+        st, rng = self.style, self.rng
+        xmin, ymin, xmax, ymax = self.bounds
+        n = round(st.infill_per_ha * (xmax - xmin) * (ymax - ymin) / 1e4)
+        if n == 0:
+            return
+        road_dirs = [
+            (geom.direction_at(ln.shape, 0.5 * ln.length_m), geom.point_at(ln.shape, 0.5 * ln.length_m))
+            for ln in self.net.lanes(internal=False)
+            if ln.is_road
+        ]
+        mids = np.array([p for _, p in road_dirs])
+        for _ in range(n):
+            x, y = float(rng.uniform(xmin, xmax)), float(rng.uniform(ymin, ymax))
+            yaw = road_dirs[int(np.argmin(np.linalg.norm(mids - [x, y], axis=1)))][0]
+            f, d = float(rng.uniform(*st.building_frontage_m)), float(rng.uniform(*st.building_depth_m))
+            poly = geom.rect(x, y, f, d, yaw)
+            grown = geom.rect(x, y, f + 4.0, d + 4.0, yaw)  # keep courtyards and passages open
+            if self.inside(poly) and self.solid.free(grown):
+                self.add_building(poly, round(self._height(np.array([x, y])), 2))
+
+    def _height(self, p: np.ndarray) -> float:
+        st = self.style
+        h = float(self.rng.uniform(*st.building_height_m))
+        if st.downtown_boost:
+            r = math.dist(p, self.centre) / max(self.half, 1.0)
+            h *= 1.0 + st.downtown_boost * math.exp(-((r / 0.45) ** 2))
+        return h
 
     def given_buildings(self) -> None:
         rng = self.rng
@@ -475,6 +506,7 @@ class _Builder:
         self.given_buildings()
         if not self.extra_buildings:
             self.frontage_buildings()
+            self.infill_buildings()
         self.street_trees()
         self.fields()
         self.scatter_trees()
