@@ -103,8 +103,8 @@ class Obstacles:
         x, y, z = float(position_m[0]), float(position_m[1]), float(position_m[2])
         if z - radius_m <= self.ground_z_m:
             return "ground"
-        if not len(self.boxes):
-            return None
+        if not len(self.boxes) or z - radius_m > self.top_near(x, y, radius_m):
+            return None  # above everything around: the common case, one grid lookup
         b = self.boxes
         near = np.nonzero(
             (b[:, 0] - radius_m <= x)

@@ -4,7 +4,10 @@ The airframe is one rigid box with the airframe's mass and principal inertia. Ea
 in the map frame: the 4 lagged rotor thrusts (along body +z, at their hubs, as one force and the
 torque they make about the CG), the rotors' reaction (drag) torques about body z, and body drag
 (quadratic plus linear rotor drag) against the air-relative velocity. The static world's raised
-prisms are static convex hulls and the ground a plane, so the engine reports contacts.
+prisms are static boxes (each footprint's smallest enclosing rectangle: exact for the rectangular
+buildings and poles of generated towns, conservative for other shapes) packed into compound bodies,
+and the ground a plane, so the engine reports contacts; :mod:`cosim.drones.obstacles` adds an exact
+geometric check for both backends.
 PyBullet works in SI units and a z-up world frame already; its world frame is cosim's map frame.
 """
 
@@ -21,7 +24,26 @@ from cosim.drones.backends.base import DynamicsBackend
 from cosim.drones.control import BodyState
 from cosim.drones.obstacles import MIN_OBSTACLE_HEIGHT_M, prism_label
 from cosim.geometry import quat_from_rpy, rotation_matrix
-from cosim.world.types import World
+from cosim.world.types import Prism, World
+
+CHUNK = 512  # static boxes per compound body (one broadphase entry each)
+
+
+def footprint_box(footprint: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Smallest-area rectangle around a footprint (K, 2) [m], trying each edge direction:
+    centre (2,), half extents (2,) [m] and yaw [rad]. Exact for rectangles, conservative otherwise."""
+    best = None
+    for a, b in zip(footprint, np.roll(footprint, -1, axis=0), strict=True):
+        yaw = math.atan2(b[1] - a[1], b[0] - a[0])
+        c, s = math.cos(yaw), math.sin(yaw)
+        local = footprint @ np.array([[c, -s], [s, c]])  # rotate by -yaw
+        lo, hi = local.min(axis=0), local.max(axis=0)
+        area = float(np.prod(hi - lo))
+        if best is None or area < best[0]:
+            mid = 0.5 * (lo + hi)
+            best = (area, np.array([c * mid[0] - s * mid[1], s * mid[0] + c * mid[1]]), 0.5 * (hi - lo), yaw)
+    assert best is not None
+    return best[1], best[2], best[3]
 
 
 def body_half_extents_m(frame: Airframe) -> tuple[float, float, float]:
@@ -62,18 +84,42 @@ class PyBulletBackend(DynamicsBackend):
         self._contact: str | None = None
 
     def _add_world(self, world: World) -> None:
+        """The ground plane and every raised prism as an oriented box, packed into compound bodies
+        (thousands of separate static bodies make each step ~1000x slower)."""
         c = self._client
         ground = world.layout.ground_z_m
         plane = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=c)
         gid = pybullet.createMultiBody(0.0, plane, basePosition=(0.0, 0.0, ground), physicsClientId=c)
         self._labels[gid] = "ground"
-        for p in world.layout.prisms:
-            if p.z1_m <= ground + MIN_OBSTACLE_HEIGHT_M:
-                continue
-            verts = [(x, y, z) for x, y in p.footprint for z in (p.z0_m, p.z1_m)]
-            shape = pybullet.createCollisionShape(pybullet.GEOM_MESH, vertices=verts, physicsClientId=c)
+        self._chunks: dict[int, tuple[list[Prism], np.ndarray]] = {}
+        raised = [p for p in world.layout.prisms if p.z1_m > ground + MIN_OBSTACLE_HEIGHT_M]
+        for start in range(0, len(raised), CHUNK):
+            part = raised[start : start + CHUNK]
+            centres, halves, quats = [], [], []
+            for p in part:
+                xy, half, yaw = footprint_box(np.asarray(p.footprint, dtype=np.float64))
+                centres.append([xy[0], xy[1], 0.5 * (p.z0_m + p.z1_m)])
+                halves.append([half[0], half[1], 0.5 * (p.z1_m - p.z0_m)])
+                quats.append(quat_from_rpy(0.0, 0.0, yaw))
+            shape = pybullet.createCollisionShapeArray(
+                [pybullet.GEOM_BOX] * len(part),
+                halfExtents=halves,
+                collisionFramePositions=centres,
+                collisionFrameOrientations=quats,
+                physicsClientId=c,
+            )
             bid = pybullet.createMultiBody(0.0, shape, physicsClientId=c)
-            self._labels[bid] = prism_label(p)
+            self._chunks[bid] = (part, np.array(centres))
+
+    def _label_contact(self, body: int, point: tuple[float, float, float]) -> str:
+        """Name what was hit: the ground, or the prism of that compound nearest the contact point."""
+        if body in self._labels:
+            return self._labels[body]
+        if body not in self._chunks:
+            return f"static body {body}"
+        part, centres = self._chunks[body]
+        d = np.hypot(centres[:, 0] - point[0], centres[:, 1] - point[1])
+        return prism_label(part[int(np.argmin(d))])
 
     def reset(self, position_m: np.ndarray, yaw_rad: float) -> None:
         c = self._client
@@ -103,7 +149,7 @@ class PyBulletBackend(DynamicsBackend):
         pybullet.stepSimulation(physicsClientId=c)
         self._contact = None
         for cp in pybullet.getContactPoints(bodyA=self._body, physicsClientId=c):
-            self._contact = self._labels.get(cp[2], f"body {cp[2]}")
+            self._contact = self._label_contact(cp[2], cp[6])
             break
 
     def state(self) -> BodyState:
