@@ -142,6 +142,7 @@ def _episode(kind: str, tmp: Path) -> tuple:
         sim = TrafficSim(sc, world, tmp / "s")
         try:
             ticks = [sim.step_to(k * sc.tick_ns) for k in range(sc.n_ticks)]
+            assert (sim.teleports, sim.collisions) == (0, 0)
         finally:
             sim.close()
         _EPISODES[kind] = (loaded, world, ticks)

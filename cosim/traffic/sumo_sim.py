@@ -95,6 +95,8 @@ class TrafficSim:
         self._warmup_steps = int(WARMUP_S * self.step_hz)
         self._prev_yaw: dict[str, float] = {}
         self._trails: dict[str, list[tuple[float, str, float, int]]] = {}
+        self.teleports = 0  # vehicles SUMO teleported (jam resolution is off, so this stays 0)
+        self.collisions = 0  # vehicles SUMO found in a collision (lane-based check)
         self._closed = False
         self._advance_to(self._warmup_steps)
         present = set(libsumo.vehicle.getIDList())
@@ -114,6 +116,8 @@ class TrafficSim:
                 }
             libsumo.simulationStep()
             self._step += 1
+            self.teleports += libsumo.simulation.getStartingTeleportNumber()
+            self.collisions += libsumo.simulation.getCollidingVehiclesNumber()
             self._record_trails()
             self._extend_routes()
         self._dt = dt
