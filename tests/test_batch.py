@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from cosim.batch.estimate import calibrate
 from cosim.batch.executors import LocalExecutor, make_executor
 from cosim.batch.manifest import (
     Manifest,
@@ -279,6 +280,25 @@ def test_manifest_tolerates_a_torn_last_line_and_last_record_wins(tmp_path):
     with Manifest(path) as m:  # appending after a torn line starts a fresh line
         m.append({"episode": "b", "status": "done"})
     assert set(latest_records(tmp_path)) == {"a", "b"}
+
+
+def test_shards_write_their_own_manifests_and_a_full_run_sees_them(tmp_path):
+    plan = six_plan(tmp_path, count=4)
+    out = tmp_path / "out"
+    for i in range(2):
+        assert run(plan.sharded(i, 2), out).done == 2
+    assert sorted(p.name for p in out.glob("manifest*.jsonl")) == [
+        "manifest.shard000of002.jsonl", "manifest.shard001of002.jsonl"]
+    assert len(latest_records(out)) == 4
+    assert run(plan, out).skipped == 4
+
+
+def test_calibration_extrapolates_to_the_plan(tmp_path):
+    plan = six_plan(tmp_path, count=3)
+    est = calibrate(plan, tmp_path / "cal", seconds=1.0, workers=2, episode_fn=fake_episode)
+    assert est.calibration_s == 1.0 and est.per_tick_s >= 0 and est.startup_s >= 0
+    assert est.bytes == pytest.approx(3 * est.bytes_per_tick * 5)  # 3 episodes of 5 ticks, no attachments
+    assert est.wall_s == pytest.approx(est.cpu_s / 2)
 
 
 def test_unknown_backend_lists_the_known_ones():

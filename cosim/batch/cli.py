@@ -89,8 +89,8 @@ def _calibrate(plan: Any, seconds: float, workers: int) -> None:
     with tempfile.TemporaryDirectory(prefix="cosim-calibrate-") as tmp:
         est = calibrate(plan, Path(tmp), seconds=seconds, workers=workers)
     print(f"estimate from a {est.calibration_s:g} s calibration run of {est.episode}: "
-          f"startup {est.startup_s:.1f} s + {est.per_tick_s * 1000:.0f} ms per tick, "
-          f"{_human_size(est.bytes_per_tick)} per tick")
+          f"startup {est.startup_s:.1f} s + {est.per_tick_s * 1000:.0f} ms per tick; size "
+          f"{_human_size(est.fixed_bytes)} + {_human_size(est.bytes_per_tick)} per tick")
     print(f"estimate wall time {_human_time(est.wall_s)} with {workers} worker(s) "
           f"({_human_time(est.cpu_s)} of episode time), disk {_human_size(est.bytes)}")
 

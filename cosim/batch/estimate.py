@@ -1,7 +1,8 @@
 """``--dry-run`` estimates: run one short calibration episode and extrapolate to the plan.
 
-Model per episode: wall = startup + per_tick * ticks, size = bytes_per_tick * ticks. Startup and the
-per-tick cost come from the times of the calibration episode's first and last ticks. The wall time of
+Model per episode: wall = startup + per_tick * ticks, size = fixed + bytes_per_tick * ticks. Startup
+and the per-tick cost come from the times of the calibration episode's first and last ticks; the fixed
+size is its attachments (scenario, road network, routes), which do not grow with the duration. The wall time of
 the batch is the summed episode time divided by the workers (episodes are independent).
 """
 
@@ -24,6 +25,7 @@ class Estimate:
     startup_s: float
     per_tick_s: float
     bytes_per_tick: float
+    fixed_bytes: float  # per episode, whatever its length (attachments)
     cpu_s: float  # summed episode wall time of the plan
     wall_s: float  # with the given workers
     bytes: float
@@ -49,15 +51,29 @@ def calibrate(plan: Plan, tmp_dir: Path, *, seconds: float = 2.0, workers: int =
         ex.shutdown()
     if not outcome or not outcome.get("ok"):
         raise CosimError(f"calibration episode {ep.id} failed: {(outcome or {}).get('error')}")
+    fixed = min(_attachment_bytes(job.path), outcome["size_bytes"])
     marks = outcome.get("tick_marks_s") or [outcome["wall_time_s"]]
     first, last = marks[0], outcome["wall_time_s"]
     per_tick = (marks[-1] - first) / (ticks - 1) if len(marks) > 1 else last / ticks
     startup = max(0.0, last - per_tick * ticks)
-    bytes_per_tick = outcome["size_bytes"] / ticks
+    bytes_per_tick = (outcome["size_bytes"] - fixed) / ticks
     cpu = sum(startup + per_tick * n_ticks(e) for e in plan.episodes)
-    total_bytes = sum(bytes_per_tick * n_ticks(e) for e in plan.episodes)
+    total_bytes = sum(fixed + bytes_per_tick * n_ticks(e) for e in plan.episodes)
     return Estimate(episode=ep.id, calibration_s=ticks / tick_hz, startup_s=startup, per_tick_s=per_tick,
-                    bytes_per_tick=bytes_per_tick, cpu_s=cpu, wall_s=cpu / max(1, workers), bytes=total_bytes)
+                    bytes_per_tick=bytes_per_tick, fixed_bytes=fixed, cpu_s=cpu, wall_s=cpu / max(1, workers),
+                    bytes=total_bytes)
+
+
+def _attachment_bytes(path: Path) -> int:
+    """Bytes of the episode's attachments (0 when the file is not a readable MCAP)."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as f:
+            return sum(len(a.data) for a in make_reader(f).iter_attachments())
+    except (OSError, McapError, ValueError):
+        return 0
 
 
 __all__ = ["Estimate", "calibrate"]

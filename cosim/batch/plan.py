@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from cosim.batch.sweep import Choice, Level, Sweep, SweepError, load_sweep
+from cosim.batch.sweep import Choice, Level, Sweep, SweepError, find_sweep, load_sweep
 from cosim.errors import ScenarioError
 from cosim.scenario.loader import _apply_set, _Doc, _load_with_extends, _validate, find_scenario
 
@@ -268,5 +268,6 @@ def plan_sweep(
 
 def plan_file(path: str | Path, **kwargs: Any) -> Plan:
     """Load a sweep file and plan it (``kwargs`` as :func:`plan_sweep`)."""
-    sweep, doc = load_sweep(path)
-    return plan_sweep(sweep, sweep_dir=Path(path).parent, sweep_doc=doc, source=str(path), **kwargs)
+    file = find_sweep(path)
+    sweep, doc = load_sweep(file)
+    return plan_sweep(sweep, sweep_dir=file.parent, sweep_doc=doc, source=str(file), **kwargs)

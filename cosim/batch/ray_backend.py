@@ -16,7 +16,7 @@ from typing import Any
 
 from cosim.batch.executors import Event
 from cosim.batch.job import EpisodeFn, Job, execute, run_real_episode
-from cosim.errors import InputError
+from cosim.errors import CosimError, InputError
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +46,10 @@ class RayExecutor:
                 ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False,
                          runtime_env={"env_vars": env})
             else:
-                ray.init(address=address, log_to_driver=False)
+                try:
+                    ray.init(address=address, log_to_driver=False)
+                except (ConnectionError, RuntimeError, ValueError) as exc:
+                    raise CosimError(f"cannot connect to the Ray cluster at {address!r}: {exc}") from None
         cpus = int(ray.cluster_resources().get("CPU", 1))
         self.max_in_flight = max_in_flight or max(1, 2 * int(cpus / cpus_per_episode))
         self._remote = ray.remote(max_calls=1, max_retries=0, num_cpus=cpus_per_episode)(_task)

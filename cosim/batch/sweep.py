@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import difflib
 import json
+import os
 import re
 from pathlib import Path
 from typing import Any
@@ -239,11 +240,27 @@ def _error(exc: ValidationError, doc: _Doc, source: str) -> SweepError:
     return SweepError(message, path=_dotted(path), line=line, source=source)
 
 
+def sweep_dirs() -> list[Path]:
+    """Where shipped sweeps live: $COSIM_SWEEP_PATH (os.pathsep-separated), ./sweeps, the checkout's sweeps/."""
+    dirs = [Path(p) for p in os.environ.get("COSIM_SWEEP_PATH", "").split(os.pathsep) if p]
+    return [*dirs, Path.cwd() / "sweeps", Path(__file__).resolve().parents[2] / "sweeps"]
+
+
+def find_sweep(name_or_path: str | Path) -> Path:
+    """A sweep path as given, or the name of a shipped one (``airv2x_like``)."""
+    p = Path(name_or_path)
+    if p.is_file():
+        return p
+    for d in sweep_dirs():
+        for cand in (d / p, d / f"{p}.yaml"):
+            if cand.is_file():
+                return cand
+    raise SweepError(f"sweep file not found: {name_or_path}", source=str(name_or_path))
+
+
 def load_sweep(path: str | Path) -> tuple[Sweep, _Doc]:
     """Parse and validate a sweep file; returns the model and the parsed document (for line marks)."""
-    file = Path(path)
-    if not file.is_file():
-        raise SweepError(f"sweep file not found: {file}", source=str(file))
+    file = find_sweep(path)
     try:
         doc = _parse_file(file)
     except ScenarioError as exc:
