@@ -30,7 +30,7 @@ import numpy as np
 from cosim.sensors import SensorSuite
 from cosim.sensors.camera import _rays
 from cosim.sensors.lidar import beam_pattern
-from cosim.sensors.rig import camera_pose, intrinsics, sensor_pose
+from cosim.sensors.rig import camera_pose, intrinsics, rotate, sensor_pose
 from cosim.sensors.scene import cast, place_actors, static_bare_mesh
 from cosim.sensors.synthetic import world_snapshot
 
@@ -41,8 +41,10 @@ log = logging.getLogger("bench")
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def paper_rig_scenario(path: Path, **env):
-    data = load_scenario(path).resolved
+def paper_rig_scenario(path: Path, compression: str | None = None, **env):
+    data = json.loads(json.dumps(load_scenario(path).resolved))
+    if compression:
+        data["output"]["compression"] = compression
     data["agents"]["vehicles"]["count"] = 5
     data["agents"]["rsus"]["count"] = 5
     data["agents"]["drones"] = [{"strategy": "hover", "altitude_m": 40 + 10 * i} for i in range(5)]
@@ -50,36 +52,14 @@ def paper_rig_scenario(path: Path, **env):
     return load_scenario_data(data)
 
 
-def write_messages(msgs, t_ns: int, out: Path) -> int:
-    """Serialise (topic, message) pairs into an MCAP file (protobuf via mcap-protobuf, JSON raw)."""
-    from mcap.writer import Writer as RawWriter
-    from mcap_protobuf.writer import Writer
+def write_messages(msgs, t_ns: int, out: Path, compression: str) -> int:
+    """Write (topic, message) pairs with the episode writer (exporters/mcap_writer.py); file bytes."""
+    from cosim.exporters.mcap_writer import EpisodeWriter
 
-    n = 0
-    with open(out, "wb") as f:
-        w = Writer(f)
-        for topic, msg in msgs:
-            if isinstance(msg, tuple):
-                continue
-            w.write_message(topic=topic, message=msg, log_time=t_ns, publish_time=t_ns)
-            n += msg.ByteSize()
-        w.finish()
-    with open(out.with_suffix(".json.mcap"), "wb") as f:
-        raw = RawWriter(f)
-        raw.start()
-        channels: dict[str, int] = {}
-        for topic, msg in msgs:
-            if not isinstance(msg, tuple):
-                continue
-            name, schema, payload = msg
-            if topic not in channels:
-                sid = raw.register_schema(name=name, encoding="jsonschema", data=json.dumps(schema).encode())
-                channels[topic] = raw.register_channel(topic=topic, message_encoding="json", schema_id=sid)
-            data = json.dumps(payload).encode()
-            raw.add_message(channels[topic], log_time=t_ns, data=data, publish_time=t_ns)
-            n += len(data)
-        raw.finish()
-    return n
+    w = EpisodeWriter(out, compression=compression)
+    for topic, msg in msgs:
+        w.write(topic, msg, t_ns)
+    return w.finish().stat().st_size
 
 
 def bare_cast_seconds(suite: SensorSuite, snap) -> tuple[float, int]:
@@ -98,7 +78,7 @@ def bare_cast_seconds(suite: SensorSuite, snap) -> tuple[float, int]:
             d, _ = beam_pattern(rig.lidar)
             r = np.empty((len(d), 6), np.float32)
             r[:, :3] = pose.position_m
-            r[:, 3:] = d @ pose.rotation.T
+            r[:, 3:] = rotate(d, pose.rotation)
             batches.append(r)
         for cam in rig.cameras:
             K = intrinsics(cam)
@@ -149,7 +129,7 @@ def pybullet_seconds(suite: SensorSuite, snap) -> tuple[float, float, float]:
                 pose = sensor_pose(agent, rig.lidar.mount)
                 d, _ = beam_pattern(rig.lidar)
                 frm = np.broadcast_to(pose.position_m, d.shape)
-                to = pose.position_m + (d @ pose.rotation.T) * rig.lidar.range_m
+                to = pose.position_m + rotate(d, pose.rotation) * rig.lidar.range_m
                 t0 = time.perf_counter()
                 for k in range(0, len(d), batch):
                     pb.rayTestBatch(frm[k:k + batch].tolist(), to[k:k + batch].tolist(), numThreads=0,
@@ -174,7 +154,7 @@ def pybullet_seconds(suite: SensorSuite, snap) -> tuple[float, float, float]:
 def run(args) -> None:
     from cosim.exporters.sensor_messages import frame_messages
 
-    loaded = paper_rig_scenario(ROOT / "scenarios" / "default.yaml")
+    loaded = paper_rig_scenario(ROOT / "scenarios" / "default.yaml", compression=args.compression)
     sc = loaded.scenario
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
@@ -187,7 +167,8 @@ def run(args) -> None:
               f"world {t_world:.2f} s, static scene {t_static:.2f} s (once per episode)")
         n_cams = sum(len(sc.rig_for(a).cameras) for a in sc.agent_ids())
         print(f"rig: {len(sc.agent_ids())} agents, {n_cams} cameras at 1280x720, 15 LiDARs; "
-              f"image format {sc.output.image_format}; block_px {args.block_px}")
+              f"image format {sc.output.image_format}, MCAP chunk compression {sc.output.compression}; "
+              f"block_px {args.block_px}")
         rng = np.random.default_rng(sc.seed)
         rows = []
         for k in range(args.frames):
@@ -197,7 +178,7 @@ def run(args) -> None:
             t1 = time.perf_counter()
             msgs = frame_messages(frames, snap.t_ns, image_format=sc.output.image_format)
             t2 = time.perf_counter()
-            nbytes = write_messages(msgs, snap.t_ns, Path(tmp) / f"frame{k}.mcap")
+            nbytes = write_messages(msgs, snap.t_ns, Path(tmp) / f"frame{k}.mcap", sc.output.compression)
             t3 = time.perf_counter()
             tm = frames.timing_s
             render = t1 - t0
@@ -216,7 +197,7 @@ def run(args) -> None:
             print(f"frame {k}: total {row['total']:.2f} s = render {render:.2f} (casting {row['casting']:.2f}, "
                   f"shading {row['shading']:.2f}, labels/other {row['other_render']:.2f}) + encoding "
                   f"{row['encoding']:.2f} + writing {row['writing']:.2f}; {row['rays'] / 1e6:.1f} M rays cast, "
-                  f"{nbytes / 1e6:.0f} MB written")
+                  f"{nbytes / 1e6:.0f} MB file")
             print(f"         bare cast_rays, one ray per pixel/beam, one scene: {bare:.2f} s for "
                   f"{bare_rays / 1e6:.1f} M rays -> total / bare = {row['total'] / bare:.2f}")
             if "pybullet" in row:
@@ -271,6 +252,8 @@ def main() -> None:
     ap.add_argument("--background", type=int, default=40, help="background road users")
     ap.add_argument("--block-px", type=int, default=8, help="adaptive casting block (1 = a ray per pixel)")
     ap.add_argument("--no-pybullet", action="store_true")
+    ap.add_argument("--compression", choices=("zstd", "lz4", "none"), help="MCAP chunk compression "
+                    "(default: the scenario's)")
     ap.add_argument("--pictures", type=Path, help="write the weather x lighting pictures here and exit")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)

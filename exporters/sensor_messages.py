@@ -8,14 +8,11 @@ libjpeg release the GIL), so it overlaps with the rest of the tick's work.
 
 from __future__ import annotations
 
-import io
 import math
-import os
-import struct
-import zlib
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 
 import numpy as np
+from cosim.sensors.encoding import encode_jpeg, encode_png, submit_encode
 from cosim.sensors.suite import AgentFrames, SensorFrameSet
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
@@ -24,9 +21,8 @@ from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
-from PIL import Image
 
-from cosim.errors import CosimError
+__all__ = ["POINT_DTYPE", "encode_jpeg", "encode_png", "frame_messages"]
 
 _F = PackedElementField.NumericType
 
@@ -77,51 +73,6 @@ VISIBILITY_SCHEMA = {
     },
     "required": ["timestamp_ns", "agent_id", "objects"],
 }
-
-_POOL: ThreadPoolExecutor | None = None
-
-
-def _pool() -> ThreadPoolExecutor:
-    global _POOL
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(max_workers=max(2, min(8, os.cpu_count() or 2)), thread_name_prefix="cosim-enc")
-    return _POOL
-
-
-# ----------------------------------------------------------------------------------- encoders
-
-
-def _png_chunk(kind: bytes, data: bytes) -> bytes:
-    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
-
-
-def encode_png(img: np.ndarray, level: int = 1) -> bytes:
-    """Lossless PNG of ``img`` (H, W, 3) uint8 RGB or (H, W) uint8 grey.
-
-    Rows use the PNG "Up" filter (difference to the row above), which suits rendered images, and
-    zlib at ``level``; zlib releases the GIL, so this parallelises across threads.
-    """
-    if img.dtype != np.uint8 or img.ndim not in (2, 3):
-        raise CosimError(f"encode_png takes uint8 (H, W) or (H, W, 3), got {img.dtype} {img.shape}")
-    h, w = img.shape[:2]
-    ch = 1 if img.ndim == 2 else img.shape[2]
-    rows = img.reshape(h, w * ch)
-    filt = np.empty((h, w * ch + 1), np.uint8)
-    filt[:, 0] = 2
-    filt[0, 0] = 0
-    filt[0, 1:] = rows[0]
-    np.subtract(rows[1:], rows[:-1], out=filt[1:, 1:])
-    colour = {1: 0, 3: 2, 4: 6}[ch]
-    head = struct.pack(">IIBBBBB", w, h, 8, colour, 0, 0, 0)
-    return b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", head) + _png_chunk(b"IDAT", zlib.compress(filt.data, level)) \
-        + _png_chunk(b"IEND", b"")
-
-
-def encode_jpeg(img: np.ndarray, quality: int) -> bytes:
-    buf = io.BytesIO()
-    Image.fromarray(img).save(buf, format="JPEG", quality=quality)
-    return buf.getvalue()
-
 
 # ----------------------------------------------------------------------------------- messages
 
@@ -223,12 +174,11 @@ def _agent_messages(af: AgentFrames, t_ns: int, image_format: str, jpeg_quality:
         fid = f"{a}/{name}/optical"
         base = f"/{a}/{name}"
         if cam.rgb is not None:
-            if image_format == "png":
-                fut = _pool().submit(encode_png, cam.rgb)
-            elif image_format == "jpeg":
-                fut = _pool().submit(encode_jpeg, cam.rgb, jpeg_quality)
+            pre = cam.encoded
+            if pre is not None and pre[0] == image_format:
+                fut = pre[1]
             else:
-                raise CosimError(f"unknown image format {image_format!r}; known: png, jpeg")
+                fut = submit_encode(cam.rgb, image_format, jpeg_quality)
             out.append((f"{base}/image", (fid, image_format, fut)))
         if cam.depth is not None:
             out.append((f"{base}/depth", _raw(fid, t_ns, depth_mm(cam.depth), "16UC1")))
@@ -253,8 +203,9 @@ def frame_messages(frames: SensorFrameSet, t_ns: int, *, image_format: str = "pn
                    jpeg_quality: int = 90) -> list[tuple[str, object]]:
     """Every sensor topic of one tick, agents in frame order (see the module docstring).
 
-    Image encoding is submitted to a thread pool first and collected last, so it runs while the
-    other messages are built.
+    Image encoding runs in a thread pool: frames rendered by the suite already carry a started encode
+    (``CameraFrame.encoded``) in the scenario's format; other formats are submitted here first and
+    collected last, so they run while the other messages are built.
     """
     pending = []
     for af in frames.agents.values():

@@ -15,7 +15,8 @@ from the same per-pixel triangle index, so they agree.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from concurrent.futures import Future
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -41,7 +42,8 @@ class CameraFrame:
     ``rgb`` (H, W, 3) uint8 sRGB or None; ``depth`` (H, W) float32 planar depth [m] along the optical
     axis, inf where nothing was hit; ``semantic`` (H, W) uint8 class id; ``instance`` (H, W) uint32
     (track id, static instance id, 0); ``K`` (3, 3) float64 and ``P`` (3, 4) float64 intrinsics;
-    ``pose``: map <- optical frame.
+    ``pose``: map <- optical frame. ``encoded``: (format, future of the encoded ``rgb`` bytes) when
+    the suite started encoding it (not part of the data).
     """
 
     agent_id: str
@@ -55,6 +57,7 @@ class CameraFrame:
     depth: np.ndarray | None
     semantic: np.ndarray | None
     instance: np.ndarray | None
+    encoded: tuple[str, Future] | None = field(default=None, compare=False, repr=False)
 
 
 def box_corners(center: np.ndarray, size: np.ndarray, rotation: np.ndarray) -> np.ndarray:
@@ -249,13 +252,15 @@ def cast_image(
     sample((np.arange(0, h + 1, top)[:, None] * gw + np.arange(0, w + 1, top)[None, :]).ravel())
 
     def forced_at(s: int) -> np.ndarray:
-        """(h / s, w / s) bool: blocks holding a forced pixel or touching an actor rectangle."""
+        """(h / s, w / s) bool: blocks holding a forced pixel or, down to 4 px blocks, touching an
+        actor's rectangle (so every actor is sampled at least every 2 px)."""
         f = np.zeros((h // s, w // s), bool)
         f[rr // s, cc // s] = True
         f[np.minimum(rr + 1, h - 1) // s, cc // s] = True
         f[rr // s, np.minimum(cc + 1, w - 1) // s] = True
-        for i0, i1, j0, j1 in a_rects:
-            f[i0 // s:min(i1, h - 1) // s + 1, j0 // s:min(j1, w - 1) // s + 1] = True
+        if s > 2:
+            for i0, i1, j0, j1 in a_rects:
+                f[i0 // s:min(i1, h - 1) // s + 1, j0 // s:min(j1, w - 1) // s + 1] = True
         return f
 
     gid = np.empty((h, w), np.int32)
@@ -452,8 +457,8 @@ def shade(
             e = light.sample(px, py) * np.clip(np.float32(1.0) - pz * np.float32(1 / 8), 0, 1)
             e *= np.float32(atm.artificial)
             rgb += np.take(tables.albedo, g, axis=0) * (e[..., None] * LAMP_RGB)
-        glow = np.take(tables.emissive, g)
-        rgb += (glow * np.float32(2.0 * atm.artificial))[..., None] * LAMP_RGB
+        glow = np.take(tables.emissive, g) * np.float32(2.0 * atm.artificial)
+        rgb += np.take(tables.albedo, g, axis=0) * glow[..., None]  # lamps glow in their own colour
     if atm.beta > 0:
         norm = np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1.0)
         with np.errstate(over="ignore", invalid="ignore"):

@@ -18,7 +18,7 @@ import numpy as np
 from cosim.scenario.model import LidarSpec
 
 from .environment import Atmosphere
-from .rig import Pose
+from .rig import Pose, rotate
 from .scene import TickScene
 
 MIN_RANGE_M = 0.3  # [m] returns closer than this are not reported (housing, mount)
@@ -79,7 +79,7 @@ def render_lidar(
     """
     d_sensor, ring = beam_pattern(spec)
     n = d_sensor.shape[0]
-    d_map = d_sensor @ pose.rotation.T
+    d_map = rotate(d_sensor, pose.rotation)
     rays = np.empty((n, 6), np.float32)
     rays[:, :3] = pose.position_m
     rays[:, 3:] = d_map

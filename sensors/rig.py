@@ -48,6 +48,11 @@ def camera_rotation_in_body(agent: AgentState, cam: CameraSpec) -> np.ndarray:
     return mount_rotation(cam.mount)
 
 
+def rotate(v: np.ndarray, rot: np.ndarray) -> np.ndarray:
+    """``v @ rot.T`` for tall (N, 3) arrays, without BLAS (whose threads crawl on busy machines)."""
+    return v[:, 0:1] * rot[:, 0] + v[:, 1:2] * rot[:, 1] + v[:, 2:3] * rot[:, 2]
+
+
 @dataclass(frozen=True)
 class Pose:
     """map <- frame: ``rotation`` (3, 3) float64, ``position_m`` (3,) float64."""
@@ -57,7 +62,7 @@ class Pose:
 
     def to_frame(self, points_map: np.ndarray) -> np.ndarray:
         """Points (N, 3) from map into this frame."""
-        return (points_map - self.position_m) @ self.rotation
+        return rotate(points_map - self.position_m, self.rotation.T)
 
 
 def sensor_pose(agent: AgentState, mount: Mount, rot_in_body: np.ndarray | None = None) -> Pose:

@@ -22,6 +22,7 @@ from cosim.geometry import rotation_matrix
 from cosim.snapshot import Actor
 
 from .meshes import TriMesh, actor_material, concat, empty_mesh, template_for
+from .rig import rotate
 
 
 def _o3d_scene(mesh: TriMesh) -> o3d.t.geometry.RaycastingScene | None:
@@ -65,7 +66,7 @@ def place_actors(actors: tuple[Actor, ...] | list[Actor]) -> tuple[TriMesh, np.n
     for a in actors:
         tpl = template_for(a.cls)
         v = tpl.vertices.astype(np.float64) * np.asarray(a.size_m, np.float64)
-        v = v @ rotation_matrix(a.rotation).T + np.asarray(a.center_m, np.float64)
+        v = rotate(v, rotation_matrix(a.rotation)) + np.asarray(a.center_m, np.float64)
         alb, refl, emis = actor_material(a.cls, a.track_id, tpl.part)
         t = len(tpl.triangles)
         parts.append(

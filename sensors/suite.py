@@ -22,6 +22,7 @@ from cosim.world.types import World
 
 from .bev import BevFrame, render_bev, static_raster
 from .camera import CameraFrame, LightMap, Occluders, box_corners, cast_image, shade, shading_tables
+from .encoding import submit_encode
 from .environment import Atmosphere, atmosphere
 from .gnss import GnssFrame, render_gnss
 from .imu import ImuFrame, imu_biases, render_imu
@@ -62,7 +63,7 @@ class SensorFrameSet:
 
 def _shaded(albedo: np.ndarray, normals: np.ndarray, atm: Atmosphere) -> np.ndarray:
     """Linear colour (T, 3) float32 of triangles lit by the sun (Lambert, no shadows) and the sky."""
-    lam = np.clip(normals @ atm.sun_dir, 0.0, None)[:, None]
+    lam = np.clip((normals * atm.sun_dir).sum(axis=1), 0.0, None)[:, None]
     sky = (0.75 + 0.25 * normals[:, 2:3])  # surfaces facing up see more sky
     return (albedo * (atm.ambient_rgb * sky + atm.sun_rgb * lam)).astype(np.float32)
 
@@ -146,11 +147,15 @@ class SensorSuite:
     """All rigs of a scenario over one world (see the module docstring).
 
     ``block_px``: adaptive camera casting block (1 = one ray per pixel). ``noise``: False turns
-    every random sensor effect off (exact ranges, depths, fixes), for tests.
+    every random sensor effect off (exact ranges, depths, fixes), for tests. ``encode_images``:
+    start encoding each RGB image (``scenario.output.image_format``) in a thread pool as soon as it
+    is shaded, so encoding overlaps with the rest of the tick.
     """
 
-    def __init__(self, scenario: Scenario, world: World, *, block_px: int = 8, noise: bool = True):
+    def __init__(self, scenario: Scenario, world: World, *, block_px: int = 8, noise: bool = True,
+                 encode_images: bool = True):
         self.scenario = scenario
+        self.encode_images = encode_images
         self.world = world
         self.block_px = block_px
         self.noise = noise
@@ -220,16 +225,20 @@ class SensorSuite:
                 gid, depth = cast_image(cam, K, pose, scene, occ, own, self.block_px)
                 t1 = time.perf_counter()
                 timing["camera_cast"] += t1 - t0
-                rgb = None
+                rgb = encoded = None
                 if "rgb" in cam.outputs:
                     rgb = shade(gid, depth, cam, K, pose, tables, self.atm, light, rng, self.block_px)
+                    if self.encode_images:
+                        out_spec = self.scenario.output
+                        encoded = (out_spec.image_format,
+                                   submit_encode(rgb, out_spec.image_format, out_spec.jpeg_quality))
                 t2 = time.perf_counter()
                 timing["shading"] += t2 - t1
                 cams[cam.name] = CameraFrame(
                     agent.agent_id, cam.name, cam.width, cam.height, K, projection(cam), pose, rgb,
                     depth if "depth" in cam.outputs else None,
                     np.take(lut["semantic"], gid) if "semantic" in cam.outputs else None,
-                    np.take(lut["instance"], gid),
+                    np.take(lut["instance"], gid), encoded,
                 )
                 timing["labels"] += time.perf_counter() - t2
             t0 = time.perf_counter()
@@ -262,4 +271,5 @@ def rig_cam_outputs(rig: RigSpec, name: str) -> tuple[str, ...]:
 
 
 def _drop_instance(c: CameraFrame) -> CameraFrame:
-    return CameraFrame(c.agent_id, c.name, c.width, c.height, c.K, c.P, c.pose, c.rgb, c.depth, c.semantic, None)
+    return CameraFrame(c.agent_id, c.name, c.width, c.height, c.K, c.P, c.pose, c.rgb, c.depth, c.semantic, None,
+                       c.encoded)
