@@ -100,3 +100,78 @@ def test_replay_bad_input_exits_2(tmp_path, capsys):
     assert main(["replay", str(tmp_path / "absent.mcap")]) == 2
     err = capsys.readouterr().err
     assert "--rate must be > 0" in err and "no topic matches '/nope'" in err and "invalid endpoint" in err
+
+
+def _foxglove_messages(port: int, wanted: int, timeout_s: float = 30.0) -> list[dict]:
+    """Minimal WebSocket client (RFC 6455, subprotocol foxglove.sdk.v1): the first ``wanted`` text messages."""
+    import base64
+    import os
+    import socket
+    import struct
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            sock = socket.create_connection(("127.0.0.1", port), timeout=timeout_s)
+            break
+        except ConnectionRefusedError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
+    key = base64.b64encode(os.urandom(16)).decode()
+    sock.sendall(
+        (
+            f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+            f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
+            "Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n"
+        ).encode()
+    )
+    buf = b""
+    while b"\r\n\r\n" not in buf:
+        buf += sock.recv(65536)
+    head, buf = buf.split(b"\r\n\r\n", 1)
+    assert head.startswith(b"HTTP/1.1 101"), head
+
+    def take(n: int) -> bytes:
+        nonlocal buf
+        while len(buf) < n:
+            buf += sock.recv(65536)
+        out, buf = buf[:n], buf[n:]
+        return out
+
+    texts: list[dict] = []
+    with sock:
+        while len(texts) < wanted:
+            b0, b1 = take(2)
+            n = b1 & 0x7F
+            n = struct.unpack(">H", take(2))[0] if n == 126 else struct.unpack(">Q", take(8))[0] if n == 127 else n
+            payload = take(n)
+            if b0 & 0x0F == 1:
+                texts.append(json.loads(payload))
+    return texts
+
+
+@pytest.mark.integration
+def test_foxglove_server_advertises_every_topic_with_its_schema(tmp_path):
+    pytest.importorskip("foxglove")
+    import threading
+
+    from cosim.io.replay import ReplayOptions, replay_episode
+    from cosim.transport import free_loopback_endpoint as free
+
+    path = write_synthetic_episode(tmp_path / "ep.mcap", ticks=3)
+    port = int(free().rsplit(":", 1)[1])
+    stop = threading.Event()
+    opts = ReplayOptions(rate=1.0, loop=True, wait_subscribers_s=0, foxglove_port=port, listen=[free()])
+    worker = threading.Thread(target=replay_episode, args=(path, opts, stop), daemon=True)
+    worker.start()
+    try:
+        info, advertise = _foxglove_messages(port, 2)
+    finally:
+        stop.set()
+        worker.join(30)
+    assert info["op"] == "serverInfo" and advertise["op"] == "advertise"
+    with open_episode(path) as ep:
+        expected = {t: (i.schema_name, i.message_encoding) for t, i in ep.topics.items()}
+    assert {c["topic"]: (c["schemaName"], c["encoding"]) for c in advertise["channels"]} == expected
+    assert not worker.is_alive()

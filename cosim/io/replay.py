@@ -90,17 +90,24 @@ class _Foxglove:
     def __init__(self, port: int, ep: Episode, topics: list[str]):
         try:
             import foxglove
-            from foxglove import Channel, Schema
+            from foxglove import Channel, Context, Schema
         except ImportError:
             raise InputError("--foxglove needs the foxglove-sdk package: pip install foxglove-sdk") from None
-        self._server = foxglove.start_server(port=port, host="127.0.0.1")
+        context = self._context = Context()  # this replay's channels only; held for the server's lifetime
+        try:
+            self._server = foxglove.start_server(port=port, host="127.0.0.1", context=context, name="cosim replay")
+        except Exception as exc:  # the SDK raises its own error types
+            raise InputError(f"cannot serve Foxglove on 127.0.0.1:{port}: {exc}") from None
         self._channels: dict[str, Any] = {}
         schemas = ep.schemas()
         for t in topics:
             info = ep.topics[t]
             name, encoding, data = schemas[t]
             self._channels[t] = Channel(
-                t, message_encoding=info.message_encoding, schema=Schema(name=name, encoding=encoding, data=data)
+                t,
+                message_encoding=info.message_encoding,
+                schema=Schema(name=name, encoding=encoding, data=data),
+                context=context,
             )
         log.info("Foxglove WebSocket server on ws://127.0.0.1:%d", port)
 
@@ -108,6 +115,8 @@ class _Foxglove:
         self._channels[topic].log(data, log_time=log_time_ns)
 
     def close(self) -> None:
+        for channel in self._channels.values():
+            channel.close()
         self._server.stop()
 
 
