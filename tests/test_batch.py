@@ -3,10 +3,12 @@ process pool, retries, crashes, the manifest and resume (the real pipeline is in
 
 from __future__ import annotations
 
+import itertools
 import json
 import multiprocessing as mp
 import os
 import time
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -21,7 +23,7 @@ from cosim.batch.manifest import (
     sha256_file,
     verify,
 )
-from cosim.batch.plan import cover_allocation, derive_seed, largest_remainder, plan_file
+from cosim.batch.plan import balanced_allocation, derive_seed, largest_remainder, plan_file
 from cosim.batch.runner import run_batch
 from cosim.batch.sweep import SweepError, load_sweep
 from cosim.errors import CosimError, InputError
@@ -149,8 +151,20 @@ def test_largest_remainder_sums_and_is_proportional():
     alloc = largest_remainder(1000, [2.19, 1.02, 3.52], ["train", "val", "test"])
     assert sum(alloc) == 1000
     assert alloc == [325, 152, 523]
-    assert cover_allocation(5, [100, 1, 1], ["a", "b", "c"]) == [3, 1, 1]
-    assert sum(cover_allocation(2, [1, 1, 1], ["a", "b", "c"])) == 2
+
+
+def test_balanced_allocation_covers_balances_and_grows_by_extension():
+    levels = [[1, 1, 1, 1], [1, 1, 1], [1, 1, 1, 1], [1, 1, 1]]  # 144 combinations
+    small = balanced_allocation(24, levels)
+    assert sum(small) == 24 and max(small) == 1
+    combos = [c for c, n in zip(itertools.product(*(range(len(w)) for w in levels)), small, strict=True) if n]
+    for j, w in enumerate(levels):  # 24 episodes: every level of every axis equally often
+        assert sorted(Counter(c[j] for c in combos).values()) == [24 // len(w)] * len(w)
+    full = balanced_allocation(400, levels)
+    assert min(full) >= 2 and max(full) <= 3  # all 144 covered, then evenly repeated
+    assert all(a <= b for a, b in zip(small, full, strict=True))  # growing keeps the smaller plan
+    weighted = balanced_allocation(300, [[2, 1], [1, 1, 1]], cover_all=False)
+    assert sum(weighted[:3]) == 200 and sum(weighted[3:]) == 100
 
 
 def test_plan_is_deterministic_and_seeds_depend_only_on_the_id(tmp_path):
@@ -188,6 +202,13 @@ def test_shards_partition_the_plan(tmp_path):
     assert len(set(ids)) == len(ids)
     with pytest.raises(SweepError):
         plan.sharded(3, 3)
+
+
+def test_a_seed_axis_sets_the_scenario_seed(tmp_path):
+    body = SIX.replace("  env: {key: map.kind, values: [urban, rural]}\n", "  seeds: {key: seed, values: [11, 12]}\n")
+    plan = six_plan(tmp_path, body)
+    assert sorted({(e.labels["seeds"], e.seed, e.scenario["seed"], e.params["seed"]) for e in plan.episodes}) == [
+        ("11", 11, 11, 11), ("12", 12, 12, 12)]
 
 
 def test_multiple_bases_become_an_axis(tmp_path):

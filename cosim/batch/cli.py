@@ -5,13 +5,14 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
 
 from cosim.errors import InputError
 
-EXIT_OK, EXIT_FAILURE = 0, 1
+EXIT_OK, EXIT_FAILURE, EXIT_INTERRUPTED = 0, 1, 130
 
 
 def _shard(text: str) -> tuple[int, int]:
@@ -66,12 +67,9 @@ def _print_plan(plan: Any, out: Path) -> None:
         secs[ep.split] += ep.duration_s
     for split in plan.sweep.split:
         print(f"split    {split:<8} {by_split[split]:>6} episodes  {secs[split] / 3600:8.3f} h")
-    axes: dict[str, Counter[str]] = {}
-    for ep in plan.episodes:
-        for axis, label in ep.labels.items():
-            axes.setdefault(axis, Counter())[label] += 1
-    for axis, counts in axes.items():
-        print(f"axis     {axis:<12} " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+    for axis, levels in plan.sweep.all_axes().items():
+        counts = Counter(ep.labels[axis] for ep in plan.episodes)
+        print(f"axis     {axis:<12} " + ", ".join(f"{lv.label} {counts[lv.label]}" for lv in levels))
     for w in plan.warnings:
         print(f"warning  {w}")
     for ep in plan.episodes[:10]:
@@ -121,6 +119,10 @@ def cmd_batch(args: argparse.Namespace) -> int:
     previous = signal.signal(signal.SIGTERM, _sigterm_as_interrupt)  # docker stop, SLURM preemption
     try:
         summary = run_batch(plan, out, executor, retries=args.retries, show_progress=not args.quiet)
+    except KeyboardInterrupt:
+        print(f"cosim: batch interrupted; running episodes stopped, finished ones are kept in {out}; "
+              "run the same command again to resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
     finally:
         signal.signal(signal.SIGTERM, previous)
     print(f"batch    {summary.planned} planned, {summary.skipped} already finished, {summary.done} generated, "

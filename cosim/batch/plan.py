@@ -5,9 +5,9 @@ never on the number of workers, the backend or the order episodes finish in. An 
 derived from the sweep seed and the episode id, so growing a sweep keeps the episodes it already had.
 
 Allocation: the total is shared between the splits by largest remainder over the split weights; in
-each split the combinations of the axes get their share of episodes by largest remainder over the
-product of their level weights (ties broken by a hash, not by axis order), with at least one episode
-each when ``cover_all`` and the split has room for every combination.
+each split the combinations of the axes get their episodes by :func:`balanced_allocation`: every
+combination once when there is room (``cover_all``), and at any size each axis's levels in
+proportion to their weights, so even a small preview is balanced.
 """
 
 from __future__ import annotations
@@ -98,13 +98,40 @@ def largest_remainder(total: int, weights: Sequence[float], keys: Sequence[str],
     return [int(x) for x in out]
 
 
-def cover_allocation(total: int, weights: Sequence[float], keys: Sequence[str], seed: int = 0) -> list[int]:
-    """Like :func:`largest_remainder`, but every key gets at least one when ``total >= len(keys)``."""
-    n = len(weights)
-    if total < n:
-        return largest_remainder(total, weights, keys, seed)
-    extra = largest_remainder(total - n, weights, keys, seed)
-    return [1 + e for e in extra]
+def balanced_allocation(total: int, levels: Sequence[Sequence[float]], *, seed: int = 0,
+                        cover_all: bool = True) -> list[int]:
+    """Episodes per combination of the axes: ``total`` picks, each of the most under-represented one.
+
+    ``levels[j]`` are the weights of axis j's levels; combinations are enumerated as by
+    :func:`itertools.product` (last axis fastest) and returned in that order. Pick k goes to the
+    combination whose levels (every axis) and whose own count lag furthest behind their weighted
+    targets; with ``cover_all`` the first picks go to combinations not yet taken, so every
+    combination appears once ``total`` allows. Ties are broken by a random order fixed by ``seed``.
+    The picks never depend on ``total``: a larger total extends a smaller one (episodes are kept).
+    """
+    index = np.array(list(itertools.product(*(range(len(w)) for w in levels))), dtype=np.int64)
+    n_comb = len(index)
+    index = index.reshape(n_comb, len(levels))
+    shares = [np.asarray(w, dtype=float) / float(np.sum(w)) for w in levels]
+    joint = np.ones(n_comb)
+    for j, share in enumerate(shares):
+        joint *= share[index[:, j]]
+    counts = np.zeros(n_comb, dtype=np.int64)
+    marginal = [np.zeros(len(share)) for share in shares]
+    priority = np.random.default_rng([seed, 0xA110C]).permutation(n_comb)
+    for k in range(1, total + 1):
+        score = counts + 1 - k * joint
+        for j, share in enumerate(shares):
+            score = score + (marginal[j] + 1 - k * share)[index[:, j]]
+        if cover_all and k <= n_comb:
+            score = np.where(counts == 0, score, np.inf)
+        best = np.flatnonzero(score <= score.min() + 1e-9)
+        pick = int(best[np.argmin(priority[best])])
+        counts[pick] += 1
+        priority[pick] += n_comb  # the next tie goes to another combination
+        for j in range(len(levels)):
+            marginal[j][index[pick, j]] += 1
+    return [int(c) for c in counts]
 
 
 def _resolve_base(name: str, sweep_dir: Path) -> Path:
@@ -227,7 +254,7 @@ def plan_sweep(
     names = list(axes)
     combos: list[tuple[Level, ...]] = list(itertools.product(*axes.values()))
     keys = ["-".join(lv.label for lv in combo) for combo in combos]
-    weights = [math.prod(lv.weight for lv in combo) for combo in combos]
+    level_weights = [[lv.weight for lv in levels] for levels in axes.values()]
     splits = list(sweep.split)
     per_split = largest_remainder(total, list(sweep.split.values()), splits, sweep.seed)
 
@@ -236,7 +263,7 @@ def plan_sweep(
     for split, n_split in zip(splits, per_split, strict=True):
         if sweep.cover_all and 0 < n_split < len(combos):
             warnings.append(f"split {split}: {n_split} episodes cannot cover all {len(combos)} combinations")
-        alloc = (cover_allocation if sweep.cover_all else largest_remainder)(n_split, weights, keys, sweep.seed)
+        alloc = balanced_allocation(n_split, level_weights, seed=sweep.seed, cover_all=sweep.cover_all)
         for combo, key, n in zip(combos, keys, alloc, strict=True):
             for r in range(n):
                 episode_id = "-".join(p for p in (split, key, f"{r:04d}") if p)
@@ -255,13 +282,14 @@ def plan_sweep(
                 for k, v in _draw(sweep, seed).items():
                     overrides.append((_assignment(k, v), ("vary", k)))
                     params[k] = v
-                params["seed"] = seed
                 overrides.append((_assignment("output.name", episode_id), ("name",)))
                 resolved, duration_s, base_dir = builder.build(base, base_origin, overrides, f"episode {episode_id}")
+                params["seed"] = resolved["seed"]  # derived, unless an axis sets the seed itself
                 episodes.append(Episode(
                     id=episode_id, index=len(episodes), split=split,
                     labels={n: lv.label for n, lv in zip(names, combo, strict=True)},
-                    params=params, seed=seed, duration_s=duration_s, scenario=resolved, base_dir=base_dir,
+                    params=params, seed=resolved["seed"], duration_s=duration_s, scenario=resolved,
+                    base_dir=base_dir,
                 ))
     return Plan(sweep=sweep, episodes=tuple(episodes), combinations=len(combos), warnings=tuple(warnings))
 

@@ -24,6 +24,7 @@ log = logging.getLogger(__name__)
 
 OBJECTS_TOPIC = "/labels/objects"
 CONDITIONS = ("weather", "lighting", "environment")
+SPLIT_ORDER = ("train", "val", "validation", "test")
 
 
 @dataclass(frozen=True)
@@ -113,11 +114,12 @@ def summarize(episodes: list[EpisodeStats]) -> dict[str, Any]:
         agents_per_scene[sum(e.agents.values())] += 1
         for k, n in e.agents.items():
             per_kind[k].append(n)
+    order = sorted(hours, key=lambda s: (SPLIT_ORDER.index(s) if s in SPLIT_ORDER else len(SPLIT_ORDER), s))
     return {
         "episodes": len(episodes),
         "hours": sum(hours.values()),
-        "hours_per_split": dict(hours),
-        "episodes_per_split": dict(count),
+        "hours_per_split": {s: hours[s] for s in order},
+        "episodes_per_split": {s: count[s] for s in order},
         "shares": {c: _fractions(v) for c, v in shares.items()},
         "hours_by": {c: dict(v) for c, v in shares.items()},
         "objects_per_class": dict(sorted(objects.items(), key=lambda kv: -kv[1])),
