@@ -160,20 +160,6 @@ class Raster:
         out[ok] = self.mask[r[ok], c[ok]]
         return out
 
-    def polygon_free(self, poly: np.ndarray) -> bool:
-        """True when no occupied cell lies under polygon (N, 2) (sampled at cell resolution)."""
-        xmin, ymin = poly.min(axis=0)
-        xmax, ymax = poly.max(axis=0)
-        xs = np.arange(xmin, xmax + self.cell_m, self.cell_m * 0.5)
-        ys = np.arange(ymin, ymax + self.cell_m, self.cell_m * 0.5)
-        gx, gy = np.meshgrid(xs, ys)
-        pts = np.stack([gx.ravel(), gy.ravel()], axis=1)
-        inside = MplPath(poly).contains_points(pts, radius=self.cell_m) | MplPath(poly[::-1]).contains_points(
-            pts, radius=self.cell_m
-        )
-        pts = np.concatenate([pts[inside], poly])
-        return not bool(self.lookup(pts).any())
-
 
 class Occupancy:
     """A mutable occupancy grid for placing objects one after another without overlaps."""

@@ -282,7 +282,8 @@ def suburban(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
 @register("net")
 def from_net_file(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
     """A user's SUMO network, used as it is (the builder checks that vehicles can drive on it)."""
-    assert req.file is not None
+    if req.file is None:
+        raise InputError(f"map.kind {req.kind!r} needs map.file")
     data = req.file.read_bytes()
     if b"<net" not in data[:4096]:
         raise InputError(f"map.file {req.file} is not a SUMO network (.net.xml): no <net> element at its start")
@@ -298,7 +299,8 @@ _POLY_TYPES = b"""<polygonTypes>
 @register("osm")
 def from_osm(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
     """OpenStreetMap through netconvert (roads) and polyconvert (building outlines, when present)."""
-    assert req.file is not None
+    if req.file is None:
+        raise InputError(f"map.kind {req.kind!r} needs map.file")
     head = req.file.read_bytes()[:4096]
     if b"<osm" not in head:
         raise InputError(f"map.file {req.file} is not an OpenStreetMap XML file: no <osm> element at its start")
@@ -565,13 +567,24 @@ def highway(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
         "spreadType": "center",
         "disallow": "pedestrian bicycle",
     }
+    # ramps leave and join beside the outer lane (offset by half the carriageway plus half a ramp
+    # lane), so that their lane never overlaps a carriageway lane
+    side = 0.5 * lanes * lw + 0.5 * lw + 0.3
     for a, da, b, db in (
         ("de", east, "s1", south),
         ("s2", north, "me", east),
         ("dw", west, "n1", north),
         ("n2", south, "mw", west),
     ):
-        edges.append({"id": f"{a}_{b}", "from": a, "to": b, **ramp, "shape": _bezier(pts[a], da, pts[b], db)})
+        if a in ("de", "dw"):  # exit: start beside the carriageway, 10 m past the diverge node
+            right = (da[1], -da[0])
+            start = (pts[a][0] + 10.0 * da[0] + side * right[0], pts[a][1] + 10.0 * da[1] + side * right[1])
+            shape = [start, *_bezier(start, da, pts[b], db)]
+        else:  # entry: end beside the carriageway, 10 m before the merge node
+            right = (db[1], -db[0])
+            end = (pts[b][0] - 10.0 * db[0] + side * right[0], pts[b][1] - 10.0 * db[1] + side * right[1])
+            shape = [*_bezier(pts[a], da, end, db), end]
+        edges.append({"id": f"{a}_{b}", "from": a, "to": b, **ramp, "shape": shape})
     local = {"numLanes": 1, "speed": 13.89, "priority": 1, "width": 3.75, "disallow": "pedestrian"}
     for a, b in (("sa", "s1"), ("s1", "s2"), ("s2", "sb"), ("na", "n2"), ("n2", "n1"), ("n1", "nb")):
         _two_way(edges, a, b, None, **local)

@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 
 MIN_LANE_M = 20.0  # [m] shortest lane a vehicle departs on
 END_CLEARANCE_M = 12.0  # [m] no departure closer than this to a lane's end
-ROUTE_TARGETS = 3  # random destinations chained into the initial route
+ROUTE_TARGETS = 1  # random destinations in the initial route (the adapter extends routes as they run out)
 
 
 @dataclass(frozen=True)
