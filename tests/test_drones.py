@@ -22,7 +22,7 @@ from cosim.drones.report import fly_escort, fly_hover, fly_patrol, rms
 from cosim.drones.routes import road_graph
 from cosim.drones.strategies import SWING_FEEDFORWARD, Escort, Hover, Patrol
 from cosim.drones.wind import Wind
-from cosim.errors import CollisionError, InputError, WorkerError
+from cosim.errors import CollisionError, InputError, ScenarioError, WorkerError
 from cosim.geometry import rotation_matrix
 from cosim.protocol import EscortTarget
 from cosim.scenario.model import (
@@ -357,6 +357,26 @@ def test_fleet_rejects_off_tick_times_and_holds_without_escort_target():
         fleet.close()
     assert states[-1].strategy_state == "lost"
     assert states[-1].position_m[:2] == pytest.approx(s0.position_m[:2], abs=0.5)
+
+
+def test_fleet_rejects_physics_too_slow_for_the_controller():
+    sc = Scenario(name="slow", agents=AgentsSpec(drones=[HoverDrone()], drone_physics_hz=10.0))
+    with pytest.raises(ScenarioError, match=r"agents\.drone_physics_hz.*at least 20 Hz"):
+        DroneFleet(sc, demo_world())
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_hover_holds_at_other_physics_rates(backend):
+    for hz in (20.0, 400.0):
+        agents = AgentsSpec(drones=[HoverDrone(point=(350.0, 350.0))], drone_backend=backend, drone_physics_hz=hz)
+        fleet = DroneFleet(Scenario(name="rates", agents=agents), demo_world())
+        try:
+            states = fly(fleet, 10.0)
+        finally:
+            fleet.close()
+        pos = np.array([s[0].position_m for s in states])
+        assert np.abs(pos - [350.0, 350.0, 60.0]).max() < 0.5, hz
 
 
 @pytest.mark.integration

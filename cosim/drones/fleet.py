@@ -23,7 +23,7 @@ from cosim.drones.obstacles import Obstacles
 from cosim.drones.routes import RoadGraph, hover_point, patrol_loop, ranked_junctions, road_graph, world_centre
 from cosim.drones.strategies import Escort, Hover, Patrol, Strategy, planned_altitude
 from cosim.drones.wind import Wind
-from cosim.errors import CollisionError, WorkerError
+from cosim.errors import CollisionError, ScenarioError, WorkerError
 from cosim.geometry import quat_from_matrix, quat_from_rpy
 from cosim.protocol import DroneState, EscortTarget
 from cosim.scenario.model import EscortDrone, HoverDrone, PatrolDrone, Scenario
@@ -32,6 +32,7 @@ from cosim.world.types import World
 log = logging.getLogger(__name__)
 
 WIND_STREAM = 0xD12E  # SeedSequence tag of the drones' random streams
+MIN_PHYSICS_HZ = 20.0  # [Hz] the attitude and rate loops need at least this (unstable at 5 Hz)
 
 
 @dataclass
@@ -102,6 +103,12 @@ class DroneFleet:
 
     def __init__(self, scenario: Scenario, world: World):
         a = scenario.agents
+        if a.drone_physics_hz < MIN_PHYSICS_HZ:
+            raise ScenarioError(
+                f"drone physics at {a.drone_physics_hz:g} Hz is too slow for the flight controller; "
+                f"use at least {MIN_PHYSICS_HZ:g} Hz (100 recommended)",
+                path="agents.drone_physics_hz",
+            )
         self.scenario = scenario
         self.world = world
         self.tick_ns = scenario.tick_ns

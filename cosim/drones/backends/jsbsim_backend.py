@@ -26,6 +26,7 @@ N_TO_LBS = 0.224808943  # [lbf / N]
 KG_TO_LBS = 2.20462262  # [lb / kg] (weight at standard gravity)
 NM_TO_LBSFT = N_TO_LBS * M_TO_FT  # [lbf ft / N m]
 AIRCRAFT = "cosim_quad"
+MAX_JSBSIM_DT_S = 0.01  # [s] longest JSBSim integration step
 
 _WGS84_A = 6378137.0  # [m] semi-major axis
 _WGS84_E2 = 6.69437999014e-3  # first eccentricity squared
@@ -114,7 +115,10 @@ class JSBSimBackend(DynamicsBackend):
         fdm.set_debug_level(0)
         if not fdm.load_model(AIRCRAFT):
             raise RuntimeError(f"JSBSim could not load aircraft {AIRCRAFT!r} from {data_root()}")
-        fdm.set_dt(dt_s)
+        # JSBSim's multistep integrators go unstable on this small airframe beyond ~20 ms steps:
+        # integrate in sub-steps of at most MAX_JSBSIM_DT_S, holding the rotor forces.
+        self._substeps = max(1, math.ceil(dt_s / MAX_JSBSIM_DT_S - 1e-9))
+        fdm.set_dt(dt_s / self._substeps)
         self.fdm = fdm
         self._configure(frame)
         self._ground_alt_m = world.geo_origin[2] + world.layout.ground_z_m
@@ -173,7 +177,8 @@ class JSBSimBackend(DynamicsBackend):
         self.rotors.step(rotor_command_n)
         self._push_rotors()
         self._set_wind(wind_mps)
-        self.fdm.run()
+        for _ in range(self._substeps):
+            self.fdm.run()
         fdm = self.fdm
         m_slug = fdm["inertia/mass-slugs"]
         f_frd = np.array([fdm["forces/fbx-total-lbs"], fdm["forces/fby-total-lbs"], fdm["forces/fbz-total-lbs"]])
