@@ -7,6 +7,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+import yaml
 from cosim.exporters.labels import label_messages
 from cosim.exporters.mcap_writer import EpisodeWriter
 from cosim.exporters.sensor_messages import depth_mm, frame_messages
@@ -68,7 +69,8 @@ def rendered(tmp_path_factory):
             frames.append(fs)
             for topic, msg in label_messages(snap, rig) + frame_messages(fs, snap.t_ns):
                 w.write(topic, msg, snap.t_ns)
-        for name in ("scenario.yaml", "map.net.xml", "routes.rou.xml", "world.json"):
+        w.add_attachment("scenario.yaml", "application/yaml", yaml.safe_dump(sc.model_dump(mode="json")).encode())
+        for name in ("map.net.xml", "routes.rou.xml", "world.json"):
             w.add_attachment(name, "application/octet-stream", b"x")
         w.finish()
     return path, frames

@@ -185,3 +185,13 @@ def test_an_unknown_format_version_is_named(tmp_path, capsys):
     assert "9.1 is not supported" in found[0].message
     assert main(["info", str(path)]) == 1
     assert "9.1" in capsys.readouterr().err
+
+
+def test_a_sensor_topic_the_rig_promises_but_the_file_lacks_is_named(tmp_path):
+    path = write_synthetic_episode(
+        tmp_path / "rig.mcap", ticks=3, edit=lambda k, t, m: None if t == "/vehicle_0/rear/semantic" else m
+    )
+    found = _only(validate_episode(path), "completeness")
+    assert [(p.topic, p.message) for p in found] == [
+        ("/vehicle_0/rear/semantic", "topic missing from the file (the scenario's rig has it)")
+    ]

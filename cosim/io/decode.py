@@ -170,6 +170,44 @@ class Objects:
     def __len__(self) -> int:
         return len(self.track_ids)
 
+    def to_snapshot(self) -> Any:
+        """The tick's :class:`~cosim.snapshot.WorldSnapshot` rebuilt from the labels.
+
+        Actors and agent poses are exact; what labels do not carry (agents' angular rates, specific
+        force, gimbal attitude) keeps the AgentState defaults.
+        """
+        from cosim.snapshot import Actor, AgentState, WorldSnapshot
+
+        def t3(v: Any) -> tuple[float, float, float]:
+            return (float(v[0]), float(v[1]), float(v[2]))
+
+        actors = tuple(
+            Actor(int(tid), cls, t3(c), t3(s), tuple(float(x) for x in q), t3(v), aid)  # type: ignore[arg-type]
+            for tid, cls, c, s, q, v, aid in zip(
+                self.track_ids,
+                self.classes,
+                self.centers_m,
+                self.sizes_m,
+                self.rotations,
+                self.velocities_mps,
+                self.agent_ids,
+                strict=True,
+            )
+        )
+        agents = tuple(
+            AgentState(
+                a["agent_id"],
+                a["kind"],
+                t3(a["position_m"]),
+                tuple(float(x) for x in a["rotation"]),
+                t3(a.get("velocity_mps", (0.0, 0.0, 0.0))),
+                track_id=a.get("track_id"),
+                extra=dict(a.get("extra") or {}),
+            )  # type: ignore[arg-type]
+            for a in self.agents
+        )
+        return WorldSnapshot(self.tick, self.t_ns, actors, agents)
+
 
 @dataclass(frozen=True)
 class Boxes:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from typing import Any
 
 #: Format version this code writes and reads (major.minor; readers refuse another major).
 FORMAT_VERSION = "1.0"
@@ -110,6 +111,30 @@ REQUIRED_METADATA: tuple[str, ...] = (
 
 #: Attachments every episode carries.
 REQUIRED_ATTACHMENTS: tuple[str, ...] = ("scenario.yaml", "map.net.xml", "routes.rou.xml", "world.json")
+
+
+#: Camera output -> topic suffix.
+CAMERA_TOPICS: dict[str, str] = {"rgb": "image", "depth": "depth", "semantic": "semantic", "instance": "instance"}
+
+
+def expected_topics(scenario: Any, agents: list[str]) -> set[str]:
+    """Every topic an episode of ``scenario`` (a :class:`cosim.scenario.model.Scenario`) must hold."""
+    out = set(LABEL_TOPICS)
+    if not scenario.sensors.enabled:
+        return out
+    for agent in agents:
+        rig = scenario.rig_for(agent)
+        if rig.lidar is not None:
+            out.add(f"/{agent}/lidar")
+        for cam in rig.cameras:
+            out.update(f"/{agent}/{cam.name}/{CAMERA_TOPICS[o]}" for o in cam.outputs)
+            out.add(f"/{agent}/{cam.name}/calibration")
+        if rig.gnss is not None:
+            out.add(f"/{agent}/gnss")
+        if rig.imu is not None:
+            out.add(f"/{agent}/imu")
+        out.update({f"/{agent}/bev", f"/{agent}/visibility"})
+    return out
 
 
 def topic_spec(topic: str) -> tuple[TopicSpec, dict[str, str]] | None:

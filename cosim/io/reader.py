@@ -167,6 +167,10 @@ class Tick:
     def labels(self) -> Objects:
         return self["/labels/objects"]
 
+    def snapshot(self) -> Any:
+        """The :class:`~cosim.snapshot.WorldSnapshot` of this tick, rebuilt from ``/labels/objects``."""
+        return self.labels.to_snapshot()
+
     @property
     def boxes(self) -> Boxes:
         return self["/labels/boxes"]

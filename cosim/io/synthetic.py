@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.Grid_pb2 import Grid
@@ -330,6 +331,29 @@ def synthetic_metadata(n_ticks: int, agents: list[str], sensors: bool, world: Wo
 Edit = Callable[[int, str, Any], Any]
 
 
+def synthetic_scenario(ticks: int, sensors: bool, width: int, height: int) -> dict[str, Any]:
+    """The resolved scenario matching the synthetic episode's agents and rigs (its scenario.yaml)."""
+
+    def cams(kind: str) -> list[dict[str, Any]]:
+        return [{"name": c, "width": width, "height": height} for c in CAMERAS[kind]]
+
+    doc = {
+        "name": "synthetic",
+        "description": "synthetic test episode",
+        "duration_s": ticks * TICK_NS / 1e9,
+        "agents": {"vehicles": {"count": 1}, "rsus": {"count": 1}, "drones": [{"strategy": "hover"}]},
+        "sensors": {
+            "enabled": sensors,
+            "vehicle": {"cameras": cams("vehicle"), "imu": {}},
+            "rsu": {"cameras": cams("rsu"), "imu": None},
+            "drone": {"cameras": cams("drone"), "imu": {}},
+        },
+    }
+    from cosim.scenario.model import Scenario
+
+    return Scenario.model_validate(doc).model_dump(mode="json")
+
+
 def write_synthetic_episode(
     path: str | Path,
     *,
@@ -362,7 +386,8 @@ def write_synthetic_episode(
                     continue
                 for t_ns, tp, m in out if isinstance(out, list) else [(snap.t_ns, topic, out)]:
                     w.write(tp, m, t_ns)
-        w.add_attachment("scenario.yaml", "application/yaml", b"name: synthetic\n")
+        scenario = yaml.safe_dump(synthetic_scenario(ticks, sensors, width, height), sort_keys=False).encode()
+        w.add_attachment("scenario.yaml", "application/yaml", scenario)
         w.add_attachment("map.net.xml", "application/xml", world.net_xml)
         w.add_attachment("routes.rou.xml", "application/xml", world.routes_xml)
         w.add_attachment("world.json", "application/json", b"{}")

@@ -43,6 +43,7 @@ from cosim.io.format import (
     REQUIRED_ATTACHMENTS,
     REQUIRED_METADATA,
     STATIC_INSTANCE_MIN,
+    expected_topics,
     topic_spec,
 )
 from cosim.io.reader import check_format_version, parse_metadata
@@ -132,6 +133,7 @@ class _Validator:
         self.counts: dict[int, int] = defaultdict(int)
         self.statistics: Statistics | None = None
         self.seen_header = self.seen_data_end = self.seen_footer = False
+        self.scenario_yaml: bytes | None = None
 
     # -- reporting --------------------------------------------------------------------------------
 
@@ -185,6 +187,8 @@ class _Validator:
                 self.on_metadata(dict(record.metadata))
         elif isinstance(record, Attachment):
             self.attachments.add(record.name)
+            if record.name == "scenario.yaml":
+                self.scenario_yaml = record.data
         elif isinstance(record, DataEnd):
             self.seen_data_end = True
         elif isinstance(record, Statistics):
@@ -505,6 +509,20 @@ class _Validator:
                 topic,
             )
 
+    def scenario(self) -> Any:
+        """The resolved scenario attachment as a Scenario, or None when absent or unreadable."""
+        if self.scenario_yaml is None:
+            return None
+        try:
+            import yaml
+
+            from cosim.scenario.model import Scenario
+
+            return Scenario.model_validate(yaml.safe_load(self.scenario_yaml))
+        except Exception as exc:  # an old or foreign scenario: the rig checks are skipped, not failed
+            log.info("scenario.yaml attachment not usable for rig checks: %s", exc)
+            return None
+
     # -- whole file -------------------------------------------------------------------------------
 
     def finish(self) -> None:
@@ -528,9 +546,13 @@ class _Validator:
                         topic=ch.topic if ch else f"channel {cid}",
                     )
         topics = {ch.topic for ch in self.channels.values()}
-        for t in LABEL_TOPICS:
-            if t not in topics and self.meta is not None:
+        if self.meta is not None:
+            for t in sorted(set(LABEL_TOPICS) - topics):
                 self.problem("completeness", "topic missing from the file", topic=t)
+            scenario = self.scenario()
+            if scenario is not None and self.seen_footer:
+                for t in sorted(expected_topics(scenario, self.agents) - topics - set(LABEL_TOPICS)):
+                    self.problem("completeness", "topic missing from the file (the scenario's rig has it)", topic=t)
         r.topics = {t: len(self.topic_ticks.get(t, [])) for t in sorted(topics)}
         if self.n_ticks is None:
             return
