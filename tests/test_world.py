@@ -186,7 +186,7 @@ def write_small_osm(path: Path) -> None:
     for i in range(4):
         ways.append(([grid[i][j] for j in range(4)], {"highway": "secondary" if i == 1 else "residential"}))
         ways.append(([grid[j][i] for j in range(4)], {"highway": "residential"}))
-    for bi, bj in ((0, 0), (1, 2)):
+    for bi, bj, tags in ((0, 0, {"building": "yes"}), (1, 2, {"building": "apartments", "building:levels": "4"})):
         la, lo = lat0 + (bi + 0.3) * dlat, lon0 + (bj + 0.3) * dlon
         ring = [
             node(la, lo),
@@ -194,7 +194,7 @@ def write_small_osm(path: Path) -> None:
             node(la + 0.3 * dlat, lo + 0.3 * dlon),
             node(la + 0.3 * dlat, lo),
         ]
-        ways.append((ring + ring[:1], {"building": "yes"}))
+        ways.append((ring + ring[:1], tags))
     for w, (refs, tags) in enumerate(ways, start=1000):
         lines.append(f"  <way id='{w}' visible='true' version='1'>")
         lines += [f"    <nd ref='{r}'/>" for r in refs]
@@ -225,6 +225,7 @@ def test_osm_import_roads_and_buildings(tmp_path: Path) -> None:
     for b in buildings:
         side = math.sqrt(abs(geom.signed_area(np.array(b.footprint))))
         assert side == pytest.approx(36.0, rel=0.1)
+    assert 13.0 in [b.z1_m for b in buildings]  # building:levels = 4 -> 3 m a level + 1 m
     lat, lon, _ = world.geo_origin
     assert abs(lat - 48.1) < 0.01 and abs(lon - 11.5) < 0.01
     assert b'<vehicle id="vehicle_1"' in world.routes_xml

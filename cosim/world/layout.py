@@ -236,7 +236,7 @@ class _Builder:
         kind: str,
         bounds: tuple[float, float, float, float],
         rng: np.random.Generator,
-        extra_buildings: list[np.ndarray],
+        extra_buildings: list[tuple[np.ndarray, float | None]],
     ) -> None:
         self.net, self.kind, self.bounds, self.rng = net, kind, bounds, rng
         self.style = STYLES.get(kind, STYLES["suburban"])
@@ -381,12 +381,13 @@ class _Builder:
 
     def given_buildings(self) -> None:
         rng = self.rng
-        for poly in self.extra_buildings:
+        for poly, height in self.extra_buildings:
+            drawn = float(rng.uniform(6.0, 20.0))  # drawn for every outline, so heights do not shift
             if len(poly) < 3 or abs(geom.signed_area(poly)) < 4.0 or not self.inside(poly, 0.0):
                 continue
-            if not self.solid.free(poly):
+            if not self.solid.free(poly):  # an outline over a road or sidewalk is left out
                 continue
-            self.add_building(poly, round(float(rng.uniform(6.0, 20.0)), 2))
+            self.add_building(geom.ccw(poly), round(height if height is not None else drawn, 2))
 
     # ---------------------------------------------------------------------------- vegetation
     def street_trees(self) -> None:
@@ -452,6 +453,23 @@ class _Builder:
                 self.solid.add(poly)
                 return
 
+    def median_hedges(self) -> None:
+        """Shrubs along the left of one-way carriageways (the median of a dual carriageway), in 20 m pieces."""
+        pairs = _two_way(self.net)
+        for e in sorted(self.net.road_edges(), key=lambda e: e.edge_id):
+            if (e.to_node, e.from_node) in pairs:
+                continue
+            top = max((ln for ln in e.lanes if ln.is_road), key=lambda ln: ln.index)
+            line = geom.offset_polyline(top.shape, 0.5 * top.width_m + 3.0)
+            length = geom.polyline_length(line)
+            s = 5.0
+            while s + 20.0 < length - 5.0:
+                piece = geom.strip(geom.resample(line, s, s + 20.0), 1.2)
+                if self.solid.free(piece):
+                    self.prisms.append(prism("vegetation", piece, GROUND_Z, 1.3))
+                    self.solid.add(piece)
+                s += 21.0
+
     # ---------------------------------------------------------------------------- poles
     def street_lights(self) -> None:
         spacing = self.style.street_light_spacing_m
@@ -508,6 +526,8 @@ class _Builder:
             self.frontage_buildings()
             self.infill_buildings()
         self.street_trees()
+        if self.kind == "highway":
+            self.median_hedges()
         self.fields()
         self.scatter_trees()
         return self.prisms
@@ -518,7 +538,7 @@ def build_layout(
     kind: str,
     bounds_m: tuple[float, float, float, float],
     rng: np.random.Generator,
-    buildings: list[np.ndarray] | None = None,
+    buildings: list[tuple[np.ndarray, float | None]] | None = None,
 ) -> tuple[list[Prism], Raster]:
     """Every static prism of the world and the road-surface raster used to place them."""
     b = _Builder(net, kind, bounds_m, rng, buildings or [])

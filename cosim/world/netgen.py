@@ -31,7 +31,8 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class NetworkResult:
     net_xml: bytes
-    buildings: list[np.ndarray] = field(default_factory=list)  # (N, 2) footprints from OSM [m]
+    #: building outlines from OSM: footprint (N, 2) [m] and height [m] when the file tags one
+    buildings: list[tuple[np.ndarray, float | None]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -296,6 +297,17 @@ _POLY_TYPES = b"""<polygonTypes>
 """
 
 
+def _building_height(tags: dict[str, str]) -> float | None:
+    """Height [m] from OSM ``height`` (metres, maybe with a unit) or ``building:levels`` (3 m a level)."""
+    m = re.match(r"\s*([0-9]+(?:\.[0-9]+)?)", tags.get("height", ""))
+    if m and float(m.group(1)) > 0:
+        return float(m.group(1))
+    m = re.match(r"\s*([0-9]+(?:\.[0-9]+)?)", tags.get("building:levels", ""))
+    if m and float(m.group(1)) > 0:
+        return 3.0 * float(m.group(1)) + 1.0
+    return None
+
+
 @register("osm")
 def from_osm(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
     """OpenStreetMap through netconvert (roads) and polyconvert (building outlines, when present)."""
@@ -330,7 +342,7 @@ def from_osm(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
         req.workdir,
     )
     net_xml = strip_header(out.read_bytes())
-    buildings: list[np.ndarray] = []
+    buildings: list[tuple[np.ndarray, float | None]] = []
     osm_text = req.file.read_bytes()
     if re.search(rb"""k=["']building["']""", osm_text):
         (req.workdir / "buildings.typ.xml").write_bytes(_POLY_TYPES)
@@ -346,6 +358,7 @@ def from_osm(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
                 "buildings.typ.xml",
                 "-o",
                 polys.name,
+                "--all-attributes",
                 "--xml-validation",
                 "never",
             ],
@@ -356,7 +369,8 @@ def from_osm(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
                 continue
             pts = np.array([[float(v) for v in p.split(",")[:2]] for p in poly.get("shape", "").split()])
             if len(pts) >= 3:
-                buildings.append(pts)
+                tags = {p.get("key"): p.get("value", "") for p in poly.iter("param")}
+                buildings.append((pts, _building_height(tags)))
     log.info("OSM import: %d building outlines", len(buildings))
     return NetworkResult(net_xml, buildings)
 
