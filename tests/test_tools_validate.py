@@ -195,3 +195,27 @@ def test_a_sensor_topic_the_rig_promises_but_the_file_lacks_is_named(tmp_path):
     assert [(p.topic, p.message) for p in found] == [
         ("/vehicle_0/rear/semantic", "topic missing from the file (the scenario's rig has it)")
     ]
+
+
+def test_labels_and_tf_disagreeing_on_an_agent_pose_is_named(tmp_path):
+    def edit(k, topic, msg):
+        if (k, topic) == (1, "/labels/objects"):
+            name, schema, payload = copy.deepcopy(msg)
+            payload["agents"][0]["position_m"][0] += 0.5
+            return name, schema, payload
+        return msg
+
+    found = _only(validate_episode(write_synthetic_episode(tmp_path / "pose.mcap", ticks=3, edit=edit)), "labels")
+    assert len(found) == 1 and found[0].tick == 1 and "agent 'vehicle_0' pose" in found[0].message
+
+
+def test_info_and_validate_json_output(good, capsys):
+    import json
+
+    assert main(["info", str(good), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["n_ticks"] == 8 and info["agents"] == ["vehicle_0", "rsu_0", "drone_0"]
+    assert {t["topic"]: t["messages"] for t in info["topics"]}["/tf"] == 8
+    assert main(["validate", str(good), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["ok"] is True and report["problems"] == []

@@ -307,7 +307,36 @@ class _Validator:
         live = self.check_labels(tick, decoded)
         if tree is not None:
             self.check_frames(tick, tree, decoded)
+            self.check_agent_poses(tick, tree, decoded.get("/labels/objects"))
         self.check_sensors(tick, decoded, live)
+
+    def check_agent_poses(self, tick: int | None, tree: TransformTree, objs: Any) -> None:
+        """Every metadata agent is in the labels, at the pose ``/tf`` gives its base_link."""
+        if not isinstance(objs, dict) or not isinstance(objs.get("agents"), list):
+            return
+        poses = {a.get("agent_id"): a for a in objs["agents"] if isinstance(a, dict)}
+        missing = [a for a in self.agents if a not in poses]
+        if missing:
+            self.problem("labels", f"agents {missing} have no pose in /labels/objects", tick, "/labels/objects")
+        for agent_id, a in poses.items():
+            t = tree.by_child.get(f"{agent_id}/base_link")
+            if t is None or t.parent != MAP_FRAME:
+                continue
+            try:
+                pos = np.asarray(a["position_m"], dtype=np.float64)
+                rot = np.asarray(a["rotation"], dtype=np.float64)
+            except (KeyError, TypeError, ValueError):
+                self.problem("labels", f"agent {agent_id!r} has no usable position_m/rotation", tick, "/labels/objects")
+                continue
+            same_rot = np.allclose(rot, t.rotation, atol=1e-9) or np.allclose(rot, -t.rotation, atol=1e-9)
+            if pos.shape != (3,) or not np.allclose(pos, t.translation_m, atol=1e-6) or not same_rot:
+                self.problem(
+                    "labels",
+                    f"agent {agent_id!r} pose {pos.tolist()} differs from /tf map -> "
+                    f"{agent_id}/base_link {t.translation_m.tolist()}",
+                    tick,
+                    "/labels/objects",
+                )
 
     def parse(self, tick: int | None, ch: Channel, schema_name: str, schema_data: bytes, m: Message) -> Any:
         try:
