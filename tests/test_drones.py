@@ -266,6 +266,12 @@ def test_patrol_acceptance_reaches_every_waypoint_in_order(backend):
     assert agree.mean() > 0.9
     speed = np.hypot(v[:, 0], v[:, 1])
     assert speed.max() <= 15.0 + 1.0  # max_speed_mps, with a little overshoot
+    # The IMU's specific force is the kinematic acceleration minus gravity, in the body frame.
+    sf = np.array([s.specific_force_mps2 for s in f.states[1:-1]])
+    rot = [rotation_matrix(s.rotation) for s in f.states[1:-1]]
+    g_up = np.array([0.0, 0.0, G_MPS2])
+    kin = np.array([r.T @ (a + g_up) for r, a in zip(rot, acc, strict=True)])
+    assert np.sqrt(np.mean((sf - kin) ** 2, axis=0)) == pytest.approx([0, 0, 0], abs=0.3)
 
 
 @pytest.mark.integration

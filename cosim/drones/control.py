@@ -37,6 +37,14 @@ class Limits:
     max_tilt_rad: float = math.radians(40.0)
     max_yaw_rate_radps: float = math.radians(60.0)
 
+    @classmethod
+    def for_speed(cls, max_speed_mps: float, frame: Airframe) -> Limits:
+        """Limits for a drone asked to fly up to ``max_speed_mps``: the tilt limit grows (40 to 55 deg)
+        so that the thrust can still beat the drag at that speed with a 30 % margin for manoeuvre."""
+        drag = (0.5 * RHO_KGPM3 * frame.drag_area_m2 * max_speed_mps + frame.drag_linear_nspm) * max_speed_mps
+        tilt = math.atan2(1.3 * drag, frame.mass_kg * G_MPS2)
+        return cls(max_speed_mps=max_speed_mps, max_tilt_rad=min(max(tilt, math.radians(40.0)), math.radians(55.0)))
+
 
 @dataclass(frozen=True, slots=True)
 class Gains:

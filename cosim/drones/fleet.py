@@ -132,7 +132,7 @@ class DroneFleet:
                 counts[spec.strategy] = k + 1
                 strategy = build_strategy(spec, k, self.world, self.obstacles, roads, taken)
                 backend = backend_class(a.drone_backend_of(i))(self.frame, self.dt_s, world)
-                limits = Limits(max_speed_mps=spec.max_speed_mps)
+                limits = Limits.for_speed(spec.max_speed_mps, self.frame)
                 wind = Wind.create(env.wind_mps, wind_dir, env.gust_mps, self.dt_s, np.random.default_rng(seeds[i + 1]))
                 drone = _Drone(
                     f"drone_{i}",
