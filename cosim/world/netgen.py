@@ -518,9 +518,9 @@ def highway(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
     lw = 3.6
     g = 0.5 * lanes * lw + 9.6  # carriageway centre line to the middle of the median [m]
     x_w, x_e = 0.02 * s + g, s - 0.02 * s - g
-    dx = min(45.0, 0.15 * s)
     x_d = 0.3 * s + rng.uniform(-0.03, 0.03) * s
     x_m = 0.7 * s + rng.uniform(-0.03, 0.03) * s
+    dx = max(10.0, min(45.0, 0.15 * s, 0.5 * (x_m - x_d - 60.0)))  # ramp feet stay 60 m apart
     off = min(50.0, 0.2 * s)
     y_s, y_n = c - g - off, c + g + off
     east, west, north, south = (1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)
@@ -554,7 +554,7 @@ def highway(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
     edges: list[dict] = []
     for a, b in (("we", "de"), ("de", "me"), ("me", "ee"), ("ew", "dw"), ("dw", "mw"), ("mw", "ww")):
         edges.append({"id": f"{a}_{b}", "from": a, "to": b, **motorway})
-    loop = {**motorway, "numLanes": 2, "speed": 11.0, "priority": 4}
+    loop = {**motorway, "numLanes": min(2, lanes), "speed": 11.0, "priority": 4}
     edges.append(
         {
             "id": "ee_ew",
