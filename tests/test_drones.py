@@ -136,6 +136,15 @@ def test_altitude_planning_clears_buildings_unless_turned_off():
     assert isinstance(hover, Hover) and hover.point_m[2] == pytest.approx(45.0)
 
 
+def test_patrol_with_repeated_waypoints():
+    world = demo_world()
+    obs = Obstacles.from_layout(world.layout)
+    p = build_strategy(PatrolDrone(waypoints=[(0, 0), (50, 0), (50, 0), (0, 0)]), 0, world, obs)
+    assert p.waypoints_m[:, :2].tolist() == [[0.0, 0.0], [50.0, 0.0]]
+    with pytest.raises(ScenarioError, match=r"agents\.drones\.0.*2 distinct waypoints"):
+        DroneFleet(scenario([PatrolDrone(waypoints=[(5, 5), (5, 5)])]), world)
+
+
 def test_default_hover_points_spread_over_junctions():
     world = demo_world()
     obs = Obstacles.from_layout(world.layout)

@@ -130,7 +130,10 @@ class DroneFleet:
             for i, spec in enumerate(a.drones):
                 k = counts.get(spec.strategy, 0)
                 counts[spec.strategy] = k + 1
-                strategy = build_strategy(spec, k, self.world, self.obstacles, roads, taken)
+                try:
+                    strategy = build_strategy(spec, k, self.world, self.obstacles, roads, taken)
+                except ValueError as exc:
+                    raise ScenarioError(str(exc), path=f"agents.drones.{i}") from exc
                 backend = backend_class(a.drone_backend_of(i))(self.frame, self.dt_s, world)
                 limits = Limits.for_speed(spec.max_speed_mps, self.frame)
                 wind = Wind.create(env.wind_mps, wind_dir, env.gust_mps, self.dt_s, np.random.default_rng(seeds[i + 1]))

@@ -31,6 +31,7 @@ TRACK_RADIUS_M = 5.0  # [m] within this of the offset point an escort is "tracki
 #: is estimated from yaws one tick old, so in short urban turns the full swing arrives late and throws
 #: the drone outward as the turn ends; half of it measured best in SUMO traffic and synthetic drives.
 SWING_FEEDFORWARD = 0.5
+MAX_TARGET_YAW_RATE_RADPS = 2.0  # [rad/s] bound on the estimated turn rate (a yaw jump is not a turn)
 
 
 def planned_altitude(obstacles: Obstacles, points_xy: np.ndarray, height_m: float, clearance_m: float | None) -> float:
@@ -96,7 +97,14 @@ class Patrol(Strategy):
     name: str = "patrol"
 
     def __post_init__(self) -> None:
-        w = self.waypoints_m
+        # Drop repeated points (a closing copy of the first one included): zero-length legs.
+        pts = [p for p in np.asarray(self.waypoints_m, dtype=np.float64)]
+        w = np.array([p for i, p in enumerate(pts) if i == 0 or np.linalg.norm(p - pts[i - 1]) > 1e-6])
+        if len(w) > 1 and np.linalg.norm(w[-1] - w[0]) <= 1e-6:
+            w = w[:-1]
+        if len(w) < 2:
+            raise ValueError(f"a patrol needs at least 2 distinct waypoints, got {self.waypoints_m.tolist()}")
+        self.waypoints_m = w
         n = len(w)
         seg = np.roll(w, -1, axis=0) - w  # segment i: waypoint i -> i+1
         self._seg_len = np.linalg.norm(seg, axis=1)
@@ -186,7 +194,8 @@ class Escort(Strategy):
         c = np.array(target.center_m, dtype=np.float64)
         v = np.array(target.velocity_mps, dtype=np.float64)
         if self._obs is not None and t_s > self._obs[0]:
-            self._yaw_rate = wrap_angle(target.yaw_rad - self._obs[2]) / (t_s - self._obs[0])
+            rate = wrap_angle(target.yaw_rad - self._obs[2]) / (t_s - self._obs[0])
+            self._yaw_rate = min(max(rate, -MAX_TARGET_YAW_RATE_RADPS), MAX_TARGET_YAW_RATE_RADPS)
         self._obs = (t_s, c, float(target.yaw_rad), v)
         if self._label == "lost":
             self._label = "approach"

@@ -149,8 +149,9 @@ class PyBulletBackend(DynamicsBackend):
         pybullet.stepSimulation(physicsClientId=c)
         self._contact = None
         for cp in pybullet.getContactPoints(bodyA=self._body, physicsClientId=c):
-            self._contact = self._label_contact(cp[2], cp[6])
-            break
+            if cp[8] <= 0.0:  # penetration, not just inside the contact margin
+                self._contact = self._label_contact(cp[2], cp[6])
+                break
 
     def state(self) -> BodyState:
         c = self._client
