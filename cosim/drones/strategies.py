@@ -98,7 +98,7 @@ class Patrol(Strategy):
 
     def __post_init__(self) -> None:
         # Drop repeated points (a closing copy of the first one included): zero-length legs.
-        pts = [p for p in np.asarray(self.waypoints_m, dtype=np.float64)]
+        pts = list(np.asarray(self.waypoints_m, dtype=np.float64))
         w = np.array([p for i, p in enumerate(pts) if i == 0 or np.linalg.norm(p - pts[i - 1]) > 1e-6])
         if len(w) > 1 and np.linalg.norm(w[-1] - w[0]) <= 1e-6:
             w = w[:-1]
