@@ -101,6 +101,20 @@ count: 6
 """
 
 
+FAULTS = """\
+name: faults
+set: {sensors.enabled: false, duration_s: 1}
+axes:
+  weather: {key: environment.weather, values: [clear, foggy]}
+  mode:
+    levels:
+      - {label: ok}
+      - {label: crash, set: {description: crash_once}}
+      - {label: fail, set: {description: always_fail}}
+count: 6
+"""
+
+
 def six_plan(tmp_path: Path, body: str = SIX, **kw):
     return plan_file(write_sweep(tmp_path, body), **kw)
 
@@ -251,12 +265,7 @@ def test_episode_processes_may_start_their_own_processes(tmp_path):
 
 
 def test_crash_is_retried_and_permanent_failure_is_reported(tmp_path):
-    sweep = ("name: faults\nset: {sensors.enabled: false, duration_s: 1}\naxes:\n"
-             "  weather: {key: environment.weather, values: [clear, foggy]}\n"
-             "  mode:\n    levels:\n      - {label: ok}\n"
-             "      - {label: crash, set: {description: crash_once}}\n"
-             "      - {label: fail, set: {description: always_fail}}\ncount: 6\n")
-    plan = plan_file(write_sweep(tmp_path, sweep))
+    plan = plan_file(write_sweep(tmp_path, FAULTS))
     out = tmp_path / "out"
     summary = run(plan, out, retries=2)
     assert not summary.ok
@@ -272,6 +281,20 @@ def test_crash_is_retried_and_permanent_failure_is_reported(tmp_path):
             assert r["status"] == "failed" and r["attempts"] == 3 and not (out / e.file).exists()
     crashes = [r for r in read_records(out / "manifest.jsonl") if r.get("retrying")]
     assert any("exited with code 3" in r["error"] for r in crashes)
+
+
+def test_ray_executor_retries_a_crashed_worker_and_reports_failures(tmp_path):
+    pytest.importorskip("ray")
+    body = FAULTS.replace("values: [clear, foggy]", "values: [clear]").replace("      - {label: ok}\n", "")
+    plan = plan_file(write_sweep(tmp_path, body.replace("count: 6", "count: 2")))
+    out = tmp_path / "out"
+    summary = run_batch(plan, out, make_executor("ray", workers=2, episode_fn=fake_episode), retries=1,
+                        show_progress=False)
+    assert list(summary.failed) == ["all-clear-fail-0000"] and "forced failure" in summary.failed["all-clear-fail-0000"]
+    crash = latest_records(out)["all-clear-crash-0000"]  # its worker process died; Ray reports it, we retry
+    assert crash["status"] == "done" and crash["attempts"] == 2 and verify(out, crash)
+    errors = [r["error"] for r in read_records(out / "manifest.jsonl") if r.get("retrying")]
+    assert any("WorkerCrashedError" in e for e in errors)
 
 
 def test_resume_redoes_missing_and_corrupt_files_only(tmp_path):

@@ -12,18 +12,41 @@ from __future__ import annotations
 import logging
 import os
 import sys
+import time
 from typing import Any
 
-from cosim.batch.executors import Event
+from cosim.batch.executors import PROGRESS_INTERVAL_S, Event
 from cosim.batch.job import EpisodeFn, Job, execute, run_real_episode
 from cosim.errors import CosimError, InputError
 
 log = logging.getLogger(__name__)
 
 
-def _task(job: Job, fn: EpisodeFn) -> dict[str, Any]:
+class _ProgressSink:
+    """A tiny actor the tasks report tick progress to; the driver drains it when it polls."""
+
+    def __init__(self) -> None:
+        self._items: list[tuple[str, int, int]] = []
+
+    def put(self, episode_id: str, done: int, total: int) -> None:
+        self._items.append((episode_id, done, total))
+
+    def drain(self) -> list[tuple[str, int, int]]:
+        out, self._items = self._items, []
+        return out
+
+
+def _task(job: Job, fn: EpisodeFn, sink: Any) -> dict[str, Any]:
     logging.basicConfig(level=logging.WARNING)
-    return execute(job, fn, lambda done, total: None)
+    last = [0.0]
+
+    def progress(done: int, total: int) -> None:
+        now = time.monotonic()
+        if done >= total or now - last[0] >= PROGRESS_INTERVAL_S:
+            last[0] = now
+            sink.put.remote(job.episode_id, done, total)  # fire and forget
+
+    return execute(job, fn, progress)
 
 
 class RayExecutor:
@@ -54,7 +77,9 @@ class RayExecutor:
         self.max_in_flight = max_in_flight or max(1, 2 * int(cpus / cpus_per_episode))
         self._remote = ray.remote(max_calls=1, max_retries=0, num_cpus=cpus_per_episode)(_task)
         self._fn_ref = ray.put(episode_fn)
-        self._pending: dict[Any, Job] = {}
+        self._sink = ray.remote(num_cpus=0)(_ProgressSink).remote()
+        self._pending: dict[Any, tuple[Job, int]] = {}  # task ref -> (job, status slot)
+        self.status_lines = min(self.max_in_flight, 8)
 
     def has_capacity(self) -> bool:
         return len(self._pending) < self.max_in_flight
@@ -62,24 +87,34 @@ class RayExecutor:
     def busy(self) -> bool:
         return bool(self._pending)
 
+    @staticmethod
+    def worker_name(slot: int) -> str:
+        return f"task{slot}"
+
     def submit(self, job: Job) -> list[Event]:
-        ref = self._remote.remote(job, self._fn_ref)
-        self._pending[ref] = job
-        return [Event("started", job, "ray")]
+        ref = self._remote.remote(job, self._fn_ref, self._sink)
+        slot = min(set(range(self.max_in_flight)) - {s for _, s in self._pending.values()})
+        self._pending[ref] = (job, slot)
+        return [Event("started", job, self.worker_name(slot))]
 
     def poll(self, timeout_s: float) -> list[Event]:
         if not self._pending:
             return []
         ready, _ = self._ray.wait(list(self._pending), num_returns=len(self._pending), timeout=timeout_s)
         events = []
+        running = {job.episode_id: (job, slot) for job, slot in self._pending.values()}
+        for episode_id, done, total in self._ray.get(self._sink.drain.remote()):
+            if episode_id in running:
+                job, slot = running[episode_id]
+                events.append(Event("progress", job, self.worker_name(slot), done=done, total=total))
         for ref in ready:
-            job = self._pending.pop(ref)
+            job, slot = self._pending.pop(ref)
             try:
                 outcome = self._ray.get(ref)
             except self._ray.exceptions.RayError as exc:  # worker crash, node loss, task error
                 first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
                 outcome = {"ok": False, "episode": job.episode_id, "error": f"{type(exc).__name__}: {first}"}
-            events.append(Event("finished", job, f"ray:{outcome.get('host', '?')}", outcome=outcome))
+            events.append(Event("finished", job, self.worker_name(slot), outcome=outcome))
         return events
 
     def shutdown(self) -> None:

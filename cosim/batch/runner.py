@@ -91,7 +91,7 @@ def run_batch(plan: Plan, out_dir: Path | str, executor: Executor, *, retries: i
             log.info("removing %s left by an interrupted run", stale)
             stale.unlink()
     display = progress or BatchProgress(sum(n_ticks(ep) for ep in todo), len(todo),
-                                        getattr(executor, "workers", 0) or 4, enabled=show_progress)
+                                        getattr(executor, "status_lines", 4), enabled=show_progress)
     pending: deque[Job] = deque(
         Job(episode_id=ep.id, file=ep.file, out_dir=str(out.resolve()), scenario=ep.scenario,
             base_dir=ep.base_dir, attempt=1, n_ticks=n_ticks(ep)) for ep in todo
