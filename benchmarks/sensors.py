@@ -5,7 +5,8 @@
 Rig: 5 vehicles (LiDAR + 6 cameras), 5 RSUs (LiDAR + 4 cameras), 5 drones (LiDAR + 1 gimbal camera),
 every camera 1280x720, on the world that ``build_world`` makes for scenarios/default.yaml, with
 background traffic. Per frame it prints the wall time and its breakdown (casting, shading,
-encoding, writing), and, measured in the same run on the same scene:
+labels/other, encoding wait, writing with the episode writer), each the mean of two runs taken
+before and after the references, and, measured in the same run on the same scene:
 
 - the ratio of the frame time to *bare casting*: one Open3D ``cast_rays`` call per sensor over all
   its rays (one ray per pixel and per LiDAR beam) against a single scene holding the static world
@@ -171,8 +172,8 @@ def run(args) -> None:
               f"block_px {args.block_px}")
         rng = np.random.default_rng(sc.seed)
         rows = []
-        for k in range(args.frames):
-            snap = world_snapshot(world, 5, 5, args.background, seed=k, tick=k)
+
+        def one_frame(snap, k: int) -> dict:
             t0 = time.perf_counter()
             frames = suite.render(snap, rng)
             t1 = time.perf_counter()
@@ -181,29 +182,32 @@ def run(args) -> None:
             nbytes = write_messages(msgs, snap.t_ns, Path(tmp) / f"frame{k}.mcap", sc.output.compression)
             t3 = time.perf_counter()
             tm = frames.timing_s
-            render = t1 - t0
-            row = {
-                "total": t3 - t0, "render": render, "casting": tm["cast_rays"], "shading": tm["shading"],
-                "other_render": render - tm["cast_rays"] - tm["shading"], "encoding": t2 - t1, "writing": t3 - t2,
-                "rays": tm["rays"], "bytes": nbytes,
-            }
-            t4 = time.perf_counter()
+            return {"total": t3 - t0, "render": t1 - t0, "casting": tm["cast_rays"], "shading": tm["shading"],
+                    "other_render": t1 - t0 - tm["cast_rays"] - tm["shading"], "encoding": t2 - t1,
+                    "writing": t3 - t2, "rays": tm["rays"], "bytes": nbytes}
+
+        for k in range(args.frames):
+            snap = world_snapshot(world, 5, 5, args.background, seed=k, tick=k)
+            # interleaved (ours, references, ours again) so that load changes hit both sides alike
+            first = one_frame(snap, k)
             bare, bare_rays = bare_cast_seconds(suite, snap)
-            row["bare"] = bare
-            row["bare_rays"] = bare_rays
-            if not args.no_pybullet:
-                row["pybullet"], row["pb_lidar"], row["pb_cam"] = pybullet_seconds(suite, snap)
+            pyb = pybullet_seconds(suite, snap) if not args.no_pybullet else None
+            second = one_frame(snap, k)
+            row = {key: 0.5 * (first[key] + second[key]) for key in first}
+            row["bare"], row["bare_rays"] = bare, bare_rays
+            if pyb is not None:
+                row["pybullet"], row["pb_lidar"], row["pb_cam"] = pyb
             rows.append(row)
-            print(f"frame {k}: total {row['total']:.2f} s = render {render:.2f} (casting {row['casting']:.2f}, "
-                  f"shading {row['shading']:.2f}, labels/other {row['other_render']:.2f}) + encoding "
-                  f"{row['encoding']:.2f} + writing {row['writing']:.2f}; {row['rays'] / 1e6:.1f} M rays cast, "
-                  f"{nbytes / 1e6:.0f} MB file")
+            print(f"frame {k}: total {row['total']:.2f} s (runs {first['total']:.2f}, {second['total']:.2f}) = "
+                  f"render {row['render']:.2f} (casting {row['casting']:.2f}, shading {row['shading']:.2f}, "
+                  f"labels/other {row['other_render']:.2f}) + encoding wait {row['encoding']:.2f} + writing "
+                  f"{row['writing']:.2f}; {row['rays'] / 1e6:.1f} M rays cast, {row['bytes'] / 1e6:.0f} MB file")
             print(f"         bare cast_rays, one ray per pixel/beam, one scene: {bare:.2f} s for "
-                  f"{bare_rays / 1e6:.1f} M rays -> total / bare = {row['total'] / bare:.2f}")
+                  f"{bare_rays / 1e6:.1f} M rays -> total / bare = {row['total'] / bare:.2f}; own casting / bare "
+                  f"= {row['casting'] / bare:.2f}")
             if "pybullet" in row:
                 print(f"         PyBullet same rig: {row['pybullet']:.2f} s (rayTestBatch {row['pb_lidar']:.2f}, "
                       f"TinyRenderer {row['pb_cam']:.2f}) -> PyBullet / total = {row['pybullet'] / row['total']:.1f}x")
-            log.debug("reference timings took %.1f s", time.perf_counter() - t4)
         med = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
         print("median over frames: " + ", ".join(f"{k} {v:.3f}" for k, v in med.items()
                                                  if k not in ("rays", "bytes", "bare_rays")))
