@@ -13,10 +13,12 @@ PyBullet works in SI units and a z-up world frame already; its world frame is co
 
 from __future__ import annotations
 
+import ctypes
 import math
+import os
+import sys
 
 import numpy as np
-import pybullet
 
 from cosim.drones.airframe import G_MPS2, RHO_KGPM3, Airframe
 from cosim.drones.backends import register_backend
@@ -25,6 +27,29 @@ from cosim.drones.control import BodyState
 from cosim.drones.obstacles import MIN_OBSTACLE_HEIGHT_M, prism_label
 from cosim.geometry import quat_from_rpy, rotation_matrix
 from cosim.world.types import Prism, World
+
+
+def _quiet_import():
+    """Import pybullet without the "pybullet build time" banner its C code writes at import."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        os.dup2(devnull, 2)
+        import pybullet as module
+
+        ctypes.CDLL(None).fflush(None)  # anything still in C's stdio buffers goes to /dev/null
+    finally:
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        for fd in [*saved, devnull]:
+            os.close(fd)
+    return module
+
+
+pybullet = _quiet_import()
 
 CHUNK = 512  # static boxes per compound body (one broadphase entry each)
 
