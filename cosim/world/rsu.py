@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -10,7 +11,10 @@ from cosim.world.geom import Raster
 from cosim.world.network import JunctionGeom
 from cosim.world.types import RsuSite
 
-MAX_OFFSET_M = 14.0  # [m] farthest a pole stands from its junction centre
+log = logging.getLogger(__name__)
+
+MAX_OFFSET_M = 14.0  # [m] farthest a pole stands from its junction centre (where the junction allows)
+FAR_OFFSET_M = 40.0  # [m] search limit for junctions wider than that
 POLE_CLEARANCE_M = 0.6  # [m] pole to road surface
 
 
@@ -65,17 +69,30 @@ def place_rsus(
         jx, jy = j.position_m
         phase = float(rng.uniform(0, 2 * math.pi))
         best = None
-        for r in np.arange(4.0, MAX_OFFSET_M + 0.01, 0.5):
-            for a in phase + np.arange(8) * (math.pi / 4):
-                p = (jx + r * math.cos(a), jy + r * math.sin(a))
-                if blocked.lookup(np.array([p]))[0] or any(math.dist(p, u) < 3.0 for u in used):
-                    continue
-                best = p
-                break
+        # the first spot off the asphalt (with clearance, then without) within MAX_OFFSET_M; a wider
+        # junction (many lanes) puts the pole on its nearest corner instead, which may be farther
+        tries = ((blocked, 3.0, MAX_OFFSET_M), (road, 1.0, MAX_OFFSET_M), (road, 1.0, FAR_OFFSET_M))
+        for clear, spacing, reach in tries:
+            for r in np.arange(4.0, reach + 0.01, 0.5):
+                for a in phase + np.arange(16) * (math.pi / 8):
+                    p = (jx + r * math.cos(a), jy + r * math.sin(a))
+                    if clear.lookup(np.array([p]))[0] or any(math.dist(p, u) < spacing for u in used):
+                        continue
+                    best = p
+                    break
+                if best is not None:
+                    break
             if best is not None:
                 break
-        if best is None:  # the junction is all asphalt: stand at its edge
+        if best is None:
             best = (jx + MAX_OFFSET_M * math.cos(phase), jy + MAX_OFFSET_M * math.sin(phase))
+        if math.dist(best, (jx, jy)) > MAX_OFFSET_M:
+            log.warning(
+                "rsu_%d stands %.1f m from junction %s: nothing closer is off the road",
+                i,
+                math.dist(best, (jx, jy)),
+                j.junction_id,
+            )
         used.append(best)
         h = round(float(rng.uniform(*height_range_m)), 3)
         x, y = round(float(best[0]), 3), round(float(best[1]), 3)
