@@ -316,6 +316,25 @@ def test_collision_with_a_building_is_reported(backend):
 
 
 @pytest.mark.integration
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_escort_climbs_over_a_tower_before_crossing_it(backend):
+    """The target shows up only after t=0, behind the 70 m tower; the drone at 40 m must climb first."""
+    spec = EscortDrone(target="vehicle_0", start=(250.0, 90.0), altitude_m=40.0, offset_m=(0.0, 0.0))
+    car = EscortTarget((250.0, 220.0, 0.75), math.pi / 2, (0.0, 0.0, 0.0))
+    fleet = DroneFleet(scenario([spec], backend), demo_world())
+    try:
+        states = fly(fleet, 40.0, lambda k: {} if k < 2 else {"drone_0": car})
+    finally:
+        fleet.close()
+    pos = np.array([s[0].position_m for s in states])
+    assert pos[0, 2] == pytest.approx(40.0, abs=0.1)
+    over = (pos[:, 1] > 118.0) & (pos[:, 1] < 182.0)  # above the tower's footprint
+    assert over.any() and pos[over, 2].min() > 70.0 + 0.5 * 10.0
+    assert states[-1][0].strategy_state == "tracking"
+    assert states[-1][0].position_m[:2] == pytest.approx((250.0, 220.0), abs=1.0)
+
+
+@pytest.mark.integration
 def test_pybullet_reports_engine_contacts_with_static_world():
     b = backend_class("pybullet")(airframe_for_mass(3.5), 0.01, demo_world())
     try:

@@ -7,7 +7,6 @@ rate and returns one :class:`cosim.protocol.DroneState` per drone, in drone inde
 
 from __future__ import annotations
 
-import itertools
 import logging
 import math
 from dataclasses import dataclass
@@ -21,7 +20,15 @@ from cosim.drones.backends.pybullet_backend import body_half_extents_m
 from cosim.drones.control import BodyState, Controller, Limits, yaw_of
 from cosim.drones.obstacles import Obstacles
 from cosim.drones.routes import RoadGraph, hover_point, patrol_loop, ranked_junctions, road_graph, world_centre
-from cosim.drones.strategies import Escort, Hover, Patrol, Strategy, planned_altitude
+from cosim.drones.strategies import (
+    Escort,
+    Hover,
+    Patrol,
+    Strategy,
+    climb_first,
+    planned_altitude,
+    polyline_points,
+)
 from cosim.drones.wind import Wind
 from cosim.errors import CollisionError, ScenarioError, WorkerError
 from cosim.geometry import quat_from_matrix, quat_from_rpy
@@ -44,17 +51,9 @@ class _Drone:
     strategy: Strategy
     radius_m: float
     size_m: tuple[float, float, float]
+    clearance_m: float | None  # None: no altitude planning, no climb-first guard
     energy_j: float = 0.0
     state: BodyState | None = None  # the backend's state after the last reset or step
-
-
-def _densify(points_xy: np.ndarray, step_m: float = 5.0) -> np.ndarray:
-    """(M, 2) points every ``step_m`` or closer along the open polyline ``points_xy`` (N, 2)."""
-    if len(points_xy) < 2:
-        return points_xy
-    return np.concatenate(
-        [np.linspace(a, b, max(2, int(np.linalg.norm(b - a) // step_m) + 2)) for a, b in itertools.pairwise(points_xy)]
-    )
 
 
 def build_strategy(
@@ -77,7 +76,7 @@ def build_strategy(
     if isinstance(spec, HoverDrone):
         xy = np.array(spec.point if spec.point is not None else hover_point(world, kind_index), dtype=np.float64)
         path = xy[None, :] if start is None else np.vstack([start, xy[None, :]])
-        z = planned_altitude(obstacles, _densify(path), spec.altitude_m, clearance)
+        z = planned_altitude(obstacles, polyline_points(path), spec.altitude_m, clearance)
         return Hover(np.array([xy[0], xy[1], z]))
     if isinstance(spec, PatrolDrone):
         if spec.waypoints is not None:
@@ -85,7 +84,7 @@ def build_strategy(
         else:
             wps = patrol_loop(world, kind_index, spec.loop_length_m, roads, taken)
         path = np.vstack([wps, wps[:1]]) if start is None else np.vstack([start, wps, wps[:1]])
-        z = planned_altitude(obstacles, _densify(path), spec.altitude_m, clearance)
+        z = planned_altitude(obstacles, polyline_points(path), spec.altitude_m, clearance)
         return Patrol(np.column_stack([wps, np.full(len(wps), z)]), spec.speed_mps, spec.reach_radius_m)
     if isinstance(spec, EscortDrone):
         if start is not None:
@@ -145,6 +144,7 @@ class DroneFleet:
                     strategy,
                     radius_m=float(math.hypot(half[0], half[1])) * 0.75,
                     size_m=(2 * half[0], 2 * half[1], 2 * half[2]),
+                    clearance_m=spec.clearance_m if spec.plan_altitude else None,
                 )
                 self._drones.append(drone)
                 self._place(drone, spec.start)
@@ -204,6 +204,8 @@ class DroneFleet:
         """One physics step of ``dt_s`` starting at ``t_s``: guidance, control, dynamics, checks."""
         s = d.state
         ref = d.strategy.reference(t_s, s)
+        if d.clearance_m is not None:
+            ref = climb_first(ref, s, self.obstacles, d.clearance_m)
         cmd = d.controller.update(s, ref)
         d.backend.step(cmd, d.wind.step())
         d.energy_j += rotor_power_w(d.backend.rotors.thrust_n, self.frame) * self.dt_s

@@ -12,6 +12,7 @@ obstacle tops along the path (:class:`Obstacles`) plus ``clearance_m``. Map fram
 
 from __future__ import annotations
 
+import itertools
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
@@ -41,6 +42,35 @@ def planned_altitude(obstacles: Obstacles, points_xy: np.ndarray, height_m: floa
     if clearance_m is None:
         return z
     return max(z, obstacles.top_along(points_xy, PATH_MARGIN_M) + clearance_m)
+
+
+def polyline_points(points_xy: np.ndarray, step_m: float = 5.0) -> np.ndarray:
+    """(M, 2) points every ``step_m`` or closer along the open polyline ``points_xy`` (N, 2)."""
+    if len(points_xy) < 2:
+        return np.asarray(points_xy, dtype=np.float64)
+    parts = [
+        np.linspace(a, b, max(2, int(np.linalg.norm(b - a) // step_m) + 2)) for a, b in itertools.pairwise(points_xy)
+    ]
+    return np.concatenate(parts)
+
+
+def climb_first(ref: Reference, s: BodyState, obstacles: Obstacles, clearance_m: float) -> Reference:
+    """Safety rule: a drone well below its reference altitude with obstacles ahead that are not
+    clear of its current altitude stops moving horizontally and climbs first.
+
+    "Ahead": within ``PATH_MARGIN_M`` of the next 30 m of the straight way to the reference.
+    """
+    z = float(s.position_m[2])
+    if ref.position_m[2] - z < 2.0:
+        return ref
+    p = s.position_m[:2]
+    to_ref = ref.position_m[:2] - p
+    dist = float(np.hypot(to_ref[0], to_ref[1]))
+    ahead = p + to_ref * min(1.0, 30.0 / dist) if dist > 1e-6 else p
+    if obstacles.top_along(polyline_points(np.array([p, ahead]), 10.0), PATH_MARGIN_M) + 0.5 * clearance_m < z:
+        return ref
+    hold = np.array([p[0], p[1], ref.position_m[2]])
+    return Reference(hold, ZERO3, ZERO3, ref.yaw_rad)
 
 
 class Strategy(ABC):
@@ -184,6 +214,7 @@ class Escort(Strategy):
         self._label = "lost"
         self._hold: np.ndarray | None = None
         self._z_m = self.fallback_start_m[2]
+        self._drone_xy: np.ndarray | None = None  # where the drone was at the last reference
 
     def observe(self, t_s: float, target: EscortTarget | None) -> None:
         """The target's state at ``t_s`` (the previous tick), or None when the conductor sent none."""
@@ -201,6 +232,8 @@ class Escort(Strategy):
             self._label = "approach"
         q = self._predict(t_s)[0]
         ahead = np.array([q[:2] + v[:2] * tau for tau in (0.0, 2.0, 4.0, 6.0)])
+        if self._drone_xy is not None:  # and the way from where the drone is
+            ahead = np.vstack([ahead, polyline_points(np.array([self._drone_xy, q[:2]]))])
         self._z_m = planned_altitude(self.obstacles, ahead, self.height_m, self.clearance_m)
 
     def _predict(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
@@ -245,6 +278,7 @@ class Escort(Strategy):
         return q, yaw
 
     def reference(self, t_s: float, s: BodyState) -> Reference:
+        self._drone_xy = s.position_m[:2]
         if self._obs is None:
             if self._hold is None:
                 self._hold = s.position_m.copy()
