@@ -554,7 +554,8 @@ def highway(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
     edges: list[dict] = []
     for a, b in (("we", "de"), ("de", "me"), ("me", "ee"), ("ew", "dw"), ("dw", "mw"), ("mw", "ww")):
         edges.append({"id": f"{a}_{b}", "from": a, "to": b, **motorway})
-    loop = {**motorway, "numLanes": min(2, lanes), "speed": 11.0, "priority": 4}
+    # one wide lane through the tight turning loops: side by side, long vehicles would sweep into each other
+    loop = {**motorway, "numLanes": 1, "width": 4.0, "speed": 11.0, "priority": 4}
     edges.append(
         {
             "id": "ee_ew",
