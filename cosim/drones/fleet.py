@@ -69,7 +69,9 @@ def build_strategy(
     ``taken`` (see :func:`patrol_loop`).
 
     The planned altitude covers the whole path the strategy flies, including the transit from
-    ``spec.start`` when one is given.
+    ``spec.start`` when one is given. An escort starts at its offset point when the first
+    ``step_to`` (t=0) carries its target; otherwise it waits, hovering, at ``spec.start`` or above
+    the k-th ranked junction until a target arrives.
     """
     clearance = spec.clearance_m if spec.plan_altitude else None
     start = None if spec.start is None else np.array([spec.start], dtype=np.float64)
@@ -91,7 +93,7 @@ def build_strategy(
             xy = start[0]
         else:
             js = ranked_junctions(world)
-            xy = np.array(js[0].position_m, dtype=np.float64) if js else world_centre(world)
+            xy = np.array(js[kind_index % len(js)].position_m, dtype=np.float64) if js else world_centre(world)
         z = planned_altitude(obstacles, xy[None, :], spec.altitude_m, clearance)
         return Escort(spec.offset_m, spec.altitude_m, clearance, obstacles, np.array([xy[0], xy[1], z]))
     raise TypeError(f"unknown drone spec {type(spec).__name__}")
