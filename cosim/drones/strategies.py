@@ -7,7 +7,8 @@
   arrives one tick late; the target is extrapolated with a constant turn-rate model.
 
 Altitude planning: the flight altitude is the requested height above ground or, where higher, the
-obstacle tops along the path (:class:`Obstacles`) plus ``clearance_m``. Map frame ENU, metres.
+obstacle tops along the path (:class:`Obstacles`) plus ``clearance_m``; :func:`climb_first` keeps a
+drone that is still below it from moving toward obstacles. Map frame ENU, metres.
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ HOLD_RADIUS_M = 2.0  # [m] within this of its point a hovering drone is "hold"
 TRACK_RADIUS_M = 5.0  # [m] within this of the offset point an escort is "tracking"
 #: Share of the offset point's swing (turn rate x offset) fed forward to the controller. The turn rate
 #: is estimated from yaws one tick old, so in short urban turns the full swing arrives late and throws
-#: the drone outward as the turn ends; half of it measured best in SUMO traffic and synthetic drives.
+#: the drone outward as the turn ends; of 0, 0.5 and 1, half measured best in SUMO traffic and in
+#: synthetic drives.
 SWING_FEEDFORWARD = 0.5
 MAX_TARGET_YAW_RATE_RADPS = 2.0  # [rad/s] bound on the estimated turn rate (a yaw jump is not a turn)
 
