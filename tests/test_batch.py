@@ -313,6 +313,13 @@ def test_resume_redoes_missing_and_corrupt_files_only(tmp_path):
     assert latest_records(out)[second.id]["attempts"] == 2
 
 
+def test_a_second_writer_of_the_same_manifest_is_refused(tmp_path):
+    with Manifest(tmp_path / "manifest.jsonl"), pytest.raises(InputError, match="already writing"):
+        Manifest(tmp_path / "manifest.jsonl")
+    with Manifest(tmp_path / "manifest.jsonl") as m:  # released when the first one closed
+        m.append({"episode": "a", "status": "done"})
+
+
 def test_manifest_tolerates_a_torn_last_line_and_last_record_wins(tmp_path):
     path = tmp_path / "manifest.jsonl"
     with Manifest(path) as m:

@@ -13,6 +13,7 @@ so far, over every run of the batch), ``wall_time_s``, ``size_bytes``, ``sha256`
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import logging
@@ -21,6 +22,8 @@ import time
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
+
+from cosim.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +55,13 @@ class Manifest:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         existed = self.path.exists()
         self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        try:  # one writer per manifest: a second batch on the same folder and shard would redo work
+            fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(self._fd)
+            self._fd = -1
+            raise InputError(f"another batch is already writing {self.path}; wait for it, or give each "
+                             "concurrent run its own --shard i/k") from None
         if existed:
             self._repair_tail()
         else:
