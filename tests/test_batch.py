@@ -311,6 +311,10 @@ def test_resume_redoes_missing_and_corrupt_files_only(tmp_path):
     assert summary.skipped == 4 and summary.done == 2
     assert deterministic_view(latest_records(out).values()) == before
     assert latest_records(out)[second.id]["attempts"] == 2
+    # a different --set is a different episode under the same id: it runs again
+    longer = six_plan(tmp_path, cli_set=["duration_s=2"])
+    assert [e.id for e in longer.episodes] == [e.id for e in plan.episodes]
+    assert run(longer, out).done == 6
 
 
 def test_a_second_writer_of_the_same_manifest_is_refused(tmp_path):

@@ -128,7 +128,7 @@ class LocalExecutor:
         self.stop_grace_s = stop_grace_s
         self._ctx = mp.get_context("spawn")
         self._slots: dict[int, _Slot] = {}
-        self.status_lines = workers
+        self.status_lines = min(workers, 16)
 
     def has_capacity(self) -> bool:
         return len(self._slots) < self.workers

@@ -5,10 +5,11 @@ goes on, so a crash loses at most the line being written (a torn last line is ig
 An episode counts as finished only when its last record says ``done`` AND its file exists with the
 recorded size and sha256: a file that is merely present proves nothing.
 
-Record fields: ``episode`` (id), ``split``, ``file`` (relative to the output folder), ``labels``,
-``params``, ``seed``, ``duration_s``, ``status`` (running | done | failed), ``attempts`` (all attempts
-so far, over every run of the batch), ``wall_time_s``, ``size_bytes``, ``sha256``, ``versions``,
-``error``, ``worker``, ``host``, ``time_unix`` (wall clock of the record; for ordering only).
+Record fields: ``episode`` (id), ``sweep``, ``split``, ``file`` (relative to the output folder),
+``labels``, ``params``, ``seed``, ``duration_s``, ``scenario_sha256`` (of the resolved scenario),
+``status`` (running | done | failed), ``attempts`` (all attempts so far, over every run of the batch),
+``wall_time_s``, ``size_bytes``, ``sha256``, ``versions``, ``error``, ``retrying``, ``worker``,
+``host``, ``time_unix`` (wall clock of the record; for ordering only).
 """
 
 from __future__ import annotations
@@ -29,8 +30,8 @@ log = logging.getLogger(__name__)
 
 MANIFEST_GLOB = "manifest*.jsonl"
 #: Fields that equal between any two complete runs of the same plan (interrupted or not, any backend).
-DETERMINISTIC_FIELDS = ("episode", "split", "file", "labels", "params", "seed", "duration_s", "status",
-                        "size_bytes", "sha256")
+DETERMINISTIC_FIELDS = ("episode", "split", "file", "labels", "params", "seed", "duration_s", "scenario_sha256",
+                        "status", "size_bytes", "sha256")
 
 
 def manifest_name(shard: tuple[int, int] = (0, 1)) -> str:

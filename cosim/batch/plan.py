@@ -46,6 +46,11 @@ class Episode:
     base_dir: str = field(repr=False)  # folder relative map files resolve against
 
     @property
+    def fingerprint(self) -> str:
+        """sha256 of the resolved scenario: a changed ``--set`` or base file means a different episode."""
+        return hashlib.sha256(json.dumps(self.scenario, sort_keys=True).encode()).hexdigest()
+
+    @property
     def file(self) -> str:
         """Path of the episode file relative to the output folder."""
         return f"{self.split}/{self.id}.mcap"

@@ -1,8 +1,9 @@
 """The batch loop: skip what is verifiably finished, run the rest on an executor, retry, record.
 
 Resume rule: an episode is skipped only when its last manifest record is ``done`` for the same
-seed, parameters and file, and the file on disk has the recorded size and sha256. Everything else
-runs again (a stale ``.partial`` from a killed run is removed first). Each attempt is recorded when
+seed, parameters, file and resolved scenario (``scenario_sha256``), and the file on disk has the
+recorded size and sha256. Everything else runs again (a stale ``.partial`` from a killed run is
+removed first). Each attempt is recorded when
 it starts (``running``) and when it ends (``done`` or ``failed``), so a crash of the batch itself
 leaves a ``running`` record that the next run simply redoes.
 """
@@ -52,7 +53,7 @@ def is_finished(out_dir: Path, episode: Episode, record: dict[str, Any] | None) 
     """The episode's last record is ``done`` for this very episode and its file verifies."""
     return (record is not None and record.get("status") == "done" and record.get("seed") == episode.seed
             and record.get("file") == episode.file and _same(record.get("params"), episode.params)
-            and verify(out_dir, record))
+            and record.get("scenario_sha256") == episode.fingerprint and verify(out_dir, record))
 
 
 def _partial_path(final: Path) -> Path:
@@ -63,7 +64,7 @@ def _partial_path(final: Path) -> Path:
 
 def _base_record(ep: Episode, sweep: str) -> dict[str, Any]:
     return {"episode": ep.id, "sweep": sweep, "split": ep.split, "file": ep.file, "labels": ep.labels,
-            "params": ep.params, "seed": ep.seed, "duration_s": ep.duration_s}
+            "params": ep.params, "seed": ep.seed, "duration_s": ep.duration_s, "scenario_sha256": ep.fingerprint}
 
 
 def n_ticks(ep: Episode) -> int:
