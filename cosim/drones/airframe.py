@@ -47,6 +47,12 @@ class Airframe:
         """[N] per-rotor thrust that balances the weight."""
         return self.mass_kg * G_MPS2 / 4.0
 
+    @property
+    def half_extents_m(self) -> tuple[float, float, float]:
+        """Collision box of the airframe [m] (body FLU): arms plus propeller discs, and a flat body."""
+        half = self.arm_m / math.sqrt(2.0) + 0.5 * self.rotor_diameter_m
+        return (half, half, 0.3 * self.arm_m)
+
     def rotor_positions_m(self) -> np.ndarray:
         """(4, 3) float64 rotor hub positions in body FLU [m]."""
         xy = ROTOR_DIRS * self.arm_m

@@ -16,7 +16,6 @@ import numpy as np
 from cosim.drones.airframe import Airframe, airframe_for_mass, rotor_power_w
 from cosim.drones.backends import backend_class
 from cosim.drones.backends.base import DynamicsBackend
-from cosim.drones.backends.pybullet_backend import body_half_extents_m
 from cosim.drones.control import BodyState, Controller, Limits, yaw_of
 from cosim.drones.obstacles import Obstacles
 from cosim.drones.routes import RoadGraph, hover_point, patrol_loop, ranked_junctions, road_graph, world_centre
@@ -120,7 +119,7 @@ class DroneFleet:
         seeds = np.random.SeedSequence([scenario.seed, WIND_STREAM]).spawn(len(a.drones) + 1)
         wind_dir = float(np.random.default_rng(seeds[0]).uniform(-math.pi, math.pi))
         env = scenario.environment
-        half = body_half_extents_m(self.frame)
+        half = self.frame.half_extents_m
         needs_roads = any(isinstance(d, PatrolDrone) and d.waypoints is None for d in a.drones)
         roads = road_graph(world.net_xml) if needs_roads else {}
         taken: set = set()
@@ -150,6 +149,13 @@ class DroneFleet:
                 )
                 self._drones.append(drone)
                 self._place(drone, spec.start)
+                log.info(
+                    "%s: %s on %s, starts at %s",
+                    drone.agent_id,
+                    spec.strategy,
+                    backend.name,
+                    np.round(drone.state.position_m, 1).tolist(),
+                )
         except Exception:
             self.close()
             raise

@@ -71,12 +71,6 @@ def footprint_box(footprint: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]
     return best[1], best[2], best[3]
 
 
-def body_half_extents_m(frame: Airframe) -> tuple[float, float, float]:
-    """Collision box of the airframe [m]: arms plus propeller discs, and a flat body."""
-    half = frame.arm_m / math.sqrt(2.0) + 0.5 * frame.rotor_diameter_m
-    return (half, half, 0.6 * frame.arm_m * 0.5)
-
-
 @register_backend("pybullet")
 class PyBulletBackend(DynamicsBackend):
     def __init__(self, frame: Airframe, dt_s: float, world: World):
@@ -88,9 +82,7 @@ class PyBulletBackend(DynamicsBackend):
         pybullet.setPhysicsEngineParameter(fixedTimeStep=dt_s, numSubSteps=1, physicsClientId=c)
         self._labels: dict[int, str] = {}
         self._add_world(world)
-        shape = pybullet.createCollisionShape(
-            pybullet.GEOM_BOX, halfExtents=body_half_extents_m(frame), physicsClientId=c
-        )
+        shape = pybullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=frame.half_extents_m, physicsClientId=c)
         self._body = pybullet.createMultiBody(
             baseMass=frame.mass_kg,
             baseCollisionShapeIndex=shape,
