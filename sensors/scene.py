@@ -36,6 +36,12 @@ def _o3d_scene(mesh: TriMesh) -> o3d.t.geometry.RaycastingScene | None:
     return scene
 
 
+def _warm(scene: o3d.t.geometry.RaycastingScene | None) -> None:
+    """Build the scene's BVH now (Open3D builds it lazily on the first cast), before threads share it."""
+    if scene is not None:
+        scene.cast_rays(o3d.core.Tensor(np.array([[0, 0, 1e4, 0, 0, 1]], np.float32)))
+
+
 def cast(scene: o3d.t.geometry.RaycastingScene | None, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Nearest hits of ``rays`` (N, 6) float32 [origin, direction] in ``scene``.
 
@@ -86,6 +92,7 @@ class StaticScene:
         self.mesh = mesh
         self.normals = mesh.normals()
         self.scene = _o3d_scene(mesh)
+        _warm(self.scene)
 
     @property
     def n_triangles(self) -> int:
@@ -136,6 +143,7 @@ class TickScene:
                               self.actors.instance[keep], self.actors.albedo[keep],
                               self.actors.reflectivity[keep], self.actors.emissive[keep])
             entry = (_o3d_scene(sub), keep)
+            _warm(entry[0])
             self._cache[key] = entry
             return entry
 
@@ -180,8 +188,9 @@ class TickScene:
             gid[nearer] = self.n_static + keep[pa[nearer]]
         if near_m > 0:
             t += np.float32(near_m)
-        self.timer.seconds += time.perf_counter() - t0
-        self.timer.rays += rays.shape[0]
+        with self._lock:
+            self.timer.seconds += time.perf_counter() - t0
+            self.timer.rays += rays.shape[0]
         return t, gid
 
 

@@ -3,7 +3,8 @@
 ``SensorSuite(scenario, world)`` builds the static scene once (mesh, Open3D BVH, light map, BEV
 raster); ``render(snapshot, rng)`` places the tick's actors in a small second scene and renders all
 agents. ``render`` is pure with respect to its inputs: the same snapshot and generator state give
-bit-identical arrays (random draws happen in agent order: LiDAR, cameras, GNSS, IMU).
+bit-identical arrays: the generator is split (``spawn``) into one child per agent and sensor, so
+the draws do not depend on the order in which the worker threads run.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -149,13 +151,16 @@ class SensorSuite:
     ``block_px``: adaptive camera casting block (1 = one ray per pixel). ``noise``: False turns
     every random sensor effect off (exact ranges, depths, fixes), for tests. ``encode_images``:
     start encoding each RGB image (``scenario.output.image_format``) in a thread pool as soon as it
-    is shaded, so encoding overlaps with the rest of the tick.
+    is shaded, so encoding overlaps with the rest of the tick. ``workers``: threads rendering
+    cameras and agents side by side (Open3D holds the GIL while casting, but the numpy work around
+    it releases it, so two threads keep two cores busy); results do not depend on it.
     """
 
     def __init__(self, scenario: Scenario, world: World, *, block_px: int = 8, noise: bool = True,
-                 encode_images: bool = True):
+                 encode_images: bool = True, workers: int = 2):
         self.scenario = scenario
         self.encode_images = encode_images
+        self._pool = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="cosim-render")
         self.world = world
         self.block_px = block_px
         self.noise = noise
@@ -187,6 +192,50 @@ class SensorSuite:
     def rig(self, agent: AgentState) -> RigSpec:
         return self.scenario.rig_for(agent.agent_id)
 
+    def _render_agent_base(self, agent: AgentState, rig: RigSpec, own: int | None, scene: TickScene,
+                           rng: np.random.Generator, actors: tuple[Actor, ...]):
+        """LiDAR, GNSS, IMU and BEV of one agent (draws from ``rng`` in that order)."""
+        t0 = time.perf_counter()
+        lidar = None
+        if rig.lidar is not None:
+            pose = sensor_pose(agent, rig.lidar.mount)
+            lidar = render_lidar(agent.agent_id, rig.lidar, pose, scene, self.atm, rng, own, self.noise)
+        t1 = time.perf_counter()
+        gnss = None
+        if rig.gnss is not None:
+            gnss = render_gnss(agent.agent_id, rig.gnss, np.asarray(agent.position_m), self.world.geo_origin, rng,
+                               self.noise)
+        imu = None
+        if rig.imu is not None:
+            biases = self._biases.get(agent.agent_id, (np.zeros(3), np.zeros(3)))
+            imu = render_imu(agent, rig.imu, biases, rng, self.noise)
+        s = self.scenario.sensors
+        bev = render_bev(agent, self._bev_raster, actors, s.bev_cell_m, s.bev_range_m)
+        return (lidar, gnss, imu, bev), {"lidar": t1 - t0, "labels": time.perf_counter() - t1}
+
+    def _render_camera(self, agent: AgentState, cam, own: int | None, scene: TickScene, occ: Occluders,
+                       tables, light, lut, rng: np.random.Generator):
+        """One camera's frame (rain streaks draw from ``rng``) and its timings."""
+        t0 = time.perf_counter()
+        K = intrinsics(cam)
+        pose = camera_pose(agent, cam)
+        gid, depth = cast_image(cam, K, pose, scene, occ, own, self.block_px)
+        t1 = time.perf_counter()
+        rgb = encoded = None
+        if "rgb" in cam.outputs:
+            rgb = shade(gid, depth, cam, K, pose, tables, self.atm, light, rng, self.block_px)
+            if self.encode_images:
+                out_spec = self.scenario.output
+                encoded = (out_spec.image_format, submit_encode(rgb, out_spec.image_format, out_spec.jpeg_quality))
+        t2 = time.perf_counter()
+        frame = CameraFrame(
+            agent.agent_id, cam.name, cam.width, cam.height, K, projection(cam), pose, rgb,
+            depth if "depth" in cam.outputs else None,
+            np.take(lut["semantic"], gid) if "semantic" in cam.outputs else None,
+            np.take(lut["instance"], gid), encoded,
+        )
+        return frame, {"camera_cast": t1 - t0, "shading": t2 - t1, "labels": time.perf_counter() - t2}
+
     def render(self, snapshot: WorldSnapshot, rng: np.random.Generator) -> SensorFrameSet:
         """Every agent's sensors at ``snapshot.t_ns`` (see the module docstring)."""
         t_start = time.perf_counter()
@@ -206,52 +255,33 @@ class SensorSuite:
             a_corners, a_tracks = np.zeros((0, 8, 3)), np.zeros(0, np.int64)
         timing["scene"] += time.perf_counter() - t_start
 
-        out: dict[str, AgentFrames] = {}
-        for agent in snapshot.agents:
+        own_track = {a.agent_id: a.track_id for a in actors if a.agent_id is not None}
+        agents = snapshot.agents
+        # one child generator per agent, then per sensor: the draws do not depend on thread timing
+        agent_rngs = rng.spawn(len(agents)) if agents else []
+        jobs: list[tuple[AgentState, object, list]] = []
+        for agent, arng in zip(agents, agent_rngs, strict=True):
             rig = self.rig(agent)
-            own = agent.track_id
-            t0 = time.perf_counter()
-            lidar = None
-            if rig.lidar is not None:
-                pose = sensor_pose(agent, rig.lidar.mount)
-                lidar = render_lidar(agent.agent_id, rig.lidar, pose, scene, self.atm, rng, own, self.noise)
-            timing["lidar"] += time.perf_counter() - t0
+            own = agent.track_id if agent.track_id is not None else own_track.get(agent.agent_id)
             occ = Occluders(self._thin, self._static_points, a_corners[a_tracks != own])
+            srngs = arng.spawn(1 + len(rig.cameras))
+            base = self._pool.submit(self._render_agent_base, agent, rig, own, scene, srngs[0], actors)
+            cams = [self._pool.submit(self._render_camera, agent, cam, own, scene, occ, tables, light, lut, r)
+                    for cam, r in zip(rig.cameras, srngs[1:], strict=True)]
+            jobs.append((agent, base, cams))
+        out: dict[str, AgentFrames] = {}
+        for agent, base_f, cam_fs in jobs:
+            rig = self.rig(agent)
+            (lidar, gnss, imu, bev), t_base = base_f.result()
             cams: dict[str, CameraFrame] = {}
-            for cam in rig.cameras:
-                t0 = time.perf_counter()
-                K = intrinsics(cam)
-                pose = camera_pose(agent, cam)
-                gid, depth = cast_image(cam, K, pose, scene, occ, own, self.block_px)
-                t1 = time.perf_counter()
-                timing["camera_cast"] += t1 - t0
-                rgb = encoded = None
-                if "rgb" in cam.outputs:
-                    rgb = shade(gid, depth, cam, K, pose, tables, self.atm, light, rng, self.block_px)
-                    if self.encode_images:
-                        out_spec = self.scenario.output
-                        encoded = (out_spec.image_format,
-                                   submit_encode(rgb, out_spec.image_format, out_spec.jpeg_quality))
-                t2 = time.perf_counter()
-                timing["shading"] += t2 - t1
-                cams[cam.name] = CameraFrame(
-                    agent.agent_id, cam.name, cam.width, cam.height, K, projection(cam), pose, rgb,
-                    depth if "depth" in cam.outputs else None,
-                    np.take(lut["semantic"], gid) if "semantic" in cam.outputs else None,
-                    np.take(lut["instance"], gid), encoded,
-                )
-                timing["labels"] += time.perf_counter() - t2
+            for f in cam_fs:
+                frame, t_cam = f.result()
+                cams[frame.name] = frame
+                for k, v in t_cam.items():
+                    timing[k] += v
+            for k, v in t_base.items():
+                timing[k] += v
             t0 = time.perf_counter()
-            gnss = None
-            if rig.gnss is not None:
-                gnss = render_gnss(agent.agent_id, rig.gnss, np.asarray(agent.position_m), self.world.geo_origin, rng,
-                                   self.noise)
-            imu = None
-            if rig.imu is not None:
-                biases = self._biases.get(agent.agent_id, (np.zeros(3), np.zeros(3)))
-                imu = render_imu(agent, rig.imu, biases, rng, self.noise)
-            s = self.scenario.sensors
-            bev = render_bev(agent, self._bev_raster, actors, s.bev_cell_m, s.bev_range_m)
             vis = render_visibility(agent.agent_id, lidar.instance_id if lidar is not None else None,
                                     {n: c.instance for n, c in cams.items()})
             cams = {n: c if "instance" in rig_cam_outputs(rig, n) else _drop_instance(c) for n, c in cams.items()}
