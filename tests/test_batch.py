@@ -150,6 +150,13 @@ def test_sweep_rule_errors_and_duplicate_keys(tmp_path):
         load_sweep(p)
 
 
+def test_vary_errors_name_the_draw(tmp_path):
+    p = write_sweep(tmp_path, "name: s\nvary:\n  traffic.density_veh_per_km: {uniform: [5, 1]}\n")
+    with pytest.raises(SweepError, match="low <= high") as err:
+        load_sweep(p)
+    assert err.value.path == "vary.traffic.density_veh_per_km.uniform" and err.value.line == 4
+
+
 def test_invalid_episode_scenario_points_at_the_sweep_line(tmp_path):
     body = "name: s\ncount: 2\naxes:\n  weather: {key: environment.weather, values: [clear, snowy]}\n"
     with pytest.raises(SweepError) as err:

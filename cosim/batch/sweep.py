@@ -29,9 +29,9 @@ import json
 import os
 import re
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, model_validator
 
 from cosim.errors import ScenarioError
 from cosim.scenario.loader import _clean_loc, _Doc, _dotted, _message, _parse_file
@@ -135,6 +135,16 @@ class Uniform(Model):
         return self
 
 
+def _vary_kind(value: Any) -> str:
+    if isinstance(value, dict):
+        return "uniform" if "uniform" in value else "choice"
+    return "uniform" if isinstance(value, Uniform) else "choice"
+
+
+VarySpec = Annotated[Annotated[Choice, Tag("choice")] | Annotated[Uniform, Tag("uniform")],
+                     Discriminator(_vary_kind)]
+
+
 class Sweep(Model):
     name: str = Field(pattern=LABEL_PATTERN)
     description: str = ""
@@ -142,7 +152,7 @@ class Sweep(Model):
     base: str | list[str]
     set: dict[str, Any] = Field(default_factory=dict)  # applied to every episode
     axes: dict[str, Axis] = Field(default_factory=dict)  # the grid, in this order (ids follow it)
-    vary: dict[str, Choice | Uniform] = Field(default_factory=dict)  # per-episode random draws
+    vary: dict[str, VarySpec] = Field(default_factory=dict)  # per-episode random draws
     count: int | None = Field(None, ge=1)  # episodes in total (all splits)
     hours: float | None = Field(None, gt=0)  # or: driving time budget in total
     cover_all: bool = True  # every split gets every combination when it has enough episodes
@@ -222,7 +232,9 @@ def _sweep_message(err: dict[str, Any], path: list[str | int], data: Any) -> str
 
 def _error(exc: ValidationError, doc: _Doc, source: str) -> SweepError:
     err = exc.errors(include_url=False)[0]
-    loc = [p for p in err["loc"] if not (isinstance(p, str) and p in ("Choice", "Uniform", "str", "list[str]"))]
+    loc = [p for p in err["loc"] if not (isinstance(p, str) and p in ("str", "list[str]"))]
+    if len(loc) >= 3 and loc[0] == "vary" and loc[2] in ("choice", "uniform"):
+        del loc[2]  # the union tag, not a key
     path = _clean_loc(loc, doc.data)
     ctx_error = (err.get("ctx") or {}).get("error")
     if isinstance(ctx_error, RuleError):
