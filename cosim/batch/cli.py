@@ -146,7 +146,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     b = sub.add_parser("batch", help="generate a sweep of episodes (local processes, Ray, shards; resumable)")
-    b.add_argument("sweep", help="sweep YAML file (see sweeps/)")
+    b.add_argument("sweep", help="sweep YAML file, or the name of a shipped one (sweeps/)")
     b.add_argument("--out", required=True, help="output folder: <split>/<episode>.mcap and manifest*.jsonl")
     b.add_argument("--workers", type=int, default=1, help="episodes at a time (local); CPUs of a local Ray")
     b.add_argument("--backend", default="local", choices=["local", "ray"], help="where episodes run")
