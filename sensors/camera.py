@@ -277,8 +277,7 @@ def cast_image(
     rows = (inv[:-1, None, :] * (1 - wgt)[None, :, None] + inv[1:, None, :] * wgt[None, :, None]).reshape(h, wb + 1)
     inv_full = (rows[:, :-1, None] * (1 - wgt) + rows[:, 1:, None] * wgt).reshape(h, w)
     with np.errstate(divide="ignore"):
-        np.divide(np.float32(1.0), inv_full, out=depth)
-    depth[inv_full <= 0] = np.inf
+        np.divide(np.float32(1.0), inv_full, out=depth)  # 1 / 0 = inf where a corner saw the sky
 
     active = np.ones((hb, wb), bool)
     while s >= 2:
