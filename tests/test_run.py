@@ -19,7 +19,7 @@ from tests.conftest import REPO, run_cli
 pytestmark = pytest.mark.integration
 
 TICK_NS = 200_000_000
-FAST = ["--no-sensors", "--set", "traffic.density_veh_per_km=8", "--set", "agents.drones.2.altitude_m=80"]
+FAST = ["--no-sensors", "--set", "traffic.density_veh_per_km=8"]
 
 
 def read_topics(path: Path) -> dict[str, list[tuple[int, bytes]]]:
