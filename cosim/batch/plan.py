@@ -154,10 +154,8 @@ def _assignment(key: str, value: Any) -> str:
 class _Builder:
     """Validates episode scenarios: each base parsed once, overrides applied with the loader's ``--set``."""
 
-    def __init__(self, sweep: Sweep, sweep_doc: _Doc | None, sweep_source: str, sweep_dir: Path,
-                 cli_set: Sequence[str]):
-        self.sweep, self.doc, self.source, self.dir = sweep, sweep_doc, sweep_source, sweep_dir
-        self.cli_set = list(cli_set)
+    def __init__(self, sweep_doc: _Doc | None, sweep_source: str, sweep_dir: Path):
+        self.doc, self.source, self.dir = sweep_doc, sweep_source, sweep_dir
         self._bases: dict[str, tuple[Path, _Doc]] = {}
 
     def base(self, name: str, origin: tuple[str | int, ...]) -> tuple[Path, _Doc]:
@@ -250,7 +248,7 @@ def plan_sweep(
     """Expand a sweep into its episodes (validating every episode's scenario)."""
     if scale <= 0:
         raise SweepError(f"scale must be > 0, got {scale}", source="--scale")
-    builder = _Builder(sweep, sweep_doc, source, Path(sweep_dir), cli_set)
+    builder = _Builder(sweep_doc, source, Path(sweep_dir))
     common = _common_overrides(sweep, cli_set)
     _, nominal_s, _ = builder.build(sweep.default_base, ("base",), common, "the base scenario")
     total = episode_total(sweep, nominal_s, count=count, hours=hours, scale=scale)
