@@ -96,7 +96,8 @@ def test_layout_invariants(kind: str, tmp_path: Path) -> None:
     ids = [p.instance_id for p in prisms if p.cls in ("building", "pole", "street_light", "rsu")]
     assert all(i >= 1_000_000 for i in ids) and len(ids) == len(set(ids))
     classes = {p.cls for p in prisms}
-    assert {"road", "terrain", "vegetation", "building", "lane_marking", "rsu"} <= classes
+    assert {"road", "terrain", "vegetation", "lane_marking", "rsu"} <= classes
+    assert "building" in classes or kind == "highway"  # a small highway map may have no room for any
     # buildings never stand on the road surface (sampled on a 0.25 m grid inside each footprint)
     road = road_raster(read_network(world.net_xml), world.bounds_m, 0.25)
     for p in prisms:

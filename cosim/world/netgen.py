@@ -603,5 +603,7 @@ def highway(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
     local = {"numLanes": 1, "speed": 13.89, "priority": 1, "width": 3.75, "disallow": "pedestrian"}
     for a, b in (("sa", "s1"), ("s1", "s2"), ("s2", "sb"), ("na", "n2"), ("n2", "n1"), ("n1", "nb")):
         _two_way(edges, a, b, None, **local)
-    ramps = ["--ramps.guess", "--ramps.ramp-length", f"{min(100.0, 0.2 * s):.0f}", "--default.junctions.radius", "8"]
+    # no guessed acceleration lanes: on a centred carriageway an added lane shifts every lane sideways at its
+    # end; the ramps join beside the outer lane instead
+    ramps = ["--default.junctions.radius", "8"]
     return NetworkResult(_netconvert_plain(nodes, edges, req, ramps))

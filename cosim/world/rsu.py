@@ -52,6 +52,21 @@ def choose_junctions(
     return out
 
 
+def _spot(
+    j: JunctionGeom, tries: tuple[tuple[Raster, float, float], ...], used: list[tuple[float, float]], phase: float
+) -> tuple[float, float] | None:
+    """The nearest point around junction ``j`` that is free in a raster of ``tries`` (raster, spacing to
+    ``used`` poles [m], reach [m]), scanning rings 0.5 m apart in 16 directions from angle ``phase``."""
+    jx, jy = j.position_m
+    for clear, spacing, reach in tries:
+        for r in np.arange(4.0, reach + 0.01, 0.5):
+            for a in phase + np.arange(16) * (math.pi / 8):
+                p = (jx + r * math.cos(a), jy + r * math.sin(a))
+                if not clear.lookup(np.array([p]))[0] and all(math.dist(p, u) >= spacing for u in used):
+                    return p
+    return None
+
+
 def place_rsus(
     junctions: list[JunctionGeom],
     degree: dict[str, int],
@@ -61,29 +76,21 @@ def place_rsus(
     centre: tuple[float, float],
     rng: np.random.Generator,
 ) -> list[RsuSite]:
-    """RSU sites ``rsu_0..``: a pole off the road surface within :data:`MAX_OFFSET_M` of its junction."""
+    """RSU sites ``rsu_0..``: a pole off the road surface within :data:`MAX_OFFSET_M` of its junction.
+
+    Junctions wider than that all around (two multi-lane avenues crossing) are only used when there
+    are not enough others; their pole then stands at the nearest spot off the road, with a warning.
+    """
     sites: list[RsuSite] = []
     blocked = road.dilated(POLE_CLEARANCE_M)
+    near = ((blocked, 3.0, MAX_OFFSET_M), (road, 1.0, MAX_OFFSET_M))
+    feasible = [j for j in junctions if _spot(j, near, [], 0.0) is not None]
+    pool = feasible if len(feasible) >= min(count, len(junctions)) else junctions
     used: list[tuple[float, float]] = []
-    for i, j in enumerate(choose_junctions(junctions, degree, count, centre)):
+    for i, j in enumerate(choose_junctions(pool, degree, count, centre)):
         jx, jy = j.position_m
         phase = float(rng.uniform(0, 2 * math.pi))
-        best = None
-        # the first spot off the asphalt (with clearance, then without) within MAX_OFFSET_M; a wider
-        # junction (many lanes) puts the pole on its nearest corner instead, which may be farther
-        tries = ((blocked, 3.0, MAX_OFFSET_M), (road, 1.0, MAX_OFFSET_M), (road, 1.0, FAR_OFFSET_M))
-        for clear, spacing, reach in tries:
-            for r in np.arange(4.0, reach + 0.01, 0.5):
-                for a in phase + np.arange(16) * (math.pi / 8):
-                    p = (jx + r * math.cos(a), jy + r * math.sin(a))
-                    if clear.lookup(np.array([p]))[0] or any(math.dist(p, u) < spacing for u in used):
-                        continue
-                    best = p
-                    break
-                if best is not None:
-                    break
-            if best is not None:
-                break
+        best = _spot(j, (*near, (road, 1.0, FAR_OFFSET_M)), used, phase)
         if best is None:
             best = (jx + MAX_OFFSET_M * math.cos(phase), jy + MAX_OFFSET_M * math.sin(phase))
         if math.dist(best, (jx, jy)) > MAX_OFFSET_M:
