@@ -234,3 +234,24 @@ def test_speed_and_yaw_rate_are_consistent_with_motion(tmp_path: Path) -> None:
     assert straight > 100 and len(dyaw) > 20
     x, y = np.array(rate_dt), np.array(dyaw)
     assert float(np.dot(x, y) / np.dot(y, y)) == pytest.approx(1.0, abs=0.25)  # yaw rate explains turning
+
+
+@pytest.mark.integration
+def test_step_rate_in_whole_milliseconds(tmp_path: Path) -> None:
+    from cosim.errors import WorkerError
+
+    def scenario(step_hz: float):
+        return load_scenario_data(
+            {"name": "r", "seed": 1, "map": {"kind": "urban", "size_m": 200}, "traffic": {"step_hz": step_hz}}
+        )
+
+    world = build_world(scenario(10), tmp_path / "w")
+    with pytest.raises(WorkerError, match="whole milliseconds"):
+        TrafficSim(scenario(15).scenario, world, tmp_path / "a")
+    sim = TrafficSim(scenario(10).scenario, world, tmp_path / "b")
+    try:
+        first = {s.sumo_id: s for s in sim.step_to(0)}
+        later = {s.sumo_id: s for s in sim.step_to(TICK_NS)}
+        assert set(first) == set(later)
+    finally:
+        sim.close()

@@ -55,6 +55,12 @@ class TrafficSim:
         routes_path.write_bytes(world.routes_xml)
         self.step_hz = Fraction(scenario.traffic.step_hz).limit_denominator(10_000)
         step_s = 1 / self.step_hz
+        if (step_s * 1000).denominator != 1:  # SUMO keeps time in whole milliseconds
+            raise WorkerError(
+                "traffic",
+                f"traffic.step_hz = {float(self.step_hz):g} Hz gives a SUMO step of {float(step_s) * 1000:.4g} ms; "
+                "SUMO steps in whole milliseconds (use for example 10, 20, 25, 40 or 50 Hz)",
+            )
         self._rng = np.random.default_rng([scenario.seed, 10])
         net = read_sumolib(world.net_xml)
         self._targets = {c: strong_core(net, c) for c in sorted(set(SUMO_VCLASS.values()))}
