@@ -213,7 +213,7 @@ class DroneFleet:
         s = d.state
         ref = d.strategy.reference(t_s, s)
         if d.clearance_m is not None:
-            ref = climb_first(ref, s, self.obstacles, d.clearance_m)
+            ref = climb_first(ref, s, self.obstacles)
         cmd = d.controller.update(s, ref)
         d.backend.step(cmd, d.wind.step())
         d.energy_j += rotor_power_w(d.backend.rotors.thrust_n, self.frame) * self.dt_s

@@ -34,6 +34,8 @@ TRACK_RADIUS_M = 5.0  # [m] within this of the offset point an escort is "tracki
 #: the drone outward as the turn ends; of 0, 0.5 and 1, half measured best in SUMO traffic and in
 #: synthetic drives.
 SWING_FEEDFORWARD = 0.5
+GUARD_AHEAD_M = 30.0  # [m] how far ahead the climb-first rule looks
+GUARD_MARGIN_M = 3.0  # [m] its margin, sideways and below
 MAX_TARGET_YAW_RATE_RADPS = 2.0  # [rad/s] bound on the estimated turn rate (a yaw jump is not a turn)
 
 
@@ -56,11 +58,12 @@ def polyline_points(points_xy: np.ndarray, step_m: float = 5.0) -> np.ndarray:
     return np.concatenate(parts)
 
 
-def climb_first(ref: Reference, s: BodyState, obstacles: Obstacles, clearance_m: float) -> Reference:
-    """Safety rule: a drone well below its reference altitude with obstacles ahead that are not
-    clear of its current altitude stops moving horizontally and climbs first.
+def climb_first(ref: Reference, s: BodyState, obstacles: Obstacles) -> Reference:
+    """Safety rule: a drone below its reference altitude that would fly into an obstacle at its
+    current altitude stops moving horizontally and climbs first.
 
-    "Ahead": within ``PATH_MARGIN_M`` of the next 30 m of the straight way to the reference.
+    "Into": an obstacle within ``GUARD_MARGIN_M`` of the next ``GUARD_AHEAD_M`` of the straight way
+    to the reference reaches up to ``GUARD_MARGIN_M`` below the drone.
     """
     z = float(s.position_m[2])
     if ref.position_m[2] - z < 2.0:
@@ -68,8 +71,8 @@ def climb_first(ref: Reference, s: BodyState, obstacles: Obstacles, clearance_m:
     p = s.position_m[:2]
     to_ref = ref.position_m[:2] - p
     dist = float(np.hypot(to_ref[0], to_ref[1]))
-    ahead = p + to_ref * min(1.0, 30.0 / dist) if dist > 1e-6 else p
-    if obstacles.top_along(polyline_points(np.array([p, ahead]), 10.0), PATH_MARGIN_M) + 0.5 * clearance_m < z:
+    ahead = p + to_ref * min(1.0, GUARD_AHEAD_M / dist) if dist > 1e-6 else p
+    if obstacles.top_along(polyline_points(np.array([p, ahead]), 2.0), GUARD_MARGIN_M) + GUARD_MARGIN_M < z:
         return ref
     hold = np.array([p[0], p[1], ref.position_m[2]])
     return Reference(hold, ZERO3, ZERO3, ref.yaw_rad)
