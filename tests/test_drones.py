@@ -425,3 +425,30 @@ def test_jsbsim_model_matches_airframe():
     s = b.state()
     assert s.position_m == pytest.approx([0.0, 0.0, 50.0], abs=0.01)
     b.close()
+
+
+@pytest.mark.integration
+def test_shipped_default_scenario_flies_over_its_built_world(tmp_path):
+    """The default scenario's drones over the world the world builder makes (no SUMO traffic: the
+    escorted car is parked at a junction), with altitude planning against its real buildings."""
+    from pathlib import Path
+
+    from cosim.scenario.loader import load_scenario
+    from cosim.world.build import build_world
+
+    repo = Path(__file__).resolve().parents[1]
+    loaded = load_scenario(repo / "scenarios" / "default.yaml", ["duration_s=30", "sensors.enabled=false"])
+    world = build_world(loaded, tmp_path)
+    obs = Obstacles.from_layout(world.layout)
+    j = world.junctions[len(world.junctions) // 2].position_m
+    car = EscortTarget((j[0], j[1], 0.75), 0.0, (0.0, 0.0, 0.0))
+    escorts = [f"drone_{i}" for i, d in enumerate(loaded.scenario.agents.drones) if d.strategy == "escort"]
+    fleet = DroneFleet(loaded.scenario, world)
+    try:
+        states = fly(fleet, 30.0, lambda k: dict.fromkeys(escorts, car))
+    finally:
+        fleet.close()
+    for per_tick in states:
+        for s in per_tick:
+            assert obs.hit(np.array(s.position_m), 1.0) is None
+    assert [s.strategy for s in states[-1]] == [d.strategy for d in loaded.scenario.agents.drones]
