@@ -4,9 +4,10 @@ Rays leave the optical centre through pixel centres (u + 0.5, v + 0.5) with dire
 ``R @ K^-1 [u + 0.5, v + 0.5, 1]`` (optical z = 1), so the cast distance is the planar depth.
 
 Adaptive casting (``block_px`` > 1): rays are first cast on a coarse grid of pixel centres every
-``block_px`` pixels. A block whose four corner samples hit the same triangle, and that no actor, no
+``block_px`` pixels. A block whose four corner samples hit the same face (one plane, one set of
+labels and material: :meth:`TriMesh.faces`), and that no actor, no
 thin static object (pole, light, marking, RSU) and no static mesh vertex projects into, is filled
-from that triangle: its class, instance and material are the triangle's and its inverse depth,
+from that face: its class, instance and material are the face's and its inverse depth,
 which is affine in the image over a plane, is interpolated exactly. Every other block is split in
 four and refined the same way, down to single pixels (a quadtree). All outputs of a camera come
 from the same per-pixel triangle index, so they agree.
@@ -279,11 +280,12 @@ def cast_image(
     with np.errstate(divide="ignore"):
         np.divide(np.float32(1.0), inv_full, out=depth)  # 1 / 0 = inf where a corner saw the sky
 
+    face = scene.labels["face"]
     active = np.ones((hb, wb), bool)
     while s >= 2:
-        gs = Gv[::s, ::s]
-        c00 = gs[:-1, :-1]
-        same = (c00 == gs[:-1, 1:]) & (c00 == gs[1:, :-1]) & (c00 == gs[1:, 1:])
+        fs = np.take(face, Gv[::s, ::s], mode="clip")
+        c00 = fs[:-1, :-1]
+        same = (c00 == fs[:-1, 1:]) & (c00 == fs[1:, :-1]) & (c00 == fs[1:, 1:])
         coherent = active & same & ~forced_at(s)
         if s != top:
             _fill_blocks(gid, depth, np.nonzero(coherent), s, Gv, Tv, w)

@@ -37,10 +37,32 @@ class TriMesh:
     albedo: np.ndarray  # (T, 3) float32
     reflectivity: np.ndarray  # (T,) float32
     emissive: np.ndarray  # (T,) float32
+    group: np.ndarray  # (T,) int64: triangles of one convex planar polygon share a group (see faces())
 
     @property
     def n_triangles(self) -> int:
         return int(self.triangles.shape[0])
+
+    def faces(self) -> np.ndarray:
+        """Face id (T,) int32: triangles of one convex planar polygon (same ``group``, same plane) with
+        identical labels and material share an id.
+
+        Adaptive casting may interpolate across triangles of one face (the plane's depth is exact, every
+        label and colour is the same and the face has no holes), so triangulation diagonals are not edges.
+        """
+        if self.n_triangles == 0:
+            return np.zeros(0, np.int32)
+        v = self.vertices.astype(np.float64)[self.triangles]
+        n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        off = (n * v[:, 0]).sum(axis=1)
+        key = np.column_stack([
+            self.group, np.round(n * 1e4), np.round(off * 1e3), self.semantic, self.instance,
+            np.round(self.albedo * 1e4),
+            np.round(self.reflectivity * 1e4), np.round(self.emissive * 1e4),
+        ])
+        _, face = np.unique(key, axis=0, return_inverse=True)
+        return face.astype(np.int32).ravel()
 
     def normals(self) -> np.ndarray:
         """Unit face normals (T, 3) float32 from the winding (outward)."""
@@ -53,7 +75,7 @@ class TriMesh:
 def empty_mesh() -> TriMesh:
     return TriMesh(
         np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32), np.zeros(0, np.uint8), np.zeros(0, np.uint32),
-        np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.float32),
+        np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.float32), np.zeros(0, np.int64),
     )
 
 
@@ -63,6 +85,7 @@ def concat(meshes: Sequence[TriMesh]) -> TriMesh:
     if not meshes:
         return empty_mesh()
     offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+    g_off = np.cumsum([0] + [int(m.group.max()) + 1 for m in meshes[:-1]])
     return TriMesh(
         np.concatenate([m.vertices for m in meshes]).astype(np.float32),
         np.concatenate([m.triangles + np.uint32(o) for m, o in zip(meshes, offsets, strict=True)]).astype(np.uint32),
@@ -71,17 +94,19 @@ def concat(meshes: Sequence[TriMesh]) -> TriMesh:
         np.concatenate([m.albedo for m in meshes]),
         np.concatenate([m.reflectivity for m in meshes]),
         np.concatenate([m.emissive for m in meshes]),
+        np.concatenate([m.group + o for m, o in zip(meshes, g_off, strict=True)]).astype(np.int64),
     )
 
 
 def _labelled(vertices: np.ndarray, triangles: np.ndarray, cls: str, instance: int, albedo, refl: float,
-              emissive: float = 0.0) -> TriMesh:
+              emissive: float = 0.0, group: np.ndarray | None = None) -> TriMesh:
     t = len(triangles)
     alb = np.broadcast_to(np.asarray(albedo, np.float32), (t, 3))
     return TriMesh(
         np.asarray(vertices, np.float32), np.asarray(triangles, np.uint32).reshape(-1, 3),
         np.full(t, semantic_id(cls), np.uint8), np.full(t, instance, np.uint32), np.array(alb, np.float32),
         np.full(t, refl, np.float32), np.full(t, emissive, np.float32),
+        np.arange(t, dtype=np.int64) if group is None else np.asarray(group, np.int64),
     )
 
 
@@ -163,6 +188,29 @@ def triangulate_polygon(poly: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if (x[b] - x[a]) * (y[c] - y[a]) - (y[b] - y[a]) * (x[c] - x[a]) > 1e-12:
         tris.append((a, b, c))
     return p, np.asarray(tris, np.int64).reshape(-1, 3)
+
+
+def prism_groups(footprint: np.ndarray, n_triangles: int) -> np.ndarray:
+    """Convex-face group per triangle (T,) of :func:`prism_geometry`'s output: one group for a convex
+    cap (each triangle its own for a concave one), one per wall quad, the bottom like the cap."""
+    pts = _clean_polygon(footprint)
+    m = len(pts)
+    if m < 3 or n_triangles == 0:
+        return np.zeros(n_triangles, np.int64)
+    prv, nxt = np.roll(pts, 1, axis=0), np.roll(pts, -1, axis=0)
+    cross = (pts[:, 0] - prv[:, 0]) * (nxt[:, 1] - pts[:, 1]) - (pts[:, 1] - prv[:, 1]) * (nxt[:, 0] - pts[:, 0])
+    n_cap = m - 2
+    cap = np.zeros(n_cap, np.int64) if np.all(cross > 0) else np.arange(n_cap, dtype=np.int64)
+    groups = [cap]
+    rest = n_triangles - n_cap
+    if rest >= 2 * m:
+        wall = n_cap + np.arange(m, dtype=np.int64)
+        groups += [wall, wall]
+        rest -= 2 * m
+    if rest == n_cap:
+        groups.append(cap + n_cap + m)
+    out = np.concatenate(groups)
+    return out if len(out) == n_triangles else np.arange(n_triangles, dtype=np.int64)
 
 
 def prism_geometry(footprint: np.ndarray, z0: float, z1: float, bottom: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -252,9 +300,10 @@ def _prism_mesh(prism: Prism) -> TriMesh:
     alb, refl = material_of(prism.cls, prism.instance_id)
     lamp = is_lamp(prism)
     v, t = prism_geometry(fp, prism.z0_m, prism.z1_m, bottom=lamp or prism.z0_m > 0.5)
+    g = prism_groups(fp, len(t))
     if lamp:
-        return _labelled(v, t, prism.cls, prism.instance_id, LAMP_ALBEDO, refl, emissive=1.0)
-    return _labelled(v, t, prism.cls, prism.instance_id, alb, refl)
+        return _labelled(v, t, prism.cls, prism.instance_id, LAMP_ALBEDO, refl, emissive=1.0, group=g)
+    return _labelled(v, t, prism.cls, prism.instance_id, alb, refl, group=g)
 
 
 # ------------------------------------------------------------------------------ actor shapes
@@ -296,19 +345,24 @@ class ActorTemplate:
     vertices: np.ndarray
     triangles: np.ndarray
     part: np.ndarray
+    group: np.ndarray  # (T,) convex-face group (box faces: the quad's two triangles)
 
 
 def _assemble(parts: list[tuple[tuple[np.ndarray, np.ndarray], int]]) -> ActorTemplate:
-    vs, ts, ps, off = [], [], [], 0
+    vs, ts, ps, gs, off, goff = [], [], [], [], 0, 0
     for (v, t), part in parts:
         vs.append(v)
         ts.append(t + off)
         ps.append(np.full(len(t), part, np.int64))
+        g = np.arange(len(t)) // 2 if len(t) == 12 else np.arange(len(t))  # a box: quads
+        gs.append(g + goff)
+        goff += len(t)
         off += len(v)
     v = np.concatenate(vs)
     if np.abs(v).max() > 0.5 + 1e-9:
         raise CosimError("actor template leaves its unit box")
-    return ActorTemplate(v.astype(np.float32), np.concatenate(ts).astype(np.uint32), np.concatenate(ps))
+    return ActorTemplate(v.astype(np.float32), np.concatenate(ts).astype(np.uint32), np.concatenate(ps),
+                         np.concatenate(gs).astype(np.int64))
 
 
 def _wheels(xs: Sequence[float], radius: float, width: float) -> list:

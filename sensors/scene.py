@@ -77,7 +77,7 @@ def place_actors(actors: tuple[Actor, ...] | list[Actor]) -> tuple[TriMesh, np.n
         t = len(tpl.triangles)
         parts.append(
             TriMesh(v.astype(np.float32), tpl.triangles, np.full(t, semantic_id(a.cls), np.uint8),
-                    np.full(t, a.track_id, np.uint32), alb, refl, emis)
+                    np.full(t, a.track_id, np.uint32), alb, refl, emis, tpl.group)
         )
         tracks.append(np.full(t, a.track_id, np.int64))
     if not parts:
@@ -91,6 +91,7 @@ class StaticScene:
     def __init__(self, mesh: TriMesh):
         self.mesh = mesh
         self.normals = mesh.normals()
+        self.faces = mesh.faces()
         self.scene = _o3d_scene(mesh)
         _warm(self.scene)
 
@@ -141,7 +142,7 @@ class TickScene:
                 keep = np.nonzero(self.actor_track != exclude_track)[0].astype(np.int32)
                 sub = TriMesh(self.actors.vertices, self.actors.triangles[keep], self.actors.semantic[keep],
                               self.actors.instance[keep], self.actors.albedo[keep],
-                              self.actors.reflectivity[keep], self.actors.emissive[keep])
+                              self.actors.reflectivity[keep], self.actors.emissive[keep], self.actors.group[keep])
             entry = (_o3d_scene(sub), keep)
             _warm(entry[0])
             self._cache[key] = entry
@@ -150,7 +151,8 @@ class TickScene:
     @cached_property
     def labels(self) -> dict[str, np.ndarray]:
         """Per-global-index tables: ``semantic`` uint8, ``instance`` uint32, ``reflectivity`` float32,
-        ``normal`` (3,) float32, ``albedo`` (3,) float32, ``emissive`` float32 (each miss + 1 rows)."""
+        ``normal`` (3,) float32, ``albedo`` (3,) float32, ``emissive`` float32, ``face`` int32 (see
+        :meth:`TriMesh.faces`; -1 for the miss row) (each miss + 1 rows)."""
         a = self.actors
         return {
             "semantic": self.table(self.static.mesh.semantic, a.semantic, 0),
@@ -159,6 +161,7 @@ class TickScene:
             "normal": self.table(self.static.normals, a.normals(), (0.0, 0.0, 1.0)),
             "albedo": self.table(self.static.mesh.albedo, a.albedo, (0.0, 0.0, 0.0)),
             "emissive": self.table(self.static.mesh.emissive, a.emissive, 0.0),
+            "face": self.table(self.static.faces, a.faces() + (int(self.static.faces.max(initial=-1)) + 1), -1),
         }
 
     def cast(self, rays: np.ndarray, exclude_track: int | None = None, near_m: float = 0.0,
