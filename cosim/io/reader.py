@@ -21,10 +21,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from mcap.exceptions import McapError
 from mcap.reader import SeekingReader, make_reader
 
-from cosim.errors import FormatError, InputError
+from cosim.errors import CosimError, FormatError, InputError
 from cosim.io.decode import (
     Boxes,
     Calibration,
@@ -113,7 +112,16 @@ class RawMessage:
     schema_data: bytes = field(default=b"", repr=False)
 
     def decode(self) -> Any:
-        return decode(self.schema_name, self.message_encoding, self.data, self.schema_data)
+        """The decoded message (see :mod:`cosim.io.decode`); FormatError when the bytes do not decode."""
+        try:
+            return decode(self.schema_name, self.message_encoding, self.data, self.schema_data)
+        except CosimError:
+            raise
+        except Exception as exc:  # corrupt bytes can fail anywhere in protobuf, numpy or PIL
+            raise FormatError(
+                f"{self.topic} at t={self.log_time_ns} ns: cannot decode {self.schema_name} "
+                f"({type(exc).__name__}: {exc})"
+            ) from None
 
 
 class Tick:
@@ -299,9 +307,12 @@ class Episode:
         """The bytes of one attachment (``scenario.yaml``, ``map.net.xml``, ``routes.rou.xml``...)."""
         if name not in self._attachment_index:
             raise KeyError(f"{self.path} has no attachment {name!r}; it has: {', '.join(self.attachments)}")
-        for a in self._reader.iter_attachments():
-            if a.name == name:
-                return a.data
+        try:
+            for a in self._reader.iter_attachments():
+                if a.name == name:
+                    return a.data
+        except Exception as exc:  # a damaged file
+            raise FormatError(f"{self.path}: cannot read attachment {name!r} ({type(exc).__name__}: {exc})") from None
         raise FormatError(f"{self.path}: attachment {name!r} is indexed but cannot be read")
 
     # -- messages ---------------------------------------------------------------------------------
@@ -345,8 +356,10 @@ class Episode:
                     message.data,
                     schema.data if schema else b"",
                 )
-        except (McapError, EOFError, ValueError) as exc:
-            raise FormatError(f"{self.path}: cannot read messages ({exc}); run `cosim validate` on it") from None
+        except Exception as exc:  # the MCAP library and zstd raise many types on a corrupt file
+            raise FormatError(
+                f"{self.path}: cannot read messages ({type(exc).__name__}: {exc}); run `cosim validate` on it"
+            ) from None
 
     def ticks(
         self, topics: Iterable[str] | str | None = None, start: int = 0, stop: int | None = None
@@ -412,7 +425,7 @@ def open_episode(path: str | Path) -> Episode:
             raise FormatError(f"{path}: not seekable")
         try:
             summary = reader.get_summary()
-        except (McapError, EOFError, ValueError, OSError) as exc:
+        except Exception as exc:  # a damaged footer or summary fails in many ways
             raise FormatError(
                 f"{path}: truncated or corrupt MCAP (no readable footer/summary: {exc}); run `cosim validate` on it"
             ) from None
@@ -425,9 +438,12 @@ def open_episode(path: str | Path) -> Episode:
         if raw is None:
             raise FormatError(f"{path}: no 'episode' metadata record; not a cosim episode")
         return Episode(path, stream, reader, summary, raw)
-    except McapError as exc:
+    except CosimError:
         stream.close()
-        raise FormatError(f"{path}: not a readable MCAP file ({exc})") from None
+        raise
+    except Exception as exc:
+        stream.close()
+        raise FormatError(f"{path}: not a readable MCAP file ({type(exc).__name__}: {exc})") from None
     except BaseException:
         stream.close()
         raise

@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import logging
 import struct
+import zlib
 from collections import defaultdict
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -31,8 +32,22 @@ from typing import Any
 
 import numpy as np
 from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
-from mcap.records import Attachment, Channel, DataEnd, Footer, Header, Message, Metadata, Schema, Statistics
-from mcap.stream_reader import StreamReader
+from mcap.opcode import Opcode
+from mcap.records import (
+    Attachment,
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Message,
+    MessageIndex,
+    Metadata,
+    Schema,
+    Statistics,
+)
+from mcap.stream_reader import StreamReader, get_chunk_data_stream
 
 from cosim.classes import OBJECT_CLASSES
 from cosim.errors import CosimError, FormatError, InputError
@@ -46,10 +61,11 @@ from cosim.io.format import (
     expected_topics,
     topic_spec,
 )
-from cosim.io.reader import check_format_version, parse_metadata
+from cosim.io.reader import JSON_METADATA, check_format_version, parse_metadata
 
 log = logging.getLogger(__name__)
 
+MAGIC_BYTES = 8  # the MCAP magic before the first record
 #: Problems kept per (check, topic); the rest are counted.
 MAX_PER_KIND = 8
 
@@ -134,6 +150,13 @@ class _Validator:
         self.statistics: Statistics | None = None
         self.seen_header = self.seen_data_end = self.seen_footer = False
         self.scenario_yaml: bytes | None = None
+        self.min_time = 2**64
+        self.n_attachments = self.n_metadata = 0
+        self.data_ids: set[tuple[str, int]] = set()
+        self.summary_ids: set[tuple[str, int]] = set()
+        self.chunks: dict[int, Chunk] = {}  # file offset -> chunk
+        self.chunk_messages: dict[int, list[tuple[int, int]]] = {}  # last chunk: channel -> (log time, offset)
+        self.chunk_indexes: list[ChunkIndex] = []
 
     # -- reporting --------------------------------------------------------------------------------
 
@@ -150,13 +173,26 @@ class _Validator:
     def run(self) -> ValidationReport:
         path = self.report.path
         size = path.stat().st_size
-        offset_hint = 0
+        offset_hint = MAGIC_BYTES
         try:
-            with open(path, "rb") as f:
-                reader = StreamReader(f, validate_crcs=True, record_size_limit=max(size, 1))
+            with open(path, "rb") as f, open(path, "rb") as raw:
+                reader = StreamReader(f, emit_chunks=True, validate_crcs=True, record_size_limit=max(size, 1))
                 for record in reader.records:
-                    offset_hint = f.tell()
-                    self.on_record(record)
+                    start, offset_hint = offset_hint, f.tell()
+                    if isinstance(record, Chunk):
+                        self.chunks[start] = record
+                        self.chunk_messages = {}
+                        for offset, inner in _chunk_records(record):
+                            if isinstance(inner, Message):
+                                self.chunk_messages.setdefault(inner.channel_id, []).append((inner.log_time, offset))
+                            self.on_record(inner)
+                    elif isinstance(record, MessageIndex):
+                        self.check_message_index(record, start)
+                    elif isinstance(record, Attachment):
+                        self.check_attachment_crc(raw, start, offset_hint, record.name)
+                        self.on_record(record)
+                    else:
+                        self.on_record(record)
         except Exception as exc:  # a corrupt file may break the MCAP parser in any way; report, never crash
             if isinstance(exc, EndOfFile | struct.error | RecordLengthLimitExceeded):
                 what = f"unexpected end of file{f': {exc}' if str(exc) else ''}"
@@ -172,20 +208,63 @@ class _Validator:
         self.finish()
         return self.report
 
+    def on_definition(self, kind: str, rid: int, name: str, record: Any, table: dict[int, Any]) -> bool:
+        """A schema or channel: defined once in the data section, repeated identically in the summary.
+        Returns True the first time an id is seen."""
+        summary = self.seen_data_end
+        (self.summary_ids if summary else self.data_ids).add((kind, rid))
+        before = table.get(rid)
+        if before is None:
+            table[rid] = record
+            if summary:
+                self.problem("structure", f"{kind} {rid} ({name!r}) is in the summary but not in the data (corrupt)")
+            return not summary
+        if before != record:
+            self.problem(
+                "structure",
+                f"{kind} {rid} ({before.name if kind == 'schema' else before.topic!r}) "
+                f"differs between the data and summary sections (corrupt)",
+            )
+        return False
+
+    def check_message_index(self, index: MessageIndex, offset: int) -> None:
+        """A chunk's message index (used by seeking readers) must list exactly its messages."""
+        actual = sorted(self.chunk_messages.get(index.channel_id, []))
+        if sorted(index.records) != actual:
+            ch = self.channels.get(index.channel_id)
+            self.problem(
+                "structure",
+                f"message index at byte {offset} does not match its chunk's messages "
+                f"({len(index.records)} entries, {len(actual)} messages)",
+                topic=ch.topic if ch else f"channel {index.channel_id}",
+            )
+
+    def check_attachment_crc(self, raw: Any, start: int, end: int, name: str) -> None:
+        """MCAP attachments carry a CRC over their fields that readers do not check; check it here."""
+        raw.seek(start)
+        data = raw.read(end - start)
+        stored = int.from_bytes(data[-4:], "little")
+        if stored and zlib.crc32(data[9:-4]) != stored:
+            self.problem("attachments", f"attachment {name!r} fails its CRC (corrupt)")
+
     def on_record(self, record: Any) -> None:
         if isinstance(record, Header):
             self.seen_header = True
         elif isinstance(record, Schema):
-            self.schemas[record.id] = record
+            self.on_definition("schema", record.id, record.name, record, self.schemas)
         elif isinstance(record, Channel):
-            self.channels[record.id] = record
-            self.check_channel(record)
+            if self.on_definition("channel", record.id, record.topic, record, self.channels):
+                self.check_channel(record)
+        elif isinstance(record, ChunkIndex):
+            self.chunk_indexes.append(record)
         elif isinstance(record, Message):
             self.on_message(record)
         elif isinstance(record, Metadata):
+            self.n_metadata += 1
             if record.name == "episode":
                 self.on_metadata(dict(record.metadata))
         elif isinstance(record, Attachment):
+            self.n_attachments += 1
             self.attachments.add(record.name)
             if record.name == "scenario.yaml":
                 self.scenario_yaml = record.data
@@ -207,6 +286,14 @@ class _Validator:
         except FormatError as exc:
             self.problem("metadata", str(exc))
         self.meta = parse_metadata(raw)
+        for key in JSON_METADATA:
+            if key in raw and self.meta[key] is raw[key]:
+                self.problem("metadata", f"{key} is not valid JSON: {raw[key][:60]!r}")
+        table = self.meta.get("class_table")
+        if isinstance(table, dict) and not (
+            isinstance(table.get("object_classes"), list) and isinstance(table.get("semantic_classes"), list)
+        ):
+            self.problem("metadata", "class_table lacks object_classes / semantic_classes lists")
         try:
             self.tick_ns = int(self.meta["tick_ns"])
             self.n_ticks = int(self.meta["n_ticks"])
@@ -250,6 +337,7 @@ class _Validator:
                 ch.topic,
             )
         self.last_time = max(self.last_time, m.log_time)
+        self.min_time = min(self.min_time, m.log_time)
         if m.publish_time != m.log_time:
             self.problem("time", f"publish_time {m.publish_time} ns != log_time {m.log_time} ns", tick, ch.topic)
         if tick is not None:
@@ -538,6 +626,31 @@ class _Validator:
                 topic,
             )
 
+    def check_chunk_index(self) -> None:
+        """The summary's chunk index must point at the chunks really in the file (seeking readers use it)."""
+        if not self.seen_footer:
+            return
+        indexed = {ci.chunk_start_offset: ci for ci in self.chunk_indexes}
+        for offset, chunk in self.chunks.items():
+            ci = indexed.get(offset)
+            if ci is None:
+                self.problem("structure", f"chunk at byte {offset} is missing from the summary's chunk index")
+                continue
+            fields = {
+                "message_start_time": (ci.message_start_time, chunk.message_start_time),
+                "message_end_time": (ci.message_end_time, chunk.message_end_time),
+                "compressed_size": (ci.compressed_size, len(chunk.data)),
+                "uncompressed_size": (ci.uncompressed_size, chunk.uncompressed_size),
+                "compression": (ci.compression, chunk.compression),
+            }
+            bad = [f"{k} {a} != {b}" for k, (a, b) in fields.items() if a != b]
+            if bad:
+                self.problem(
+                    "structure", f"chunk index entry for byte {offset} disagrees with the chunk: {'; '.join(bad)}"
+                )
+        for offset in sorted(set(indexed) - set(self.chunks)):
+            self.problem("structure", f"chunk index points at byte {offset}, where no chunk starts")
+
     def scenario(self) -> Any:
         """The resolved scenario attachment as a Scenario, or None when absent or unreadable."""
         if self.scenario_yaml is None:
@@ -565,7 +678,28 @@ class _Validator:
         missing = [a for a in REQUIRED_ATTACHMENTS if a not in self.attachments]
         if missing and self.seen_footer:
             self.problem("attachments", f"missing {', '.join(missing)}")
-        if self.statistics is not None:
+        self.check_chunk_index()
+        if self.seen_footer:
+            for kind, rid in sorted(self.data_ids - self.summary_ids):
+                self.problem("structure", f"{kind} {rid} is missing from the summary section")
+        if self.statistics is not None and self.seen_footer:
+            st = self.statistics
+            facts = {
+                "message_count": (st.message_count, self.report.messages),
+                "schema_count": (st.schema_count, len(self.schemas)),
+                "channel_count": (st.channel_count, len(self.channels)),
+                "attachment_count": (st.attachment_count, self.n_attachments),
+                "metadata_count": (st.metadata_count, self.n_metadata),
+                "chunk_count": (st.chunk_count, len(self.chunks)),
+                "message_start_time": (st.message_start_time, self.min_time if self.report.messages else 0),
+                "message_end_time": (st.message_end_time, max(self.last_time, 0)),
+            }
+            bad = [f"{k} {a} (file: {b})" for k, (a, b) in facts.items() if a != b]
+            if bad:
+                self.problem("structure", f"summary statistics disagree with the file: {'; '.join(bad)}")
+            missing_counts = sorted(set(self.counts) - set(st.channel_message_counts))
+            if missing_counts:
+                self.problem("structure", f"summary statistics lack message counts of channels {missing_counts}")
             for cid, n in self.statistics.channel_message_counts.items():
                 if self.counts.get(cid, 0) != n:
                     ch = self.channels.get(cid)
@@ -599,6 +733,25 @@ class _Validator:
                     topic=topic,
                 )
         r.ticks = len(seen_ticks)
+
+
+def _chunk_records(chunk: Chunk) -> list[tuple[int, Any]]:
+    """The records of a chunk with their byte offsets in its uncompressed data (CRC checked)."""
+    stream, length = get_chunk_data_stream(chunk, validate_crc=True)
+    out: list[tuple[int, Any]] = []
+    while stream.count < length:
+        offset = stream.count
+        opcode = stream.read1()
+        size = stream.read8()
+        if opcode == Opcode.MESSAGE:
+            out.append((offset, Message.read(stream, size)))
+        elif opcode == Opcode.CHANNEL:
+            out.append((offset, Channel.read(stream)))
+        elif opcode == Opcode.SCHEMA:
+            out.append((offset, Schema.read(stream)))
+        else:
+            stream.read(size)
+    return out
 
 
 def _image_size(msg: Any) -> tuple[int, int] | None:
