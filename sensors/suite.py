@@ -153,11 +153,11 @@ class SensorSuite:
     start encoding each RGB image (``scenario.output.image_format``) in a thread pool as soon as it
     is shaded, so encoding overlaps with the rest of the tick. ``workers``: threads rendering
     cameras and agents side by side (Open3D holds the GIL while casting, but the numpy work around
-    it releases it, so two threads keep two cores busy); results do not depend on it.
+    it releases it, so a few threads keep two cores busy); results do not depend on it.
     """
 
     def __init__(self, scenario: Scenario, world: World, *, block_px: int = 8, noise: bool = True,
-                 encode_images: bool = True, workers: int = 2):
+                 encode_images: bool = True, workers: int = 3):
         self.scenario = scenario
         self.encode_images = encode_images
         self._pool = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="cosim-render")
