@@ -17,7 +17,7 @@ from cosim.errors import InputError
 
 log = logging.getLogger(__name__)
 
-EXIT_OK, EXIT_PROBLEMS = 0, 1
+EXIT_OK, EXIT_PROBLEMS, EXIT_INTERRUPTED = 0, 1, 130
 
 
 def _episode(path: str) -> Path:
@@ -98,7 +98,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
         wait_subscribers_s=args.wait,
         foxglove_port=args.foxglove,
     )
-    stats = replay_episode(_episode(args.episode), opts)
+    try:
+        stats = replay_episode(_episode(args.episode), opts)
+    except KeyboardInterrupt:
+        print("cosim: replay stopped", file=sys.stderr)
+        return EXIT_INTERRUPTED
     print(
         f"replayed {stats.messages} messages ({stats.loops} pass{'es' if stats.loops != 1 else ''}) "
         f"in {stats.wall_s:.2f} s under {opts.prefix}/"
@@ -178,7 +182,3 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--agents", nargs="+", metavar="AGENT", help="agents for contact sheets (default all)")
     p.add_argument("--dpi", type=int, default=80, help="figure resolution (default 80)")
     p.set_defaults(func=cmd_render)
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit("use: cosim info|validate|replay|render")

@@ -175,3 +175,36 @@ def test_foxglove_server_advertises_every_topic_with_its_schema(tmp_path):
         expected = {t: (i.schema_name, i.message_encoding) for t, i in ep.topics.items()}
     assert {c["topic"]: (c["schemaName"], c["encoding"]) for c in advertise["channels"]} == expected
     assert not worker.is_alive()
+
+
+@pytest.mark.integration
+def test_ctrl_c_stops_a_looping_replay(tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    path = write_synthetic_episode(tmp_path / "ep.mcap", ticks=5, sensors=False)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "cosim.cli",
+            "replay",
+            str(path),
+            "--loop",
+            "--wait",
+            "0",
+            "--listen",
+            free_loopback_endpoint(),
+        ],
+        cwd=REPO,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    time.sleep(3.0)
+    assert proc.poll() is None, proc.stderr.read()  # still looping
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130 and "replay stopped" in err
