@@ -10,6 +10,7 @@ that reach a fringe leave and their track simply ends.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 from fractions import Fraction
@@ -17,6 +18,7 @@ from pathlib import Path
 
 import libsumo
 import numpy as np
+from libsumo import constants as tc
 
 from cosim.errors import WorkerError
 from cosim.geometry import sumo_front_to_center, wrap_angle
@@ -33,6 +35,8 @@ WARMUP_S = 4  # [s] SUMO time before episode t = 0 (a whole number of seconds)
 REROUTE_EDGES_LEFT = 2  # extend a route when the vehicle is on one of its last edges
 LANE_CHANGE_S = 1.5  # [s] duration of a lane change (continuous, not a sideways jump)
 TRAIL_M = 40.0  # [m] of driven path kept per vehicle (longer than the longest vehicle)
+#: per-vehicle values read every SUMO step (one subscription call instead of one call per value)
+SUBSCRIBED = (tc.VAR_DISTANCE, tc.VAR_ROAD_ID, tc.VAR_LANEPOSITION, tc.VAR_LANE_INDEX, tc.VAR_ROUTE_INDEX)
 SEED_SALT = 7919  # SUMO's --seed = (scenario seed * salt + 1) mod 2^31
 
 
@@ -101,6 +105,7 @@ class TrafficSim:
         self._warmup_steps = int(WARMUP_S * self.step_hz)
         self._prev_yaw: dict[str, float] = {}
         self._trails: dict[str, list[tuple[float, str, float, int]]] = {}
+        self._route_len: dict[str, int] = {}
         self.teleports = 0  # vehicles SUMO teleported (jam resolution is off, so this stays 0)
         self.collisions = 0  # vehicles SUMO found in a collision (lane-based check)
         self._closed = False
@@ -124,26 +129,37 @@ class TrafficSim:
             self._step += 1
             self.teleports += libsumo.simulation.getStartingTeleportNumber()
             self.collisions += libsumo.simulation.getCollidingVehiclesNumber()
-            self._record_trails()
-            self._extend_routes()
+            for vid in libsumo.simulation.getDepartedIDList():
+                libsumo.vehicle.subscribe(vid, SUBSCRIBED)
+            for vid in libsumo.simulation.getArrivedIDList():
+                self._trails.pop(vid, None)
+                self._route_len.pop(vid, None)
+            res = libsumo.vehicle.getAllSubscriptionResults()
+            self._record_trails(res)
+            self._extend_routes(res)
         self._dt = dt
 
-    def _extend_routes(self) -> None:
-        for vid in libsumo.vehicle.getIDList():
-            route = libsumo.vehicle.getRoute(vid)
-            if libsumo.vehicle.getRouteIndex(vid) < len(route) - REROUTE_EDGES_LEFT:
+    def _extend_routes(self, res: dict[str, dict[int, object]]) -> None:
+        """Give every vehicle on one of its last route edges a new random destination (sorted id order)."""
+        v = libsumo.vehicle
+        for vid in sorted(res):
+            r = res[vid]
+            idx = int(r[tc.VAR_ROUTE_INDEX])
+            if vid not in self._route_len:
+                self._route_len[vid] = len(v.getRoute(vid))
+            if idx < self._route_len[vid] - REROUTE_EDGES_LEFT or str(r[tc.VAR_ROAD_ID]).startswith(":"):
                 continue
-            if libsumo.vehicle.getRoadID(vid).startswith(":"):
-                continue
-            targets = self._targets.get(libsumo.vehicle.getVehicleClass(vid), [])
+            route = v.getRoute(vid)
+            targets = self._targets.get(v.getVehicleClass(vid), [])
             for _ in range(8 if targets else 0):
                 target = targets[int(self._rng.integers(len(targets)))]
-                if target in route[libsumo.vehicle.getRouteIndex(vid) :]:
+                if target in route[idx:]:
                     continue
                 try:
-                    libsumo.vehicle.changeTarget(vid, target)
+                    v.changeTarget(vid, target)
                 except libsumo.TraCIException:
                     continue
+                self._route_len[vid] = len(v.getRoute(vid))
                 break
 
     def step_to(self, t_ns: int) -> list[VehicleState]:
@@ -159,19 +175,16 @@ class TrafficSim:
         self._advance_to(target)
         return [self._read(v) for v in sorted(libsumo.vehicle.getIDList())]
 
-    def _record_trails(self) -> None:
+    def _record_trails(self, res: dict[str, dict[int, object]]) -> None:
         """Append every vehicle's (odometer, road, lane position, lane index) to its trail."""
-        v = libsumo.vehicle
-        ids = v.getIDList()
-        if len(self._trails) > 2 * len(ids) + 16:
-            self._trails = {k: self._trails[k] for k in ids if k in self._trails}
-        for vid in ids:
-            odo, road, pos, idx = v.getDistance(vid), v.getRoadID(vid), v.getLanePosition(vid), v.getLaneIndex(vid)
+        for vid, r in res.items():
+            odo, road = float(r[tc.VAR_DISTANCE]), str(r[tc.VAR_ROAD_ID])
+            pos, idx = float(r[tc.VAR_LANEPOSITION]), int(r[tc.VAR_LANE_INDEX])
             trail = self._trails.setdefault(vid, [])
             if trail and trail[-1][1] == road and trail[-1][3] != idx and not road.startswith(":"):
                 # a lane change: the part of the trail on this edge moves to the new lane with it
-                trail[:] = [(o, r, p, idx if r == road else i) for o, r, p, i in trail]
-            if not trail or odo > trail[-1][0] + 0.05 or trail[-1][1] != road:
+                trail[:] = [(o, rd, p, idx if rd == road else i) for o, rd, p, i in trail]
+            if not trail or odo > trail[-1][0] + 0.2 or trail[-1][1] != road:
                 trail.append((odo, road, pos, idx))
             while len(trail) > 2 and trail[1][0] < odo - TRAIL_M:
                 trail.pop(0)
@@ -189,8 +202,8 @@ class TrafficSim:
         odo = v.getDistance(vid)
         target = odo - length_m
         trail = self._trails.get(vid, [])
-        k = max((i for i, e in enumerate(trail) if e[0] <= target), default=None)
-        if k is None:
+        k = bisect.bisect_right(trail, target, key=lambda e: e[0]) - 1  # odometers never decrease
+        if k < 0:
             if road.startswith(":") or pos < length_m:
                 return v.getAngle(vid)
             back = libsumo.simulation.convert2D(road, pos - length_m, idx)

@@ -93,7 +93,7 @@ def place_rsus(
         best = _spot(j, (*near, (road, 1.0, FAR_OFFSET_M)), used, phase)
         if best is None:
             best = (jx + MAX_OFFSET_M * math.cos(phase), jy + MAX_OFFSET_M * math.sin(phase))
-        if math.dist(best, (jx, jy)) > MAX_OFFSET_M:
+        if math.dist(best, (jx, jy)) > MAX_OFFSET_M + 1e-6:
             log.warning(
                 "rsu_%d stands %.1f m from junction %s: nothing closer is off the road",
                 i,
