@@ -15,6 +15,7 @@ import json
 import logging
 import time
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,7 @@ from cosim.batch.progress import BatchProgress
 log = logging.getLogger(__name__)
 
 POLL_S = 0.5
+VERIFY_THREADS = 8  # files hashed at once when checking what a previous run finished
 
 
 @dataclass
@@ -82,7 +84,9 @@ def run_batch(plan: Plan, out_dir: Path | str, executor: Executor, *, retries: i
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     existing = latest_records(out)
-    todo = [ep for ep in plan.episodes if not is_finished(out, ep, existing.get(ep.id))]
+    with ThreadPoolExecutor(max_workers=VERIFY_THREADS) as pool:  # sha256 releases the GIL
+        finished = list(pool.map(lambda ep: is_finished(out, ep, existing.get(ep.id)), plan.episodes))
+    todo = [ep for ep, done in zip(plan.episodes, finished, strict=True) if not done]
     summary = BatchSummary(planned=len(plan.episodes), skipped=len(plan.episodes) - len(todo))
     by_id = {ep.id: ep for ep in todo}
     attempts = {ep.id: int((existing.get(ep.id) or {}).get("attempts", 0)) for ep in todo}
