@@ -90,6 +90,17 @@ class Problem:
         return f"[{self.check}]{loc} {self.message}"
 
 
+@dataclass(frozen=True)
+class ChunkFacts:
+    """What the summary's chunk index must say about one chunk (the chunk's data is not kept)."""
+
+    message_start_time: int
+    message_end_time: int
+    compressed_size: int
+    uncompressed_size: int
+    compression: str
+
+
 @dataclass
 class ValidationReport:
     path: Path
@@ -154,7 +165,7 @@ class _Validator:
         self.n_attachments = self.n_metadata = 0
         self.data_ids: set[tuple[str, int]] = set()
         self.summary_ids: set[tuple[str, int]] = set()
-        self.chunks: dict[int, Chunk] = {}  # file offset -> chunk
+        self.chunks: dict[int, ChunkFacts] = {}  # file offset -> what the chunk index must say about it
         self.chunk_messages: dict[int, list[tuple[int, int]]] = {}  # last chunk: channel -> (log time, offset)
         self.chunk_indexes: list[ChunkIndex] = []
 
@@ -180,7 +191,13 @@ class _Validator:
                 for record in reader.records:
                     start, offset_hint = offset_hint, f.tell()
                     if isinstance(record, Chunk):
-                        self.chunks[start] = record
+                        self.chunks[start] = ChunkFacts(
+                            record.message_start_time,
+                            record.message_end_time,
+                            len(record.data),
+                            record.uncompressed_size,
+                            record.compression,
+                        )
                         self.chunk_messages = {}
                         for offset, inner in _chunk_records(record):
                             if isinstance(inner, Message):
@@ -639,7 +656,7 @@ class _Validator:
             fields = {
                 "message_start_time": (ci.message_start_time, chunk.message_start_time),
                 "message_end_time": (ci.message_end_time, chunk.message_end_time),
-                "compressed_size": (ci.compressed_size, len(chunk.data)),
+                "compressed_size": (ci.compressed_size, chunk.compressed_size),
                 "uncompressed_size": (ci.uncompressed_size, chunk.uncompressed_size),
                 "compression": (ci.compression, chunk.compression),
             }
