@@ -192,6 +192,16 @@ class SensorSuite:
     def rig(self, agent: AgentState) -> RigSpec:
         return self.scenario.rig_for(agent.agent_id)
 
+    def close(self) -> None:
+        """Stop the render threads (idle threads also end with the interpreter)."""
+        self._pool.shutdown(wait=True)
+
+    def __enter__(self) -> SensorSuite:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     def _render_agent_base(self, agent: AgentState, rig: RigSpec, own: int | None, scene: TickScene,
                            rng: np.random.Generator, actors: tuple[Actor, ...]):
         """LiDAR, GNSS, IMU and BEV of one agent (draws from ``rng`` in that order)."""
