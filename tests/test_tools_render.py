@@ -8,7 +8,7 @@ from PIL import Image
 
 from cosim.cli import main
 from cosim.io import open_episode
-from cosim.io.render import bev_points, colourise_semantic, depth_metres, semantic_palette
+from cosim.io.render import bev_points, colourise_semantic, depth_metres, layout_polygons, semantic_palette
 from cosim.io.synthetic import write_synthetic_episode
 from cosim.tools import parse_ticks
 
@@ -45,6 +45,13 @@ def test_bev_points_are_moved_into_map_through_tf(episode):
         # the synthetic cloud is a 10 m ring 1.9 m below a LiDAR mounted 1.9 m above base_link
         assert np.hypot(*(ring[:, :2] - agents[agent][:2]).T) == pytest.approx(np.full(64, 10.0), abs=1e-4)
         assert ring[:, 2] == pytest.approx(np.full(64, agents[agent][2]), abs=1e-4)
+
+
+def test_the_static_layout_comes_from_the_world_attachment(episode):
+    with open_episode(episode) as ep:
+        layout = layout_polygons(ep)
+    assert [c for c, _ in layout] == ["road"]
+    assert layout[0][1] == pytest.approx(np.array([[-10, -4], [200, -4], [200, 4], [-10, 4]]))
 
 
 def test_colour_helpers():

@@ -1,9 +1,10 @@
 """``cosim render``: PNG previews of chosen ticks (matplotlib, Agg backend, no display needed).
 
 - ``contact_<agent>_t<tick>.png``: one row per camera of the agent: RGB, depth, semantic classes.
-- ``bev_t<tick>.png``: top view of the map frame: every agent, every labelled box, and every agent's
-  LiDAR points moved into ``map`` through ``/tf`` (coloured by semantic class when the cloud has a
-  ``class_id`` field, else by height).
+- ``bev_t<tick>.png``: top view of the map frame: the static layout (roads, buildings... from the
+  ``world.json`` attachment), every agent, every labelled box, and every agent's LiDAR points moved
+  into ``map`` through ``/tf`` (coloured by semantic class when the cloud has a ``class_id`` field,
+  else by height).
 
 Pictures are palette-quantised PNGs (256 colours) so they stay small enough for documentation.
 """
@@ -149,13 +150,41 @@ def bev_points(ep: Episode, tick: Tick) -> tuple[np.ndarray, np.ndarray | None]:
     return np.concatenate(xyz_all), (np.concatenate(cls_all) if have_cls and cls_all else None)
 
 
-def bev_plot(ep: Episode, tick: Tick, path: Path, dpi: int = 80) -> Path:
-    """Top view of one tick (see the module docstring)."""
+#: Static layout classes drawn under the BEV (terrain would cover everything), in drawing order.
+LAYOUT_CLASSES = ("vegetation", "sidewalk", "road", "lane_marking", "building", "pole", "street_light", "rsu")
+
+
+def layout_polygons(ep: Episode) -> list[tuple[str, np.ndarray]]:
+    """Footprints (K, 2) [m, map] of the static layout from the ``world.json`` attachment, by class."""
+    import json
+
+    if "world.json" not in ep.attachments:
+        return []
+    try:
+        prisms = json.loads(ep.attachment("world.json")).get("prisms") or []
+        out = [(str(p[0]), np.asarray(p[1], dtype=np.float64)) for p in prisms if p[0] in LAYOUT_CLASSES]
+    except (ValueError, TypeError, KeyError, IndexError, CosimError) as exc:
+        log.warning("world.json not drawn: %s", exc)
+        return []
+    order = {c: i for i, c in enumerate(LAYOUT_CLASSES)}
+    return sorted((o for o in out if o[1].ndim == 2 and len(o[1]) >= 3), key=lambda o: order[o[0]])
+
+
+def bev_plot(
+    ep: Episode, tick: Tick, path: Path, dpi: int = 80, layout: list[tuple[str, np.ndarray]] | None = None
+) -> Path:
+    """Top view of one tick (see the module docstring); ``layout`` from :func:`layout_polygons`."""
     import matplotlib.pyplot as plt
+    from matplotlib.collections import PolyCollection
     from matplotlib.lines import Line2D
 
     palette = semantic_palette(ep.class_table)
     fig, ax = plt.subplots(figsize=(10, 10))
+    if layout:
+        colours = [np.array(SEMANTIC_COLOURS.get(c, (200, 200, 200))) / 255.0 for c, _ in layout]
+        ax.add_collection(
+            PolyCollection([p for _, p in layout], facecolors=colours, edgecolors="none", alpha=0.35, zorder=0)
+        )
     xyz, cls = bev_points(ep, tick)
     if len(xyz):
         step = max(1, len(xyz) // MAX_BEV_POINTS)
@@ -222,6 +251,7 @@ def render_episode(
     out_dir.mkdir(parents=True, exist_ok=True)
     agents = list(agents) if agents else ep.agents
     written: list[Path] = []
+    layout = layout_polygons(ep)
     wanted = ["/tf", "/labels/objects", *[f"/{a}/lidar" for a in ep.agents]]
     for a in agents:
         wanted += [f"/{a}/{c}/{k}" for c in ep.cameras(a) for k in ("image", "depth", "semantic")]
@@ -232,5 +262,5 @@ def render_episode(
             sheet = contact_sheet(ep, tick, a, out_dir / f"contact_{a}_t{k:04d}.png", dpi)
             if sheet is not None:
                 written.append(sheet)
-        written.append(bev_plot(ep, tick, out_dir / f"bev_t{k:04d}.png", dpi))
+        written.append(bev_plot(ep, tick, out_dir / f"bev_t{k:04d}.png", dpi, layout))
     return written

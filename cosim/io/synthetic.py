@@ -36,7 +36,7 @@ from cosim.exporters.mcap_writer import EpisodeWriter
 from cosim.io.format import FORMAT_VERSION
 from cosim.protocol import DroneState, VehicleState
 from cosim.snapshot import WorldSnapshot
-from cosim.world.types import Junction, RsuSite, StaticLayout, World
+from cosim.world.types import Junction, Prism, RsuSite, StaticLayout, World
 
 TICK_NS = 200_000_000
 CAMERAS = {"vehicle": ("front", "rear"), "rsu": ("front",), "drone": ("down",)}
@@ -54,7 +54,7 @@ def synthetic_world() -> World:
         (0, 0, 200, 100),
         (Junction("j0", (50.0, 50.0), "traffic_light"),),
         (RsuSite("rsu_0", "j0", (45.0, 45.0, 8.0), 0.785, 8.0),),
-        StaticLayout(()),
+        StaticLayout((Prism("road", ((-10.0, -4.0), (200.0, -4.0), (200.0, 4.0), (-10.0, 4.0)), 0.0, 0.02),)),
         (37.0, -122.0, 10.0),
     )
 
@@ -390,5 +390,6 @@ def write_synthetic_episode(
         w.add_attachment("scenario.yaml", "application/yaml", scenario)
         w.add_attachment("map.net.xml", "application/xml", world.net_xml)
         w.add_attachment("routes.rou.xml", "application/xml", world.routes_xml)
-        w.add_attachment("world.json", "application/json", b"{}")
+        wire = {k: v for k, v in world.to_wire().items() if k not in ("net_xml", "routes_xml")}
+        w.add_attachment("world.json", "application/json", json.dumps(wire).encode())
         return w.finish()

@@ -168,6 +168,8 @@ class _Validator:
         self.chunks: dict[int, ChunkFacts] = {}  # file offset -> what the chunk index must say about it
         self.chunk_messages: dict[int, list[tuple[int, int]]] = {}  # last chunk: channel -> (log time, offset)
         self.chunk_indexes: list[ChunkIndex] = []
+        self.chunk_channels: dict[int, set[int]] = {}  # chunk offset -> channels with messages in it
+        self.message_indexes: dict[int, int] = {}  # file offset of a message index -> its channel
 
     # -- reporting --------------------------------------------------------------------------------
 
@@ -203,7 +205,9 @@ class _Validator:
                             if isinstance(inner, Message):
                                 self.chunk_messages.setdefault(inner.channel_id, []).append((inner.log_time, offset))
                             self.on_record(inner)
+                        self.chunk_channels[start] = set(self.chunk_messages)
                     elif isinstance(record, MessageIndex):
+                        self.message_indexes[start] = record.channel_id
                         self.check_message_index(record, start)
                     elif isinstance(record, Attachment):
                         self.check_attachment_crc(raw, start, offset_hint, record.name)
@@ -661,6 +665,12 @@ class _Validator:
                 "compression": (ci.compression, chunk.compression),
             }
             bad = [f"{k} {a} != {b}" for k, (a, b) in fields.items() if a != b]
+            pointed = {cid: self.message_indexes.get(off) for cid, off in ci.message_index_offsets.items()}
+            wrong = sorted(cid for cid, found in pointed.items() if found != cid)
+            if wrong:
+                bad.append(f"message index offsets of channels {wrong} point at no index of that channel")
+            if set(pointed) != self.chunk_channels.get(offset, set()):
+                bad.append("message index offsets do not cover exactly the chunk's channels")
             if bad:
                 self.problem(
                     "structure", f"chunk index entry for byte {offset} disagrees with the chunk: {'; '.join(bad)}"
