@@ -138,3 +138,13 @@ def escort_targets(snapshot: WorldSnapshot, assignments: dict[str, str]) -> dict
         yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
         out[drone_id] = EscortTarget(actor.center_m, yaw, actor.velocity_mps)
     return out
+
+
+def escort_targets_of(vehicles: Sequence[VehicleState], assignments: dict[str, str]) -> dict[str, EscortTarget]:
+    """The same from the traffic worker's reply (used at tick 0, before the first snapshot exists)."""
+    by_agent = {v.agent_id: v for v in vehicles if v.agent_id}
+    return {
+        drone_id: EscortTarget(tuple(v.center_m), v.yaw_rad, tuple(v.velocity_mps))
+        for drone_id, vehicle_id in assignments.items()
+        if (v := by_agent.get(vehicle_id)) is not None
+    }

@@ -174,8 +174,9 @@ class Conductor:
         """Advance every worker to ``t_ns``; returns {role: reply data} once all have answered."""
         return self.collect(self.send_step(tick, t_ns, escort_targets))
 
-    def send_step(self, tick: int, t_ns: int, escort_targets: dict[str, protocol.EscortTarget]) -> _Pending:
-        """Send tick ``tick``'s step requests without waiting (collect the replies with :meth:`collect`).
+    def send_step(self, tick: int, t_ns: int, escort_targets: dict[str, protocol.EscortTarget],
+                  roles: tuple[str, ...] = ROLES) -> _Pending:
+        """Send tick ``tick``'s step requests to ``roles`` without waiting (see :meth:`collect`).
 
         This lets the workers compute the next tick while the caller writes and renders this one.
         """
@@ -183,7 +184,7 @@ class Conductor:
             "traffic": protocol.StepRequest(tick, t_ns),
             "drones": protocol.StepRequest(tick, t_ns, escort_targets),
         }
-        return self._send("step", tick, requests, self._tick_timeout_s)
+        return self._send("step", tick, {r: requests[r] for r in roles}, self._tick_timeout_s)
 
     def collect(self, pending: _Pending) -> dict[str, Any]:
         """Wait for every reply of ``pending``; raises WorkerError / SyncTimeout naming worker and tick."""

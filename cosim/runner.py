@@ -22,7 +22,7 @@ import numpy as np
 import yaml
 
 import cosim
-from cosim.assemble import TrackRegistry, build_snapshot, escort_targets
+from cosim.assemble import TrackRegistry, build_snapshot, escort_targets, escort_targets_of
 from cosim.classes import class_table
 from cosim.conductor import Conductor
 from cosim.protocol import drone_from_dict, vehicle_from_dict
@@ -149,11 +149,11 @@ def run_episode(
         writer.add_metadata("episode", episode_metadata(loaded, world))
         conductor.start()
         loop_started = time.perf_counter()
-        pending = conductor.send_step(0, 0, {})
+        pending = None
         for tick in range(s.n_ticks):
             t_ns = tick * s.tick_ns
             t0 = time.perf_counter()
-            replies = conductor.collect(pending)
+            replies = _first_tick(conductor, escorts) if pending is None else conductor.collect(pending)
             vehicles = [vehicle_from_dict(v) for v in replies["traffic"]["vehicles"]]
             drones = [drone_from_dict(d) for d in replies["drones"]["drones"]]
             snapshot = build_snapshot(tick, t_ns, vehicles, drones, world, tracks)
@@ -189,6 +189,18 @@ def run_episode(
         compute_s=compute,
         loop_wall_s=loop_wall_s,
     )
+
+
+def _first_tick(conductor: Conductor, escorts: dict[str, str]) -> dict[str, Any]:
+    """Tick 0: traffic first, so escorting drones start at their vehicle's offset point.
+
+    From tick 1 on both workers step in parallel, the drones getting their targets' state one tick late.
+    """
+    traffic = conductor.collect(conductor.send_step(0, 0, {}, roles=("traffic",)))
+    vehicles = [vehicle_from_dict(v) for v in traffic["traffic"]["vehicles"]]
+    targets = escort_targets_of(vehicles, escorts)
+    drones = conductor.collect(conductor.send_step(0, 0, targets, roles=("drones",)))
+    return {**traffic, **drones}
 
 
 def _attach(writer: Any, loaded: LoadedScenario, world: World) -> None:

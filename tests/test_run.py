@@ -163,3 +163,20 @@ def test_external_mode_needs_listen():
     assert r.returncode == 2 and "--listen" in r.stderr
     r = run_cli("run", "scenarios/default.yaml", "--listen", "nonsense", timeout=60)
     assert r.returncode == 2 and "invalid endpoint" in r.stderr
+
+
+def test_escort_drones_track_their_sumo_vehicles_from_the_first_tick(tmp_path):
+    """Issue 4 with the real conductor: escorts follow SUMO-driven cars (urban, turns included)."""
+    from cosim.drones.tracking import escort_errors, rms
+    from cosim.scenario import load_scenario
+
+    r = run_cli("run", "scenarios/strategy_escort.yaml", "--duration", "30", "--out", str(tmp_path), *FAST)
+    assert r.returncode == 0, r.stderr
+    scenario = load_scenario(REPO / "scenarios/strategy_escort.yaml").scenario
+    labels = [json.loads(d) for _, d in read_topics(tmp_path / "strategy_escort_s0.mcap")["/labels/objects"]]
+    errors = escort_errors(labels, scenario)
+    assert sorted(errors) == ["drone_0", "drone_1", "drone_2"]
+    for drone_id, e in errors.items():
+        assert len(e) == 150
+        assert e[0] < 1.0, (drone_id, e[0])  # placed at its offset point at t = 0
+        assert rms(e) < 5.0, (drone_id, rms(e))
