@@ -12,7 +12,7 @@ import math
 from concurrent.futures import Future
 
 import numpy as np
-from cosim.sensors.encoding import encode_jpeg, encode_png, submit_encode
+from cosim.sensors.encoding import encode_jpeg, encode_png, submit, submit_encode
 from cosim.sensors.suite import AgentFrames, SensorFrameSet
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
@@ -165,6 +165,21 @@ def visibility_payload(agent_id: str, vis, t_ns: int) -> dict:
     }
 
 
+_GROUP = "<group>"  # placeholder topic: the future gives a list of (topic, message)
+
+
+def _label_images(base: str, fid: str, cam, t_ns: int) -> list[tuple[str, RawImage]]:
+    """Depth (16UC1 mm), semantic (mono8) and instance (32SC1) images of one camera."""
+    out = []
+    if cam.depth is not None:
+        out.append((f"{base}/depth", _raw(fid, t_ns, depth_mm(cam.depth), "16UC1")))
+    if cam.semantic is not None:
+        out.append((f"{base}/semantic", _raw(fid, t_ns, cam.semantic, "mono8")))
+    if cam.instance is not None:
+        out.append((f"{base}/instance", _raw(fid, t_ns, cam.instance.astype("<i4"), "32SC1")))
+    return out
+
+
 def _agent_messages(af: AgentFrames, t_ns: int, image_format: str, jpeg_quality: int) -> list:
     a = af.agent_id
     out: list = []
@@ -180,12 +195,7 @@ def _agent_messages(af: AgentFrames, t_ns: int, image_format: str, jpeg_quality:
             else:
                 fut = submit_encode(cam.rgb, image_format, jpeg_quality)
             out.append((f"{base}/image", (fid, image_format, fut)))
-        if cam.depth is not None:
-            out.append((f"{base}/depth", _raw(fid, t_ns, depth_mm(cam.depth), "16UC1")))
-        if cam.semantic is not None:
-            out.append((f"{base}/semantic", _raw(fid, t_ns, cam.semantic, "mono8")))
-        if cam.instance is not None:
-            out.append((f"{base}/instance", _raw(fid, t_ns, cam.instance.astype("<i4"), "32SC1")))
+        out.append((_GROUP, submit(_label_images, base, fid, cam, t_ns)))
         out.append((f"{base}/calibration", calibration_message(fid, cam, t_ns)))
     if af.gnss is not None:
         out.append((f"/{a}/gnss", gnss_message(a, af.gnss, t_ns)))
@@ -212,7 +222,9 @@ def frame_messages(frames: SensorFrameSet, t_ns: int, *, image_format: str = "pn
         pending.extend(_agent_messages(af, t_ns, image_format, jpeg_quality))
     out: list[tuple[str, object]] = []
     for topic, msg in pending:
-        if isinstance(msg, tuple) and len(msg) == 3 and isinstance(msg[2], Future):
+        if topic == _GROUP:
+            out.extend(msg.result())
+        elif isinstance(msg, tuple) and len(msg) == 3 and isinstance(msg[2], Future):
             fid, fmt, fut = msg
             img = CompressedImage(frame_id=fid, format=fmt, data=fut.result())
             _stamp(img, t_ns)

@@ -74,6 +74,11 @@ def encode_jpeg(img: np.ndarray, quality: int = 90) -> bytes:
     return buf.getvalue()
 
 
+def submit(fn, *args) -> Future:
+    """Run ``fn(*args)`` in the encoder pool (for other GIL-releasing work such as label images)."""
+    return _pool().submit(fn, *args)
+
+
 def submit_encode(img: np.ndarray, image_format: str, jpeg_quality: int = 90) -> Future:
     """Start encoding ``img`` (H, W, 3) uint8 in the pool; the future gives the bytes."""
     if image_format == "png":
