@@ -399,25 +399,49 @@ class _Validator:
             self.problem("structure", f"could not check this tick: {type(exc).__name__}: {exc}", tick)
 
     def check_tick(self, tick: int | None, t_ns: int, group: list[tuple[Channel, Message]]) -> None:
-        by_topic: dict[str, list[Any]] = defaultdict(list)
-        decoded: dict[str, Any] = {}
+        """All per-tick checks. Labels and /tf first; then each sensor message is parsed, checked and
+        dropped, so memory stays near one tick of raw data."""
+        by_topic: dict[str, list[tuple[Channel, Message]]] = defaultdict(list)
         for ch, m in group:
-            by_topic[ch.topic].append(m)
+            by_topic[ch.topic].append((ch, m))
+        group.clear()
         for topic, msgs in by_topic.items():
             if len(msgs) > 1:
                 self.problem("completeness", f"{len(msgs)} messages on one tick (expected 1)", tick, topic)
-            ch = next(c for c, m in group if c.topic == topic)
-            schema = self.schemas.get(ch.schema_id)
-            value = self.parse(tick, ch, schema.name if schema else "", schema.data if schema else b"", msgs[0])
-            if value is not None:
-                decoded[topic] = value
-                self.check_stamp(tick, topic, value, t_ns)
-        tree = self.check_tf(tick, decoded.get("/tf"))
-        live = self.check_labels(tick, decoded)
+        small = {t: self.parse_checked(tick, t_ns, *by_topic.pop(t)[0]) for t in LABEL_TOPICS if t in by_topic}
+        tree = self.check_tf(tick, small.get("/tf"))
+        live = self.check_labels(tick, small)
+        frames = tree.frames | {MAP_FRAME} if tree is not None else None
         if tree is not None:
-            self.check_frames(tick, tree, decoded)
-            self.check_agent_poses(tick, tree, decoded.get("/labels/objects"))
-        self.check_sensors(tick, decoded, live)
+            self.check_agent_poses(tick, tree, small.get("/labels/objects"))
+        for topic, value in small.items():
+            self.check_frame_ids(tick, topic, value, frames)
+        images: dict[str, tuple[str, tuple[int, int] | None]] = {}
+        calibrations: dict[str, Any] = {}
+        for topic in sorted(by_topic):
+            ch, m = by_topic.pop(topic)[0]
+            value = self.parse_checked(tick, t_ns, ch, m)
+            del m
+            if value is None:
+                continue
+            self.check_frame_ids(tick, topic, value, frames)
+            self.check_sensor(tick, topic, value, live)
+            if topic.endswith("/image"):
+                images[topic] = (value.frame_id, _image_size(value))
+            elif topic.endswith("/calibration"):
+                calibrations[topic] = value
+            del value
+        for topic, (frame_id, size) in images.items():
+            self.check_calibration(
+                tick, topic, frame_id, size, calibrations.get(topic[: -len("image")] + "calibration")
+            )
+
+    def parse_checked(self, tick: int | None, t_ns: int, ch: Channel, m: Message) -> Any:
+        schema = self.schemas.get(ch.schema_id)
+        value = self.parse(tick, ch, schema.name if schema else "", schema.data if schema else b"", m)
+        if value is not None:
+            self.check_stamp(tick, ch.topic, value, t_ns)
+        return value
 
     def check_agent_poses(self, tick: int | None, tree: TransformTree, objs: Any) -> None:
         """Every metadata agent is in the labels, at the pose ``/tf`` gives its base_link."""
@@ -511,20 +535,20 @@ class _Validator:
                 self.problem("transforms", f"agent {agent!r} has no frame {agent}/base_link", tick, "/tf")
         return tree
 
-    def check_frames(self, tick: int | None, tree: TransformTree, decoded: dict[str, Any]) -> None:
-        frames = tree.frames | {MAP_FRAME}
-        for topic, value in decoded.items():
-            ids: set[str] = set()
-            if hasattr(value, "DESCRIPTOR"):
-                names = {f.name for f in value.DESCRIPTOR.fields}
-                if "frame_id" in names and value.frame_id:
-                    ids.add(value.frame_id)
-                if "entities" in names:
-                    ids |= {e.frame_id for e in value.entities}
-            elif isinstance(value, dict) and isinstance(value.get("frame_id"), str):
-                ids.add(value["frame_id"])
-            for fid in sorted(ids - frames):
-                self.problem("transforms", f"frame_id {fid!r} is not in this tick's /tf tree", tick, topic)
+    def check_frame_ids(self, tick: int | None, topic: str, value: Any, frames: set[str] | None) -> None:
+        if frames is None:
+            return
+        ids: set[str] = set()
+        if hasattr(value, "DESCRIPTOR"):
+            names = {f.name for f in value.DESCRIPTOR.fields}
+            if "frame_id" in names and value.frame_id:
+                ids.add(value.frame_id)
+            if "entities" in names:
+                ids |= {e.frame_id for e in value.entities}
+        elif isinstance(value, dict) and isinstance(value.get("frame_id"), str):
+            ids.add(value["frame_id"])
+        for fid in sorted(ids - frames):
+            self.problem("transforms", f"frame_id {fid!r} is not in this tick's /tf tree", tick, topic)
 
     def check_labels(self, tick: int | None, decoded: dict[str, Any]) -> set[int] | None:
         objs = decoded.get("/labels/objects")
@@ -579,32 +603,28 @@ class _Validator:
                 self.problem("labels", "no delete-all before the boxes", tick, "/labels/boxes")
         return live
 
-    def check_sensors(self, tick: int | None, decoded: dict[str, Any], live: set[int] | None) -> None:
-        for topic, value in decoded.items():
-            found = topic_spec(topic)
-            if found is None:
-                continue
-            spec, _ = found
-            if spec.pattern.endswith("/image"):
-                self.check_calibration(tick, topic, value, decoded.get(topic[: -len("image")] + "calibration"))
-            if live is None:
-                continue
-            refs: set[int] = set()
-            if spec.pattern == "/<agent>/lidar":
-                refs = self.point_tracks(tick, topic, value)
-            elif spec.pattern == "/<agent>/<cam>/instance" and self.pixels:
-                refs = self.pixel_tracks(tick, topic, value)
-            elif spec.pattern == "/<agent>/visibility" and isinstance(value, dict):
-                refs = set(_track_ids_in(value))
-            dangling = sorted(refs - live)
-            if dangling:
-                self.problem(
-                    "labels",
-                    f"references tracks {dangling[:10]}{' ...' if len(dangling) > 10 else ''} "
-                    f"not in /labels/objects at this tick",
-                    tick,
-                    topic,
-                )
+    def check_sensor(self, tick: int | None, topic: str, value: Any, live: set[int] | None) -> None:
+        """Track references of one sensor message (LiDAR instance ids, instance pixels, visibility)."""
+        found = topic_spec(topic)
+        if found is None or live is None:
+            return
+        pattern = found[0].pattern
+        refs: set[int] = set()
+        if pattern == "/<agent>/lidar":
+            refs = self.point_tracks(tick, topic, value)
+        elif pattern == "/<agent>/<cam>/instance" and self.pixels:
+            refs = self.pixel_tracks(tick, topic, value)
+        elif pattern == "/<agent>/visibility" and isinstance(value, dict):
+            refs = set(_track_ids_in(value))
+        dangling = sorted(refs - live)
+        if dangling:
+            self.problem(
+                "labels",
+                f"references tracks {dangling[:10]}{' ...' if len(dangling) > 10 else ''} "
+                f"not in /labels/objects at this tick",
+                tick,
+                topic,
+            )
 
     def point_tracks(self, tick: int | None, topic: str, msg: Any) -> set[int]:
         try:
@@ -627,18 +647,16 @@ class _Validator:
         ids = np.unique(img.array)
         return {int(i) for i in ids if 0 < i < STATIC_INSTANCE_MIN}
 
-    def check_calibration(self, tick: int | None, topic: str, image: Any, calib: Any) -> None:
+    def check_calibration(
+        self, tick: int | None, topic: str, frame_id: str, size: tuple[int, int] | None, calib: Any
+    ) -> None:
         if calib is None:
             self.problem("calibration", f"image without {topic[: -len('image')]}calibration on this tick", tick, topic)
             return
-        if calib.frame_id != image.frame_id:
+        if calib.frame_id != frame_id:
             self.problem(
-                "calibration",
-                f"image frame {image.frame_id!r} != calibration frame {calib.frame_id!r}",
-                tick,
-                topic,
+                "calibration", f"image frame {frame_id!r} != calibration frame {calib.frame_id!r}", tick, topic
             )
-        size = _image_size(image)
         if size is not None and size != (calib.width, calib.height):
             self.problem(
                 "calibration",
