@@ -110,14 +110,14 @@ def _pixel_dirs(cam: CameraSpec, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return x, y
 
 
-def _rays(pose: Pose, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
-    """Rays (N, 6) float32 through optical-frame points (xs, ys, 1) (each (N,))."""
+def _rays(pose: Pose, xs: np.ndarray, ys: np.ndarray, near: float = 0.0) -> np.ndarray:
+    """Rays (N, 6) float32 through optical-frame points (xs, ys, 1) (each (N,)), starting ``near``
+    (planar depth) in front of the optical centre."""
     r = pose.rotation
     rays = np.empty((xs.shape[0], 6), np.float32)
-    rays[:, :3] = pose.position_m
-    rays[:, 3] = r[0, 0] * xs + r[0, 1] * ys + r[0, 2]
-    rays[:, 4] = r[1, 0] * xs + r[1, 1] * ys + r[1, 2]
-    rays[:, 5] = r[2, 0] * xs + r[2, 1] * ys + r[2, 2]
+    for k in range(3):
+        rays[:, 3 + k] = r[k, 0] * xs + r[k, 1] * ys + r[k, 2]
+        rays[:, k] = pose.position_m[k] + near * rays[:, 3 + k] if near else pose.position_m[k]
     return rays
 
 
@@ -238,17 +238,17 @@ def cast_image(
 
     def sample(idx: np.ndarray) -> None:
         rr, cc = np.divmod(idx, gw)
-        rays = _rays(pose, xs_ext[cc], ys_ext[rr])
-        t, g = scene.cast(rays, exclude_track, NEAR_CLIP_M, with_actors=False)
+        rays = _rays(pose, xs_ext[cc], ys_ext[rr], NEAR_CLIP_M)
+        t, g = scene.cast(rays, exclude_track, with_actors=False)
         if any_actor:
             sel = np.nonzero(actor_px[idx])[0]
             if len(sel):
-                ta, ga = scene.cast(rays[sel], exclude_track, NEAR_CLIP_M, with_static=False)
+                ta, ga = scene.cast(rays[sel], exclude_track, with_static=False)
                 nearer = ta < t[sel]
                 t[sel[nearer]] = ta[nearer]
                 g[sel[nearer]] = ga[nearer]
         G[idx] = g
-        T[idx] = t
+        T[idx] = t + np.float32(NEAR_CLIP_M)
 
     sample((np.arange(0, h + 1, top)[:, None] * gw + np.arange(0, w + 1, top)[None, :]).ravel())
 
