@@ -212,14 +212,16 @@ class Conductor:
         shown_tick = tick if tick >= 0 else None
         results: dict[str, Any] = {}
         while len(results) < len(pending.roles):
+            # Replies that arrived while the caller was busy (rendering the previous tick) are taken
+            # first; the deadline only fails a worker whose reply is really missing.
             remaining = pending.deadline - time.monotonic()
-            if remaining <= 0:
-                late = [r for r in pending.roles if r not in results]
-                raise SyncTimeout(late[0], f"no reply to {pending.verb} within {pending.timeout_s:g} s",
-                                  tick=shown_tick)
             try:
-                event = self._inbox.get(timeout=min(remaining, 0.25))
+                event = self._inbox.get(timeout=max(0.0, min(remaining, 0.25)))
             except queue.Empty:
+                if time.monotonic() >= pending.deadline:
+                    late = [r for r in pending.roles if r not in results]
+                    raise SyncTimeout(late[0], f"no reply to {pending.verb} within {pending.timeout_s:g} s",
+                                      tick=shown_tick) from None
                 self._check_processes(shown_tick)
                 continue
             if isinstance(event, _Liveliness):

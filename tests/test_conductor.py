@@ -94,3 +94,14 @@ def test_worker_exiting_abruptly_reports_its_status():
         c.step(0, 0, {})
         with pytest.raises(WorkerError, match=r"drones worker at tick 1: .*(exited with status 3|liveliness)"):
             c.step(1, TICK_NS, {})
+
+
+def test_replies_that_arrived_while_the_caller_was_busy_are_not_timeouts():
+    """Pipelining: the conductor renders tick k for longer than the timeout while tick k+1's replies wait."""
+    with conductor(tick_timeout_s=0.5) as c:
+        c.start()
+        c.step(0, 0, {})
+        pending = c.send_step(1, TICK_NS, {})
+        time.sleep(1.0)  # longer than the timeout: a slow sensor frame
+        replies = c.collect(pending)
+        assert replies["traffic"]["tick"] == 1 and replies["drones"]["tick"] == 1
