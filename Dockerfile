@@ -1,5 +1,6 @@
 # cosim in a container: `docker build -t cosim .` then
 #   docker run --rm -v "$PWD/out:/app/out" cosim run scenarios/town_rural_night.yaml
+#   docker run --rm -v "$PWD/out:/out" cosim batch sweeps/airv2x_like.yaml --out /out --shard 3/16
 FROM python:3.11-slim
 
 # Open3D's system libraries (the same list the Makefile installs).
@@ -14,8 +15,10 @@ COPY sensors ./sensors
 COPY exporters ./exporters
 RUN pip install --no-cache-dir .
 COPY scenarios ./scenarios
+COPY sweeps ./sweeps
 
 ENV COSIM_SCENARIO_PATH=/app/scenarios \
+    COSIM_SWEEP_PATH=/app/sweeps \
     PYTHONUNBUFFERED=1
 ENTRYPOINT ["cosim"]
 CMD ["--help"]
