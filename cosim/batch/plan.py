@@ -26,7 +26,7 @@ import numpy as np
 
 from cosim.batch.sweep import Choice, Level, Sweep, SweepError, find_sweep, load_sweep
 from cosim.errors import ScenarioError
-from cosim.scenario.loader import _apply_set, _Doc, _load_with_extends, _validate, find_scenario
+from cosim.scenario.loader import YamlDoc, apply_override, find_scenario, load_with_extends, validate_doc
 
 VARY_STREAM = 0x7A5  # random stream of the per-episode draws (``vary``)
 
@@ -154,15 +154,15 @@ def _assignment(key: str, value: Any) -> str:
 class _Builder:
     """Validates episode scenarios: each base parsed once, overrides applied with the loader's ``--set``."""
 
-    def __init__(self, sweep_doc: _Doc | None, sweep_source: str, sweep_dir: Path):
+    def __init__(self, sweep_doc: YamlDoc | None, sweep_source: str, sweep_dir: Path):
         self.doc, self.source, self.dir = sweep_doc, sweep_source, sweep_dir
-        self._bases: dict[str, tuple[Path, _Doc]] = {}
+        self._bases: dict[str, tuple[Path, YamlDoc]] = {}
 
-    def base(self, name: str, origin: tuple[str | int, ...]) -> tuple[Path, _Doc]:
+    def base(self, name: str, origin: tuple[str | int, ...]) -> tuple[Path, YamlDoc]:
         if name not in self._bases:
             try:
                 path = _resolve_base(name, self.dir)
-                self._bases[name] = (path, _load_with_extends(path))
+                self._bases[name] = (path, load_with_extends(path))
             except ScenarioError as exc:
                 raise self._error(f"base scenario {name!r}: {exc}", origin) from None
         return self._bases[name]
@@ -181,14 +181,14 @@ class _Builder:
               overrides: list[tuple[str, tuple[str | int, ...]]], what: str) -> tuple[dict[str, Any], float, str]:
         """Validate one scenario; returns (resolved data, duration_s, base folder)."""
         path, doc = self.base(base, base_origin)
-        work = _Doc(copy.deepcopy(doc.data), dict(doc.marks))
+        work = YamlDoc(copy.deepcopy(doc.data), dict(doc.marks))
         for assignment, origin in overrides:
             try:
-                _apply_set(work, assignment)
+                apply_override(work, assignment)
             except ScenarioError as exc:
                 raise self._error(f"{what}: {exc.detail} ({assignment})", origin) from None
         try:
-            loaded = _validate(work, path)
+            loaded = validate_doc(work, path)
         except ScenarioError as exc:
             origin = next((o for a, o in reversed(overrides) if exc.path and
                            (exc.path == a.split("=", 1)[0] or exc.path.startswith(a.split("=", 1)[0] + "."))),
@@ -238,7 +238,7 @@ def plan_sweep(
     sweep: Sweep,
     *,
     sweep_dir: Path | str = ".",
-    sweep_doc: _Doc | None = None,
+    sweep_doc: YamlDoc | None = None,
     source: str = "sweep",
     count: int | None = None,
     hours: float | None = None,

@@ -34,7 +34,7 @@ from typing import Annotated, Any
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, model_validator
 
 from cosim.errors import ScenarioError
-from cosim.scenario.loader import _clean_loc, _Doc, _dotted, _message, _parse_file
+from cosim.scenario.loader import YamlDoc, clean_error_loc, dotted, error_message, parse_yaml
 from cosim.scenario.model import RuleError
 
 LABEL_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.]*$"  # no '-': it separates the parts of an episode id
@@ -227,15 +227,15 @@ def _sweep_message(err: dict[str, Any], path: list[str | int], data: Any) -> str
             hint = f"; did you mean {close[0]!r}?" if close else ""
             return f"unknown key {bad!r}{hint} (known keys: {', '.join(known)})"
         return f"unknown key {bad!r}"
-    return _message(err, path, data)
+    return error_message(err, path, data)
 
 
-def _error(exc: ValidationError, doc: _Doc, source: str) -> SweepError:
+def _error(exc: ValidationError, doc: YamlDoc, source: str) -> SweepError:
     err = exc.errors(include_url=False)[0]
     loc = [p for p in err["loc"] if not (isinstance(p, str) and p in ("str", "list[str]"))]
     if len(loc) >= 3 and loc[0] == "vary" and loc[2] in ("choice", "uniform"):
         del loc[2]  # the union tag, not a key
-    path = _clean_loc(loc, doc.data)
+    path = clean_error_loc(loc, doc.data)
     ctx_error = (err.get("ctx") or {}).get("error")
     if isinstance(ctx_error, RuleError):
         path = path + [int(p) if p.isdigit() else p for p in ctx_error.path.split(".")]
@@ -249,7 +249,7 @@ def _error(exc: ValidationError, doc: _Doc, source: str) -> SweepError:
     more = len(exc.errors()) - 1
     if more:
         message += f" (and {more} more problem{'s' if more > 1 else ''})"
-    return SweepError(message, path=_dotted(path), line=line, source=source)
+    return SweepError(message, path=dotted(path), line=line, source=source)
 
 
 def sweep_dirs() -> list[Path]:
@@ -270,11 +270,11 @@ def find_sweep(name_or_path: str | Path) -> Path:
     raise SweepError(f"sweep file not found: {name_or_path}", source=str(name_or_path))
 
 
-def load_sweep(path: str | Path) -> tuple[Sweep, _Doc]:
+def load_sweep(path: str | Path) -> tuple[Sweep, YamlDoc]:
     """Parse and validate a sweep file; returns the model and the parsed document (for line marks)."""
     file = find_sweep(path)
     try:
-        doc = _parse_file(file)
+        doc = parse_yaml(file)
     except ScenarioError as exc:
         raise SweepError(exc.detail, path=exc.path, line=exc.line, source=exc.source) from None
     try:

@@ -31,8 +31,10 @@ def scenario_dirs() -> list[Path]:
 
 
 @dataclass
-class _Doc:
-    """Plain data plus, for every key path, the (source, line) it was written at."""
+class YamlDoc:
+    """Plain YAML data plus, for every key path, the (source, line) it was written at.
+
+    Shared by scenario and sweep loading (:mod:`cosim.batch.sweep`)."""
 
     data: dict[str, Any]
     marks: dict[Key, tuple[str, int]] = field(default_factory=dict)
@@ -63,14 +65,14 @@ def _construct(node: yaml.Node, source: str, path: Key, marks: dict[Key, tuple[s
         out: dict[str, Any] = {}
         for key_node, value_node in node.value:
             if key_node.tag == "tag:yaml.org,2002:merge":
-                raise ScenarioError("YAML merge keys (<<) are not supported; use extends:", path=_dotted(path),
+                raise ScenarioError("YAML merge keys (<<) are not supported; use extends:", path=dotted(path),
                                     line=key_node.start_mark.line + 1, source=source)
             if not isinstance(key_node, yaml.ScalarNode):
-                raise ScenarioError("keys must be plain strings", path=_dotted(path),
+                raise ScenarioError("keys must be plain strings", path=dotted(path),
                                     line=key_node.start_mark.line + 1, source=source)
             key = key_node.value
             if key in out:
-                raise ScenarioError(f"key {key!r} appears twice", path=_dotted((*path, key)),
+                raise ScenarioError(f"key {key!r} appears twice", path=dotted((*path, key)),
                                     line=key_node.start_mark.line + 1, source=source)
             child = (*path, key)
             out[key] = _construct(value_node, source, child, marks)
@@ -81,11 +83,11 @@ def _construct(node: yaml.Node, source: str, path: Key, marks: dict[Key, tuple[s
     return yaml.SafeLoader(" ").construct_object(node, deep=True)
 
 
-def _dotted(path: Iterable[str | int]) -> str:
+def dotted(path: Iterable[str | int]) -> str:
     return ".".join(str(p) for p in path)
 
 
-def _parse_file(path: Path) -> _Doc:
+def parse_yaml(path: Path) -> YamlDoc:
     source = str(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -104,7 +106,7 @@ def _parse_file(path: Path) -> _Doc:
         raise ScenarioError("a scenario must be a YAML mapping", line=node.start_mark.line + 1, source=source)
     marks: dict[Key, tuple[str, int]] = {}
     data = _construct(node, source, (), marks)
-    return _Doc(data, marks)
+    return YamlDoc(data, marks)
 
 
 def _merge(base: Any, over: Any) -> Any:
@@ -117,12 +119,12 @@ def _merge(base: Any, over: Any) -> Any:
     return over
 
 
-def _load_with_extends(path: Path, seen: tuple[Path, ...] = ()) -> _Doc:
+def load_with_extends(path: Path, seen: tuple[Path, ...] = ()) -> YamlDoc:
     path = path.resolve()
     if path in seen:
         chain = " -> ".join(str(p) for p in (*seen, path))
         raise ScenarioError(f"extends: forms a cycle: {chain}", path="extends", source=str(path))
-    doc = _parse_file(path)
+    doc = parse_yaml(path)
     parent = doc.data.pop("extends", None)
     if parent is None:
         return doc
@@ -133,13 +135,13 @@ def _load_with_extends(path: Path, seen: tuple[Path, ...] = ()) -> _Doc:
     if not base_path.is_file():
         src, line = doc.marks[("extends",)]
         raise ScenarioError(f"base scenario not found: {base_path}", path="extends", line=line, source=src)
-    base = _load_with_extends(base_path, (*seen, path))
+    base = load_with_extends(base_path, (*seen, path))
     marks = dict(base.marks)
     marks.update(doc.marks)
-    return _Doc(_merge(base.data, doc.data), marks)
+    return YamlDoc(_merge(base.data, doc.data), marks)
 
 
-def _apply_set(doc: _Doc, assignment: str) -> None:
+def apply_override(doc: YamlDoc, assignment: str) -> None:
     """Apply one ``a.b.0.c=value`` override; the value is parsed as YAML (``3``, ``true``, ``[1, 2]``)."""
     key, sep, raw = assignment.partition("=")
     source = f"--set {assignment}"
@@ -155,12 +157,12 @@ def _apply_set(doc: _Doc, assignment: str) -> None:
         if isinstance(node, list):
             if not isinstance(part, int) or part >= len(node):
                 raise ScenarioError(f"no list item {part} (the list has {len(node)})",
-                                    path=_dotted(parts[: i + 1]), source=source)
+                                    path=dotted(parts[: i + 1]), source=source)
             node = node[part]
         elif isinstance(node, dict):
             node = node.setdefault(part, {})
         else:
-            raise ScenarioError("cannot set a key inside a plain value", path=_dotted(parts[: i + 1]), source=source)
+            raise ScenarioError("cannot set a key inside a plain value", path=dotted(parts[: i + 1]), source=source)
     last = parts[-1]
     if isinstance(node, list):
         if not isinstance(last, int) or last >= len(node):
@@ -175,16 +177,13 @@ def _apply_set(doc: _Doc, assignment: str) -> None:
     doc.marks[tuple(parts)] = (source, None)  # type: ignore[assignment]
 
 
-def _clean_loc(loc: Sequence[str | int], data: Any) -> list[str | int]:
+def clean_error_loc(loc: Sequence[str | int], data: Any) -> list[str | int]:
     """Drop pydantic's union tags and validator names from an error location, keeping data keys."""
     out: list[str | int] = []
     node = data
     for i, part in enumerate(loc):
         last = i == len(loc) - 1
-        if isinstance(node, dict) and part in node:
-            out.append(part)
-            node = node[part]
-        elif isinstance(node, list) and isinstance(part, int) and part < len(node):
+        if (isinstance(node, dict) and part in node) or (isinstance(node, list) and isinstance(part, int) and part < len(node)):
             out.append(part)
             node = node[part]
         elif last and isinstance(part, str) and not part.startswith(("function-", "tagged-union")):
@@ -226,7 +225,7 @@ def _model_at(path: Sequence[str | int], data: Any) -> type[BaseModel] | None:
     return cls
 
 
-def _message(err: dict[str, Any], path: list[str | int], data: Any) -> str:
+def error_message(err: dict[str, Any], path: list[str | int], data: Any) -> str:
     kind = err["type"]
     if kind == "extra_forbidden":
         bad = str(path[-1])
@@ -252,13 +251,13 @@ def _message(err: dict[str, Any], path: list[str | int], data: Any) -> str:
     return msg
 
 
-def _validation_error(exc: ValidationError, doc: _Doc) -> ScenarioError:
+def _validation_error(exc: ValidationError, doc: YamlDoc) -> ScenarioError:
     err = exc.errors(include_url=False)[0]
-    path = _clean_loc(err["loc"], doc.data)
+    path = clean_error_loc(err["loc"], doc.data)
     ctx_error = (err.get("ctx") or {}).get("error")
     if isinstance(ctx_error, RuleError):
         path = path + [int(p) if p.isdigit() else p for p in ctx_error.path.split(".")]
-    message = _message(err, path, doc.data)
+    message = error_message(err, path, doc.data)
     source, line = "", None
     for n in range(len(path), -1, -1):
         mark = doc.marks.get(tuple(path[:n]))
@@ -268,7 +267,7 @@ def _validation_error(exc: ValidationError, doc: _Doc) -> ScenarioError:
     more = len(exc.errors()) - 1
     if more:
         message += f" (and {more} more problem{'s' if more > 1 else ''})"
-    return ScenarioError(message, path=_dotted(path), line=line, source=source)
+    return ScenarioError(message, path=dotted(path), line=line, source=source)
 
 
 def find_scenario(name_or_path: str | Path) -> Path:
@@ -287,21 +286,21 @@ def find_scenario(name_or_path: str | Path) -> Path:
 def load_scenario(path: str | Path, overrides: Sequence[str] = ()) -> LoadedScenario:
     """Load, overlay, override and validate a scenario file."""
     file = find_scenario(path).resolve()
-    doc = _load_with_extends(file)
+    doc = load_with_extends(file)
     for assignment in overrides:
-        _apply_set(doc, assignment)
-    return _validate(doc, file)
+        apply_override(doc, assignment)
+    return validate_doc(doc, file)
 
 
 def load_scenario_data(data: dict[str, Any], overrides: Sequence[str] = ()) -> LoadedScenario:
     """Validate a scenario given as plain data (as stored in an episode or built by a sweep)."""
-    doc = _Doc(json.loads(json.dumps(data)))
+    doc = YamlDoc(json.loads(json.dumps(data)))
     for assignment in overrides:
-        _apply_set(doc, assignment)
-    return _validate(doc, None)
+        apply_override(doc, assignment)
+    return validate_doc(doc, None)
 
 
-def _validate(doc: _Doc, file: Path | None) -> LoadedScenario:
+def validate_doc(doc: YamlDoc, file: Path | None) -> LoadedScenario:
     try:
         scenario = Scenario.model_validate(doc.data)
     except ValidationError as exc:
