@@ -11,6 +11,7 @@ success, error or Ctrl-C they are asked to close, then terminated, then killed.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing as mp
 import queue
@@ -148,10 +149,8 @@ class Conductor:
         """Ask workers to close, then make sure every child process is gone."""
         if self._session is not None and not self._session.is_closed():
             for role in list(self._alive):
-                try:
+                with contextlib.suppress(zenoh.ZError):
                     self._session.get(f"{self.prefix}/{role}/close", lambda _r: None, timeout=1.0)
-                except zenoh.ZError:
-                    pass
         deadline = time.monotonic() + _CLOSE_GRACE_S
         for proc in self._procs.values():
             proc.join(max(0.0, deadline - time.monotonic()))

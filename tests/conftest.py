@@ -32,7 +32,8 @@ def children_of(pid: int) -> list[psutil.Process]:
     return out
 
 
-def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600, env: dict | None = None) -> subprocess.CompletedProcess:
+def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600,
+            env: dict | None = None) -> subprocess.CompletedProcess:
     """Run ``cosim`` in a fresh interpreter, as a user would."""
     full_env = {**os.environ, **(env or {})}
     return subprocess.run([sys.executable, "-m", "cosim.cli", *args], cwd=cwd or REPO, capture_output=True,

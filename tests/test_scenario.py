@@ -84,7 +84,8 @@ def test_scenarios_are_frozen():
 @pytest.mark.parametrize(
     ("text", "path", "line", "words"),
     [
-        ("name: t\nenvironment:\n  wether: foggy\n", "environment.wether", 3, ["unknown key", "did you mean 'weather'"]),
+        ("name: t\nenvironment:\n  wether: foggy\n", "environment.wether", 3,
+         ["unknown key", "did you mean 'weather'"]),
         ("name: t\nenvironment:\n  weather: snowy\n", "environment.weather", 3, ["'clear'", '"snowy"']),
         ("name: t\ntraffic:\n  step_hz: 7\n", "traffic.step_hz", 3, ["does not divide the tick"]),
         ("name: t\nagents:\n  drone_physics_hz: 12\n", "agents.drone_physics_hz", 3, ["does not divide"]),

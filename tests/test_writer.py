@@ -7,12 +7,12 @@ import json
 import math
 
 import pytest
-from mcap.reader import make_reader
-from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
-
-from cosim.assemble import TrackRegistry, build_snapshot
 from cosim.exporters.labels import label_messages
 from cosim.exporters.mcap_writer import EpisodeWriter, temporary_path
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from mcap.reader import make_reader
+
+from cosim.assemble import TrackRegistry, build_snapshot
 from cosim.geometry import quat_from_rpy, rotation_matrix, rpy_from_quat, sumo_front_to_center
 from cosim.protocol import DroneState, VehicleState
 from cosim.world.types import Junction, RsuSite, StaticLayout, World

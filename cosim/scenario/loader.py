@@ -177,21 +177,27 @@ def apply_override(doc: YamlDoc, assignment: str) -> None:
     doc.marks[tuple(parts)] = (source, None)  # type: ignore[assignment]
 
 
+_UNION_TAGS = ("hover", "patrol", "escort")
+
+
+def _is_pydantic_artefact(part: str | int) -> bool:
+    """Union tags and validator names that pydantic puts into error locations (``function-after[...]``)."""
+    return isinstance(part, str) and (part in _UNION_TAGS or "[" in part)
+
+
 def clean_error_loc(loc: Sequence[str | int], data: Any) -> list[str | int]:
-    """Drop pydantic's union tags and validator names from an error location, keeping data keys."""
+    """An error location as a key path into the data: data keys and list indices, plus a final missing
+    or unknown key; pydantic's union tags and validator names dropped."""
     out: list[str | int] = []
     node = data
     for i, part in enumerate(loc):
-        last = i == len(loc) - 1
-        if (isinstance(node, dict) and part in node) or (isinstance(node, list) and isinstance(part, int) and part < len(node)):
+        in_dict = isinstance(node, dict) and part in node
+        in_list = isinstance(node, list) and isinstance(part, int) and 0 <= part < len(node)
+        if in_dict or in_list:
             out.append(part)
             node = node[part]
-        elif last and isinstance(part, str) and not part.startswith(("function-", "tagged-union")):
-            out.append(part)  # a missing key
-        elif isinstance(node, dict) and isinstance(part, str) and part not in ("hover", "patrol", "escort") \
-                and not part.startswith(("function-", "tagged-union", "tuple")):
+        elif i == len(loc) - 1 and not _is_pydantic_artefact(part):
             out.append(part)
-            node = None
     return out
 
 
