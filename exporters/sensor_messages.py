@@ -98,8 +98,10 @@ def lidar_message(agent_id: str, frame, t_ns: int) -> PointCloud:
 
 def depth_mm(depth_m: np.ndarray) -> np.ndarray:
     """Planar depth [m] float32 -> uint16 [mm]; 0 = no return (sky or beyond 65.535 m)."""
-    mm = np.where(np.isfinite(depth_m), np.rint(depth_m * 1000.0), 0.0)
-    return np.where(mm <= 65535, mm, 0).astype("<u2")
+    mm = depth_m * np.float32(1000.0)
+    np.rint(mm, out=mm)
+    np.copyto(mm, 0, where=~(mm <= 65535))  # inf and nan fail the test too
+    return mm.astype("<u2")
 
 
 def _raw(frame_id: str, t_ns: int, img: np.ndarray, encoding: str) -> RawImage:
@@ -176,7 +178,9 @@ def _label_images(base: str, fid: str, cam, t_ns: int) -> list[tuple[str, RawIma
     if cam.semantic is not None:
         out.append((f"{base}/semantic", _raw(fid, t_ns, cam.semantic, "mono8")))
     if cam.instance is not None:
-        out.append((f"{base}/instance", _raw(fid, t_ns, cam.instance.astype("<i4"), "32SC1")))
+        # the same bytes as a cast to int32 (ids < 2^31), without the copy
+        inst = np.ascontiguousarray(cam.instance, np.uint32).view("<i4")
+        out.append((f"{base}/instance", _raw(fid, t_ns, inst, "32SC1")))
     return out
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
@@ -276,9 +277,11 @@ def cast_image(
     gid.reshape(hb, s, wb, s)[:] = gs[:-1, :-1][:, None, :, None]
     wgt = np.arange(s, dtype=np.float32) / s
     rows = (inv[:-1, None, :] * (1 - wgt)[None, :, None] + inv[1:, None, :] * wgt[None, :, None]).reshape(h, wb + 1)
-    inv_full = (rows[:, :-1, None] * (1 - wgt) + rows[:, 1:, None] * wgt).reshape(h, w)
+    depth3 = depth.reshape(h, wb, s)
+    np.multiply(rows[:, :-1, None], 1 - wgt, out=depth3)
+    depth3 += rows[:, 1:, None] * wgt
     with np.errstate(divide="ignore"):
-        np.divide(np.float32(1.0), inv_full, out=depth)  # 1 / 0 = inf where a corner saw the sky
+        np.divide(np.float32(1.0), depth, out=depth)  # 1 / 0 = inf where a corner saw the sky
 
     face = scene.labels["face"]
     active = np.ones((hb, wb), bool)
@@ -288,7 +291,7 @@ def cast_image(
         same = (c00 == fs[:-1, 1:]) & (c00 == fs[1:, :-1]) & (c00 == fs[1:, 1:])
         coherent = active & same & ~forced_at(s)
         if s != top:
-            _fill_blocks(gid, depth, np.nonzero(coherent), s, Gv, Tv, w)
+            _fill_blocks(gid, depth, np.nonzero(coherent), s, Gv, Tv)
         mixed = active & ~coherent
         bi, bj = np.nonzero(mixed)
         half = s // 2
@@ -309,36 +312,41 @@ def cast_image(
         active = np.repeat(np.repeat(mixed, 2, axis=0), 2, axis=1)
         s = half
     # pixels of mixed 2-px blocks are samples themselves
-    pi, pj = np.nonzero(active)
-    if len(pi):
-        src = pi * gw + pj
-        flat = pi * w + pj
-        np.put(gid, flat, G[src])
-        np.put(depth, flat, T[src])
+    np.copyto(gid, Gv[:h, :w], where=active)
+    np.copyto(depth, Tv[:h, :w], where=active)
     return gid, depth
 
 
-def _fill_blocks(gid: np.ndarray, depth: np.ndarray, blocks, s: int, Gv: np.ndarray, Tv: np.ndarray, w: int) -> None:
+@lru_cache(maxsize=8)
+def _block_weights(s: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Row and column weights (1, s * s) float32 of an s x s block's pixels: 1 - fy, fy, 1 - fx, fx."""
+    f = np.arange(s, dtype=np.float32) / s
+    fy, fx = np.meshgrid(f, f, indexing="ij")
+    fy, fx = fy.ravel()[None, :], fx.ravel()[None, :]
+    return 1 - fy, fy, 1 - fx, fx
+
+
+def _fill_blocks(gid: np.ndarray, depth: np.ndarray, blocks, s: int, Gv: np.ndarray, Tv: np.ndarray) -> None:
     """Fill coherent ``blocks`` (rows, cols) of size ``s`` from their corner samples (exact for planes)."""
     bi, bj = blocks
     if len(bi) == 0:
         return
+    h, w = gid.shape
     r0, c0 = bi * s, bj * s
     with np.errstate(divide="ignore"):
         inv = [np.where(np.isfinite(t), 1.0 / t, 0.0).astype(np.float32)
                for t in (Tv[r0, c0], Tv[r0, c0 + s], Tv[r0 + s, c0], Tv[r0 + s, c0 + s])]
-    f = np.arange(s, dtype=np.float32) / s
-    fy, fx = np.meshgrid(f, f, indexing="ij")
-    fy, fx = fy.ravel()[None, :], fx.ravel()[None, :]
-    val = (inv[0][:, None] * (1 - fy) * (1 - fx) + inv[1][:, None] * (1 - fy) * fx
-           + inv[2][:, None] * fy * (1 - fx) + inv[3][:, None] * fy * fx)
+    gy, fy, gx, fx = _block_weights(s)
+    val = inv[0][:, None] * gy
+    val *= gx
+    for corner, wy, wx in ((inv[1], gy, fx), (inv[2], fy, gx), (inv[3], fy, fx)):
+        term = corner[:, None] * wy
+        term *= wx
+        val += term
     with np.errstate(divide="ignore"):
         d = np.where(val > 0, 1.0 / val, np.inf).astype(np.float32)
-    off = np.arange(s)
-    flat = ((r0[:, None, None] + off[None, :, None]) * w + (c0[:, None, None] + off[None, None, :]))
-    flat = flat.reshape(len(bi), -1)
-    np.put(gid, flat, np.broadcast_to(Gv[r0, c0][:, None], flat.shape))
-    np.put(depth, flat, d)
+    gid.reshape(h // s, s, w // s, s)[bi, :, bj, :] = Gv[r0, c0][:, None, None]
+    depth.reshape(h // s, s, w // s, s)[bi, :, bj, :] = d.reshape(len(bi), s, s)
 
 
 # ----------------------------------------------------------------------------------- shading
@@ -380,18 +388,30 @@ def sky_table(atm: Atmosphere) -> np.ndarray:
     return (atm.sky_horizon * (1 - k) + atm.sky_zenith * k).astype(np.float32)
 
 
-def _sky_level(cam: CameraSpec, K: np.ndarray, pose: Pose, s: int) -> np.ndarray:
-    """Sky level index (H, W) int32 from each pixel's ray elevation, computed per block of ``s`` px."""
+def _sky_level(cam: CameraSpec, K: np.ndarray, pose: Pose, s: int) -> tuple[np.ndarray, int]:
+    """Sky level index (H / s, W / s) int32 from the ray elevation at the centre of each block of
+    ``s`` px, and the block size used (``s``, or 1 when it does not divide the image)."""
     h, w = cam.height, cam.width
     s = s if s > 1 and h % s == 0 and w % s == 0 else 1
     xs = (np.arange(0, w, s) + 0.5 * s - K[0, 2]) / K[0, 0]
     ys = (np.arange(0, h, s) + 0.5 * s - K[1, 2]) / K[1, 1]
     r = pose.rotation
     dz = (r[2, 0] * xs[None, :] + r[2, 1] * ys[:, None] + r[2, 2]) / np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1)
-    lvl = np.clip(dz * (SKY_LEVELS - 1) + 0.5, 0, SKY_LEVELS - 1).astype(np.int32)
-    if s > 1:
-        lvl = np.repeat(np.repeat(lvl, s, axis=0), s, axis=1)
-    return lvl
+    return np.clip(dz * (SKY_LEVELS - 1) + 0.5, 0, SKY_LEVELS - 1).astype(np.int32), s
+
+
+def _with_sky(gid: np.ndarray, sky: np.ndarray, first_level: int, cam: CameraSpec, K: np.ndarray, pose: Pose,
+              s: int) -> np.ndarray:
+    """A copy of ``gid`` (H, W) int32 with the ``sky`` pixels set to ``first_level`` + their sky level
+    (:func:`_sky_level`, broadcast over its blocks)."""
+    h, w = gid.shape
+    g = gid.copy()
+    if not sky.any():
+        return g
+    lvl, s = _sky_level(cam, K, pose, s)
+    lvl += np.int32(first_level)
+    np.copyto(g.reshape(h // s, s, w // s, s), lvl[:, None, :, None], where=sky.reshape(h // s, s, w // s, s))
+    return g
 
 
 @dataclass(frozen=True)
@@ -440,7 +460,7 @@ def shade(
     """
     h, w = gid.shape
     sky = gid == tables.miss
-    g = np.where(sky, tables.miss + 1 + _sky_level(cam, K, pose, block_px), gid)
+    g = _with_sky(gid, sky, tables.miss + 1, cam, K, pose, block_px)
     linear_needed = atm.artificial > 0 or atm.beta > 0 or atm.rain_rate_mm_h > 0
     if not linear_needed:
         return np.take(tables.srgb, g, axis=0)
