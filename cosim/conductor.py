@@ -28,7 +28,8 @@ from cosim.workers import ROLES, spawned_worker_main
 
 log = logging.getLogger(__name__)
 
-_CLOSE_GRACE_S = 2.0  # [s] for a worker to exit after "close" before it is terminated
+_CLOSE_GRACE_S = 2.0  # [s] for a worker to acknowledge "close" and exit before it is terminated
+_CLOSE_TICK = -2  # tick id of the close queries (init uses -1)
 
 
 @dataclass(frozen=True)
@@ -147,10 +148,12 @@ class Conductor:
 
     def shutdown(self) -> None:
         """Ask workers to close, then make sure every child process is gone."""
-        if self._session is not None and not self._session.is_closed():
-            for role in list(self._alive):
-                with contextlib.suppress(zenoh.ZError):
-                    self._session.get(f"{self.prefix}/{role}/close", lambda _r: None, timeout=1.0)
+        if self._session is not None and not self._session.is_closed() and self._alive:
+            # Wait for the acknowledgements, so that a worker ends on "close" (status 0) rather than on
+            # seeing the conductor's liveliness token vanish (status 1).
+            with contextlib.suppress(WorkerError, zenoh.ZError):
+                roles = {r: {} for r in ROLES if r in self._alive}
+                self._query_all("close", _CLOSE_TICK, roles, _CLOSE_GRACE_S)
         deadline = time.monotonic() + _CLOSE_GRACE_S
         for proc in self._procs.values():
             proc.join(max(0.0, deadline - time.monotonic()))

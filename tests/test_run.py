@@ -148,8 +148,8 @@ def test_external_workers_started_by_hand_connect_and_serve_the_episode(tmp_path
         assert conductor.returncode == 0, err
         assert "ticks    10 at 5 Hz" in out
         for w in workers:  # each worker serves one episode and exits when the conductor closes it
-            w.communicate(timeout=10)
-            assert w.returncode == 0
+            _, werr = w.communicate(timeout=10)
+            assert w.returncode == 0, werr
     finally:
         for p in (conductor, *workers):
             if p.poll() is None:
