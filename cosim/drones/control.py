@@ -108,75 +108,103 @@ class Controller:
     vel_integral: np.ndarray = field(default_factory=lambda: np.zeros(3))
     yaw_setpoint_rad: float | None = None
     _mix_inv: np.ndarray = field(init=False)
-    _inertia: np.ndarray = field(init=False)
+    _mix_inv_rows: tuple[tuple[float, ...], ...] = field(init=False)
+    _inertia_f: tuple[float, float, float] = field(init=False)
 
     def __post_init__(self) -> None:
         self._mix_inv = np.linalg.inv(mixer_matrix(self.frame))
-        self._inertia = np.array(self.frame.inertia_kgm2)
+        self._mix_inv_rows = tuple(tuple(row) for row in self._mix_inv.tolist())
+        self._inertia_f = tuple(float(v) for v in self.frame.inertia_kgm2)
 
     def update(self, s: BodyState, ref: Reference) -> np.ndarray:
-        """Rotor thrust commands (4,) [N] that drive ``s`` toward ``ref``."""
-        lim, k = self.limits, self.gains
+        """Rotor thrust commands (4,) [N] that drive ``s`` toward ``ref``.
+
+        Written in plain float arithmetic: this runs for every drone at every physics step, and numpy's
+        per-call overhead on 3-vectors cost more than the arithmetic itself.
+        """
+        lim, k, fr, dt = self.limits, self.gains, self.frame, self.dt_s
+        px, py, pz = s.position_m.tolist()
+        vx, vy, vz = s.velocity_mps.tolist()
+        rx, ry, rz = ref.position_m.tolist()
+        fvx, fvy, fvz = ref.velocity_mps.tolist()
+        fax, fay, faz = ref.accel_mps2.tolist()
         # Position -> velocity.
-        e_p = ref.position_m - s.position_m
-        v_cmd = ref.velocity_mps + np.array([k.pos[0] * e_p[0], k.pos[0] * e_p[1], k.pos[1] * e_p[2]])
-        v_cmd = _limit_norm(v_cmd, lim.max_speed_mps)
-        v_cmd[2] = min(max(v_cmd[2], -lim.max_descent_mps), lim.max_climb_mps)
+        cx = fvx + k.pos[0] * (rx - px)
+        cy = fvy + k.pos[0] * (ry - py)
+        cz = fvz + k.pos[1] * (rz - pz)
+        n = math.hypot(cx, cy)
+        if n > lim.max_speed_mps:
+            cx, cy = cx * lim.max_speed_mps / n, cy * lim.max_speed_mps / n
+        cz = min(max(cz, -lim.max_descent_mps), lim.max_climb_mps)
         # Velocity -> acceleration (PI with clamped integrator).
-        e_v = v_cmd - s.velocity_mps
-        self.vel_integral = np.clip(self.vel_integral + e_v * self.dt_s, -4.0, 4.0)
-        kv = np.array([k.vel[0], k.vel[0], k.vel[1]])
-        ki = np.array([k.vel_i[0], k.vel_i[0], k.vel_i[1]])
-        a_cmd = ref.accel_mps2 + kv * e_v + ki * self.vel_integral
-        a_cmd = _limit_norm(a_cmd, lim.max_accel_mps2)
-        a_cmd[2] = min(max(a_cmd[2], -lim.max_vert_accel_mps2), lim.max_vert_accel_mps2)
+        ex, ey, ez = cx - vx, cy - vy, cz - vz
+        ix, iy, iz = self.vel_integral.tolist()
+        ix = min(max(ix + ex * dt, -4.0), 4.0)
+        iy = min(max(iy + ey * dt, -4.0), 4.0)
+        iz = min(max(iz + ez * dt, -4.0), 4.0)
+        self.vel_integral[:] = (ix, iy, iz)
+        ax = fax + k.vel[0] * ex + k.vel_i[0] * ix
+        ay = fay + k.vel[0] * ey + k.vel_i[0] * iy
+        az = faz + k.vel[1] * ez + k.vel_i[1] * iz
+        n = math.hypot(ax, ay)
+        if n > lim.max_accel_mps2:
+            ax, ay = ax * lim.max_accel_mps2 / n, ay * lim.max_accel_mps2 / n
+        az = min(max(az, -lim.max_vert_accel_mps2), lim.max_vert_accel_mps2)
         # Drag feed-forward at the commanded velocity (still air assumed; the integrator learns the wind).
-        fr = self.frame
-        speed = float(np.linalg.norm(v_cmd))
-        a_cmd = a_cmd + (0.5 * RHO_KGPM3 * fr.drag_area_m2 * speed + fr.drag_linear_nspm) / fr.mass_kg * v_cmd
+        speed = math.sqrt(cx * cx + cy * cy + cz * cz)
+        drag = (0.5 * RHO_KGPM3 * fr.drag_area_m2 * speed + fr.drag_linear_nspm) / fr.mass_kg
+        ax, ay, az = ax + drag * cx, ay + drag * cy, az + drag * cz
         # Acceleration -> thrust vector, tilt-limited.
-        f = self.frame.mass_kg * (a_cmd + G_MPS2 * E_Z)
-        f_xy = math.hypot(f[0], f[1])
-        max_xy = f[2] * math.tan(lim.max_tilt_rad)
+        fx, fy, fz = fr.mass_kg * ax, fr.mass_kg * ay, fr.mass_kg * (az + G_MPS2)
+        f_xy = math.hypot(fx, fy)
+        max_xy = fz * math.tan(lim.max_tilt_rad)
         if f_xy > max_xy:
-            f[0] *= max_xy / f_xy
-            f[1] *= max_xy / f_xy
-        z_des = f / np.linalg.norm(f)
+            fx, fy = fx * max_xy / f_xy, fy * max_xy / f_xy
+        n = math.sqrt(fx * fx + fy * fy + fz * fz)
+        zx, zy, zz = fx / n, fy / n, fz / n
         # Yaw setpoint moves toward the reference at the yaw-rate limit.
+        r = s.rotation.tolist()
         if self.yaw_setpoint_rad is None:
-            self.yaw_setpoint_rad = yaw_of(s.rotation)
-        step = lim.max_yaw_rate_radps * self.dt_s
+            self.yaw_setpoint_rad = math.atan2(r[1][0], r[0][0])
+        step = lim.max_yaw_rate_radps * dt
         dyaw = wrap_angle(ref.yaw_rad - self.yaw_setpoint_rad)
         self.yaw_setpoint_rad = wrap_angle(self.yaw_setpoint_rad + min(max(dyaw, -step), step))
-        x_c = np.array([math.cos(self.yaw_setpoint_rad), math.sin(self.yaw_setpoint_rad), 0.0])
-        y_des = cross3(z_des, x_c)
-        y_des /= np.linalg.norm(y_des)
-        x_des = cross3(y_des, z_des)
-        r_des = np.column_stack([x_des, y_des, z_des])
-        r = s.rotation
-        thrust = float(f @ r[:, 2])
-        # Attitude -> body rate (geometric error on SO(3)).
-        e_m = r_des.T @ r - r.T @ r_des
-        e_r = 0.5 * np.array([e_m[2, 1], e_m[0, 2], e_m[1, 0]])
-        w_cmd = -np.array([k.att[0] * e_r[0], k.att[0] * e_r[1], k.att[1] * e_r[2]])
-        w_cmd[2] = min(max(w_cmd[2], -lim.max_yaw_rate_radps), lim.max_yaw_rate_radps)
-        # Rate -> torque.
-        w = s.rate_radps
-        alpha = np.array([k.rate[0], k.rate[0], k.rate[1]]) * (w_cmd - w)
-        torque = self._inertia * alpha + cross3(w, self._inertia * w)
+        hx, hy = math.cos(self.yaw_setpoint_rad), math.sin(self.yaw_setpoint_rad)
+        # y_des = z_des x heading, x_des = y_des x z_des
+        yx, yy, yz = -zz * hy, zz * hx, zx * hy - zy * hx
+        n = math.sqrt(yx * yx + yy * yy + yz * yz)
+        yx, yy, yz = yx / n, yy / n, yz / n
+        xx, xy, xz = yy * zz - yz * zy, yz * zx - yx * zz, yx * zy - yy * zx
+        rd = ((xx, yx, zx), (xy, yy, zy), (xz, yz, zz))  # columns x_des, y_des, z_des
+        thrust = fx * r[0][2] + fy * r[1][2] + fz * r[2][2]
+        # Attitude -> body rate (geometric error on SO(3)): e = vee(Rd^T R - R^T Rd) / 2.
+        def dot_cols(a: tuple, i: int, b: list, j: int) -> float:
+            return a[0][i] * b[0][j] + a[1][i] * b[1][j] + a[2][i] * b[2][j]
+
+        e0 = 0.5 * (dot_cols(rd, 2, r, 1) - dot_cols(r, 2, rd, 1))
+        e1 = 0.5 * (dot_cols(rd, 0, r, 2) - dot_cols(r, 0, rd, 2))
+        e2 = 0.5 * (dot_cols(rd, 1, r, 0) - dot_cols(r, 1, rd, 0))
+        w0c, w1c = -k.att[0] * e0, -k.att[0] * e1
+        w2c = min(max(-k.att[1] * e2, -lim.max_yaw_rate_radps), lim.max_yaw_rate_radps)
+        # Rate -> torque: tau = J alpha + w x (J w).
+        w0, w1, w2 = s.rate_radps.tolist()
+        j0, j1, j2 = self._inertia_f
+        a0, a1, a2 = k.rate[0] * (w0c - w0), k.rate[0] * (w1c - w1), k.rate[1] * (w2c - w2)
+        h0, h1, h2 = j0 * w0, j1 * w1, j2 * w2
+        torque = (j0 * a0 + w1 * h2 - w2 * h1, j1 * a1 + w2 * h0 - w0 * h2, j2 * a2 + w0 * h1 - w1 * h0)
         return self.mix(thrust, torque)
 
-    def mix(self, thrust_n: float, torque_nm: np.ndarray) -> np.ndarray:
-        """Rotor thrusts (4,) [N] for a collective thrust and body torque; yaw gives way first."""
+    def mix(self, thrust_n: float, torque_nm) -> np.ndarray:
+        """Rotor thrusts (4,) [N] for a collective thrust and body torque (3,); yaw gives way first."""
         tmax = self.frame.rotor_max_thrust_n
         thrust_n = min(max(thrust_n, 0.0), 4.0 * tmax)
-        wrench = np.array([thrust_n, torque_nm[0], torque_nm[1], torque_nm[2]])
-        t = self._mix_inv @ wrench
-        if t.min() < 0.0 or t.max() > tmax:
-            wrench[3] = 0.0
-            t_noyaw = self._mix_inv @ wrench
-            yaw_part = t - t_noyaw
-            if t_noyaw.min() >= 0.0 and t_noyaw.max() <= tmax:
+        tx, ty, tz = (float(v) for v in torque_nm)
+        rows = self._mix_inv_rows
+        t_noyaw = [m[0] * thrust_n + m[1] * tx + m[2] * ty for m in rows]
+        yaw_part = [m[3] * tz for m in rows]
+        t = [a + b for a, b in zip(t_noyaw, yaw_part, strict=True)]
+        if min(t) < 0.0 or max(t) > tmax:
+            if min(t_noyaw) >= 0.0 and max(t_noyaw) <= tmax:
                 # Largest share of the yaw torque that keeps every rotor in range.
                 scale = 1.0
                 for base, dy in zip(t_noyaw, yaw_part, strict=True):
@@ -184,7 +212,8 @@ class Controller:
                         scale = min(scale, (tmax - base) / dy)
                     elif dy < 0:
                         scale = min(scale, -base / dy)
-                t = t_noyaw + max(scale, 0.0) * yaw_part
+                scale = max(scale, 0.0)
+                t = [a + scale * b for a, b in zip(t_noyaw, yaw_part, strict=True)]
             else:
                 t = t_noyaw
-        return np.clip(t, 0.0, tmax)
+        return np.array([min(max(v, 0.0), tmax) for v in t])
