@@ -181,7 +181,7 @@ class AgentsSpec(Model):
         default_factory=lambda: [HoverDrone(), PatrolDrone(), EscortDrone(target="vehicle_0")]
     )
     drone_backend: DynamicsBackend = "jsbsim"
-    drone_physics_hz: float = Field(100.0, gt=0)  # dynamics rate; whole multiple of tick_hz
+    drone_physics_hz: float = Field(50.0, gt=0)  # dynamics rate; whole multiple of tick_hz
     drone_mass_kg: float = Field(3.5, gt=0.2, le=30)
 
     def drone_backend_of(self, index: int) -> DynamicsBackend:

@@ -85,20 +85,30 @@ def serve(role: str, connect: str, prefix: str, engine: Engine, *, spawned: bool
 
 
 def _loop(role: str, inbox: queue.Queue[Any], engine: Engine) -> int:
+    """Serve queries until ``close`` (status 0) or until the conductor goes away: status 0 if this worker
+    had already answered the episode's last tick, 1 if the episode was cut short."""
+    last_tick, final_tick = -1, None
     while True:
         query = inbox.get()
         if query is _CONDUCTOR_GONE:
-            log.warning("%s worker: conductor went away; exiting", role)
+            if final_tick is not None and last_tick == final_tick:
+                log.info("%s worker: episode complete, conductor gone; exiting", role)
+                return 0
+            log.warning("%s worker: conductor went away at tick %d; exiting", role, last_tick)
             return 1
         verb = str(query.key_expr).rsplit("/", 1)[-1]
         try:
             data = protocol.unbytes(protocol.decode(query.payload.to_bytes())) if query.payload else {}
             if verb == "init":
-                reply = engine.init(protocol.InitRequest(**data))
+                request = protocol.InitRequest(**data)
+                reply = engine.init(request)
+                final_tick = _final_tick(request.scenario)
             elif verb == "step":
                 started = time.perf_counter_ns()  # telemetry only: never feeds the simulation
-                reply = engine.step(protocol.step_request_from_dict(data))
+                step = protocol.step_request_from_dict(data)
+                reply = engine.step(step)
                 reply["compute_ns"] = time.perf_counter_ns() - started
+                last_tick = step.tick
             elif verb == "close":
                 query.reply(query.key_expr, protocol.encode({"closed": True}))
                 return 0
@@ -113,3 +123,11 @@ def _loop(role: str, inbox: queue.Queue[Any], engine: Engine) -> int:
             query.reply_err(protocol.encode({"error": f"internal error: {detail}", "type": type(exc).__name__}))
         finally:
             del query
+
+
+def _final_tick(scenario: dict[str, Any]) -> int | None:
+    """Index of the episode's last tick, from the resolved scenario in the init request."""
+    try:
+        return round(float(scenario["duration_s"]) * float(scenario["tick_hz"])) - 1
+    except (KeyError, TypeError, ValueError):
+        return None
