@@ -18,7 +18,6 @@ from __future__ import annotations
 import math
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from functools import lru_cache
 
 import numpy as np
 
@@ -274,12 +273,17 @@ def cast_image(
     gs = Gv[::s, ::s]
     with np.errstate(divide="ignore"):
         inv = np.where(np.isfinite(Tv[::s, ::s]), 1.0 / Tv[::s, ::s], 0.0).astype(np.float32)
-    gid.reshape(hb, s, wb, s)[:] = gs[:-1, :-1][:, None, :, None]
+    gid.reshape(hb, s, w)[:] = np.repeat(gs[:-1, :-1], s, axis=1)[:, None, :]
     wgt = np.arange(s, dtype=np.float32) / s
     rows = (inv[:-1, None, :] * (1 - wgt)[None, :, None] + inv[1:, None, :] * wgt[None, :, None]).reshape(h, wb + 1)
+    # column k of every block; one pass per k keeps numpy's inner loops long
     depth3 = depth.reshape(h, wb, s)
-    np.multiply(rows[:, :-1, None], 1 - wgt, out=depth3)
-    depth3 += rows[:, 1:, None] * wgt
+    left, right = rows[:, :-1], rows[:, 1:]
+    tmp = np.empty((h, wb), np.float32)
+    for k in range(s):
+        np.multiply(left, 1 - wgt[k], out=depth3[:, :, k])
+        np.multiply(right, wgt[k], out=tmp)
+        depth3[:, :, k] += tmp
     with np.errstate(divide="ignore"):
         np.divide(np.float32(1.0), depth, out=depth)  # 1 / 0 = inf where a corner saw the sky
 
@@ -317,36 +321,34 @@ def cast_image(
     return gid, depth
 
 
-@lru_cache(maxsize=8)
-def _block_weights(s: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Row and column weights (1, s * s) float32 of an s x s block's pixels: 1 - fy, fy, 1 - fx, fx."""
-    f = np.arange(s, dtype=np.float32) / s
-    fy, fx = np.meshgrid(f, f, indexing="ij")
-    fy, fx = fy.ravel()[None, :], fx.ravel()[None, :]
-    return 1 - fy, fy, 1 - fx, fx
-
-
 def _fill_blocks(gid: np.ndarray, depth: np.ndarray, blocks, s: int, Gv: np.ndarray, Tv: np.ndarray) -> None:
     """Fill coherent ``blocks`` (rows, cols) of size ``s`` from their corner samples (exact for planes)."""
     bi, bj = blocks
-    if len(bi) == 0:
+    n = len(bi)
+    if n == 0:
         return
     h, w = gid.shape
     r0, c0 = bi * s, bj * s
     with np.errstate(divide="ignore"):
         inv = [np.where(np.isfinite(t), 1.0 / t, 0.0).astype(np.float32)
                for t in (Tv[r0, c0], Tv[r0, c0 + s], Tv[r0 + s, c0], Tv[r0 + s, c0 + s])]
-    gy, fy, gx, fx = _block_weights(s)
-    val = inv[0][:, None] * gy
-    val *= gx
-    for corner, wy, wx in ((inv[1], gy, fx), (inv[2], fy, gx), (inv[3], fy, fx)):
-        term = corner[:, None] * wy
-        term *= wx
-        val += term
+    # inverse depth, bilinear over the block, one row per pixel offset (long inner loops)
+    f = np.arange(s, dtype=np.float32) / s
+    val = np.empty((s, s, n), np.float32)
+    term = np.empty(n, np.float32)
+    for a in range(s):
+        for b in range(s):
+            out = val[a, b]
+            np.multiply(inv[0], 1 - f[a], out=out)
+            out *= 1 - f[b]
+            for corner, wy, wx in ((inv[1], 1 - f[a], f[b]), (inv[2], f[a], 1 - f[b]), (inv[3], f[a], f[b])):
+                np.multiply(corner, wy, out=term)
+                term *= wx
+                out += term
     with np.errstate(divide="ignore"):
         d = np.where(val > 0, 1.0 / val, np.inf).astype(np.float32)
     gid.reshape(h // s, s, w // s, s)[bi, :, bj, :] = Gv[r0, c0][:, None, None]
-    depth.reshape(h // s, s, w // s, s)[bi, :, bj, :] = d.reshape(len(bi), s, s)
+    depth.reshape(h // s, s, w // s, s)[bi, :, bj, :] = d.transpose(2, 0, 1)
 
 
 # ----------------------------------------------------------------------------------- shading
