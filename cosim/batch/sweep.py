@@ -28,13 +28,14 @@ import difflib
 import json
 import os
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, model_validator
 
 from cosim.errors import ScenarioError
-from cosim.scenario.loader import YamlDoc, clean_error_loc, dotted, error_message, parse_yaml
+from cosim.scenario.loader import YamlDoc, clean_error_loc, error_message, located_error, parse_yaml
 from cosim.scenario.model import RuleError
 
 LABEL_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.]*$"  # no '-': it separates the parts of an episode id
@@ -230,26 +231,19 @@ def _sweep_message(err: dict[str, Any], path: list[str | int], data: Any) -> str
     return error_message(err, path, data)
 
 
-def _error(exc: ValidationError, doc: YamlDoc, source: str) -> SweepError:
-    err = exc.errors(include_url=False)[0]
-    loc = [p for p in err["loc"] if not (isinstance(p, str) and p in ("str", "list[str]"))]
+def _clean_loc(loc: Sequence[str | int], data: Any) -> list[str | int]:
+    """Sweep locations: drop pydantic's type tags and the ``vary`` union tags, then clean as scenarios do."""
+    loc = [p for p in loc if not (isinstance(p, str) and p in ("str", "list[str]"))]
     if len(loc) >= 3 and loc[0] == "vary" and loc[2] in ("choice", "uniform"):
         del loc[2]  # the union tag, not a key
-    path = clean_error_loc(loc, doc.data)
-    ctx_error = (err.get("ctx") or {}).get("error")
-    if isinstance(ctx_error, RuleError):
-        path = path + [int(p) if p.isdigit() else p for p in ctx_error.path.split(".")]
-    message = _sweep_message(err, path, doc.data)
-    line = None
-    for n in range(len(path), -1, -1):
-        mark = doc.marks.get(tuple(path[:n]))
-        if mark is not None:
-            source, line = mark
-            break
-    more = len(exc.errors()) - 1
-    if more:
-        message += f" (and {more} more problem{'s' if more > 1 else ''})"
-    return SweepError(message, path=dotted(path), line=line, source=source)
+    return clean_error_loc(loc, data)
+
+
+def _error(exc: ValidationError, doc: YamlDoc, source: str) -> SweepError:
+    err = located_error(exc, doc, error_cls=SweepError, clean=_clean_loc, message=_sweep_message)
+    if not err.source:
+        err = SweepError(err.detail, path=err.path, line=err.line, source=source)
+    return err
 
 
 def sweep_dirs() -> list[Path]:

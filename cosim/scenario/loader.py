@@ -9,7 +9,7 @@ from __future__ import annotations
 import difflib
 import json
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -257,13 +257,22 @@ def error_message(err: dict[str, Any], path: list[str | int], data: Any) -> str:
     return msg
 
 
-def _validation_error(exc: ValidationError, doc: YamlDoc) -> ScenarioError:
+def located_error(
+    exc: ValidationError,
+    doc: YamlDoc,
+    *,
+    error_cls: type[ScenarioError] = ScenarioError,
+    clean: Callable[[Sequence[str | int], Any], list[str | int]] = clean_error_loc,
+    message: Callable[[dict[str, Any], list[str | int], Any], str] = error_message,
+) -> ScenarioError:
+    """One error for a failed validation: the first problem, its dotted key path and the file and line
+    it was written at (``clean`` and ``message`` let other YAML formats, such as sweeps, adapt both)."""
     err = exc.errors(include_url=False)[0]
-    path = clean_error_loc(err["loc"], doc.data)
+    path = clean(err["loc"], doc.data)
     ctx_error = (err.get("ctx") or {}).get("error")
     if isinstance(ctx_error, RuleError):
         path = path + [int(p) if p.isdigit() else p for p in ctx_error.path.split(".")]
-    message = error_message(err, path, doc.data)
+    text = message(err, path, doc.data)
     source, line = "", None
     for n in range(len(path), -1, -1):
         mark = doc.marks.get(tuple(path[:n]))
@@ -272,8 +281,8 @@ def _validation_error(exc: ValidationError, doc: YamlDoc) -> ScenarioError:
             break
     more = len(exc.errors()) - 1
     if more:
-        message += f" (and {more} more problem{'s' if more > 1 else ''})"
-    return ScenarioError(message, path=dotted(path), line=line, source=source)
+        text += f" (and {more} more problem{'s' if more > 1 else ''})"
+    return error_cls(text, path=dotted(path), line=line, source=source)
 
 
 def find_scenario(name_or_path: str | Path) -> Path:
@@ -310,7 +319,7 @@ def validate_doc(doc: YamlDoc, file: Path | None) -> LoadedScenario:
     try:
         scenario = Scenario.model_validate(doc.data)
     except ValidationError as exc:
-        raise _validation_error(exc, doc) from None
+        raise located_error(exc, doc) from None
     resolved = scenario.model_dump(mode="json")
     return LoadedScenario(scenario, file, resolved, file.parent if file else Path.cwd())
 
