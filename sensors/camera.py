@@ -192,6 +192,31 @@ def _largest_block(h: int, w: int, block_px: int) -> int:
     return s
 
 
+class StaticSamples:
+    """What a camera that does not move (an RSU's) keeps across ticks: the static-scene hits of the
+    samples it has cast so far and the pixels its static occluders force (both depend only on the
+    pose and the static world, so reusing them gives the same images).
+
+    ``gid`` ((H + 1) (W + 1),) int32 over the sample grid: static triangle index, -1 for a miss, -2
+    not cast yet; ``t`` float32 hit distance from the near clip [ray units]; ``forced`` (rows, cols)
+    int64 or None. Everything resets when the pose differs from the one it was filled at.
+    """
+
+    def __init__(self) -> None:
+        self.key: bytes | None = None
+        self.gid = self.t = np.zeros(0)
+        self.forced: tuple[np.ndarray, np.ndarray] | None = None
+
+    def valid_for(self, pose: Pose, n_samples: int) -> StaticSamples:
+        key = pose.rotation.tobytes() + pose.position_m.tobytes()
+        if key != self.key or len(self.gid) != n_samples:
+            self.key = key
+            self.gid = np.full(n_samples, -2, np.int32)
+            self.t = np.empty(n_samples, np.float32)
+            self.forced = None
+        return self
+
+
 def cast_image(
     cam: CameraSpec,
     K: np.ndarray,
@@ -200,12 +225,14 @@ def cast_image(
     occ: Occluders,
     exclude_track: int | None,
     block_px: int,
+    fixed: StaticSamples | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel global triangle index (H, W) int32 and planar depth (H, W) float32 (inf on a miss).
 
     With ``block_px`` > 1 the image is refined as a quadtree from blocks of ``block_px`` (a power of
     two dividing H and W, else the largest that does) down to single pixels (module docstring).
-    Actor triangles are only cast for samples inside some actor's projected box.
+    Actor triangles are only cast for samples inside some actor's projected box. ``fixed``: the
+    camera's :class:`StaticSamples` when it does not move between ticks (same result, fewer rays).
     """
     h, w = cam.height, cam.width
     xs, ys = _pixel_dirs(cam, K)
@@ -225,12 +252,19 @@ def cast_image(
     for i0, i1, j0, j1 in a_rects:
         actor_px[i0:i1 + 1, j0:j1 + 1] = True
     actor_px = actor_px.ravel()
-    rr, cc = segment_pixels(occ.segments, pose, K, h, w)
-    if len(occ.points):
-        uv, front = project_points(occ.points, pose, K)
-        m = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-        rr = np.concatenate([rr, uv[m, 1].astype(np.int64)])
-        cc = np.concatenate([cc, uv[m, 0].astype(np.int64)])
+    if fixed is not None:
+        fixed = fixed.valid_for(pose, (h + 1) * gw)
+    if fixed is not None and fixed.forced is not None:
+        rr, cc = fixed.forced
+    else:
+        rr, cc = segment_pixels(occ.segments, pose, K, h, w)
+        if len(occ.points):
+            uv, front = project_points(occ.points, pose, K)
+            m = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+            rr = np.concatenate([rr, uv[m, 1].astype(np.int64)])
+            cc = np.concatenate([cc, uv[m, 0].astype(np.int64)])
+        if fixed is not None:
+            fixed.forced = (rr, cc)
     any_actor = len(a_rects) > 0
 
     G = np.full((h + 1) * gw, -2, np.int32)
@@ -239,7 +273,17 @@ def cast_image(
     def sample(idx: np.ndarray) -> None:
         rr, cc = np.divmod(idx, gw)
         rays = _rays(pose, xs_ext[cc], ys_ext[rr], NEAR_CLIP_M)
-        t, g = scene.cast(rays, exclude_track, with_actors=False)
+        if fixed is None:
+            t, g = scene.cast(rays, exclude_track, with_actors=False)
+        else:
+            todo = np.nonzero(fixed.gid[idx] == -2)[0]
+            if len(todo):
+                tn, gn = scene.cast(rays[todo], exclude_track, with_actors=False)
+                fixed.t[idx[todo]] = tn
+                fixed.gid[idx[todo]] = np.where(gn == scene.miss, np.int32(-1), gn)
+            t = fixed.t[idx]
+            g = fixed.gid[idx]
+            g[g == -1] = scene.miss
         if any_actor:
             sel = np.nonzero(actor_px[idx])[0]
             if len(sel):

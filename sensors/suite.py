@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -23,7 +24,7 @@ from cosim.snapshot import Actor, AgentState, WorldSnapshot
 from cosim.world.types import World
 
 from .bev import BevFrame, render_bev, static_raster
-from .camera import CameraFrame, LightMap, Occluders, box_corners, cast_image, shade, shading_tables
+from .camera import CameraFrame, LightMap, Occluders, StaticSamples, box_corners, cast_image, shade, shading_tables
 from .encoding import submit_encode
 from .environment import Atmosphere, atmosphere
 from .gnss import GnssFrame, render_gnss
@@ -183,6 +184,8 @@ class SensorSuite:
         s = scenario.sensors
         self._bev_raster = static_raster(world.layout, s.bev_cell_m)
         self._biases: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._fixed: dict[tuple[str, str], StaticSamples] = {}
+        self._fixed_lock = threading.Lock()
         for i, agent_id in enumerate(scenario.agent_ids()):
             rig = scenario.rig_for(agent_id)
             if rig.imu is not None:
@@ -229,7 +232,11 @@ class SensorSuite:
         t0 = time.perf_counter()
         K = intrinsics(cam)
         pose = camera_pose(agent, cam)
-        gid, depth = cast_image(cam, K, pose, scene, occ, own, self.block_px)
+        fixed = None
+        if agent.kind == "rsu":  # RSUs stand still: their cameras keep their static samples
+            with self._fixed_lock:
+                fixed = self._fixed.setdefault((agent.agent_id, cam.name), StaticSamples())
+        gid, depth = cast_image(cam, K, pose, scene, occ, own, self.block_px, fixed)
         t1 = time.perf_counter()
         rgb = encoded = None
         if "rgb" in cam.outputs:
