@@ -423,6 +423,35 @@ def test_visibility_counts_match_frames_and_render_is_deterministic():
     assert any(o.visible for f in a.agents.values() for o in f.visibility.objects)
 
 
+def test_rsu_cameras_reuse_static_samples_and_give_the_same_images():
+    """A fixed camera's kept static hits (from a tick with other actors) change nothing but the ray count."""
+    import dataclasses
+
+    from cosim.scenario.model import default_rsu_rig
+
+    cams = [CameraSpec(name=c.name, width=160, height=96, mount=c.mount) for c in default_rsu_rig().cameras]
+    rig = RigSpec(lidar=None, cameras=cams, gnss=None, imu=None)
+    sc = Scenario(name="t", agents=AgentsSpec(vehicles=VehicleAgents(count=0), rsus=RsuAgents(count=3), drones=[]),
+                  sensors=SensorsSpec(rsu=rig))
+    world = synthetic_world()
+    first = synthetic_snapshot(0, 3, 0)
+    moved = tuple(dataclasses.replace(a, center_m=(a.center_m[0] + 4.0, *a.center_m[1:])) for a in first.actors[:-3])
+    second = WorldSnapshot(1, 200_000_000, moved, first.agents)
+    warm = SensorSuite(sc, world, noise=False)
+    warm.render(first, np.random.default_rng(0))
+    a = warm.render(second, np.random.default_rng(0))
+    b = SensorSuite(sc, world, noise=False).render(second, np.random.default_rng(0))
+    assert a.timing_s["rays"] < b.timing_s["rays"]
+    n = 0
+    for aid, fa in a.agents.items():
+        for name, ca in fa.cameras.items():
+            cb = b.agents[aid].cameras[name]
+            for k in ("rgb", "depth", "semantic", "instance"):
+                assert np.array_equal(getattr(ca, k), getattr(cb, k)), (aid, name, k)
+            n += int(np.isin(ca.instance, [x.track_id for x in moved]).sum())
+    assert n > 0  # the moved actors are in view
+
+
 # -------------------------------------------------------------------------------- messages
 
 
