@@ -430,6 +430,7 @@ def test_rsu_cameras_reuse_static_samples_and_give_the_same_images():
     from cosim.scenario.model import default_rsu_rig
 
     cams = [CameraSpec(name=c.name, width=160, height=96, mount=c.mount) for c in default_rsu_rig().cameras]
+    cams.append(CameraSpec(name="up", width=160, height=96, mount=Mount(rpy_deg=(0.0, -10.0, 0.0))))  # sky too
     rig = RigSpec(lidar=None, cameras=cams, gnss=None, imu=None)
     sc = Scenario(name="t", agents=AgentsSpec(vehicles=VehicleAgents(count=0), rsus=RsuAgents(count=3), drones=[]),
                   sensors=SensorsSpec(rsu=rig))
@@ -440,7 +441,9 @@ def test_rsu_cameras_reuse_static_samples_and_give_the_same_images():
     warm = SensorSuite(sc, world, noise=False)
     warm.render(first, np.random.default_rng(0))
     a = warm.render(second, np.random.default_rng(0))
-    b = SensorSuite(sc, world, noise=False).render(second, np.random.default_rng(0))
+    # the reference renders the same agents as if they moved (no kept samples)
+    as_moving = dataclasses.replace(second, agents=tuple(dataclasses.replace(g, kind="vehicle") for g in second.agents))
+    b = SensorSuite(sc, world, noise=False).render(as_moving, np.random.default_rng(0))
     assert a.timing_s["rays"] < b.timing_s["rays"]
     n = 0
     for aid, fa in a.agents.items():
@@ -450,6 +453,7 @@ def test_rsu_cameras_reuse_static_samples_and_give_the_same_images():
                 assert np.array_equal(getattr(ca, k), getattr(cb, k)), (aid, name, k)
             n += int(np.isin(ca.instance, [x.track_id for x in moved]).sum())
     assert n > 0  # the moved actors are in view
+    assert any(np.isinf(c.depth).any() for f in a.agents.values() for c in f.cameras.values())
 
 
 # -------------------------------------------------------------------------------- messages
