@@ -188,6 +188,7 @@ def run(args) -> None:
             scale = (t1 - t0) / busy if busy > 0 else 1.0
             return {"total": t3 - t0, "render": t1 - t0, "casting": tm["cast_rays"] * scale,
                     "shading": tm["shading"] * scale, "other_render": (busy - tm["cast_rays"] - tm["shading"]) * scale,
+                    "labels": tm["labels"] * scale,
                     "encoding": t2 - t1, "writing": t3 - t2, "rays": tm["rays"], "bytes": nbytes,
                     "cast_thread_s": tm["cast_rays"]}
 
@@ -205,7 +206,8 @@ def run(args) -> None:
             rows.append(row)
             print(f"frame {k}: total {row['total']:.2f} s (runs {first['total']:.2f}, {second['total']:.2f}) = "
                   f"render {row['render']:.2f} (casting {row['casting']:.2f}, shading {row['shading']:.2f}, "
-                  f"labels/other {row['other_render']:.2f}) + encoding wait {row['encoding']:.2f} + writing "
+                  f"labels/other {row['other_render']:.2f}: labels {row['labels']:.2f}, the rest numpy around "
+                  f"casting: camera sampling/fills, LiDAR models) + encoding wait {row['encoding']:.2f} + writing "
                   f"{row['writing']:.2f}; {row['rays'] / 1e6:.1f} M rays cast, {row['bytes'] / 1e6:.0f} MB file")
             print(f"         bare cast_rays, one ray per pixel/beam, one scene: {bare:.2f} s for "
                   f"{bare_rays / 1e6:.1f} M rays -> total / bare = {row['total'] / bare:.2f}; total / own "
