@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import base64
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any
 
 PROTOCOL_VERSION = 1
@@ -82,23 +82,22 @@ class StepRequest:
 
 
 def encode(obj: Any) -> bytes:
-    return json.dumps(_plain(obj), separators=(",", ":")).encode()
+    """JSON bytes of a message: dataclasses become objects, bytes become ``{"__b64__": ...}``."""
+    return json.dumps(obj, separators=(",", ":"), default=_json_default).encode()
 
 
 def decode(data: bytes) -> Any:
     return json.loads(data)
 
 
-def _plain(obj: Any) -> Any:
-    if hasattr(obj, "__dataclass_fields__"):
-        return {k: _plain(v) for k, v in asdict(obj).items()}
-    if isinstance(obj, dict):
-        return {k: _plain(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_plain(v) for v in obj]
+def _json_default(obj: Any) -> Any:
+    """What json cannot write itself; shallow, so no deep copy of large payloads (the world)."""
+    fields = getattr(obj, "__dataclass_fields__", None)
+    if fields is not None:
+        return {k: getattr(obj, k) for k in fields}
     if isinstance(obj, bytes):
         return {"__b64__": base64.b64encode(obj).decode()}
-    return obj
+    raise TypeError(f"cannot encode {type(obj).__name__} in a protocol message")
 
 
 def unbytes(obj: Any) -> Any:
