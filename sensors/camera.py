@@ -357,11 +357,14 @@ def cast_image(
                 (r0[db] + s) * gw + c0[db] + half, (r0[dr] + half) * gw + c0[dr] + s,
             ])
             sample(cand)
-        active = np.repeat(np.repeat(mixed, 2, axis=0), 2, axis=1)
+        if half > 1:
+            active = np.repeat(np.repeat(mixed, 2, axis=0), 2, axis=1)
         s = half
-    # pixels of mixed 2-px blocks are samples themselves
-    np.copyto(gid, Gv[:h, :w], where=active)
-    np.copyto(depth, Tv[:h, :w], where=active)
+    # pixels of mixed 2-px blocks (the last ``mixed``) are samples themselves
+    blocks = (h // 2, 2, w // 2, 2)
+    where = mixed[:, None, :, None]
+    np.copyto(gid.reshape(blocks), Gv[:h, :w].reshape(blocks), where=where)
+    np.copyto(depth.reshape(blocks), Tv[:h, :w].reshape(blocks), where=where)
     return gid, depth
 
 
