@@ -22,7 +22,7 @@ import numpy as np
 import yaml
 
 import cosim
-from cosim.assemble import TrackRegistry, build_snapshot, escort_targets, escort_targets_of
+from cosim.assemble import TrackRegistry, build_snapshot, escort_targets_of
 from cosim.classes import class_table
 from cosim.conductor import Conductor
 from cosim.protocol import drone_from_dict, vehicle_from_dict
@@ -155,10 +155,10 @@ def run_episode(
             t0 = time.perf_counter()
             replies = _first_tick(conductor, escorts) if pending is None else conductor.collect(pending)
             vehicles = [vehicle_from_dict(v) for v in replies["traffic"]["vehicles"]]
+            if tick + 1 < s.n_ticks:  # the workers compute the next tick while this one is assembled and written
+                pending = conductor.send_step(tick + 1, t_ns + s.tick_ns, escort_targets_of(vehicles, escorts))
             drones = [drone_from_dict(d) for d in replies["drones"]["drones"]]
             snapshot = build_snapshot(tick, t_ns, vehicles, drones, world, tracks)
-            if tick + 1 < s.n_ticks:  # the workers compute the next tick while this one is written
-                pending = conductor.send_step(tick + 1, t_ns + s.tick_ns, escort_targets(snapshot, escorts))
             step_s = time.perf_counter() - t0
             tick_times.append(step_s)
             sync_costs.append(max(r["round_trip_s"] - r.get("compute_ns", 0) / 1e9 for r in replies.values()))
