@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 from cosim.geometry import quat_from_rpy
@@ -126,22 +125,8 @@ def _agent_order(a: AgentState) -> tuple[int, int]:
     return ({"vehicle": 0, "rsu": 1, "drone": 2}.get(kind, 3), int(index) if index.isdigit() else 0)
 
 
-def escort_targets(snapshot: WorldSnapshot, assignments: dict[str, str]) -> dict[str, EscortTarget]:
-    """What each escorting drone needs of its vehicle, from this tick's snapshot (used for the next)."""
-    by_agent = {a.agent_id: a for a in snapshot.actors if a.agent_id}
-    out: dict[str, EscortTarget] = {}
-    for drone_id, vehicle_id in assignments.items():
-        actor = by_agent.get(vehicle_id)
-        if actor is None:
-            continue
-        x, y, z, w = actor.rotation
-        yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-        out[drone_id] = EscortTarget(actor.center_m, yaw, actor.velocity_mps)
-    return out
-
-
 def escort_targets_of(vehicles: Sequence[VehicleState], assignments: dict[str, str]) -> dict[str, EscortTarget]:
-    """The same from the traffic worker's reply (used at tick 0, before the first snapshot exists)."""
+    """What each escorting drone needs of its vehicle (drone id -> target), from the traffic worker's reply."""
     by_agent = {v.agent_id: v for v in vehicles if v.agent_id}
     return {
         drone_id: EscortTarget(tuple(v.center_m), v.yaw_rad, tuple(v.velocity_mps))
