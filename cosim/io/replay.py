@@ -188,6 +188,11 @@ def _wait_for_subscriber(publishers: list[Any], timeout_s: float, stop: threadin
     log.warning("no subscriber after %.1f s; replaying anyway", timeout_s)
 
 
+def send_offset_s(log_time_ns: int, first_log_time_ns: int, rate: float) -> float:
+    """When a message is due [s after the pass starts]: its recorded offset scaled by ``1 / rate``."""
+    return (log_time_ns - first_log_time_ns) / 1e9 / rate
+
+
 def _one_pass(
     ep: Episode,
     topics: list[str],
@@ -204,7 +209,7 @@ def _one_pass(
             break
         if first is None:
             first = m.log_time_ns
-        due = started + (m.log_time_ns - first) / 1e9 / rate
+        due = started + send_offset_s(m.log_time_ns, first, rate)
         delay = due - time.perf_counter()
         if delay > 0 and stop.wait(delay):
             break
