@@ -35,7 +35,7 @@ from typing import Annotated, Any
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, model_validator
 
 from cosim.errors import ScenarioError
-from cosim.scenario.loader import YamlDoc, clean_error_loc, error_message, located_error, parse_yaml
+from cosim.scenario.loader import YamlDoc, clean_error_loc, error_message, find_yaml, located_error, parse_yaml
 from cosim.scenario.model import RuleError
 
 LABEL_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.]*$"  # no '-': it separates the parts of an episode id
@@ -254,13 +254,9 @@ def sweep_dirs() -> list[Path]:
 
 def find_sweep(name_or_path: str | Path) -> Path:
     """A sweep path as given, or the name of a shipped one (``airv2x_like``)."""
-    p = Path(name_or_path)
-    if p.is_file():
-        return p
-    for d in sweep_dirs():
-        for cand in (d / p, d / f"{p}.yaml"):
-            if cand.is_file():
-                return cand
+    found = find_yaml(name_or_path, sweep_dirs())
+    if found is not None:
+        return found
     raise SweepError(f"sweep file not found: {name_or_path}", source=str(name_or_path))
 
 

@@ -285,15 +285,23 @@ def located_error(
     return error_cls(text, path=dotted(path), line=line, source=source)
 
 
-def find_scenario(name_or_path: str | Path) -> Path:
-    """A scenario path as given, or the name of a shipped one (``town_rural_night``)."""
+def find_yaml(name_or_path: str | Path, dirs: Iterable[Path]) -> Path | None:
+    """A file path as given, else ``NAME`` or ``NAME.yaml`` in the first of ``dirs`` that has it."""
     p = Path(name_or_path)
     if p.is_file():
         return p
-    for d in scenario_dirs():
+    for d in dirs:
         for cand in (d / p, d / f"{p}.yaml"):
             if cand.is_file():
                 return cand
+    return None
+
+
+def find_scenario(name_or_path: str | Path) -> Path:
+    """A scenario path as given, or the name of a shipped one (``town_rural_night``)."""
+    found = find_yaml(name_or_path, scenario_dirs())
+    if found is not None:
+        return found
     raise ScenarioError(f"scenario not found: {name_or_path} (see `cosim scenarios` for the shipped ones)",
                         source=str(name_or_path))
 
