@@ -7,6 +7,7 @@ sensors and writes labels and sensor data. The episode file appears only when it
 
 from __future__ import annotations
 
+import contextlib
 import importlib.metadata
 import json
 import logging
@@ -136,7 +137,7 @@ def run_episode(
     sync_costs: list[float] = []
     compute: dict[str, list[float]] = {}
 
-    with EpisodeWriter(final, compression=s.output.compression) as writer, Conductor(
+    with contextlib.ExitStack() as cleanup, EpisodeWriter(final, compression=s.output.compression) as writer, Conductor(
         loaded.resolved,
         world.to_wire(),
         startup_timeout_s=s.runtime.startup_timeout_s,
@@ -146,6 +147,8 @@ def run_episode(
         prefix=prefix,
         worker_log_level=worker_log_level,
     ) as conductor:
+        if suite is not None:
+            cleanup.callback(suite.close)
         writer.add_metadata("episode", episode_metadata(loaded, world))
         conductor.start()
         loop_started = time.perf_counter()
@@ -237,7 +240,12 @@ class _SensorAdapter:
         return out
 
     def messages(self, snapshot: WorldSnapshot, rng: np.random.Generator) -> list[tuple[str, Any]]:
-        return self._frame_messages(self._suite.render(snapshot, rng), snapshot.t_ns)
+        out = self._scenario.output
+        return self._frame_messages(self._suite.render(snapshot, rng), snapshot.t_ns,
+                                    image_format=out.image_format, jpeg_quality=out.jpeg_quality)
+
+    def close(self) -> None:
+        self._suite.close()
 
 
 def _sensor_suite(loaded: LoadedScenario, world: World) -> _SensorAdapter | None:

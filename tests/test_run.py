@@ -180,3 +180,16 @@ def test_escort_drones_track_their_sumo_vehicles_from_the_first_tick(tmp_path):
         assert len(e) == 150
         assert e[0] < 1.0, (drone_id, e[0])  # placed at its offset point at t = 0
         assert rms(e) < 5.0, (drone_id, rms(e))
+
+
+def test_sensor_episode_honours_the_output_image_format(tmp_path):
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+
+    r = run_cli("run", "scenarios/default.yaml", "--duration", "0.4", "--out", str(tmp_path),
+                "--set", "sensors.image_scale=0.1", "--set", "output.image_format=jpeg")
+    assert r.returncode == 0, r.stderr
+    topics = read_topics(tmp_path / "default_s0.mcap")
+    images = [CompressedImage.FromString(d) for t, msgs in topics.items() if t.endswith("/image") for _, d in msgs]
+    assert len(images) == 2 * (5 * 6 + 5 * 4 + 5)  # two ticks, every camera of the 5+5+5 rig
+    assert {i.format for i in images} == {"jpeg"}
+    assert all(i.data[:2] == b"\xff\xd8" for i in images)  # JPEG start-of-image marker
