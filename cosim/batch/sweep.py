@@ -24,7 +24,6 @@ Example (``sweeps/airv2x_like.yaml`` is the full one)::
 
 from __future__ import annotations
 
-import difflib
 import json
 import os
 import re
@@ -35,7 +34,15 @@ from typing import Annotated, Any
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, model_validator
 
 from cosim.errors import ScenarioError
-from cosim.scenario.loader import YamlDoc, clean_error_loc, error_message, find_yaml, located_error, parse_yaml
+from cosim.scenario.loader import (
+    YamlDoc,
+    clean_error_loc,
+    error_message,
+    find_yaml,
+    located_error,
+    parse_yaml,
+    unknown_key_message,
+)
 from cosim.scenario.model import RuleError
 
 LABEL_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.]*$"  # no '-': it separates the parts of an episode id
@@ -220,14 +227,7 @@ def _sweep_model_at(path: list[str | int]) -> type[BaseModel] | None:
 
 def _sweep_message(err: dict[str, Any], path: list[str | int], data: Any) -> str:
     if err["type"] == "extra_forbidden":
-        bad = str(path[-1])
-        owner = _sweep_model_at(path[:-1])
-        if owner is not None:
-            known = list(owner.model_fields)
-            close = difflib.get_close_matches(bad, known, n=1, cutoff=0.6)
-            hint = f"; did you mean {close[0]!r}?" if close else ""
-            return f"unknown key {bad!r}{hint} (known keys: {', '.join(known)})"
-        return f"unknown key {bad!r}"
+        return unknown_key_message(str(path[-1]), _sweep_model_at(path[:-1]))
     return error_message(err, path, data)
 
 

@@ -231,17 +231,20 @@ def _model_at(path: Sequence[str | int], data: Any) -> type[BaseModel] | None:
     return cls
 
 
+def unknown_key_message(bad: str, owner: type[BaseModel] | None) -> str:
+    """``unknown key 'wether'; did you mean 'weather'? (known keys: ...)`` for the model that owns the mapping."""
+    if owner is None:
+        return f"unknown key {bad!r}"
+    known = list(owner.model_fields)
+    close = difflib.get_close_matches(bad, known, n=1, cutoff=0.6)
+    hint = f"; did you mean {close[0]!r}?" if close else ""
+    return f"unknown key {bad!r}{hint} (known keys: {', '.join(known)})"
+
+
 def error_message(err: dict[str, Any], path: list[str | int], data: Any) -> str:
     kind = err["type"]
     if kind == "extra_forbidden":
-        bad = str(path[-1])
-        owner = _model_at(path[:-1], data)
-        if owner is not None:
-            known = list(owner.model_fields)
-            close = difflib.get_close_matches(bad, known, n=1, cutoff=0.6)
-            hint = f"; did you mean {close[0]!r}?" if close else ""
-            return f"unknown key {bad!r}{hint} (known keys: {', '.join(known)})"
-        return f"unknown key {bad!r}"
+        return unknown_key_message(str(path[-1]), _model_at(path[:-1], data))
     if kind == "missing":
         return "required key is missing"
     if kind in ("literal_error", "enum"):
