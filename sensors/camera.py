@@ -361,10 +361,10 @@ def cast_image(
             active = np.repeat(np.repeat(mixed, 2, axis=0), 2, axis=1)
         s = half
     # pixels of mixed 2-px blocks (the last ``mixed``) are samples themselves
-    blocks = (h // 2, 2, w // 2, 2)
-    where = mixed[:, None, :, None]
-    np.copyto(gid.reshape(blocks), Gv[:h, :w].reshape(blocks), where=where)
-    np.copyto(depth.reshape(blocks), Tv[:h, :w].reshape(blocks), where=where)
+    # (a full-size mask: numpy's copyto is several times slower through a broadcast one)
+    where = np.repeat(np.repeat(mixed, 2, axis=0), 2, axis=1)
+    np.copyto(gid, Gv[:h, :w], where=where)
+    np.copyto(depth, Tv[:h, :w], where=where)
     return gid, depth
 
 
@@ -453,14 +453,13 @@ def _with_sky(gid: np.ndarray, sky: np.ndarray, first_level: int, cam: CameraSpe
               s: int) -> np.ndarray:
     """A copy of ``gid`` (H, W) int32 with the ``sky`` pixels set to ``first_level`` + their sky level
     (:func:`_sky_level`, broadcast over its blocks)."""
-    h, w = gid.shape
-    g = gid.copy()
     if not sky.any():
-        return g
+        return gid.copy()
     lvl, s = _sky_level(cam, K, pose, s)
     lvl += np.int32(first_level)
-    np.copyto(g.reshape(h // s, s, w // s, s), lvl[:, None, :, None], where=sky.reshape(h // s, s, w // s, s))
-    return g
+    if s > 1:  # full size first: numpy's where is several times slower through broadcast operands
+        lvl = np.repeat(np.repeat(lvl, s, axis=0), s, axis=1)
+    return np.where(sky, lvl, gid)
 
 
 @dataclass(frozen=True)
