@@ -19,7 +19,7 @@ from cosim.scenario.model import LidarSpec
 
 from .environment import Atmosphere
 from .rig import Pose, rotate
-from .scene import TickScene
+from .scene import StaticHits, TickScene
 
 MIN_RANGE_M = 0.3  # [m] returns closer than this are not reported (housing, mount)
 
@@ -70,12 +70,14 @@ def render_lidar(
     rng: np.random.Generator,
     exclude_track: int | None = None,
     noise: bool = True,
+    fixed: StaticHits | None = None,
 ) -> LidarFrame:
     """Cast one sweep from ``pose`` (map <- sensor) and apply the sensor and weather models.
 
     Random draws (in this order, always the full ray count so the stream does not depend on the
     scene): range noise, dropout, weather thinning, spurious returns. ``noise=False`` turns every
-    random effect off (exact ranges, for tests).
+    random effect off (exact ranges, for tests). ``fixed``: the sensor's :class:`StaticHits` when
+    it does not move between ticks (same result, the static world cast once).
     """
     d_sensor, ring = beam_pattern(spec)
     n = d_sensor.shape[0]
@@ -83,7 +85,11 @@ def render_lidar(
     rays = np.empty((n, 6), np.float32)
     rays[:, :3] = pose.position_m
     rays[:, 3:] = d_map
-    t, gid = scene.cast(rays, exclude_track, MIN_RANGE_M)
+    if fixed is None:
+        t, gid = scene.cast(rays, exclude_track, MIN_RANGE_M)
+    else:
+        key = pose.rotation.tobytes() + pose.position_m.tobytes()
+        t, gid = fixed.cast(scene, key, rays, exclude_track, MIN_RANGE_M)
     hit = t <= spec.range_m
     r = np.where(hit, t, 0.0).astype(np.float64)
 

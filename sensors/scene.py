@@ -197,6 +197,33 @@ class TickScene:
         return t, gid
 
 
+class StaticHits:
+    """The static-world hits of a sensor that does not move (an RSU's LiDAR), kept across ticks.
+
+    :meth:`cast` gives what :meth:`TickScene.cast` gives for the same rays, but casts the static
+    world only when ``key`` (the sensor pose and ray count) changes; every tick it casts the rays
+    against the actors alone and keeps the nearer hit.
+    """
+
+    def __init__(self) -> None:
+        self.key: bytes | None = None
+        self.t = np.zeros(0, np.float32)
+        self.gid = np.zeros(0, np.int32)  # static triangle index, -1 for a miss
+
+    def cast(self, scene: TickScene, key: bytes, rays: np.ndarray, exclude_track: int | None,
+             near_m: float) -> tuple[np.ndarray, np.ndarray]:
+        if key != self.key or len(self.t) != len(rays):
+            t, gid = scene.cast(rays, exclude_track, near_m, with_actors=False)
+            self.key, self.t, self.gid = key, t, np.where(gid == scene.miss, np.int32(-1), gid)
+        t = self.t.copy()
+        gid = np.where(self.gid < 0, np.int32(scene.miss), self.gid)
+        ta, ga = scene.cast(rays, exclude_track, near_m, with_static=False)
+        nearer = np.nonzero(ta < t)[0]
+        t[nearer] = ta[nearer]
+        gid[nearer] = ga[nearer]
+        return t, gid
+
+
 def static_bare_mesh(static: StaticScene, actors) -> TriMesh:
     """Static + actor triangles in one mesh (the single-scene reference the benchmark casts against)."""
     mesh, _ = place_actors(actors)

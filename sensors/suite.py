@@ -32,7 +32,7 @@ from .imu import ImuFrame, imu_biases, render_imu
 from .lidar import LidarFrame, render_lidar
 from .meshes import is_lamp, static_mesh
 from .rig import camera_pose, intrinsics, projection, sensor_pose
-from .scene import StaticScene, TickScene
+from .scene import StaticHits, StaticScene, TickScene
 from .visibility import VisibilityFrame, render_visibility
 
 log = logging.getLogger(__name__)
@@ -185,6 +185,7 @@ class SensorSuite:
         self._bev_raster = static_raster(world.layout, s.bev_cell_m)
         self._biases: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._fixed: dict[tuple[str, str], StaticSamples] = {}
+        self._fixed_lidar: dict[str, StaticHits] = {}
         self._fixed_lock = threading.Lock()
         for i, agent_id in enumerate(scenario.agent_ids()):
             rig = scenario.rig_for(agent_id)
@@ -212,7 +213,11 @@ class SensorSuite:
         lidar = None
         if rig.lidar is not None:
             pose = sensor_pose(agent, rig.lidar.mount)
-            lidar = render_lidar(agent.agent_id, rig.lidar, pose, scene, self.atm, rng, own, self.noise)
+            fixed = None
+            if agent.kind == "rsu":  # RSUs stand still: the static world is cast once for their LiDAR
+                with self._fixed_lock:
+                    fixed = self._fixed_lidar.setdefault(agent.agent_id, StaticHits())
+            lidar = render_lidar(agent.agent_id, rig.lidar, pose, scene, self.atm, rng, own, self.noise, fixed)
         t1 = time.perf_counter()
         gnss = None
         if rig.gnss is not None:

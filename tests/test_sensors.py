@@ -423,15 +423,16 @@ def test_visibility_counts_match_frames_and_render_is_deterministic():
     assert any(o.visible for f in a.agents.values() for o in f.visibility.objects)
 
 
-def test_rsu_cameras_reuse_static_samples_and_give_the_same_images():
-    """A fixed camera's kept static hits (from a tick with other actors) change nothing but the ray count."""
+def test_rsu_sensors_reuse_static_hits_and_give_the_same_data():
+    """A fixed camera's or LiDAR's kept static hits (from a tick with other actors) change nothing but the
+    ray count."""
     import dataclasses
 
     from cosim.scenario.model import default_rsu_rig
 
     cams = [CameraSpec(name=c.name, width=160, height=96, mount=c.mount) for c in default_rsu_rig().cameras]
     cams.append(CameraSpec(name="up", width=160, height=96, mount=Mount(rpy_deg=(0.0, -10.0, 0.0))))  # sky too
-    rig = RigSpec(lidar=None, cameras=cams, gnss=None, imu=None)
+    rig = RigSpec(lidar=LidarSpec(horizontal_resolution_deg=1.0), cameras=cams, gnss=None, imu=None)
     sc = Scenario(name="t", agents=AgentsSpec(vehicles=VehicleAgents(count=0), rsus=RsuAgents(count=3), drones=[]),
                   sensors=SensorsSpec(rsu=rig))
     world = synthetic_world()
@@ -445,14 +446,17 @@ def test_rsu_cameras_reuse_static_samples_and_give_the_same_images():
     as_moving = dataclasses.replace(second, agents=tuple(dataclasses.replace(g, kind="vehicle") for g in second.agents))
     b = SensorSuite(sc, world, noise=False).render(as_moving, np.random.default_rng(0))
     assert a.timing_s["rays"] < b.timing_s["rays"]
-    n = 0
+    n = n_lidar = 0
     for aid, fa in a.agents.items():
+        for k in ("points", "intensity", "ring", "class_id", "instance_id"):
+            assert np.array_equal(getattr(fa.lidar, k), getattr(b.agents[aid].lidar, k)), (aid, "lidar", k)
+        n_lidar += int(np.isin(fa.lidar.instance_id, [x.track_id for x in moved]).sum())
         for name, ca in fa.cameras.items():
             cb = b.agents[aid].cameras[name]
             for k in ("rgb", "depth", "semantic", "instance"):
                 assert np.array_equal(getattr(ca, k), getattr(cb, k)), (aid, name, k)
             n += int(np.isin(ca.instance, [x.track_id for x in moved]).sum())
-    assert n > 0  # the moved actors are in view
+    assert n > 0 and n_lidar > 0  # the moved actors are in view
     assert any(np.isinf(c.depth).any() for f in a.agents.values() for c in f.cameras.values())
 
 
