@@ -122,7 +122,7 @@ def run_episode(
     :class:`~cosim.errors.CosimError` on failure; no file is left at the output path then.
     """
     from cosim.exporters.labels import label_messages
-    from cosim.exporters.mcap_writer import EpisodeWriter
+    from cosim.exporters.mcap_writer import BackgroundWriter, EpisodeWriter
     from cosim.world import build_world
 
     s = loaded.scenario
@@ -137,7 +137,8 @@ def run_episode(
     sync_costs: list[float] = []
     compute: dict[str, list[float]] = {}
 
-    with contextlib.ExitStack() as cleanup, EpisodeWriter(final, compression=s.output.compression) as writer, Conductor(
+    with contextlib.ExitStack() as cleanup, EpisodeWriter(final, compression=s.output.compression) as writer, \
+            BackgroundWriter(writer) as background, Conductor(
         loaded.resolved,
         world.to_wire(),
         startup_timeout_s=s.runtime.startup_timeout_s,
@@ -168,13 +169,16 @@ def run_episode(
             for role, reply in replies.items():
                 compute.setdefault(role, []).append(reply.get("compute_ns", 0) / 1e9)
             rig_tf = suite.transforms(snapshot) if suite is not None else []
-            for topic, message in label_messages(snapshot, rig_tf):
-                writer.write(topic, message, t_ns)
-            if suite is not None:
-                for topic, message in suite.messages(snapshot, np.random.default_rng([s.seed, tick, SENSOR_STREAM])):
-                    writer.write(topic, message, t_ns)
+            labels = label_messages(snapshot, rig_tf)
+            if suite is None:
+                background.submit(t_ns, lambda labels=labels: labels)
+            else:
+                # rendered here; encoded, serialised and written while the next tick renders
+                frames = suite.render(snapshot, np.random.default_rng([s.seed, tick, SENSOR_STREAM]))
+                background.submit(t_ns, lambda labels=labels, frames=frames: [*labels, *suite.messages(frames)])
             if progress is not None:
                 progress(tick + 1, s.n_ticks)
+        background.flush()
         loop_wall_s = time.perf_counter() - loop_started
         _attach(writer, loaded, world)
         messages = writer.message_count
@@ -221,7 +225,7 @@ def _world_summary(world: World) -> dict[str, Any]:
 
 
 class _SensorAdapter:
-    """Couples the sensor suite to the runner: rig transforms for /tf and sensor messages."""
+    """Couples the sensor suite to the runner: rig transforms for /tf, rendering, sensor messages."""
 
     def __init__(self, loaded: LoadedScenario, world: World):
         from cosim.exporters.sensor_messages import frame_messages
@@ -239,10 +243,14 @@ class _SensorAdapter:
             out.extend(self._sensor_transforms(self._scenario, agent))
         return out
 
-    def messages(self, snapshot: WorldSnapshot, rng: np.random.Generator) -> list[tuple[str, Any]]:
+    def render(self, snapshot: WorldSnapshot, rng: np.random.Generator) -> Any:
+        return self._suite.render(snapshot, rng)
+
+    def messages(self, frames: Any) -> list[tuple[str, Any]]:
+        """The sensor messages of rendered frames (waits for their image encodes)."""
         out = self._scenario.output
-        return self._frame_messages(self._suite.render(snapshot, rng), snapshot.t_ns,
-                                    image_format=out.image_format, jpeg_quality=out.jpeg_quality)
+        return self._frame_messages(frames, frames.t_ns, image_format=out.image_format,
+                                    jpeg_quality=out.jpeg_quality)
 
     def close(self) -> None:
         self._suite.close()

@@ -13,6 +13,8 @@ from __future__ import annotations
 import json
 import logging
 import os
+from collections.abc import Callable, Iterable
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -21,6 +23,7 @@ from google.protobuf.message import Message as ProtoMessage
 from mcap.writer import CompressionType, Writer
 
 import cosim
+from cosim.errors import CosimError
 
 log = logging.getLogger(__name__)
 
@@ -152,3 +155,54 @@ class EpisodeWriter:
     def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
         if not self._done:
             self.abort()
+
+
+class BackgroundWriter:
+    """Writes an episode's ticks from a thread of its own, so that serialising, compressing and
+    writing tick k overlap with simulating and rendering tick k+1.
+
+    ``submit(t_ns, build)`` hands over one tick: ``build()`` runs in the writer thread and yields
+    the tick's ``(topic, message)`` pairs (it may wait on image encodes). Ticks are written one at
+    a time in submission order, so the file has the same bytes as when written inline. ``submit``
+    first waits for the previous tick to be written: at most one tick is in the writer, which
+    bounds memory to two ticks' sensor data and pushes back when writing is the slower side. An
+    error in the writer thread is raised by the next ``submit``/``flush``/``finish`` (as a
+    :class:`~cosim.errors.CosimError` naming the file for an ``OSError``) and the episode is then
+    aborted like any other failure. Use it as a context manager around the :class:`EpisodeWriter`'s.
+    """
+
+    def __init__(self, writer: EpisodeWriter):
+        self.writer = writer
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="cosim-writer")
+        self._pending: Future | None = None
+
+    def _write(self, t_ns: int, build: Callable[[], Iterable[tuple[str, Any]]]) -> None:
+        for topic, message in build():
+            self.writer.write(topic, message, t_ns)
+
+    def flush(self) -> None:
+        """Wait until every submitted tick is written; raise the writer thread's error, if any."""
+        pending, self._pending = self._pending, None
+        if pending is None:
+            return
+        try:
+            pending.result()
+        except OSError as exc:
+            raise CosimError(f"writing {self.writer.final_path} failed: {exc}") from exc
+
+    def submit(self, t_ns: int, build: Callable[[], Iterable[tuple[str, Any]]]) -> None:
+        """Write the messages ``build()`` yields at ``t_ns``, after the ticks submitted before."""
+        self.flush()
+        self._pending = self._pool.submit(self._write, t_ns, build)
+
+    def close(self) -> None:
+        """Stop the thread (after the tick it is writing); the file is the :class:`EpisodeWriter`'s to
+        finish or abort."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        self._pending = None
+
+    def __enter__(self) -> BackgroundWriter:
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        self.close()

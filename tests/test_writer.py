@@ -5,14 +5,16 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import threading
 
 import pytest
 from cosim.exporters.labels import label_messages
-from cosim.exporters.mcap_writer import EpisodeWriter, temporary_path
+from cosim.exporters.mcap_writer import BackgroundWriter, EpisodeWriter, temporary_path
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from mcap.reader import make_reader
 
 from cosim.assemble import TrackRegistry, build_snapshot
+from cosim.errors import CosimError
 from cosim.geometry import quat_from_rpy, rotation_matrix, rpy_from_quat, sumo_front_to_center
 from cosim.protocol import DroneState, VehicleState
 from cosim.world.types import Junction, RsuSite, StaticLayout, World
@@ -37,14 +39,18 @@ def snapshot(tick: int, tracks: TrackRegistry):
     return build_snapshot(tick, tick * TICK_NS, cars, drones, world(), tracks)
 
 
-def write_episode(path, ticks=10):
+def write_episode(path, ticks=10, background=False):
     tracks = TrackRegistry()
-    with EpisodeWriter(path) as w:
+    with EpisodeWriter(path) as w, BackgroundWriter(w) as bg:
         w.add_metadata("episode", {"scenario": "unit"})
         for k in range(ticks):
             snap = snapshot(k, tracks)
-            for topic, msg in label_messages(snap):
-                w.write(topic, msg, snap.t_ns)
+            if background:
+                bg.submit(snap.t_ns, lambda snap=snap: label_messages(snap))
+            else:
+                for topic, msg in label_messages(snap):
+                    w.write(topic, msg, snap.t_ns)
+        bg.flush()
         w.add_attachment("scenario.yaml", "application/yaml", b"name: unit\n")
         w.finish()
 
@@ -102,6 +108,49 @@ def test_a_crash_leaves_no_file_that_looks_complete(tmp_path):
         raise RuntimeError("simulated crash")
     assert not path.exists()
     assert not temporary_path(path).exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_background_writer_gives_the_bytes_of_inline_writing(tmp_path):
+    a, b = tmp_path / "inline.mcap", tmp_path / "background.mcap"
+    write_episode(a)
+    write_episode(b, background=True)
+    assert a.read_bytes() == b.read_bytes()
+
+
+def test_background_writer_keeps_one_tick_in_flight(tmp_path):
+    release = threading.Event()
+    written: list[int] = []
+
+    def build(k):
+        if k == 0:
+            assert release.wait(30)
+        written.append(k)
+        return [("/tf", FrameTransforms())]
+
+    with EpisodeWriter(tmp_path / "ep.mcap") as w, BackgroundWriter(w) as bg:
+        bg.submit(0, lambda: build(0))  # returns at once: tick 0 waits in the writer thread
+        second = threading.Thread(target=bg.submit, args=(1, lambda: build(1)))
+        second.start()
+        second.join(0.5)
+        assert second.is_alive() and written == []  # tick 1 waits until tick 0 is written
+        release.set()
+        second.join(30)
+        bg.flush()
+        assert written == [0, 1] and w.message_count == 2
+
+
+def test_background_writer_errors_surface_and_leave_no_file(tmp_path):
+    path = tmp_path / "ep.mcap"
+
+    def failing():
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(CosimError, match=r"writing .*ep\.mcap failed: .*No space left"):
+        with EpisodeWriter(path) as w, BackgroundWriter(w) as bg:
+            bg.submit(0, lambda: label_messages(snapshot(0, TrackRegistry())))
+            bg.submit(1, failing)
+            bg.submit(2, lambda: [])  # raises the error of tick 1
     assert list(tmp_path.iterdir()) == []
 
 
