@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
@@ -270,15 +271,19 @@ def cast_image(
     G = np.full((h + 1) * gw, -2, np.int32)
     T = np.full((h + 1) * gw, np.inf, np.float32)
 
-    def sample(idx: np.ndarray) -> None:
+    def rays_at(idx: np.ndarray) -> np.ndarray:
         rr, cc = np.divmod(idx, gw)
-        rays = _rays(pose, xs_ext[cc], ys_ext[rr], NEAR_CLIP_M)
+        return _rays(pose, xs_ext[cc], ys_ext[rr], NEAR_CLIP_M)
+
+    def sample(idx: np.ndarray) -> None:
+        rays = None
         if fixed is None:
+            rays = rays_at(idx)
             t, g = scene.cast(rays, exclude_track, with_actors=False)
-        else:
+        else:  # only the samples not cast at an earlier tick need rays
             todo = np.nonzero(fixed.gid[idx] == -2)[0]
             if len(todo):
-                tn, gn = scene.cast(rays[todo], exclude_track, with_actors=False)
+                tn, gn = scene.cast(rays_at(idx[todo]), exclude_track, with_actors=False)
                 fixed.t[idx[todo]] = tn
                 fixed.gid[idx[todo]] = np.where(gn == scene.miss, np.int32(-1), gn)
             t = fixed.t[idx]
@@ -287,7 +292,8 @@ def cast_image(
         if any_actor:
             sel = np.nonzero(actor_px[idx])[0]
             if len(sel):
-                ta, ga = scene.cast(rays[sel], exclude_track, with_static=False)
+                ta, ga = scene.cast(rays[sel] if rays is not None else rays_at(idx[sel]), exclude_track,
+                                    with_static=False)
                 nearer = ta < t[sel]
                 t[sel[nearer]] = ta[nearer]
                 g[sel[nearer]] = ga[nearer]
@@ -296,16 +302,21 @@ def cast_image(
 
     sample((np.arange(0, h + 1, top)[:, None] * gw + np.arange(0, w + 1, top)[None, :]).ravel())
 
+    # 2 px blocks holding a forced pixel or the pixel below or right of one; coarser blocks OR them
+    forced2 = np.zeros((h // 2, w // 2), bool)
+    forced2[rr // 2, cc // 2] = True
+    forced2[np.minimum(rr + 1, h - 1) // 2, cc // 2] = True
+    forced2[rr // 2, np.minimum(cc + 1, w - 1) // 2] = True
+
     def forced_at(s: int) -> np.ndarray:
         """(h / s, w / s) bool: blocks holding a forced pixel or, down to 4 px blocks, touching an
         actor's rectangle (so every actor is sampled at least every 2 px)."""
-        f = np.zeros((h // s, w // s), bool)
-        f[rr // s, cc // s] = True
-        f[np.minimum(rr + 1, h - 1) // s, cc // s] = True
-        f[rr // s, np.minimum(cc + 1, w - 1) // s] = True
-        if s > 2:
-            for i0, i1, j0, j1 in a_rects:
-                f[i0 // s:min(i1, h - 1) // s + 1, j0 // s:min(j1, w - 1) // s + 1] = True
+        if s == 2:
+            return forced2
+        k = s // 2
+        f = forced2.reshape(h // s, k, w // s, k).any(axis=(1, 3))
+        for i0, i1, j0, j1 in a_rects:
+            f[i0 // s:min(i1, h - 1) // s + 1, j0 // s:min(j1, w - 1) // s + 1] = True
         return f
 
     gid = np.empty((h, w), np.int32)
@@ -417,7 +428,9 @@ class LightMap:
         ny, nx = self.values.shape
         j = np.clip((x - self.x0) * (1.0 / self.res_m), 0, nx - 1).astype(np.int32)
         i = np.clip((y - self.y0) * (1.0 / self.res_m), 0, ny - 1).astype(np.int32)
-        return np.take(self.values, i * nx + j)
+        i *= np.int32(nx)
+        i += j
+        return np.take(self.values, i)
 
 
 LAMP_RGB = np.array([1.0, 0.82, 0.55], np.float32)  # sodium-ish street light colour
@@ -467,12 +480,14 @@ class ShadingTables:
     """Per global triangle index (rows 0..miss-1), then ``miss`` (unused), then the sky levels.
 
     ``linear`` (R, 3) float32 colour under sun and sky; ``srgb`` (R, 3) uint8 the same after exposure
-    and gamma; ``albedo`` (R, 3) float32; ``emissive`` (R,) float32.
+    and gamma; ``albedo`` (R, 3) float32; ``albedo_lamp`` (R, 3) float32 albedo times the street
+    lights' colour; ``emissive`` (R,) float32.
     """
 
     linear: np.ndarray
     srgb: np.ndarray
     albedo: np.ndarray
+    albedo_lamp: np.ndarray
     emissive: np.ndarray
     miss: int
 
@@ -484,7 +499,7 @@ def shading_tables(lut_rgb: np.ndarray, lut_albedo: np.ndarray, lut_emissive: np
     linear = np.concatenate([lut_rgb.astype(np.float32), sky])
     albedo = np.concatenate([lut_albedo.astype(np.float32), np.zeros_like(sky)])
     emissive = np.concatenate([lut_emissive.astype(np.float32), np.zeros(len(sky), np.float32)])
-    return ShadingTables(linear, to_srgb(linear, atm.exposure), albedo, emissive, miss)
+    return ShadingTables(linear, to_srgb(linear, atm.exposure), albedo, albedo * LAMP_RGB, emissive, miss)
 
 
 def shade(
@@ -513,32 +528,58 @@ def shade(
     if not linear_needed:
         return np.take(tables.srgb, g, axis=0)
     rgb = np.take(tables.linear, g, axis=0)
-    xs = ((np.arange(w) + 0.5 - K[0, 2]) / K[0, 0]).astype(np.float32)
-    ys = ((np.arange(h) + 0.5 - K[1, 2]) / K[1, 1]).astype(np.float32)
-    r = pose.rotation.astype(np.float32)
+    # numpy is several times slower broadcasting over a last axis of 3: per-pixel factors go to one
+    # channel at a time, per-channel constants to (H, 3 W) rows
+    wide = rgb.reshape(h, w * 3)
     if atm.artificial > 0:
         if light is not None:
+            xs = ((np.arange(w) + 0.5 - K[0, 2]) / K[0, 0]).astype(np.float32)
+            ys = ((np.arange(h) + 0.5 - K[1, 2]) / K[1, 1]).astype(np.float32)
+            r = pose.rotation.astype(np.float32)
             dep = np.where(sky, np.float32(0), depth)
-            px = pose.position_m[0] + dep * (r[0, 0] * xs[None, :] + (r[0, 1] * ys[:, None] + r[0, 2]))
-            py = pose.position_m[1] + dep * (r[1, 0] * xs[None, :] + (r[1, 1] * ys[:, None] + r[1, 2]))
-            pz = pose.position_m[2] + dep * (r[2, 0] * xs[None, :] + (r[2, 1] * ys[:, None] + r[2, 2]))
+            o = pose.position_m.astype(np.float32)  # float32 throughout (a float64 scalar would promote)
+            px = o[0] + dep * (r[0, 0] * xs[None, :] + (r[0, 1] * ys[:, None] + r[0, 2]))
+            py = o[1] + dep * (r[1, 0] * xs[None, :] + (r[1, 1] * ys[:, None] + r[1, 2]))
+            pz = o[2] + dep * (r[2, 0] * xs[None, :] + (r[2, 1] * ys[:, None] + r[2, 2]))
             # the pools light the ground and the lower few metres of walls
             e = light.sample(px, py) * np.clip(np.float32(1.0) - pz * np.float32(1 / 8), 0, 1)
             e *= np.float32(atm.artificial)
-            rgb += np.take(tables.albedo, g, axis=0) * (e[..., None] * LAMP_RGB)
-        glow = np.take(tables.emissive, g) * np.float32(2.0 * atm.artificial)
-        rgb += np.take(tables.albedo, g, axis=0) * glow[..., None]  # lamps glow in their own colour
-    if atm.beta > 0:
-        norm = np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1.0)
+            lit = np.take(tables.albedo_lamp, g, axis=0)
+            for c in range(3):
+                lit[..., c] *= e
+            rgb += lit
+        # lamps glow in their own colour (a few pixels)
+        glow = np.take(tables.emissive, g).ravel()
+        on = np.nonzero(glow)[0]
+        if len(on):
+            glow_on = glow[on] * np.float32(2.0 * atm.artificial)
+            rgb.reshape(-1, 3)[on] += np.take(tables.albedo, g.ravel()[on], axis=0) * glow_on[:, None]
+    if atm.beta > 0:  # rgb <- fog + transmittance * (rgb - fog); the sky (depth inf) is all fog
+        trans = _ray_lengths(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])) * depth
+        trans *= np.float32(-atm.beta)
         with np.errstate(over="ignore", invalid="ignore"):
-            trans = np.exp(np.float32(-atm.beta) * (depth * norm))
-        trans[sky] = 0.0
-        rgb *= trans[..., None]
-        rgb += atm.fog_rgb.astype(np.float32) * (1.0 - trans)[..., None]
+            np.exp(trans, out=trans)
+        fog = np.tile(atm.fog_rgb.astype(np.float32), w)
+        wide -= fog
+        for c in range(3):
+            rgb[..., c] *= trans
+        wide += fog
     if atm.rain_rate_mm_h > 0:
         rgb *= np.float32(0.8)
         _rain_streaks(rgb, atm.rain_rate_mm_h, rng)
-    return to_srgb(rgb, atm.exposure)
+    rgb *= np.float32(atm.exposure * 4095.0)  # to_srgb, in place
+    np.clip(rgb, 0, 4095, out=rgb)
+    return np.take(_GAMMA_LUT, rgb.astype(np.int16))
+
+
+@lru_cache(maxsize=16)
+def _ray_lengths(w: int, h: int, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """(H, W) float32 length of each pixel's ray (x, y, 1) (planar depth -> distance); read-only."""
+    xs = ((np.arange(w) + 0.5 - cx) / fx).astype(np.float32)
+    ys = ((np.arange(h) + 0.5 - cy) / fy).astype(np.float32)
+    out = np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + np.float32(1.0))
+    out.flags.writeable = False
+    return out
 
 def _rain_streaks(rgb: np.ndarray, rate_mm_h: float, rng: np.random.Generator) -> None:
     """Brighten thin slanted streaks in place (count and length grow with the rain rate)."""
