@@ -1,6 +1,7 @@
 """Sensor rendering benchmark: the paper's full rig on the default town, with reference ratios.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/sensors.py [--frames 3] [--no-pybullet] [--pictures docs/img]
+    PYTHONPATH=. .venv/bin/python benchmarks/sensors.py [--frames 3] [--no-pybullet] [--weather W --lighting L]
+    PYTHONPATH=. .venv/bin/python benchmarks/sensors.py --pictures docs/img
 
 Rig: 5 vehicles (LiDAR + 6 cameras), 5 RSUs (LiDAR + 4 cameras), 5 drones (LiDAR + 1 gimbal camera),
 every camera 1280x720, on the world that ``build_world`` makes for scenarios/default.yaml, with
@@ -152,7 +153,8 @@ def run(args) -> None:
     from cosim.exporters.mcap_writer import BackgroundWriter, EpisodeWriter
     from cosim.exporters.sensor_messages import frame_messages
 
-    loaded = paper_rig_scenario(ROOT / "scenarios" / "default.yaml", compression=args.compression)
+    env = {k: v for k, v in (("weather", args.weather), ("lighting", args.lighting)) if v}
+    loaded = paper_rig_scenario(ROOT / "scenarios" / "default.yaml", compression=args.compression, **env)
     sc = loaded.scenario
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
@@ -165,6 +167,7 @@ def run(args) -> None:
               f"world {t_world:.2f} s, static scene {t_static:.2f} s (once per episode)")
         n_cams = sum(len(sc.rig_for(a).cameras) for a in sc.agent_ids())
         print(f"rig: {len(sc.agent_ids())} agents, {n_cams} cameras at 1280x720, 15 LiDARs; "
+              f"{sc.environment.weather} {sc.environment.lighting}; "
               f"image format {sc.output.image_format}, MCAP chunk compression {sc.output.compression}; "
               f"block_px {args.block_px}; {args.frames} frames per episode")
         snaps = [world_snapshot(world, 5, 5, args.background, seed=k, tick=k) for k in range(args.frames)]
@@ -294,6 +297,8 @@ def main() -> None:
     ap.add_argument("--no-pybullet", action="store_true")
     ap.add_argument("--compression", choices=("zstd", "lz4", "none"), help="MCAP chunk compression "
                     "(default: the scenario's)")
+    ap.add_argument("--weather", choices=("clear", "cloudy", "foggy", "rainy"), help="default: the scenario's")
+    ap.add_argument("--lighting", choices=("day", "dusk", "night"), help="default: the scenario's")
     ap.add_argument("--pictures", type=Path, help="write the weather x lighting pictures here and exit")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
