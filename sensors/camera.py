@@ -302,19 +302,24 @@ def cast_image(
 
     sample((np.arange(0, h + 1, top)[:, None] * gw + np.arange(0, w + 1, top)[None, :]).ravel())
 
-    # 2 px blocks holding a forced pixel or the pixel below or right of one; coarser blocks OR them
-    forced2 = np.zeros((h // 2, w // 2), bool)
-    forced2[rr // 2, cc // 2] = True
-    forced2[np.minimum(rr + 1, h - 1) // 2, cc // 2] = True
-    forced2[rr // 2, np.minimum(cc + 1, w - 1) // 2] = True
+    # 2 px blocks holding a forced pixel or the pixel below or right of one; each coarser level ORs
+    # the four blocks it is made of
+    forced = {2: np.zeros((h // 2, w // 2), bool)}
+    forced[2][rr // 2, cc // 2] = True
+    forced[2][np.minimum(rr + 1, h - 1) // 2, cc // 2] = True
+    forced[2][rr // 2, np.minimum(cc + 1, w - 1) // 2] = True
+    s = 2
+    while s < top:
+        f = forced[s]
+        forced[2 * s] = f[0::2, 0::2] | f[1::2, 0::2] | f[0::2, 1::2] | f[1::2, 1::2]
+        s *= 2
 
     def forced_at(s: int) -> np.ndarray:
         """(h / s, w / s) bool: blocks holding a forced pixel or, down to 4 px blocks, touching an
         actor's rectangle (so every actor is sampled at least every 2 px)."""
         if s == 2:
-            return forced2
-        k = s // 2
-        f = forced2.reshape(h // s, k, w // s, k).any(axis=(1, 3))
+            return forced[2]
+        f = forced[s].copy()
         for i0, i1, j0, j1 in a_rects:
             f[i0 // s:min(i1, h - 1) // s + 1, j0 // s:min(j1, w - 1) // s + 1] = True
         return f
