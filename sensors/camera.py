@@ -193,29 +193,15 @@ def _largest_block(h: int, w: int, block_px: int) -> int:
     return s
 
 
-class StaticSamples:
-    """What a camera that does not move (an RSU's) keeps across ticks: the static-scene hits of the
-    samples it has cast so far and the pixels its static occluders force (both depend only on the
-    pose and the static world, so reusing them gives the same images).
-
-    ``gid`` ((H + 1) (W + 1),) int32 over the sample grid: static triangle index, -1 for a miss, -2
-    not cast yet; ``t`` float32 hit distance from the near clip [ray units]; ``forced`` (rows, cols)
-    int64 or None. Everything resets when the pose differs from the one it was filled at.
-    """
+class StaticImage:
+    """What a camera that does not move (an RSU's) keeps across ticks: its image of the static world
+    alone, ``gid`` (H, W) int32 (static triangle index, -1 for a miss) and ``depth`` (H, W) float32,
+    cast once (adaptively) for the pose it was made at."""
 
     def __init__(self) -> None:
         self.key: bytes | None = None
-        self.gid = self.t = np.zeros(0)
-        self.forced: tuple[np.ndarray, np.ndarray] | None = None
-
-    def valid_for(self, pose: Pose, n_samples: int) -> StaticSamples:
-        key = pose.rotation.tobytes() + pose.position_m.tobytes()
-        if key != self.key or len(self.gid) != n_samples:
-            self.key = key
-            self.gid = np.full(n_samples, -2, np.int32)
-            self.t = np.empty(n_samples, np.float32)
-            self.forced = None
-        return self
+        self.gid = np.zeros((0, 0), np.int32)
+        self.depth = np.zeros((0, 0), np.float32)
 
 
 def cast_image(
@@ -226,21 +212,62 @@ def cast_image(
     occ: Occluders,
     exclude_track: int | None,
     block_px: int,
-    fixed: StaticSamples | None = None,
+    fixed: StaticImage | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel global triangle index (H, W) int32 and planar depth (H, W) float32 (inf on a miss).
 
     With ``block_px`` > 1 the image is refined as a quadtree from blocks of ``block_px`` (a power of
     two dividing H and W, else the largest that does) down to single pixels (module docstring).
-    Actor triangles are only cast for samples inside some actor's projected box. ``fixed``: the
-    camera's :class:`StaticSamples` when it does not move between ticks (same result, fewer rays).
+    Actor triangles are only cast for samples inside some actor's projected box.
+
+    ``fixed``: the camera's :class:`StaticImage` when it does not move between ticks. Its static
+    image is made once; every tick then casts one ray per pixel inside the actors' projected boxes
+    against the actors alone and keeps the nearer hit, so the work follows what moves.
     """
+    if fixed is None:
+        return _cast_adaptive(cam, K, pose, scene, occ, exclude_track, block_px)
+    h, w = cam.height, cam.width
+    key = pose.rotation.tobytes() + pose.position_m.tobytes() + K.tobytes()
+    if key != fixed.key or fixed.gid.shape != (h, w):
+        static_only = Occluders(occ.segments, occ.points, np.zeros((0, 8, 3)))
+        g, d = _cast_adaptive(cam, K, pose, scene, static_only, exclude_track, block_px, with_actors=False)
+        fixed.key, fixed.gid, fixed.depth = key, np.where(g == scene.miss, np.int32(-1), g), d
+    gid = np.where(fixed.gid < 0, np.int32(scene.miss), fixed.gid)
+    depth = fixed.depth.copy()
+    rects, valid = project_boxes(occ.actor_boxes, pose, K)
+    under = np.zeros((h, w), bool)
+    for i0, i1, j0, j1 in _clip_rects(rects[valid], h - 1, w - 1):
+        under[i0:i1 + 1, j0:j1 + 1] = True
+    idx = np.flatnonzero(under)
+    if len(idx):
+        rr, cc = np.divmod(idx, w)
+        xs, ys = _pixel_dirs(cam, K)
+        ta, ga = scene.cast(_rays(pose, xs[cc], ys[rr], NEAR_CLIP_M), exclude_track, with_static=False)
+        ta += np.float32(NEAR_CLIP_M)
+        nearer = ta < depth.ravel()[idx]
+        depth.ravel()[idx[nearer]] = ta[nearer]
+        gid.ravel()[idx[nearer]] = ga[nearer]
+    return gid, depth
+
+
+def _cast_adaptive(
+    cam: CameraSpec,
+    K: np.ndarray,
+    pose: Pose,
+    scene: TickScene,
+    occ: Occluders,
+    exclude_track: int | None,
+    block_px: int,
+    with_actors: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`cast_image` for a camera without a kept static image (``with_actors=False``: the static
+    world alone)."""
     h, w = cam.height, cam.width
     xs, ys = _pixel_dirs(cam, K)
     top = _largest_block(h, w, block_px)
     if top == 1:
         gx, gy = np.meshgrid(xs, ys)
-        t, gid = scene.cast(_rays(pose, gx.ravel(), gy.ravel()), exclude_track, NEAR_CLIP_M)
+        t, gid = scene.cast(_rays(pose, gx.ravel(), gy.ravel()), exclude_track, NEAR_CLIP_M, with_actors=with_actors)
         return gid.reshape(h, w), t.reshape(h, w)
 
     # samples live on the (h + 1) x (w + 1) grid of pixel centres (the last row/column just outside)
@@ -253,20 +280,13 @@ def cast_image(
     for i0, i1, j0, j1 in a_rects:
         actor_px[i0:i1 + 1, j0:j1 + 1] = True
     actor_px = actor_px.ravel()
-    if fixed is not None:
-        fixed = fixed.valid_for(pose, (h + 1) * gw)
-    if fixed is not None and fixed.forced is not None:
-        rr, cc = fixed.forced
-    else:
-        rr, cc = segment_pixels(occ.segments, pose, K, h, w)
-        if len(occ.points):
-            uv, front = project_points(occ.points, pose, K)
-            m = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-            rr = np.concatenate([rr, uv[m, 1].astype(np.int64)])
-            cc = np.concatenate([cc, uv[m, 0].astype(np.int64)])
-        if fixed is not None:
-            fixed.forced = (rr, cc)
-    any_actor = len(a_rects) > 0
+    rr, cc = segment_pixels(occ.segments, pose, K, h, w)
+    if len(occ.points):
+        uv, front = project_points(occ.points, pose, K)
+        m = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        rr = np.concatenate([rr, uv[m, 1].astype(np.int64)])
+        cc = np.concatenate([cc, uv[m, 0].astype(np.int64)])
+    any_actor = with_actors and len(a_rects) > 0
 
     G = np.full((h + 1) * gw, -2, np.int32)
     T = np.full((h + 1) * gw, np.inf, np.float32)
@@ -276,24 +296,12 @@ def cast_image(
         return _rays(pose, xs_ext[cc], ys_ext[rr], NEAR_CLIP_M)
 
     def sample(idx: np.ndarray) -> None:
-        rays = None
-        if fixed is None:
-            rays = rays_at(idx)
-            t, g = scene.cast(rays, exclude_track, with_actors=False)
-        else:  # only the samples not cast at an earlier tick need rays
-            todo = np.nonzero(fixed.gid[idx] == -2)[0]
-            if len(todo):
-                tn, gn = scene.cast(rays_at(idx[todo]), exclude_track, with_actors=False)
-                fixed.t[idx[todo]] = tn
-                fixed.gid[idx[todo]] = np.where(gn == scene.miss, np.int32(-1), gn)
-            t = fixed.t[idx]
-            g = fixed.gid[idx]
-            g[g == -1] = scene.miss
+        rays = rays_at(idx)
+        t, g = scene.cast(rays, exclude_track, with_actors=False)
         if any_actor:
             sel = np.nonzero(actor_px[idx])[0]
             if len(sel):
-                ta, ga = scene.cast(rays[sel] if rays is not None else rays_at(idx[sel]), exclude_track,
-                                    with_static=False)
+                ta, ga = scene.cast(rays[sel], exclude_track, with_static=False)
                 nearer = ta < t[sel]
                 t[sel[nearer]] = ta[nearer]
                 g[sel[nearer]] = ga[nearer]

@@ -24,7 +24,7 @@ from cosim.snapshot import Actor, AgentState, WorldSnapshot
 from cosim.world.types import World
 
 from .bev import BevFrame, render_bev, static_raster
-from .camera import CameraFrame, LightMap, Occluders, StaticSamples, box_corners, cast_image, shade, shading_tables
+from .camera import CameraFrame, LightMap, Occluders, StaticImage, box_corners, cast_image, shade, shading_tables
 from .encoding import submit_encode
 from .environment import Atmosphere, atmosphere
 from .gnss import GnssFrame, render_gnss
@@ -184,7 +184,7 @@ class SensorSuite:
         s = scenario.sensors
         self._bev_raster = static_raster(world.layout, s.bev_cell_m)
         self._biases: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        self._fixed: dict[tuple[str, str], StaticSamples] = {}
+        self._fixed: dict[tuple[str, str], StaticImage] = {}
         self._fixed_lidar: dict[str, StaticHits] = {}
         self._fixed_lock = threading.Lock()
         for i, agent_id in enumerate(scenario.agent_ids()):
@@ -238,9 +238,9 @@ class SensorSuite:
         K = intrinsics(cam)
         pose = camera_pose(agent, cam)
         fixed = None
-        if agent.kind == "rsu":  # RSUs stand still: their cameras keep their static samples
+        if agent.kind == "rsu":  # RSUs stand still: their cameras keep their static image
             with self._fixed_lock:
-                fixed = self._fixed.setdefault((agent.agent_id, cam.name), StaticSamples())
+                fixed = self._fixed.setdefault((agent.agent_id, cam.name), StaticImage())
         gid, depth = cast_image(cam, K, pose, scene, occ, own, self.block_px, fixed)
         t1 = time.perf_counter()
         rgb = encoded = None
