@@ -437,14 +437,6 @@ class LightMap:
     y0: float
     res_m: float
 
-    def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        ny, nx = self.values.shape
-        j = np.clip((x - self.x0) * (1.0 / self.res_m), 0, nx - 1).astype(np.int32)
-        i = np.clip((y - self.y0) * (1.0 / self.res_m), 0, ny - 1).astype(np.int32)
-        i *= np.int32(nx)
-        i += j
-        return np.take(self.values, i)
-
 
 LAMP_RGB = np.array([1.0, 0.82, 0.55], np.float32)  # sodium-ish street light colour
 _GAMMA_LUT = (np.linspace(0.0, 1.0, 4096) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
@@ -492,16 +484,15 @@ def _with_sky(gid: np.ndarray, sky: np.ndarray, first_level: int, cam: CameraSpe
 class ShadingTables:
     """Per global triangle index (rows 0..miss-1), then ``miss`` (unused), then the sky levels.
 
-    ``linear`` (R, 3) float32 colour under sun and sky; ``srgb`` (R, 3) uint8 the same after exposure
-    and gamma; ``albedo`` (R, 3) float32; ``albedo_lamp`` (R, 3) float32 albedo times the street
-    lights' colour; ``emissive`` (R,) float32.
+    ``linear`` (R, 3) float32 colour under sun and sky, plus the lamps' own glow when artificial
+    light is on; ``srgb`` (R, 3) uint8 the same after exposure and gamma; ``albedo`` (R, 3) float32;
+    ``albedo_lamp`` (R, 3) float32 albedo times the street lights' colour.
     """
 
     linear: np.ndarray
     srgb: np.ndarray
     albedo: np.ndarray
     albedo_lamp: np.ndarray
-    emissive: np.ndarray
     miss: int
 
 
@@ -511,8 +502,10 @@ def shading_tables(lut_rgb: np.ndarray, lut_albedo: np.ndarray, lut_emissive: np
     sky = sky_table(atm)
     linear = np.concatenate([lut_rgb.astype(np.float32), sky])
     albedo = np.concatenate([lut_albedo.astype(np.float32), np.zeros_like(sky)])
-    emissive = np.concatenate([lut_emissive.astype(np.float32), np.zeros(len(sky), np.float32)])
-    return ShadingTables(linear, to_srgb(linear, atm.exposure), albedo, albedo * LAMP_RGB, emissive, miss)
+    if atm.artificial > 0:  # lamps glow in their own colour: a constant per triangle
+        glow = np.concatenate([lut_emissive.astype(np.float32), np.zeros(len(sky), np.float32)])
+        linear += albedo * (glow * np.float32(2.0 * atm.artificial))[:, None]
+    return ShadingTables(linear, to_srgb(linear, atm.exposure), albedo, albedo * LAMP_RGB, miss)
 
 
 def shade(
@@ -544,29 +537,13 @@ def shade(
     # numpy is several times slower broadcasting over a last axis of 3: per-pixel factors go to one
     # channel at a time, per-channel constants to (H, 3 W) rows
     wide = rgb.reshape(h, w * 3)
-    if atm.artificial > 0:
-        if light is not None:
-            xs = ((np.arange(w) + 0.5 - K[0, 2]) / K[0, 0]).astype(np.float32)
-            ys = ((np.arange(h) + 0.5 - K[1, 2]) / K[1, 1]).astype(np.float32)
-            r = pose.rotation.astype(np.float32)
-            dep = np.where(sky, np.float32(0), depth)
-            o = pose.position_m.astype(np.float32)  # float32 throughout (a float64 scalar would promote)
-            px = o[0] + dep * (r[0, 0] * xs[None, :] + (r[0, 1] * ys[:, None] + r[0, 2]))
-            py = o[1] + dep * (r[1, 0] * xs[None, :] + (r[1, 1] * ys[:, None] + r[1, 2]))
-            pz = o[2] + dep * (r[2, 0] * xs[None, :] + (r[2, 1] * ys[:, None] + r[2, 2]))
-            # the pools light the ground and the lower few metres of walls
-            e = light.sample(px, py) * np.clip(np.float32(1.0) - pz * np.float32(1 / 8), 0, 1)
-            e *= np.float32(atm.artificial)
-            lit = np.take(tables.albedo_lamp, g, axis=0)
-            for c in range(3):
-                lit[..., c] *= e
-            rgb += lit
-        # lamps glow in their own colour (a few pixels)
-        glow = np.take(tables.emissive, g).ravel()
-        on = np.nonzero(glow)[0]
-        if len(on):
-            glow_on = glow[on] * np.float32(2.0 * atm.artificial)
-            rgb.reshape(-1, 3)[on] += np.take(tables.albedo, g.ravel()[on], axis=0) * glow_on[:, None]
+    if atm.artificial > 0 and light is not None:
+        e = _street_light(light, np.where(sky, np.float32(0), depth), K, pose)
+        e *= np.float32(atm.artificial)
+        lit = np.take(tables.albedo_lamp, g, axis=0)
+        for c in range(3):
+            lit[..., c] *= e
+        rgb += lit
     if atm.beta > 0:  # rgb <- fog + transmittance * (rgb - fog); the sky (depth inf) is all fog
         trans = _ray_lengths(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])) * depth
         trans *= np.float32(-atm.beta)
@@ -583,6 +560,37 @@ def shade(
     rgb *= np.float32(atm.exposure * 4095.0)  # to_srgb, in place
     np.clip(rgb, 0, 4095, out=rgb)
     return np.take(_GAMMA_LUT, rgb.astype(np.int16))
+
+
+def _street_light(light: LightMap, depth: np.ndarray, K: np.ndarray, pose: Pose) -> np.ndarray:
+    """(H, W) float32 artificial irradiance at each pixel's surface point (``depth`` 0 for the sky):
+    the light map at its ground position, fading over the lowest 8 m (pools light the ground and
+    the lower few metres of walls)."""
+    h, w = depth.shape
+    xs = ((np.arange(w) + 0.5 - K[0, 2]) / K[0, 0]).astype(np.float32)
+    ys = ((np.arange(h) + 0.5 - K[1, 2]) / K[1, 1]).astype(np.float32)
+    r = pose.rotation.astype(np.float32)
+    o = pose.position_m.astype(np.float32)  # float32 throughout (a float64 scalar would promote)
+    ny, nx = light.values.shape
+    inv = np.float32(1.0 / light.res_m)
+    # light-map column and row: (o + depth * ray - map origin) / cell, one multiply-add per pixel
+    cells = []
+    for k, (origin, n) in enumerate(((light.x0, nx), (light.y0, ny))):
+        f = depth * ((r[k, 0] * inv) * xs[None, :] + ((r[k, 1] * inv) * ys[:, None] + r[k, 2] * inv))
+        f += np.float32((o[k] - origin) * inv)
+        np.clip(f, 0, n - 1, out=f)
+        cells.append(f.astype(np.int32))
+    j, i = cells
+    i *= np.int32(nx)
+    i += j
+    e = np.take(light.values, i)
+    pz = depth * (r[2, 0] * xs[None, :] + (r[2, 1] * ys[:, None] + r[2, 2]))
+    pz += o[2]
+    pz *= np.float32(-1 / 8)
+    pz += np.float32(1.0)
+    np.clip(pz, 0, 1, out=pz)
+    e *= pz
+    return e
 
 
 @lru_cache(maxsize=16)
