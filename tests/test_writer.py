@@ -146,11 +146,14 @@ def test_background_writer_errors_surface_and_leave_no_file(tmp_path):
     def failing():
         raise OSError(28, "No space left on device")
 
-    with pytest.raises(CosimError, match=r"writing .*ep\.mcap failed: .*No space left"):
-        with EpisodeWriter(path) as w, BackgroundWriter(w) as bg:
-            bg.submit(0, lambda: label_messages(snapshot(0, TrackRegistry())))
-            bg.submit(1, failing)
-            bg.submit(2, lambda: [])  # raises the error of tick 1
+    with (
+        pytest.raises(CosimError, match=r"writing .*ep\.mcap failed: .*No space left"),
+        EpisodeWriter(path) as w,
+        BackgroundWriter(w) as bg,
+    ):
+        bg.submit(0, lambda: label_messages(snapshot(0, TrackRegistry())))
+        bg.submit(1, failing)
+        bg.submit(2, lambda: [])  # raises the error of tick 1
     assert list(tmp_path.iterdir()) == []
 
 
