@@ -166,9 +166,9 @@ class BackgroundWriter:
     a time in submission order, so the file has the same bytes as when written inline. ``submit``
     first waits for the previous tick to be written: at most one tick is in the writer, which
     bounds memory to two ticks' sensor data and pushes back when writing is the slower side. An
-    error in the writer thread is raised by the next ``submit``/``flush``/``finish`` (as a
+    error in the writer thread is raised by the next ``submit`` or ``flush`` (as a
     :class:`~cosim.errors.CosimError` naming the file for an ``OSError``) and the episode is then
-    aborted like any other failure. Use it as a context manager around the :class:`EpisodeWriter`'s.
+    aborted like any other failure. Use it as a context manager inside the :class:`EpisodeWriter`'s.
     """
 
     def __init__(self, writer: EpisodeWriter):

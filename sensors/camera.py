@@ -229,8 +229,7 @@ def cast_image(
     h, w = cam.height, cam.width
     key = pose.rotation.tobytes() + pose.position_m.tobytes() + K.tobytes()
     if key != fixed.key or fixed.gid.shape != (h, w):
-        static_only = Occluders(occ.segments, occ.points, np.zeros((0, 8, 3)))
-        g, d = _cast_adaptive(cam, K, pose, scene, static_only, exclude_track, block_px, with_actors=False)
+        g, d = _cast_adaptive(cam, K, pose, scene, occ, exclude_track, block_px, with_actors=False)
         fixed.key, fixed.gid, fixed.depth = key, np.where(g == scene.miss, np.int32(-1), g), d
     gid = np.where(fixed.gid < 0, np.int32(scene.miss), fixed.gid)
     depth = fixed.depth.copy()
@@ -261,7 +260,7 @@ def _cast_adaptive(
     with_actors: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`cast_image` for a camera without a kept static image (``with_actors=False``: the static
-    world alone)."""
+    world alone, ignoring ``occ.actor_boxes``)."""
     h, w = cam.height, cam.width
     xs, ys = _pixel_dirs(cam, K)
     top = _largest_block(h, w, block_px)
@@ -275,7 +274,7 @@ def _cast_adaptive(
     xs_ext = (np.arange(w + 1) + 0.5 - K[0, 2]) / K[0, 0]
     ys_ext = (np.arange(h + 1) + 0.5 - K[1, 2]) / K[1, 1]
     a_rects, a_valid = project_boxes(occ.actor_boxes, pose, K)
-    a_rects = _clip_rects(a_rects[a_valid], h, w)
+    a_rects = _clip_rects(a_rects[a_valid], h, w) if with_actors else []
     actor_px = np.zeros((h + 1, w + 1), bool)
     for i0, i1, j0, j1 in a_rects:
         actor_px[i0:i1 + 1, j0:j1 + 1] = True
@@ -286,7 +285,7 @@ def _cast_adaptive(
         m = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
         rr = np.concatenate([rr, uv[m, 1].astype(np.int64)])
         cc = np.concatenate([cc, uv[m, 0].astype(np.int64)])
-    any_actor = with_actors and len(a_rects) > 0
+    any_actor = len(a_rects) > 0
 
     G = np.full((h + 1) * gw, -2, np.int32)
     T = np.full((h + 1) * gw, np.inf, np.float32)
@@ -469,10 +468,10 @@ def _sky_level(cam: CameraSpec, K: np.ndarray, pose: Pose, s: int) -> tuple[np.n
 
 def _with_sky(gid: np.ndarray, sky: np.ndarray, first_level: int, cam: CameraSpec, K: np.ndarray, pose: Pose,
               s: int) -> np.ndarray:
-    """A copy of ``gid`` (H, W) int32 with the ``sky`` pixels set to ``first_level`` + their sky level
-    (:func:`_sky_level`, broadcast over its blocks)."""
+    """``gid`` (H, W) int32 with the ``sky`` pixels set to ``first_level`` + their sky level
+    (:func:`_sky_level`, broadcast over its blocks): a new array, or ``gid`` itself without sky."""
     if not sky.any():
-        return gid.copy()
+        return gid
     lvl, s = _sky_level(cam, K, pose, s)
     lvl += np.int32(first_level)
     if s > 1:  # full size first: numpy's where is several times slower through broadcast operands
