@@ -8,7 +8,8 @@ from PIL import Image
 
 from cosim.cli import main
 from cosim.io import open_episode
-from cosim.io.render import bev_points, colourise_semantic, depth_metres, layout_polygons, semantic_palette
+from cosim.io.decode import Image as DecodedImage
+from cosim.io.render import bev_points, colourise_semantic, layout_polygons, semantic_palette
 from cosim.io.synthetic import write_synthetic_episode
 from cosim.tools import parse_ticks
 
@@ -59,11 +60,10 @@ def test_colour_helpers():
     assert tuple(pal[1]) == (128, 64, 128)  # road
     assert colourise_semantic(np.array([[1, 0]]), pal).shape == (1, 2, 3)
 
-    class Img:
-        array = np.array([[0, 1500, 65535]], np.uint16)
-
-    d = depth_metres(Img)
+    d = DecodedImage(0, "f", "16UC1", np.array([[0, 1500, 65535]], np.uint16)).depth_m
     assert np.isnan(d[0, 0]) and d[0, 1] == pytest.approx(1.5) and np.isnan(d[0, 2])
+    d = DecodedImage(0, "f", "32FC1", np.array([[0.0, 80.25, np.inf]], np.float32)).depth_m
+    assert np.isnan(d[0, 0]) and d[0, 1] == pytest.approx(80.25) and np.isnan(d[0, 2])
 
 
 def test_tick_selection():

@@ -71,6 +71,22 @@ class Image:
     def shape(self) -> tuple[int, ...]:
         return tuple(self.array.shape)
 
+    @property
+    def depth_m(self) -> np.ndarray:
+        """This depth image as (H, W) float32 metres, NaN where nothing was hit, whatever its encoding.
+
+        Every reader of depth should use this rather than the raw ``array``, so that the stored encoding
+        (docs/episode_format.md) can change without touching consumers.
+        """
+        a = self.array[..., 0] if self.array.ndim == 3 else self.array
+        if a.dtype.kind in "iu":
+            m = a.astype(np.float32) / 1000.0
+            m[(a == 0) | (a == np.iinfo(a.dtype).max)] = np.nan
+            return m
+        m = a.astype(np.float32)
+        m[~np.isfinite(m) | (m <= 0)] = np.nan
+        return m
+
 
 @dataclass(frozen=True)
 class Calibration:

@@ -46,21 +46,6 @@ def colourise_semantic(ids: np.ndarray, palette: np.ndarray) -> np.ndarray:
     return palette[np.clip(ids.astype(np.int64), 0, 255)]
 
 
-def depth_metres(img: Any) -> np.ndarray:
-    """Depth image (H, W) in metres (float32, NaN where nothing was hit) from 16UC1 mm or 32FC1 m."""
-    a = img.array
-    if a.ndim == 3:
-        a = a[..., 0]
-    if a.dtype == np.uint16 or a.dtype.kind in "iu":
-        m = a.astype(np.float32) / 1000.0
-        m[a == 0] = np.nan
-        m[a == np.iinfo(a.dtype).max] = np.nan
-        return m
-    m = a.astype(np.float32)
-    m[~np.isfinite(m) | (m <= 0)] = np.nan
-    return m
-
-
 def _save(fig: Any, path: Path, dpi: int) -> Path:
     import io
 
@@ -101,7 +86,7 @@ def contact_sheet(ep: Episode, tick: Tick, agent: str, path: Path, dpi: int = 80
             if kind == "image":
                 ax.imshow(img.array, cmap=None if img.array.ndim == 3 else "gray")
             elif kind == "depth":
-                d = depth_metres(img)
+                d = img.depth_m
                 shown = ax.imshow(d, cmap="turbo_r", vmin=0.0, vmax=min(DEPTH_MAX_M, float(np.nanmax(d, initial=1.0))))
                 fig.colorbar(shown, ax=ax, fraction=0.03, pad=0.01)
             else:
