@@ -24,26 +24,35 @@ def subscribe(endpoint: str, key: str, expected: int, ready, out, timeout_s: flo
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    got: list[tuple[str, str, dict, bytes, float]] = []
     with zenoh.open(conf) as session:
         sub = session.declare_subscriber(key)
         ready.set()
-        deadline = time.monotonic() + timeout_s
-        while len(got) < expected and time.monotonic() < deadline:
-            sample = sub.try_recv()
-            if sample is None:
-                time.sleep(0.001)
-                continue
-            got.append(
-                (
-                    str(sample.key_expr),
-                    str(sample.encoding),
-                    json.loads(sample.attachment.to_bytes()),
-                    sample.payload.to_bytes(),
-                    time.monotonic(),
-                )
-            )
+        got = _collect(
+            sub,
+            expected,
+            timeout_s,
+            lambda sample: (
+                str(sample.key_expr),
+                str(sample.encoding),
+                json.loads(sample.attachment.to_bytes()),
+                sample.payload.to_bytes(),
+                time.monotonic(),
+            ),
+        )
     out.put(got)
+
+
+def _collect(sub, expected: int, timeout_s: float, convert) -> list:
+    """``convert(sample)`` for the first ``expected`` samples a Zenoh subscriber receives within ``timeout_s``."""
+    got = []
+    deadline = time.monotonic() + timeout_s
+    while len(got) < expected and time.monotonic() < deadline:
+        sample = sub.try_recv()
+        if sample is None:
+            time.sleep(0.001)
+            continue
+        got.append(convert(sample))
+    return got
 
 
 def _replay_into_subscriber(path, expected, extra_args, key="cosim/replay/**"):
@@ -270,16 +279,9 @@ def subscribe_with_default_config(endpoint: str, key: str, expected: int, out, t
 
     conf = zenoh.Config()
     conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    got: list[tuple[str, bytes]] = []
     with zenoh.open(conf) as session:
         sub = session.declare_subscriber(key)
-        deadline = time.monotonic() + timeout_s
-        while len(got) < expected and time.monotonic() < deadline:
-            sample = sub.try_recv()
-            if sample is None:
-                time.sleep(0.001)
-                continue
-            got.append((str(sample.key_expr), sample.payload.to_bytes()))
+        got = _collect(sub, expected, timeout_s, lambda sample: (str(sample.key_expr), sample.payload.to_bytes()))
     out.put(got)
 
 
