@@ -86,7 +86,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from cosim.io.replay import ReplayEndpoints, ReplayOptions, replay_episode
+    from cosim.io.replay import DEFAULT_FOXGLOVE_HOST, ReplayEndpoints, ReplayOptions, replay_episode
     from cosim.transport import check_endpoint
 
     if args.rate <= 0:
@@ -106,7 +106,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         prefix=args.prefix,
         wait_subscribers_s=args.wait,
         foxglove_port=args.foxglove,
-        foxglove_host=args.foxglove_host or "127.0.0.1",
+        foxglove_host=args.foxglove_host or DEFAULT_FOXGLOVE_HOST,
     )
 
     def announce(where: ReplayEndpoints) -> None:

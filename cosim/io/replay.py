@@ -40,7 +40,6 @@ log = logging.getLogger(__name__)
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 DEFAULT_PREFIX = "cosim/replay"
 DEFAULT_FOXGLOVE_HOST = "127.0.0.1"
-DEFAULT_FOXGLOVE_PORT = 8765
 LINGER_S = 0.5  # [s] kept open after the last message so queued data leaves the process
 STOP_POLL_S = 0.1  # [s] longest wait between two looks at the stop event
 CLOSE_TIMEOUT_S = 3.0  # [s] longest wait for the Foxglove server or the Zenoh session to close
