@@ -115,8 +115,11 @@ def test_replay_bad_input_exits_2(tmp_path, capsys):
     assert main(["replay", str(path), "--topics", "/nope", "--wait", "0"]) == 2
     assert main(["replay", str(path), "--connect", "nonsense"]) == 2
     assert main(["replay", str(tmp_path / "absent.mcap")]) == 2
+    assert main(["replay", str(path), "--foxglove-host", "0.0.0.0"]) == 2
+    assert main(["replay", str(path), "--foxglove", "70000"]) == 2
     err = capsys.readouterr().err
     assert "--rate must be > 0" in err and "no topic matches '/nope'" in err and "invalid endpoint" in err
+    assert "--foxglove-host needs --foxglove" in err and "port must be 0..65535" in err
 
 
 def _foxglove_messages(port: int, wanted: int, timeout_s: float = 30.0) -> list[dict]:
