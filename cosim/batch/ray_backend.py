@@ -46,7 +46,9 @@ def _task(job: Job, fn: EpisodeFn, sink: Any) -> dict[str, Any]:
             last[0] = now
             sink.put.remote(job.episode_id, done, total)  # fire and forget
 
-    return execute(job, fn, progress)
+    import ray
+
+    return {**execute(job, fn, progress), "node": ray.get_runtime_context().get_node_id()}
 
 
 class RayExecutor:
