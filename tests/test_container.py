@@ -145,11 +145,12 @@ def image(base_image: str, wheelhouse: Path, tmp_path_factory) -> str:
 
 
 def run_container(image: str, out: Path, *args: str, detach: bool = False, timeout: float = 600) -> str:
-    """``docker run`` as the calling user with ``out`` mounted at /out; returns stdout (the id if detached)."""
+    """``docker run`` as the calling user with ``out`` mounted at /out; returns stdout (the id if detached).
+
+    A detached container is kept after it exits (for its status and log): remove it with ``docker rm``."""
     out.mkdir(parents=True, exist_ok=True)
-    cmd = ["run", "--rm", "-u", f"{os.getuid()}:{os.getgid()}", "-v", f"{out}:/out", "--label", "cosim-ci=1"]
-    if detach:
-        cmd.append("-d")
+    cmd = ["run", "-u", f"{os.getuid()}:{os.getgid()}", "-v", f"{out}:/out", "--label", "cosim-ci=1"]
+    cmd.append("-d" if detach else "--rm")
     r = docker(*cmd, image, *args, timeout=timeout)
     return r.stdout.strip()
 
@@ -189,9 +190,9 @@ def test_three_shard_containers_fill_one_folder_like_a_local_batch(image, local_
            for i in range(3)]
     try:
         for cid in ids:
-            # --rm removes the container on exit; `docker wait` then answers with its status or "No such".
-            r = docker("wait", cid, timeout=900, check=False)
-            assert r.stdout.strip() in ("0", ""), f"shard container {cid[:12]} exited {r.stdout.strip()}"
+            status = docker("wait", cid, timeout=900).stdout.strip()
+            logs = docker("logs", "--tail", "30", cid, check=False)
+            assert status == "0", f"shard container {cid[:12]} exited {status}:\n{logs.stdout}\n{logs.stderr}"
     finally:
         docker("rm", "-f", *ids, check=False)
     assert sorted(p.name for p in out.glob("manifest*.jsonl")) == [f"manifest.shard{i:03d}of003.jsonl"

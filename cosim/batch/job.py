@@ -72,12 +72,18 @@ def container_id() -> str | None:
     for name in ("/proc/self/cgroup", "/proc/self/mountinfo"):
         try:
             with open(name, encoding="utf-8", errors="replace") as f:
-                found = _CONTAINER_ID.search(f.read())
+                found = container_id_in(f.read())
         except OSError:
             continue
         if found:
-            return found.group(1)
+            return found
     return None
+
+
+def container_id_in(text: str) -> str | None:
+    """The first container id named in a ``/proc/<pid>/cgroup`` or ``mountinfo`` text, else None."""
+    found = _CONTAINER_ID.search(text)
+    return found.group(1) if found else None
 
 
 def placement() -> dict[str, Any]:
