@@ -31,7 +31,7 @@ from cosim.io.validate import validate_episode
 
 from .conftest import REPO, run_cli
 
-pytestmark = [pytest.mark.container, pytest.mark.integration]
+pytestmark = [pytest.mark.container, pytest.mark.integration, pytest.mark.timeout(3600)]
 log = logging.getLogger(__name__)
 
 CACHE = Path(os.environ.get("COSIM_CI_CACHE", Path.home() / ".cache" / "cosim-ci"))

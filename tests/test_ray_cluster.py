@@ -29,7 +29,7 @@ from cosim.batch.manifest import deterministic_view, latest_records, read_record
 from .conftest import REPO
 
 pytest.importorskip("ray")
-pytestmark = [pytest.mark.cluster, pytest.mark.integration]
+pytestmark = [pytest.mark.cluster, pytest.mark.integration, pytest.mark.timeout(1200)]
 
 SMOKE = REPO / "sweeps" / "smoke.yaml"
 HEAD_IP, NODE_IP = "127.0.0.1", "127.0.0.2"
@@ -48,8 +48,10 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _ray_start(*args: str, temp_dir: Path) -> None:
-    """One node; every port it listens on chosen free (defaults would collide with the other node or other Rays)."""
+def _ray_start(*args: str, temp_dir: Path) -> str | None:
+    """One node; every port it listens on chosen free (defaults would collide with the other node or other Rays).
+
+    Returns None, or why it failed: Ray gives a raylet a fixed 30 s to register, which a loaded machine misses."""
     ports = {f"--{name}": str(_free_port()) for name in ("dashboard-agent-listen-port", "dashboard-agent-grpc-port",
                                                           "metrics-export-port", "runtime-env-agent-port",
                                                           "object-manager-port")}
@@ -58,7 +60,46 @@ def _ray_start(*args: str, temp_dir: Path) -> None:
            *(x for kv in ports.items() for x in kv), *args]
     env = {**os.environ, **RAY_ENV, "RAY_TMPDIR": str(temp_dir)}
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=START_TIMEOUT_S, env=env)
-    assert r.returncode == 0, f"ray start failed:\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}"
+    return None if r.returncode == 0 else f"ray start failed:\n{r.stdout[-1500:]}\n{r.stderr[-1500:]}"
+
+
+def _start_node(args: list[str], raylet_ports: list[int], temp_dir: Path, attempts: int = 3) -> int:
+    """Start a node, again on fresh ports after a start-up timeout (the failed one's processes killed)."""
+    failures = []
+    for _ in range(attempts):
+        port = _free_port()
+        raylet_ports.append(port)
+        failure = _ray_start(*args, "--node-manager-port", str(port), temp_dir=temp_dir)
+        if failure is None:
+            return port
+        failures.append(failure)
+        raylet = _raylet(port)
+        _kill([raylet, *raylet.children(recursive=True)] if raylet else [])
+    raise AssertionError("\n".join(failures))
+
+
+PROBE = """
+import json, sys, time, ray
+ray.init(address=sys.argv[1], log_to_driver=False)
+end = time.monotonic() + float(sys.argv[2])
+while True:
+    alive = [(n["NodeManagerAddress"], n["NodeID"]) for n in ray.nodes() if n["Alive"]]
+    if len(alive) == int(sys.argv[3]) or time.monotonic() > end:
+        break
+    time.sleep(1)
+print(json.dumps(alive))
+"""
+
+
+def _alive_nodes(address: str, expect: int, timeout_s: float = 120) -> dict[str, list[str]]:
+    """IP -> ids of the alive nodes, once there are ``expect`` of them (a killed failed start may linger)."""
+    r = subprocess.run([sys.executable, "-c", PROBE, address, str(timeout_s), str(expect)], capture_output=True,
+                       text=True, timeout=timeout_s + 120, env={**os.environ, **RAY_ENV})
+    assert r.returncode == 0, r.stderr[-2000:]
+    by_ip: dict[str, list[str]] = {}
+    for ip, node in json.loads(r.stdout.strip().splitlines()[-1]):
+        by_ip.setdefault(ip, []).append(node)
+    return by_ip
 
 
 def _processes_of(temp_dir: Path, raylet_ports: list[int]) -> list[psutil.Process]:
@@ -96,26 +137,22 @@ def _raylet(port: int) -> psutil.Process | None:
 def cluster():
     """(address, {"head"|"second": node id}, second node's raylet port); torn down whatever happens."""
     temp_dir = Path(tempfile.mkdtemp(prefix="rayc-", dir="/tmp"))  # short: Ray's socket paths must fit
-    gcs_port, head_raylet, node_raylet = _free_port(), _free_port(), _free_port()
+    gcs_port = _free_port()
     address = f"{HEAD_IP}:{gcs_port}"
+    raylet_ports: list[int] = []
     try:
-        _ray_start("--head", "--node-ip-address", HEAD_IP, "--port", str(gcs_port), "--node-manager-port",
-                   str(head_raylet), "--include-dashboard", "false", "--temp-dir", str(temp_dir),
-                   "--min-worker-port", "0", "--max-worker-port", "0", temp_dir=temp_dir)
-        _ray_start("--address", address, "--node-ip-address", NODE_IP, "--node-manager-port", str(node_raylet),
-                   "--min-worker-port", "0", "--max-worker-port", "0", temp_dir=temp_dir)
-        probe = ("import json, ray; ray.init(address=%r, log_to_driver=False); "
-                 "print(json.dumps({n['NodeManagerAddress']: n['NodeID'] for n in ray.nodes() if n['Alive']}))")
-        r = subprocess.run([sys.executable, "-c", probe % address], capture_output=True, text=True, timeout=120,
-                           env={**os.environ, **RAY_ENV})
-        assert r.returncode == 0, r.stderr[-2000:]
-        by_ip = json.loads(r.stdout.strip().splitlines()[-1])
+        _start_node(["--head", "--node-ip-address", HEAD_IP, "--port", str(gcs_port), "--include-dashboard",
+                     "false", "--temp-dir", str(temp_dir), "--min-worker-port", "0", "--max-worker-port", "0"],
+                    raylet_ports, temp_dir, attempts=1)
+        node_raylet = _start_node(["--address", address, "--node-ip-address", NODE_IP, "--min-worker-port", "0",
+                                   "--max-worker-port", "0"], raylet_ports, temp_dir)
+        by_ip = _alive_nodes(address, expect=2)
         # Ray may register the head under the machine's address rather than loopback.
-        assert len(by_ip) == 2 and NODE_IP in by_ip, by_ip
-        nodes = {"second": by_ip.pop(NODE_IP), "head": next(iter(by_ip.values()))}
+        assert len(by_ip) == 2 and len(by_ip.get(NODE_IP, [])) == 1, by_ip
+        nodes = {"second": by_ip.pop(NODE_IP)[0], "head": next(iter(by_ip.values()))[0]}
         yield address, nodes, node_raylet
     finally:
-        _kill(_processes_of(temp_dir, [head_raylet, node_raylet]))
+        _kill(_processes_of(temp_dir, raylet_ports))
         subprocess.run(["rm", "-rf", str(temp_dir)], check=False, timeout=60)
 
 
