@@ -176,15 +176,7 @@ def test_episode_in_a_container_validates_and_matches_the_host(image, tmp_path):
     assert inside_objects == objects_of(host / episode.name)
 
 
-@pytest.fixture(scope="module")
-def local_smoke(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("smoke-local") / "out"
-    r = run_cli("batch", str(SMOKE), "--out", str(out), "--workers", "2", "-q", timeout=900)
-    assert r.returncode == 0, r.stderr[-3000:]
-    return out
-
-
-def test_three_shard_containers_fill_one_folder_like_a_local_batch(image, local_smoke, tmp_path):
+def test_three_shard_containers_fill_one_folder_like_a_local_batch(image, smoke_batch, tmp_path):
     out = tmp_path / "matrix"
     ids = [run_container(image, out, "batch", "smoke", "--out", "/out", "--shard", f"{i}/3", "-q", detach=True)
            for i in range(3)]
@@ -197,12 +189,12 @@ def test_three_shard_containers_fill_one_folder_like_a_local_batch(image, local_
         docker("rm", "-f", *ids, check=False)
     assert sorted(p.name for p in out.glob("manifest*.jsonl")) == [f"manifest.shard{i:03d}of003.jsonl"
                                                                     for i in range(3)]
-    union, local = latest_records(out), latest_records(local_smoke)
+    union, local = latest_records(out), latest_records(smoke_batch)
     assert len(union) == len(local) == 6
     assert all(verify(out, rec) for rec in union.values())
     assert deterministic_view(union.values()) == deterministic_view(local.values())
     for rec in local.values():
-        assert sha256_file(out / rec["file"]) == sha256_file(local_smoke / rec["file"])
+        assert sha256_file(out / rec["file"]) == sha256_file(smoke_batch / rec["file"])
     # Where each episode ran: the three containers, each id being one the test started.
     assert {rec["container"] for rec in union.values()} == set(ids)
     assert all(rec["host"] == rec["container"][:12] for rec in union.values())

@@ -156,15 +156,6 @@ def cluster():
         subprocess.run(["rm", "-rf", str(temp_dir)], check=False, timeout=60)
 
 
-@pytest.fixture(scope="module")
-def local_smoke(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("smoke-local") / "out"
-    r = subprocess.run([sys.executable, "-m", "cosim.cli", "batch", str(SMOKE), "--out", str(out), "--workers", "2",
-                        "-q"], capture_output=True, text=True, timeout=900, cwd=REPO)
-    assert r.returncode == 0, r.stderr[-3000:]
-    return out
-
-
 def _done_on(out: Path, node_id: str) -> int:
     return sum(r.get("status") == "done" and r.get("node") == node_id
                for path in out.glob("manifest*.jsonl") for r in read_records(path))
@@ -179,7 +170,7 @@ def _running_task(raylet: psutil.Process | None) -> bool:
     return False
 
 
-def test_batch_spans_two_nodes_and_survives_losing_one(cluster, local_smoke, tmp_path):
+def test_batch_spans_two_nodes_and_survives_losing_one(cluster, smoke_batch, tmp_path):
     address, nodes, node_raylet_port = cluster
     out = tmp_path / "shared"
     cmd = [sys.executable, "-m", "cosim.cli", "batch", str(SMOKE), "--out", str(out), "--backend", "ray",
@@ -205,11 +196,11 @@ def test_batch_spans_two_nodes_and_survives_losing_one(cluster, local_smoke, tmp
     assert killed, f"the second node never ran a second episode; batch output:\n{stdout[-2000:]}"
     assert batch.returncode == 0, f"{stdout[-2000:]}\n{stderr[-3000:]}"
 
-    final, local = latest_records(out), latest_records(local_smoke)
+    final, local = latest_records(out), latest_records(smoke_batch)
     assert len(final) == 6 and all(verify(out, rec) for rec in final.values())
     assert deterministic_view(final.values()) == deterministic_view(local.values())
     for rec in local.values():
-        assert sha256_file(out / rec["file"]) == sha256_file(local_smoke / rec["file"])
+        assert sha256_file(out / rec["file"]) == sha256_file(smoke_batch / rec["file"])
     ran_on = {rec["node"] for rec in final.values()}
     assert ran_on == {nodes["head"], nodes["second"]}  # both nodes delivered episodes
     lost = [r for path in out.glob("manifest*.jsonl") for r in read_records(path)
