@@ -33,15 +33,15 @@ RUN spec="/src${EXTRAS:+[$EXTRAS]}"; \
 
 # ---- final image: the base, Open3D's system libraries, the environment, scenarios and sweeps
 FROM ${BASE}
-# Open3D's wheel links against these (the Makefile's SYSTEM_LIBS): docker/base.sh's base has them,
-# python:3.11-slim gets them from apt.
+# The Open3D and SUMO wheels link against these (the Makefile's SYSTEM_LIBS): docker/base.sh's base
+# has them, python:3.11-slim gets them from apt.
 RUN missing=; \
-    for lib in libusb-1.0.so.0 libGL.so.1 libEGL.so.1 libgomp.so.1; do \
+    for lib in libusb-1.0.so.0 libGL.so.1 libEGL.so.1 libgomp.so.1 libatomic.so.1 libXrender.so.1; do \
       ldconfig -p | grep -q "$lib" || missing=1; \
     done; \
     if [ -n "$missing" ]; then \
       apt-get update \
-      && apt-get install -y --no-install-recommends libusb-1.0-0 libgl1 libegl1 libgomp1 \
+      && apt-get install -y --no-install-recommends libusb-1.0-0 libgl1 libegl1 libgomp1 libatomic1 libxrender1 \
       && rm -rf /var/lib/apt/lists/*; \
     fi
 COPY --from=build /opt/cosim /opt/cosim

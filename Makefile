@@ -10,7 +10,7 @@ VPY         := $(VENV)/bin/python
 STAMP       := $(VENV)/.cosim-installed
 TEST_STAMP  := $(VENV)/.cosim-test-installed
 PYTHON      ?= $(shell command -v python3.11 2>/dev/null || command -v python3 2>/dev/null)
-SYSTEM_LIBS := libusb-1.0-0 libgl1 libegl1 libgomp1
+SYSTEM_LIBS := libusb-1.0-0 libgl1 libegl1 libgomp1 libatomic1 libxrender1
 APT_LINE    := apt-get update && apt-get install -y --no-install-recommends $(SYSTEM_LIBS)
 SCENARIO    ?= scenarios/default.yaml
 PYTEST_ARGS ?=
@@ -35,10 +35,11 @@ help:
 	@echo "make image  Docker image $(IMAGE) (BASE=$(BASE) WHEELHOUSE=$(WHEELHOUSE) EXTRAS=$(EXTRAS))"
 	@echo "make base-image  cosim-base:bookworm from Debian packages (root, debootstrap; no registry)"
 
-# Open3D's wheel links against these system libraries; install them when we can, else say how.
+# The Open3D and SUMO wheels (libsumo, netconvert) link against these system libraries; install them
+# when we can, else say how.
 sysdeps:
 	@missing=""; \
-	for lib in libusb-1.0.so.0 libGL.so.1 libEGL.so.1 libgomp.so.1; do \
+	for lib in libusb-1.0.so.0 libGL.so.1 libEGL.so.1 libgomp.so.1 libatomic.so.1 libXrender.so.1; do \
 	  ldconfig -p 2>/dev/null | grep -q "$$lib" || missing="$$missing $$lib"; \
 	done; \
 	if [ -n "$$missing" ]; then \

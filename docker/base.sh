@@ -6,9 +6,9 @@
 set -euo pipefail
 TAG="${1:-cosim-base:bookworm}"
 MIRROR="${DEBIAN_MIRROR:-http://deb.debian.org/debian}"
-# python3-venv for the image's virtual environment; the rest is what Open3D's wheel links against
-# (the same list as the Makefile's SYSTEM_LIBS).
-INCLUDE="python3,python3-venv,libusb-1.0-0,libgl1,libegl1,libgomp1"
+# python3-venv for the image's virtual environment; the rest is what the Open3D and SUMO wheels link
+# against (the same list as the Makefile's SYSTEM_LIBS).
+INCLUDE="python3,python3-venv,libusb-1.0-0,libgl1,libegl1,libgomp1,libatomic1,libxrender1"
 [ "$(id -u)" = 0 ] || { echo "docker/base.sh: debootstrap needs root" >&2; exit 1; }
 command -v debootstrap >/dev/null || { echo "docker/base.sh: debootstrap missing (apt-get install debootstrap)" >&2; exit 1; }
 root="$(mktemp -d /tmp/cosim-base.XXXXXX)"
