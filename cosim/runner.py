@@ -272,7 +272,7 @@ def _sensor_suite(loaded: LoadedScenario, world: World) -> _SensorAdapter | None
 
 def _link_model(loaded: LoadedScenario, world: World, suite: _SensorAdapter | None) -> Any:
     """The ``/comm/links`` model (None when ``comm.enabled`` is false); it ray-casts through the
-    sensor suite's static scene, or builds one when sensors are off."""
+    sensor suite's static scene, or through the walls of the layout when sensors are off."""
     s = loaded.scenario
     if not s.comm.enabled:
         return None
@@ -280,7 +280,7 @@ def _link_model(loaded: LoadedScenario, world: World, suite: _SensorAdapter | No
     from cosim.comm.los import LinkScene
 
     if suite is not None:
-        scene = LinkScene(suite.static, world.layout.ground_z_m)
+        scene = LinkScene.of_static(suite.static, world.layout.ground_z_m)
     else:
         scene = LinkScene.from_layout(world.layout)
     return LinkModel(s.comm, scene, world.map_kind, s.seed, s.tick_ns)

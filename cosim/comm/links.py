@@ -181,7 +181,8 @@ def compute_links(snapshot: WorldSnapshot, scene: LinkScene, spec: Any, map_kind
 
     ground = scene.ground_z_m
     kinds = [a.kind for a in agents]
-    types = [link_type(kinds[i], kinds[j]) for i, j in pairs]
+    type_of = {(a, b): link_type(a, b) for a in set(kinds) for b in set(kinds)}
+    types = [type_of[kinds[i], kinds[j]] for i, j in pairs]
     h_all = ant[:, 2] - ground
     h_a, h_b = h_all[ia], h_all[ib]
     is_drone = np.array([k == "drone" for k in kinds])

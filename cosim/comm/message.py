@@ -111,7 +111,7 @@ def links_payload(links: LinkSet, mcs: str, message_bytes: int, bandwidth_hz: fl
     cols: dict[str, list[Any]] = {k: list(getattr(links, k)) for k in TEXT_COLUMNS}
     for name, (decimals, _) in NUMERIC_COLUMNS.items():
         values = np.round(np.asarray(getattr(links, name), np.float64), decimals)
-        cols[name] = [int(v) for v in values] if decimals == 0 else [float(v) for v in values]
+        cols[name] = values.astype(np.int64).tolist() if decimals == 0 else values.tolist()
     return {
         "timestamp_ns": links.t_ns,
         "tick": links.tick,
