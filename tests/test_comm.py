@@ -266,6 +266,56 @@ def test_the_walls_only_scene_gives_the_links_of_the_sensor_suites_scene(urban_t
     assert {"los", "nlos"} <= set(states)
 
 
+# ------------------------------------------------------------------------------- validation
+
+
+def _links_edit(change):
+    """A synthetic-episode edit applying ``change(payload)`` to /comm/links of tick 2."""
+    def edit(tick, topic, msg):
+        if topic == "/comm/links" and tick == 2:
+            name, schema, payload = msg
+            payload = change(json_copy(payload))
+            return None if payload is None else (name, schema, payload)
+        return msg
+    return edit
+
+
+def json_copy(value):
+    import json
+
+    return json.loads(json.dumps(value))
+
+
+def _renamed(payload):
+    payload["links"]["rx"][0] = "vehicle_9"
+    return payload
+
+
+def _short(payload):
+    payload["links"]["per"] = payload["links"]["per"][:-1]
+    return payload
+
+
+@pytest.mark.parametrize(("change", "check", "words"), [
+    (_renamed, "comm", "vehicle_9"),
+    (_short, "comm", "columns differ in length"),
+    (lambda p: None, "completeness", "no message on ticks 2"),
+])
+def test_validate_names_broken_links(tmp_path, change, check, words):
+    from cosim.io import open_episode
+    from cosim.io.synthetic import write_synthetic_episode
+    from cosim.io.validate import validate_episode
+
+    good = write_synthetic_episode(tmp_path / "good.mcap", ticks=4, sensors=False)
+    assert validate_episode(good).ok
+    with open_episode(good) as ep:
+        assert len(ep.tick(1).links()) == 6  # vehicle_0, rsu_0, drone_0: every ordered pair
+    bad = write_synthetic_episode(tmp_path / "bad.mcap", ticks=4, sensors=False, edit=_links_edit(change))
+    report = validate_episode(bad)
+    assert any(p.check == check and words in p.message and p.topic == "/comm/links" for p in report.problems), \
+        report.lines()
+
+
 # ------------------------------------------------------------------------------- real episodes
 
 
