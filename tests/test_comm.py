@@ -162,6 +162,7 @@ def test_link_types_and_ordered_pairs():
         (a.agent_id, b.agent_id) for a in snap.agents for b in snap.agents if a is not b}
     i, j = links.index("vehicle_0", "drone_1"), links.index("drone_1", "vehicle_0")
     assert links.snr_db[i] == links.snr_db[j] and links.link_type[i] == "vehicle-drone"
+    assert len(_links(scene, synthetic_snapshot(1, 0, 0))) == 0  # one agent: no link, no error
 
 
 # ------------------------------------------------------------------------------------ determinism

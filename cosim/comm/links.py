@@ -185,7 +185,7 @@ def compute_links(snapshot: WorldSnapshot, scene: LinkScene, spec: Any, map_kind
     types = [type_of[kinds[i], kinds[j]] for i, j in pairs]
     h_all = ant[:, 2] - ground
     h_a, h_b = h_all[ia], h_all[ib]
-    is_drone = np.array([k == "drone" for k in kinds])
+    is_drone = np.array([k == "drone" for k in kinds], bool)
     drone_h = np.where(is_drone[ia] & is_drone[ib], np.minimum(h_a, h_b),
                        np.where(is_drone[ia], h_a, np.where(is_drone[ib], h_b, np.nan)))
     setting = setting_of(spec, map_kind)
