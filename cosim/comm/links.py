@@ -142,7 +142,7 @@ def pair_channels(types: list[str], state: np.ndarray, d3d_m: np.ndarray, d2d_m:
     umi = np.isin(types_a, ("vehicle-rsu", "rsu-rsu")) | (drone & ~aerial)
     put(umi, "tr38901_umi_sc", ch.umi_sc_los_db(d3d_m, d2d_m, h_bs, h_ut, fc_ghz),
         ch.umi_sc_nlos_db(d3d_m, d2d_m, h_bs, h_ut, fc_ghz), 4.0, 7.82, ch.DECORRELATION_M["umi_sc"])
-    h = np.where(np.isfinite(drone_h_m), drone_h_m, 100.0)
+    h = np.maximum(np.where(np.isfinite(drone_h_m), drone_h_m, 100.0), 1.0)  # only aerial rows are kept
     av_los, av_nlos = {
         "umi_av": (ch.umi_av_los_db, ch.umi_av_nlos_db),
         "uma_av": (ch.uma_av_los_db, ch.uma_av_nlos_db),
