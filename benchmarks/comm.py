@@ -47,8 +47,8 @@ def run(args: argparse.Namespace) -> None:
     t0 = time.perf_counter()
     own_scene = LinkScene.from_layout(world.layout)
     t_scene = time.perf_counter() - t0
-    print(f"world: {len(world.layout.prisms)} prisms, {own_scene.static.n_triangles} static triangles; "
-          f"{len(snaps[0].agents)} agents, {len(snaps[0].actors)} actors; link scene (sensors off, once per "
+    print(f"world: {len(world.layout.prisms)} prisms, {own_scene.n_triangles} wall triangles; "
+          f"{len(snaps[0].agents)} agents, {len(snaps[0].actors)} actors; link scene without sensors (once per "
           f"episode) {t_scene * 1e3:.0f} ms")
 
     suite = SensorSuite(sc, world)
