@@ -355,6 +355,7 @@ def test_comm_disabled_writes_no_links_and_changes_no_other_message(episodes):
     with open_episode(episodes["on"]) as on, open_episode(episodes["off"]) as off:
         assert "/comm/links" not in off.topics
         assert set(on.topics) - set(off.topics) == {"/comm/links"}
+        assert on.metadata == off.metadata  # only the scenario.yaml attachment names comm.enabled
         for topic in off.topics:
             assert [m.data for m in on.messages(topic)] == [m.data for m in off.messages(topic)], topic
 
