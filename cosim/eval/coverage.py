@@ -151,7 +151,8 @@ def heat_maps(result: CoverageResult, path: Path) -> Path:
     for ax, (title, xy) in zip(axes, (("seen by no agent", result.uncovered_xy),
                                       ("seen only by drones", result.drone_only_xy)), strict=True):
         h, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=(xb, yb))
-        im = ax.imshow(h.T, origin="lower", extent=(-hx, hx, -hy, hy), aspect="auto", cmap="magma")
+        im = ax.imshow(h.T, origin="lower", extent=(-hx, hx, -hy, hy), aspect="equal", cmap="magma",
+                       vmin=0, vmax=max(1.0, float(h.max())))
         ax.plot([0], [0], marker=">", color="cyan", markersize=8)
         ax.set_title(f"objects {title} ({len(xy)} object-ticks)", fontsize=10)
         ax.set_ylabel("y left (m)")
