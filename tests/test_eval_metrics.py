@@ -55,7 +55,7 @@ def test_rectangle_and_its_quarter_turn_and_disjoint_boxes():
 
 def test_iou_agrees_with_a_fine_raster_on_random_boxes():
     rng = np.random.default_rng(1)
-    xs = np.linspace(-6, 6, 1201)
+    xs = np.linspace(-5, 5, 1001)
     gx, gy = np.meshgrid(xs, xs)
     pts = np.stack([gx.ravel(), gy.ravel()], axis=1)
 
@@ -64,9 +64,9 @@ def test_iou_agrees_with_a_fine_raster_on_random_boxes():
         rel = pts[:, None, :] - fp[None, :, :]
         return ((edges[None, :, 0] * rel[..., 1] - edges[None, :, 1] * rel[..., 0]) >= 0).all(axis=1)
 
-    for _ in range(6):
-        a = box(*rng.uniform(-1, 1, 2), *rng.uniform(1, 5, 2), rng.uniform(-math.pi, math.pi))
-        b = box(*rng.uniform(-1, 1, 2), *rng.uniform(1, 5, 2), rng.uniform(-math.pi, math.pi))
+    for _ in range(4):
+        a = box(*rng.uniform(-1, 1, 2), *rng.uniform(1, 4, 2), rng.uniform(-math.pi, math.pi))
+        b = box(*rng.uniform(-1, 1, 2), *rng.uniform(1, 4, 2), rng.uniform(-math.pi, math.pi))
         ia, ib = inside(a[0]), inside(b[0])
         raster = np.count_nonzero(ia & ib) / np.count_nonzero(ia | ib)
         assert iou(a, b) == pytest.approx(raster, abs=0.01)
