@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 from cosim.eval.ap import DetectionAccumulator, match_frame, voc_ap
-from cosim.eval.boxes import clip_convex, footprints, iou_matrix, polygon_area
+from cosim.eval.boxes import footprints, iou_matrix
 from cosim.eval.dataset import FrameTruth
 from cosim.eval.evaluate import EvalOptions, SegAccumulator, _score_frame
 from cosim.eval.predictions import PredictionError, parse_record, read_predictions
+from cosim.traffic.metrics import convex_overlap_area
 
 from .conftest import run_cli
 
@@ -33,7 +34,7 @@ def test_unit_squares_rotated_45_degrees_overlap_in_a_regular_octagon():
     # the octagon cuts four corner triangles of legs (sqrt(2)/2 - 1/2) * sqrt(2) from the unit square:
     # intersection 2 (sqrt(2) - 1), union 4 - 2 sqrt(2), IoU = 1 / sqrt(2)
     a, b = box(length=1, width=1), box(length=1, width=1, yaw=math.pi / 4)
-    inter = abs(polygon_area(clip_convex(a[0], b[0])))
+    inter = convex_overlap_area(a[0], b[0])
     assert inter == pytest.approx(2 * (math.sqrt(2) - 1), abs=1e-12)
     assert iou(a, b) == pytest.approx(1 / math.sqrt(2), abs=1e-12)
 

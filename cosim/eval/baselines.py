@@ -21,7 +21,8 @@ import numpy as np
 from cosim.errors import InputError
 from cosim.eval.dataset import DEFAULT_RULE, EpisodeRef, FrameTruth, VisibilityRule, iter_truth, require_visibility
 from cosim.eval.predictions import SETTINGS, record_json
-from cosim.io import open_episode
+from cosim.io import Grid, open_episode
+from cosim.snapshot import Actor, AgentState
 
 
 @dataclass(frozen=True)
@@ -108,7 +109,7 @@ def write_predictions(model: OracleNoise, refs: Sequence[EpisodeRef], out_file: 
     return out_file
 
 
-def _bev_grids(ref: EpisodeRef) -> dict[tuple[int, str], object]:
+def _bev_grids(ref: EpisodeRef) -> dict[tuple[int, str], Grid]:
     egos = [a for a in ref.agents if a.startswith("vehicle_")]
     with open_episode(ref.path) as ep:
         if not all(f"/{e}/bev" in ep.topics for e in egos):
@@ -116,43 +117,36 @@ def _bev_grids(ref: EpisodeRef) -> dict[tuple[int, str], object]:
         return {(t.index, e): t.bev(e) for t in ep.ticks(topics=[f"/{e}/bev" for e in egos]) for e in egos}
 
 
-def rasterise_boxes(grid: object, map_centers: np.ndarray, map_yaws: np.ndarray, sizes: np.ndarray) -> np.ndarray:
-    """(rows, columns) bool: cells of a ``foxglove.Grid`` (cosim BEV) whose centre lies inside a box footprint.
+def rasterise_boxes(grid: Grid, map_centers: np.ndarray, map_yaws: np.ndarray, sizes: np.ndarray,
+                    classes: tuple[str, ...]) -> np.ndarray:
+    """Object layers of the episode's BEV grid drawn from boxes in ``map`` (centres (N, 3), yaws (N,), sizes
+    (N, 3)) by the BEV renderer itself (sensors/bev.py), so a perfect box fills exactly the true cells.
 
-    Boxes are given in ``map`` (centres (N, 3), yaws (N,), sizes (N, 3)); the grid's pose places its
-    cell (0, 0) corner in map with its yaw, rows along its y, columns along its x.
+    Returns (rows, columns, len(BEV_LAYERS)) uint8; the static layers are empty.
     """
-    rows, cols = grid.cells.shape  # type: ignore[attr-defined]
-    cell = float(grid.cell_size_m[0])  # type: ignore[attr-defined]
-    q = grid.origin_rotation  # type: ignore[attr-defined]
+    from cosim.sensors.bev import StaticRaster, render_bev  # the sensor package loads Open3D: only when needed
+    rows, cols = grid.cells.shape
+    cell = float(grid.cell_size_m[0])
+    q = grid.origin_rotation
     gyaw = math.atan2(2 * (q[3] * q[2] + q[0] * q[1]), 1 - 2 * (q[1] ** 2 + q[2] ** 2))
-    cg, sg = math.cos(gyaw), math.sin(gyaw)
-    ox, oy = float(grid.origin_m[0]), float(grid.origin_m[1])  # type: ignore[attr-defined]
-    out = np.zeros((rows, cols), bool)
-    gx = (np.arange(cols) + 0.5) * cell
-    gy = (np.arange(rows) + 0.5) * cell
-    for (cx, cy, _), yaw, (length, width, _) in zip(map_centers, map_yaws, sizes, strict=True):
-        dx, dy = cx - ox, cy - oy
-        ex, ey = cg * dx + sg * dy, -sg * dx + cg * dy  # centre in the grid frame
-        a = yaw - gyaw
-        ca, sa = math.cos(a), math.sin(a)
-        rx = abs(ca) * length / 2 + abs(sa) * width / 2
-        ry = abs(sa) * length / 2 + abs(ca) * width / 2
-        j0, j1 = max(0, int((ex - rx) / cell)), min(cols, math.ceil((ex + rx) / cell))
-        i0, i1 = max(0, int((ey - ry) / cell)), min(rows, math.ceil((ey + ry) / cell))
-        if j0 >= j1 or i0 >= i1:
-            continue
-        px = gx[None, j0:j1] - ex
-        py = gy[i0:i1, None] - ey
-        lx = ca * px + sa * py
-        ly = -sa * px + ca * py
-        out[i0:i1, j0:j1] |= (np.abs(lx) <= length / 2) & (np.abs(ly) <= width / 2)
-    return out
+    hx, hy = cols * cell / 2, rows * cell / 2
+    centre = (float(grid.origin_m[0] + math.cos(gyaw) * hx - math.sin(gyaw) * hy),
+              float(grid.origin_m[1] + math.sin(gyaw) * hx + math.cos(gyaw) * hy), 0.0)
+
+    def quat(yaw: float) -> tuple[float, float, float, float]:
+        return (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
+
+    viewer = AgentState("eval", "vehicle", centre, quat(gyaw))
+    actors = tuple(Actor(i + 1, k, tuple(float(v) for v in c), tuple(float(v) for v in s), quat(float(y)),
+                         (0.0, 0.0, 0.0), None)  # type: ignore[arg-type]
+                   for i, (c, y, s, k) in enumerate(zip(map_centers, map_yaws, sizes, classes, strict=True)))
+    empty = StaticRaster(np.zeros((1, 1), np.uint16), 0.0, 0.0, cell)
+    return render_bev(viewer, empty, actors, cell, (hx, hy)).grid
 
 
-def _write_bev(path: Path, grid: object, truth: FrameTruth, centers: np.ndarray, sizes: np.ndarray,
+def _write_bev(path: Path, grid: Grid, truth: FrameTruth, centers: np.ndarray, sizes: np.ndarray,
                yaws: np.ndarray, classes: tuple[str, ...], object_classes: tuple[str, ...]) -> None:
-    names = grid.cells.dtype.names or ()  # type: ignore[attr-defined]
+    names = grid.cells.dtype.names or ()
     if truth.ego_box is not None:  # the ego knows where it is: its own footprint is in its BEV
         c, s, y, k = truth.ego_box
         centers, sizes = np.vstack([centers, c]), np.vstack([sizes, s])
@@ -160,13 +154,14 @@ def _write_bev(path: Path, grid: object, truth: FrameTruth, centers: np.ndarray,
     map_from_ego = np.linalg.inv(truth.ego_from_map)
     map_centers = centers @ map_from_ego[:3, :3].T + map_from_ego[:3, 3]
     map_yaws = yaws + math.atan2(map_from_ego[1, 0], map_from_ego[0, 0])
+    from cosim.sensors.bev import BEV_LAYERS
+
+    drawn = rasterise_boxes(grid, map_centers, map_yaws, sizes, classes)
     layers: dict[str, np.ndarray] = {}
-    cls = np.array(classes, dtype=object)
     for name in names:
-        if name in object_classes:
-            m = cls == name if len(cls) else np.zeros(0, bool)
-            layers[name] = rasterise_boxes(grid, map_centers[m], map_yaws[m], sizes[m])
-        else:
-            layers[name] = grid.cells[name].astype(bool)  # type: ignore[attr-defined]
+        if name in object_classes and name in BEV_LAYERS:
+            layers[name] = drawn[..., BEV_LAYERS.index(name)].astype(bool)
+        else:  # the map layers: a perfect map prior
+            layers[name] = grid.cells[name].astype(bool)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(path, **layers)

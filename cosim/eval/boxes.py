@@ -1,9 +1,10 @@
-"""Rotated boxes in bird's-eye view: footprints, convex polygon clipping, IoU, frame changes.
+"""Rotated boxes in bird's-eye view: footprints, IoU, frame changes.
 
 A BEV box is (x, y, length, width, yaw): centre [m], size along its own x and y [m], yaw [rad] about
 +z from +x of the frame it is given in. Footprints are (4, 2) corner arrays, counter-clockwise.
 IoU is the area of the footprints' intersection over the area of their union (the definition of
-the collaborative-perception literature: polygon intersection, no height).
+the collaborative-perception literature: polygon intersection, no height); the intersection is
+:func:`cosim.traffic.metrics.convex_overlap_area` (Sutherland-Hodgman clipping of convex polygons).
 """
 
 from __future__ import annotations
@@ -11,6 +12,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from cosim.traffic.metrics import convex_overlap_area
 
 _EPS = 1e-12
 
@@ -36,34 +39,6 @@ def polygon_area(poly: np.ndarray) -> float:
     return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
 
 
-def clip_convex(subject: np.ndarray, clip: np.ndarray) -> np.ndarray:
-    """Intersection (K, 2) of a convex polygon with a convex counter-clockwise polygon (Sutherland-Hodgman).
-
-    Returns an empty (0, 2) array when they do not overlap.
-    """
-    out = np.asarray(subject, np.float64)
-    n = len(clip)
-    for i in range(n):
-        if len(out) == 0:
-            break
-        a, b = clip[i], clip[(i + 1) % n]
-        edge = b - a
-        # > 0: left of the edge, inside a counter-clockwise polygon
-        side = edge[0] * (out[:, 1] - a[1]) - edge[1] * (out[:, 0] - a[0])
-        kept: list[np.ndarray] = []
-        m = len(out)
-        for j in range(m):
-            p, q = out[j], out[(j + 1) % m]
-            sp, sq = side[j], side[(j + 1) % m]
-            if sp >= 0:
-                kept.append(p)
-            if (sp >= 0) != (sq >= 0):
-                t = sp / (sp - sq)
-                kept.append(p + t * (q - p))
-        out = np.array(kept) if kept else np.zeros((0, 2))
-    return out
-
-
 def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """BEV IoU (N, M) between footprints ``a`` (N, 4, 2) and ``b`` (M, 4, 2)."""
     a = np.asarray(a, np.float64).reshape(-1, 4, 2)
@@ -78,7 +53,7 @@ def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     area_b = np.array([abs(polygon_area(p)) for p in b])
     dist = np.linalg.norm(ca[:, None, :] - cb[None, :, :], axis=2)
     for i, j in zip(*np.nonzero(dist < ra[:, None] + rb[None, :]), strict=True):
-        inter = abs(polygon_area(clip_convex(a[i], b[j])))
+        inter = convex_overlap_area(a[i], b[j])
         union = area_a[i] + area_b[j] - inter
         out[i, j] = inter / union if union > _EPS else 0.0
     return out
