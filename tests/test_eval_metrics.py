@@ -12,7 +12,7 @@ import pytest
 from cosim.eval.ap import DetectionAccumulator, match_frame, voc_ap
 from cosim.eval.boxes import footprints, iou_matrix
 from cosim.eval.dataset import FrameTruth
-from cosim.eval.evaluate import EvalOptions, SegAccumulator, _score_frame
+from cosim.eval.evaluate import EvalOptions, EvalResult, SegAccumulator, _score_frame
 from cosim.eval.predictions import PredictionError, parse_record, read_predictions
 from cosim.traffic.metrics import convex_overlap_area
 
@@ -189,6 +189,15 @@ def test_release_mode_uses_the_corner_and_z_band_rule():
     assert (default.n_gt, default.n_tp, default.ap) == (2, 2, pytest.approx(1.0))
     # the bus is dropped from the ground truth, so its (higher-scored) detection is a false positive
     assert (release.n_gt, release.n_tp, release.ap) == (1, 1, pytest.approx(0.5))
+
+
+def test_no_ground_truth_is_na_by_default_and_zero_in_release_mode():
+    truth = _truth([[300, 0, 0]], ["car"])  # outside the area: no ground truth in the frame
+    for options, expected in ((EvalOptions(), None), (EvalOptions(compat="airv2x"), 0.0)):
+        cell = _score_frame(_pred([_b(10, 0)]), truth, options, set(), None)
+        result = EvalResult({("all", "overall", "all"): cell}, options, ["vehicle"], 1, 1, 0)
+        ap = result.metrics("all")["detection"]["vehicle"]["AP50"]
+        assert math.isnan(ap) if expected is None else ap == expected
 
 
 # ----------------------------------------------------------------------------------- segmentation

@@ -13,6 +13,7 @@ what                           default                              ``--compat a
 ranking of detections          global by score over all frames      per-frame lists concatenated in frame
                                                                     order (AP depends on frame order)
 frame without any detection    its ground truth counts (misses)     skipped: its ground truth never counts
+no ground truth at all         AP n/a                               AP 0
 ground truth in the area       box centre inside x +-140.8, y +-40  all 8 corners inside x +-140.8, y +-40
                                                                     and z in [-3, 1] m (tall boxes drop)
 segmentation IoU               intersection / union summed over     per-frame IoU averaged over frames; a
@@ -132,7 +133,8 @@ class EvalResult:
             d: dict[str, Any] = {}
             for thr in self.options.thresholds:
                 r = acc.result(thr, frame_order=release)
-                d[f"AP{round(thr * 100)}"] = 100.0 * r.ap
+                ap = 0.0 if release and r.n_gt == 0 else r.ap  # the release scores "no ground truth" as 0
+                d[f"AP{round(thr * 100)}"] = 100.0 * ap
                 d["n_gt"], d["n_det"] = r.n_gt, r.n_det
             out["detection"][g] = d
         ious = cell.seg.ious(release)
