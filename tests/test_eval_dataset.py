@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from cosim.cli import main
+from cosim.errors import InputError
 from cosim.eval.baselines import OracleNoise, write_predictions
 from cosim.eval.coverage import compute_coverage
 from cosim.eval.dataset import VEHICLE_CLASSES, VisibilityRule, load_dataset
@@ -168,6 +169,20 @@ def test_growing_noise_lowers_ap70_before_ap30(batch, tmp_path):
         assert a30 >= a50 >= a70
         assert 100 - a70 > 100 - a30  # the strict threshold loses first and most
     assert aps[1][0] == 100.0 and aps[1][2] < 100.0
+
+
+def test_baseline_predictions_are_deterministic_and_splits_are_checked(batch, tmp_path):
+    refs = load_dataset(batch)
+    model = OracleNoise(pos_sigma_m=0.3, yaw_sigma_deg=3, miss_rate=0.2, seed=5, bev=False)
+    a = write_predictions(model, refs, tmp_path / "a.jsonl").read_bytes()
+    b = write_predictions(model, refs, tmp_path / "b.jsonl").read_bytes()
+    assert a == b and len(a) > 1000
+    other = write_predictions(OracleNoise(pos_sigma_m=0.3, yaw_sigma_deg=3, miss_rate=0.2, seed=6, bev=False), refs,
+                              tmp_path / "c.jsonl").read_bytes()
+    assert other != a
+    with pytest.raises(InputError, match=r"no episode in split 'test'; splits present: all"):
+        load_dataset(batch, split="test")
+    assert [r.id for r in load_dataset(batch, split="all")] == [r.id for r in refs]
 
 
 def test_release_compat_mode_skips_frames_without_detections(batch, oracle_run, tmp_path, capsys):

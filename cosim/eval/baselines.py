@@ -50,8 +50,7 @@ class OracleNoise:
     def boxes(self, truth: FrameTruth, setting: str, rng: np.random.Generator
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...], np.ndarray]:
         """Noisy boxes (centres, sizes, yaws, classes, scores) of the objects ``setting`` sees."""
-        assert truth.seen is not None
-        idx = np.nonzero(truth.seen[setting])[0]
+        idx = np.nonzero(require_visibility(truth, "the oracle-noise baseline")[setting])[0]
         n = len(idx)
         keep = rng.random(n) >= self.miss_rate
         d_xy = rng.normal(0.0, 1.0, (n, 2)) * self.pos_sigma_m
@@ -93,7 +92,6 @@ def write_predictions(model: OracleNoise, refs: Sequence[EpisodeRef], out_file: 
         for n, ref in enumerate(refs):
             bevs = _bev_grids(ref) if model.bev else {}
             for truth in iter_truth(ref, rule=rule):
-                require_visibility(truth, "the oracle-noise baseline")
                 grid = bevs.get((truth.tick, truth.ego))
                 for si, setting in enumerate(settings):
                     rng = np.random.default_rng([model.seed, n, truth.tick, ref.agents.index(truth.ego), si])

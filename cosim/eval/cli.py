@@ -38,7 +38,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
         raise InputError("give either --pred PREDICTIONS (your model's output) or --baseline NAME")
     options = EvalOptions(visible_only=args.visible_only, rule=_rule(args), compat=args.compat, seed=args.seed)
     out = Path(args.out)
-    predictions = read_predictions(Path(args.pred)) if args.pred is not None else None  # fail fast on bad files
+    if args.pred is not None:
+        predictions = read_predictions(Path(args.pred))  # before reading the dataset: fail fast on a bad file
+        title = f"Evaluation of {args.pred}"
     refs = load_dataset(Path(args.gt), split=args.split)
     if args.baseline is not None:
         model = baseline(args.baseline, pos_sigma_m=args.pos_sigma_m, size_sigma=args.size_sigma,
@@ -50,9 +52,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
         title = (f"Evaluation of the {args.baseline} baseline (position sigma {args.pos_sigma_m} m, size sigma "
                  f"{args.size_sigma}, yaw sigma {args.yaw_sigma_deg} deg, miss rate {args.miss_rate})")
         predictions = read_predictions(pred_path)
-    else:
-        title = f"Evaluation of {args.pred}"
-    assert predictions is not None
     result = evaluate(refs, predictions, options, progress=_log_progress("eval"))
     written = write_eval(result, out, title)
     print(eval_tables(result)[0].markdown(), end="")

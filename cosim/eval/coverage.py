@@ -74,10 +74,9 @@ def compute_coverage(refs: Sequence[EpisodeRef], rule: VisibilityRule = DEFAULT_
         for k in keys:
             counts.setdefault(k, CoverageCounts())
         for truth in iter_truth(ref, egos=egos, rule=rule):
-            require_visibility(truth, "coverage")
-            assert truth.seen is not None
+            seen_by = require_visibility(truth, "coverage")
             mask = truth.in_area & np.array([c in wanted for c in truth.classes], bool)
-            seen = {s: int(np.count_nonzero(truth.seen[s] & mask)) for s in SETTINGS}
+            seen = {s: int(np.count_nonzero(seen_by[s] & mask)) for s in SETTINGS}
             for k in keys:
                 c = counts[k]
                 c.frames += 1
@@ -85,8 +84,8 @@ def compute_coverage(refs: Sequence[EpisodeRef], rule: VisibilityRule = DEFAULT_
                 for s in SETTINGS:
                     c.seen[s] += seen[s]
             xy = truth.centers_m[:, :2]
-            uncovered.append(xy[mask & ~truth.seen["all"]])
-            drone_only.append(xy[mask & truth.seen["all"] & ~truth.seen["vehicles+rsus"]])
+            uncovered.append(xy[mask & ~seen_by["all"]])
+            drone_only.append(xy[mask & seen_by["all"] & ~seen_by["vehicles+rsus"]])
         if progress:
             progress(n + 1, len(refs))
     return CoverageResult(counts, _stack(uncovered), _stack(drone_only), len(refs), rule, tuple(classes))

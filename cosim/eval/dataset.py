@@ -216,7 +216,9 @@ def iter_truth(ref: EpisodeRef, egos: list[str] | None = None, rule: VisibilityR
                 )
 
 
-def require_visibility(truth: FrameTruth, what: str) -> None:
+def require_visibility(truth: FrameTruth, what: str) -> dict[str, np.ndarray]:
+    """``truth.seen``; an :class:`InputError` naming the episode when it has no visibility topics."""
     if truth.seen is None:
         raise InputError(f"episode {truth.episode} has no /<agent>/visibility topics (labels-only episode, "
                          f"sensors.enabled: false?); {what} needs them: generate the data with sensors on")
+    return truth.seen

@@ -121,8 +121,16 @@ class EvalResult:
     episodes: int
     records: int
     skipped_frames: int
+    _memo: dict[tuple[str, str, str], dict[str, Any]] = field(default_factory=dict, repr=False)
 
     def metrics(self, setting: str, breakdown: str = "overall", value: str = "all") -> dict[str, Any]:
+        """AP (in %) per group and threshold, segmentation IoU (in %) per layer and mIoU, frame counts."""
+        key = (setting, breakdown, value)
+        if key not in self._memo:
+            self._memo[key] = self._metrics(*key)
+        return self._memo[key]
+
+    def _metrics(self, setting: str, breakdown: str, value: str) -> dict[str, Any]:
         cell = self.cells.get((setting, breakdown, value))
         out: dict[str, Any] = {"frames": 0, "detection": {}, "segmentation": {}}
         if cell is None:
@@ -218,9 +226,7 @@ def _score_frame(rec: FramePrediction, truth: FrameTruth, options: EvalOptions, 
     release = options.compat == "airv2x"
     gt_mask = truth.in_area_release if release else truth.in_area
     if options.visible_only:
-        require_visibility(truth, "--visible-only")
-        assert truth.seen is not None
-        gt_mask = gt_mask & truth.seen[rec.agents]
+        gt_mask = gt_mask & require_visibility(truth, "--visible-only")[rec.agents]
     det_mask = _in_area(rec.centers_m)
     det_fp = footprints(rec.centers_m[:, :2], rec.sizes_m[:, :2], rec.yaws_rad)
     gt_fp = truth.footprints()
