@@ -62,10 +62,17 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def cmd_coverage(args: argparse.Namespace) -> int:
     from cosim.eval.coverage import compute_coverage, coverage_tables, write_coverage
-    from cosim.eval.dataset import load_dataset
+    from cosim.eval.dataset import VEHICLE_CLASSES, load_dataset
 
+    rule = _rule(args)
     refs = load_dataset(Path(args.dataset), split=args.split)
-    result = compute_coverage(refs, _rule(args), classes=tuple(args.classes), progress=_log_progress("coverage"))
+    known = set(refs[0].object_classes) or set(VEHICLE_CLASSES)
+    unknown = [c for c in args.classes or () if c not in known]
+    if unknown:
+        raise InputError(f"--classes: unknown class {unknown[0]!r}; the episodes' object classes are "
+                         f"{', '.join(refs[0].object_classes)}")
+    result = compute_coverage(refs, rule, classes=tuple(args.classes or VEHICLE_CLASSES),
+                              progress=_log_progress("coverage"))
     written = write_coverage(result, Path(args.out))
     for t in coverage_tables(result):
         print(t.markdown())
@@ -83,10 +90,7 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add ``eval`` and ``coverage`` to the ``cosim`` command."""
-    from cosim.eval.dataset import VEHICLE_CLASSES
-    from cosim.eval.evaluate import COMPAT_MODES
-
+    """Add ``eval`` and ``coverage`` to the ``cosim`` command (imports nothing heavy: every cosim start runs it)."""
     p = sub.add_parser("eval", help="score detections / BEV segmentation like the paper's tables (docs/evaluation.md)")
     p.add_argument("--gt", required=True, metavar="DATASET", help="episode file or batch folder")
     p.add_argument("--pred", metavar="PREDICTIONS", help="prediction .jsonl file or folder (docs/evaluation.md)")
@@ -95,7 +99,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     _common(p)
     p.add_argument("--visible-only", action="store_true",
                    help="ground truth only where an agent of the record's setting sees the object")
-    p.add_argument("--compat", choices=COMPAT_MODES, help="reproduce the AirV2X release's scoring (see docs)")
+    p.add_argument("--compat", metavar="MODE", help="airv2x: reproduce the AirV2X release's scoring (see docs)")
     p.add_argument("--seed", type=int, default=0, help="baseline noise and compat subset seed (default 0)")
     g = p.add_argument_group("oracle-noise baseline")
     g.add_argument("--pos-sigma-m", type=float, default=0.0, help="centre noise, std along x and y [m]")
@@ -109,6 +113,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dataset", metavar="DATASET", help="episode file or batch folder (episodes with sensors)")
     p.add_argument("--out", default="coverage", help="output folder for tables and plots (default: ./coverage)")
     _common(p)
-    p.add_argument("--classes", nargs="+", default=list(VEHICLE_CLASSES), metavar="CLASS",
-                   help="object classes counted (default: the vehicle classes)")
+    p.add_argument("--classes", nargs="+", metavar="CLASS",
+                   help="object classes counted (default: car van truck bus motorcycle bicycle)")
     p.set_defaults(func=cmd_coverage)
