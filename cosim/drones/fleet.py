@@ -18,7 +18,16 @@ from cosim.drones.backends import backend_class
 from cosim.drones.backends.base import DynamicsBackend
 from cosim.drones.control import BodyState, Controller, Limits, yaw_of
 from cosim.drones.obstacles import Obstacles
-from cosim.drones.routes import RoadGraph, hover_point, patrol_loop, ranked_junctions, road_graph, world_centre
+from cosim.drones.routes import (
+    LanePaths,
+    RoadGraph,
+    hover_point,
+    lane_paths,
+    patrol_loop,
+    ranked_junctions,
+    road_graph,
+    world_centre,
+)
 from cosim.drones.strategies import (
     Escort,
     Hover,
@@ -62,10 +71,11 @@ def build_strategy(
     obstacles: Obstacles,
     roads: RoadGraph | None = None,
     taken: set | None = None,
+    lanes: LanePaths | None = None,
 ) -> Strategy:
     """The strategy of one drone; ``kind_index`` counts drones of the same strategy (0, 1, ...);
     generated patrol loops follow ``roads`` (:func:`road_graph`) when given, avoiding blocks in
-    ``taken`` (see :func:`patrol_loop`).
+    ``taken`` (see :func:`patrol_loop`) over the lane centre lines ``lanes`` (:func:`lane_paths`).
 
     The planned altitude covers the whole path the strategy flies, including the transit from
     ``spec.start`` when one is given. An escort starts at its offset point when the first
@@ -83,7 +93,7 @@ def build_strategy(
         if spec.waypoints is not None:
             wps = np.array(spec.waypoints, dtype=np.float64)
         else:
-            wps = patrol_loop(world, kind_index, spec.loop_length_m, roads, taken)
+            wps = patrol_loop(world, kind_index, spec.loop_length_m, roads, taken, lanes)
         path = np.vstack([wps, wps[:1]]) if start is None else np.vstack([start, wps, wps[:1]])
         z = planned_altitude(obstacles, polyline_points(path), spec.altitude_m, clearance)
         return Patrol(np.column_stack([wps, np.full(len(wps), z)]), spec.speed_mps, spec.reach_radius_m)
@@ -122,6 +132,7 @@ class DroneFleet:
         half = self.frame.half_extents_m
         needs_roads = any(isinstance(d, PatrolDrone) and d.waypoints is None for d in a.drones)
         roads = road_graph(world.net_xml) if needs_roads else {}
+        lanes = lane_paths(world.net_xml) if needs_roads else {}
         taken: set = set()
         counts: dict[str, int] = {}
         self._drones: list[_Drone] = []
@@ -131,7 +142,7 @@ class DroneFleet:
                 k = counts.get(spec.strategy, 0)
                 counts[spec.strategy] = k + 1
                 try:
-                    strategy = build_strategy(spec, k, self.world, self.obstacles, roads, taken)
+                    strategy = build_strategy(spec, k, self.world, self.obstacles, roads, taken, lanes)
                 except ValueError as exc:
                     raise ScenarioError(str(exc), path=f"agents.drones.{i}") from exc
                 backend = backend_class(a.drone_backend_of(i))(self.frame, self.dt_s, world)
