@@ -16,7 +16,6 @@ over a batch follow the mix however small each episode is.
 from __future__ import annotations
 
 import logging
-import math
 import tempfile
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -123,7 +122,8 @@ def gateways(net: sumolib.net.Net) -> set[str]:
     out = set()
     for n, (x, y) in zip(nodes, xy, strict=True):
         near = min(x - lo[0], hi[0] - x, y - lo[1], hi[1] - y) <= GATEWAY_M
-        neighbours = {e.getToNode().getID() for e in n.getOutgoing()} | {e.getFromNode().getID() for e in n.getIncoming()}
+        neighbours = {e.getToNode().getID() for e in n.getOutgoing()}
+        neighbours |= {e.getFromNode().getID() for e in n.getIncoming()}
         if near or n.getType() == "dead_end" or len(neighbours - {n.getID()}) <= 1:
             out.add(n.getID())
     return out
