@@ -12,9 +12,8 @@ EXIT_OK = 0
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     from cosim.exporters.export import ExportOptions, get_format, run_export
+    from tqdm import tqdm
 
     get_format(args.format)  # an unknown format fails before any work
     if args.every < 1:
