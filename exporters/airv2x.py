@@ -96,8 +96,8 @@ class AirV2XFormat(ExportFormat):
     def write_tick(self, view: TickView) -> None:
         folder = self.root / f"timestamp_{view.index:06d}"
         write_bytes(folder / "objects.pkl", pickle_bytes(plain(object_table(view))))
-        for agent in view.agents:
-            self.write_agent(view, agent, folder / f"agent_{self.numbers[agent.agent_id]:06d}")
+        view.for_each_agent(lambda agent: self.write_agent(view, agent,
+                                                           folder / f"agent_{self.numbers[agent.agent_id]:06d}"))
 
     def write_agent(self, view: TickView, agent: AgentView, folder: Path) -> None:
         ego_pos = cf.carla_pose_of_matrix(agent.map_from_base)
@@ -152,10 +152,10 @@ class AirV2XFormat(ExportFormat):
 
     def write_maps(self, view: TickView, agent: AgentView, folder: Path) -> None:
         layers = view.bev_maps(agent)
-        zero = np.zeros((next(iter(layers.values())).shape), np.uint8)
+        zero = np.zeros(next(iter(layers.values())).shape, bool)
         lane = layers.get("lane_marking", zero)
-        road = np.where(lane > 0, 0, layers.get("road", zero)).astype(np.uint8)
-        background = np.where((lane > 0) | (road > 0), 0, 255).astype(np.uint8)
+        road = layers.get("road", zero) & ~lane
+        background = ~(lane | road)
         for name, img in zip(STATIC_MAPS, (background, lane, road), strict=True):
             write_bytes(folder / f"map_static_{name}.png", png_bytes(img))
         for k in range(7):

@@ -153,15 +153,23 @@ def encode_depth_rgb24(depth_m: np.ndarray) -> np.ndarray:
     """Planar depth [m] (H, W), NaN = no hit, as CARLA's RGB24 depth image (H, W, 3) uint8:
     code = round(depth / 1000 m * (2^24 - 1)) = R + 256 G + 65536 B; no hit is the far plane (white).
 
-    Read by ``opencood/utils/camera_utils.py: decode_depth_carla`` of the AirV2X devkit.
+    Read by ``opencood/utils/camera_utils.py: decode_depth_carla`` of the AirV2X devkit. Computed in
+    float32 (one code, 60 um, at most off).
     """
-    d = np.nan_to_num(np.asarray(depth_m, np.float64), nan=DEPTH_FAR_M, posinf=DEPTH_FAR_M)
-    code = np.clip(np.rint(d / DEPTH_FAR_M * DEPTH_LEVELS), 0, DEPTH_LEVELS).astype(np.uint32)
-    out = np.empty((*code.shape, 3), np.uint8)
-    out[..., 0] = code & 0xFF
-    out[..., 1] = (code >> 8) & 0xFF
-    out[..., 2] = code >> 16
-    return out
+    code = np.asarray(depth_m, np.float32) * np.float32(DEPTH_LEVELS / DEPTH_FAR_M)
+    np.nan_to_num(code, copy=False, nan=DEPTH_LEVELS, posinf=DEPTH_LEVELS, neginf=0.0)
+    np.clip(code, 0.0, DEPTH_LEVELS, out=code)
+    np.rint(code, out=code)
+    return _rgb24(code.astype("<u4"))
+
+
+def _rgb24(code: np.ndarray) -> np.ndarray:
+    """(H, W) little-endian uint32 codes < 2^24 as (H, W, 3) uint8: R = low byte, then G, B."""
+    v = code.view(np.uint8).reshape(-1, 4)
+    out = np.empty((v.shape[0], 3), np.uint8)
+    for k in range(3):  # one 1-D strided copy per channel (a 3-D slice copy is 5x slower)
+        out[:, k] = v[:, k]
+    return out.reshape(*code.shape, 3)
 
 
 def decode_depth_rgb24(rgb: np.ndarray) -> np.ndarray:
@@ -172,11 +180,7 @@ def decode_depth_rgb24(rgb: np.ndarray) -> np.ndarray:
 
 def encode_id_rgb24(ids: np.ndarray) -> np.ndarray:
     """Non-negative integer ids (H, W) < 2^24 as RGB24 (id = R + 256 G + 65536 B), for instance masks."""
-    a = np.asarray(ids, np.int64)
+    a = np.asarray(ids)
     if a.size and (a.min() < 0 or a.max() > DEPTH_LEVELS):
         raise ValueError(f"ids must lie in [0, {DEPTH_LEVELS}], got {a.min()}..{a.max()}")
-    out = np.empty((*a.shape, 3), np.uint8)
-    out[..., 0] = a & 0xFF
-    out[..., 1] = (a >> 8) & 0xFF
-    out[..., 2] = a >> 16
-    return out
+    return _rgb24(a.astype("<u4"))

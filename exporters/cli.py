@@ -28,7 +28,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     try:
         result = run_export(Path(args.source), args.format, Path(args.out),
-                            ExportOptions(every=args.every, masks=not args.no_masks),
+                            ExportOptions(every=args.every, masks=args.masks),
                             split=args.split, workers=args.workers, progress=progress)
     finally:
         if bar:
@@ -51,6 +51,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--split", help="split folder for every episode (default: the manifest's split, or train)")
     p.add_argument("--every", type=int, default=1, metavar="K", help="keep every K-th tick (default 1)")
     p.add_argument("--workers", type=int, default=1, metavar="N", help="processes writing ticks (default 1)")
-    p.add_argument("--no-masks", action="store_true", help="no semantic/instance images (AirV2X)")
+    p.add_argument("--masks", action="store_true", help="also semantic and instance images (AirV2X)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_export)

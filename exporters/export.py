@@ -22,10 +22,11 @@ import json
 import logging
 import math
 import multiprocessing
+import os
 import re
 import shutil
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -53,6 +54,8 @@ BEV_CELL_M = 0.25  # [m] the AirV2X map resolution
 BEV_PIXELS = 512  # per side: 128 m x 128 m centred on the agent
 #: Per-point labels written beside each exported point cloud, in the PCD's point order.
 LIDAR_LABELS_DTYPE = np.dtype([("class_id", "<u1"), ("instance_id", "<u4"), ("ring", "<u2")])
+#: Threads per export process writing a tick's agents (PNG/zlib and numpy release the GIL).
+AGENT_THREADS = min(4, os.cpu_count() or 1)
 #: Agent kinds of cosim episodes (docs/episode_format.md section 2).
 AGENT_KINDS = ("vehicle", "rsu", "drone")
 
@@ -63,7 +66,7 @@ class ExportOptions(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     every: int = Field(1, ge=1)  # keep ticks 0, every, 2 every, ...
-    masks: bool = True  # semantic and instance images beside the camera images (where the format has room)
+    masks: bool = False  # semantic and instance images beside the camera images (AirV2X; costs export time)
 
 
 # ------------------------------------------------------------------------------------- registry
@@ -383,25 +386,41 @@ class TickView:
             ))
         return out
 
+    def for_each_agent(self, write: Callable[[AgentView], None]) -> None:
+        """``write(agent)`` for every agent, in :data:`AGENT_THREADS` threads; each writes its own files."""
+        _ = self.labels, self.agents, self.snapshot, _static_raster(self.seq)  # shared state first, once
+        if AGENT_THREADS == 1:
+            for agent in self.agents:
+                write(agent)
+            return
+        with ThreadPoolExecutor(AGENT_THREADS) as pool:
+            for f in [pool.submit(write, agent) for agent in self.agents]:
+                f.result()
+
     def object_rotations(self) -> list[np.ndarray]:
         from cosim.io.decode import quat_to_matrix
 
         return [quat_to_matrix(q) for q in self.labels.rotations]
 
+    @cached_property
+    def snapshot(self) -> Any:
+        return self.tick.snapshot()
+
     def bev_maps(self, agent: AgentView) -> dict[str, np.ndarray]:
-        """The agent's BEV layers, 512 x 512 uint8 0/255, 0.25 m per pixel, centred on its ``base_link``,
+        """The agent's BEV layers, 512 x 512 bool, 0.25 m per pixel, centred on its ``base_link``,
         level and yaw-aligned, in CARLA's image orientation: row = 256 - 4 x, column = 256 + 4 y with
         (x forward, y right) [m]. Keys: every static layer and object class name of cosim's BEV."""
         from cosim.sensors.bev import render_bev
 
         half = BEV_PIXELS * BEV_CELL_M / 2
-        snap = self.tick.snapshot()
-        frame = render_bev(snap.agent(agent.agent_id), _static_raster(self.seq), snap.actors, BEV_CELL_M,
-                           (half, half))
-        # cosim's grid: row i along +y (left), column j along +x (forward); CARLA's image: row along -x,
-        # column along +y_carla = -y. Both reversed, then transposed.
-        return {name: np.ascontiguousarray(frame.grid[::-1, ::-1, k].T) * np.uint8(255)
-                for k, name in enumerate(frame.layers)}
+        frame = render_bev(self.snapshot.agent(agent.agent_id), _static_raster(self.seq), self.snapshot.actors,
+                           BEV_CELL_M, (half, half))
+        # cosim's grid[i, j]: row i along +y (left), column j along +x (forward); CARLA's image[r, c]: row
+        # along -x, column along +y_carla = -y; so image[r, c] = grid[n-1-c, n-1-r], every layer in one copy.
+        g = frame.grid
+        cells = np.ascontiguousarray(g).view(f"V{g.shape[2]}").reshape(g.shape[:2])  # one record per cell
+        flipped = np.ascontiguousarray(cells[::-1, ::-1].T).view(np.uint8).reshape(g.shape[1], g.shape[0], -1)
+        return {name: flipped[..., k].astype(bool) for k, name in enumerate(frame.layers)}
 
 
 _RASTERS: dict[str, Any] = {}

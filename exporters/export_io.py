@@ -16,10 +16,8 @@ from typing import Any
 
 import numpy as np
 import yaml
-from PIL import Image
 
 PICKLE_PROTOCOL = 4
-PNG_COMPRESS_LEVEL = 1  # zlib level: fast; the bytes are still a pure function of the pixels
 _MAX_ABS_MM = 10**7 - 1  # [mm] the fixed-width PCD coordinates hold up to 9999.999 m
 _PCD_HEADER = (
     "# .PCD v0.7 - Point Cloud Data file format\n"
@@ -62,17 +60,16 @@ def pcd_ascii(xyz: np.ndarray, intensity: np.ndarray) -> bytes:
 
 
 def png_bytes(array: np.ndarray) -> bytes:
-    """PNG of a (H, W) uint8 (grey), (H, W, 3) uint8 (RGB) or (H, W) uint16 image."""
-    a = np.ascontiguousarray(array)
-    if a.dtype == np.uint16:
-        im = Image.fromarray(a, mode="I;16")
-    elif a.dtype == np.uint8 and a.ndim in (2, 3):
-        im = Image.fromarray(a)
-    else:
+    """PNG of a (H, W) bool (written as grey 0 / 255), (H, W) uint8 grey or (H, W, 3) uint8 RGB image, through
+    the episode writer's encoder (``cosim.sensors.encoding.encode_png``: deterministic, releases the GIL)."""
+    from cosim.sensors.encoding import encode_png
+
+    a = np.asarray(array)
+    if a.dtype == np.bool_:
+        a = a.view(np.uint8) * np.uint8(255)
+    if a.dtype != np.uint8 or a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] != 3):
         raise ValueError(f"no PNG for an array of {a.dtype} {a.shape}")
-    buf = io.BytesIO()
-    im.save(buf, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
-    return buf.getvalue()
+    return encode_png(np.ascontiguousarray(a))
 
 
 def is_rgb8_png(data: bytes) -> bool:

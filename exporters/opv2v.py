@@ -86,8 +86,7 @@ class Opv2vFormat(ExportFormat):
     def write_tick(self, view: TickView) -> None:
         rots = view.object_rotations()
         labels = view.labels
-        for agent in view.agents:
-            self.write_agent(view, agent, rots, labels)
+        view.for_each_agent(lambda agent: self.write_agent(view, agent, rots, labels))
 
     def write_agent(self, view: TickView, agent: AgentView, rots: list[np.ndarray], labels: Any) -> None:
         folder = self.root / self.folders[agent.agent_id]
@@ -139,7 +138,7 @@ class Opv2vFormat(ExportFormat):
 
     def write_bev(self, view: TickView, agent: AgentView, stem: str) -> None:
         layers = view.bev_maps(agent)
-        zero = np.zeros(next(iter(layers.values())).shape, np.uint8)
+        zero = np.zeros(next(iter(layers.values())).shape, bool)
         dynamic = zero.copy()
         for name in VEHICLE_CLASSES:
             dynamic |= layers.get(name, zero)

@@ -132,10 +132,10 @@ def episode(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def airv2x(episode, tmp_path_factory) -> Path:
-    from cosim.exporters.export import run_export
+    from cosim.exporters.export import ExportOptions, run_export
 
     out = tmp_path_factory.mktemp("airv2x_export")
-    run_export(episode, "airv2x", out)
+    run_export(episode, "airv2x", out, ExportOptions(masks=True))
     return out
 
 
