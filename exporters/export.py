@@ -17,7 +17,6 @@ Episodes are read only through :mod:`cosim.io`. The conventions of the target fo
 from __future__ import annotations
 
 import datetime as dt
-import hashlib
 import json
 import logging
 import math
@@ -38,6 +37,7 @@ from cosim.exporters.export_io import is_rgb8_png, json_text, npy_bytes, pcd_asc
 from pydantic import BaseModel, ConfigDict, Field
 
 import cosim
+from cosim.batch.manifest import latest_records, sha256_file
 from cosim.errors import CosimError, InputError
 from cosim.io import Episode, Objects, Tick, open_episode
 from cosim.io.decode import parse_proto
@@ -145,14 +145,6 @@ class Source:
     size_bytes: int
 
 
-def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(chunk):
-            h.update(block)
-    return h.hexdigest()
-
-
 def find_sources(source: Path, split: str | None = None) -> list[Source]:
     """The episodes of SOURCE: one ``.mcap`` file (split ``split`` or ``train``) or a batch folder, whose
     manifest gives each finished episode's split (``split`` then overrides it)."""
@@ -161,8 +153,6 @@ def find_sources(source: Path, split: str | None = None) -> list[Source]:
         return [Source(source, split or "train", sha256_file(source), source.stat().st_size)]
     if not source.is_dir():
         raise InputError(f"no episode file or batch folder at {source}")
-    from cosim.batch.manifest import latest_records
-
     records = latest_records(source)
     if not records:
         raise InputError(f"{source} is a folder without a batch manifest (manifest*.jsonl); give an episode "

@@ -107,6 +107,17 @@ def wrap_deg(a):
     return (np.asarray(a) + 180.0) % 360.0 - 180.0
 
 
+def assert_boxes_match(table: dict, objs) -> None:
+    """Every labelled box is in ``table`` (track id -> exported box) with its centre, size and yaw (1 cm, 0.1 deg)."""
+    assert sorted(table) == sorted(int(t) for t in objs.track_ids)  # every object kept
+    for i, track in enumerate(objs.track_ids):
+        pose = box_pose(table[int(track)])
+        cx, cy, cz = objs.centers_m[i]
+        assert np.allclose(pose[:3], [cx, -cy, cz], atol=0.01)
+        assert np.allclose(2 * np.asarray(table[int(track)]["extent"]), objs.sizes_m[i], atol=0.01)
+        assert abs(wrap_deg(pose[4] + math.degrees(objs.yaws_rad[i]))) < 0.1
+
+
 # ---------------------------------------------------------------------------------------------- fixtures
 
 
@@ -197,16 +208,10 @@ def test_airv2x_boxes_round_trip_to_the_labels(airv2x, labels):
     seq = only(airv2x / "train")
     for tick, objs in by_tick.items():
         table = pickle.loads((seq / f"timestamp_{tick:06d}" / "objects.pkl").read_bytes())
-        assert sorted(table) == sorted(int(t) for t in objs.track_ids)  # every object kept
+        assert_boxes_match(table, objs)
         for i, track in enumerate(objs.track_ids):
-            o = table[int(track)]
-            pose = box_pose(o)
-            cx, cy, cz = objs.centers_m[i]
-            assert np.allclose(pose[:3], [cx, -cy, cz], atol=0.01)
-            assert np.allclose(2 * np.asarray(o["extent"]), objs.sizes_m[i], atol=0.01)
-            assert abs(wrap_deg(pose[4] + math.degrees(objs.yaws_rad[i]))) < 0.1
-            assert o["class"] == AIRV2X_CLASS.get(objs.classes[i], 7)
-            assert isinstance(o["speed"], float)
+            assert table[int(track)]["class"] == AIRV2X_CLASS.get(objs.classes[i], 7)
+            assert isinstance(table[int(track)]["speed"], float)
 
 
 def test_airv2x_lidar_points_land_in_their_boxes_through_the_loaders_pose_composition(airv2x):
@@ -350,15 +355,9 @@ def test_opv2v_boxes_round_trip_and_vehicles_are_the_seen_road_users(opv2v, labe
         for tick, objs in by_tick.items():
             doc = load_yaml(seq / name / f"{tick:06d}.yaml")
             every = doc["cosim"]["objects"]
-            assert sorted(every) == sorted(int(t) for t in objs.track_ids)
+            assert_boxes_match(every, objs)
             for i, track in enumerate(objs.track_ids):
-                o = every[int(track)]
-                pose = box_pose(o)
-                cx, cy, cz = objs.centers_m[i]
-                assert np.allclose(pose[:3], [cx, -cy, cz], atol=0.01)
-                assert np.allclose(2 * np.asarray(o["extent"]), objs.sizes_m[i], atol=0.01)
-                assert abs(wrap_deg(pose[4] + math.degrees(objs.yaws_rad[i]))) < 0.1
-                assert o["class"] == objs.classes[i]
+                assert every[int(track)]["class"] == objs.classes[i]
             seen = {t for t, o in every.items()
                     if o["class"] in ROAD_USERS and o["lidar_points"] > 0 and t != doc["cosim"]["track_id"]}
             assert set(doc["vehicles"]) == seen
