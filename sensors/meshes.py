@@ -288,9 +288,43 @@ def is_lamp(prism: Prism) -> bool:
     return prism.cls == "street_light" and prism.z0_m >= LAMP_ARM_MIN_Z_M
 
 
+#: [m] how far the flat terrain continues beyond the map's edge (:func:`far_ground`): farther than any
+#: LiDAR reaches (``range_m`` <= 500 m), and far enough that a camera 10 m up sees ground up to 0.06 deg
+#: below the horizon.
+FAR_GROUND_M = 10_000.0
+
+
 def static_mesh(layout: StaticLayout) -> TriMesh:
-    """Mesh of every prism of ``layout`` (map frame), in prism order."""
-    return concat([_prism_mesh(p) for p in layout.prisms])
+    """Mesh of every prism of ``layout`` (map frame), in prism order, then :func:`far_ground`."""
+    return concat([*(_prism_mesh(p) for p in layout.prisms), far_ground(layout)])
+
+
+def far_ground(layout: StaticLayout, reach_m: float = FAR_GROUND_M) -> TriMesh:
+    """Flat terrain around the map: four trapezoids (8 triangles, normals up) from the edge of the
+    terrain prisms (all prisms if there is none) out to ``reach_m`` beyond it, at the terrain's top.
+
+    The layout ends a few tens of metres past the outer roads; without this, cameras looking outward
+    saw sky (class 0, no depth) below the horizon and downward LiDAR beams found nothing. The ring is
+    renderer-only (not a prism of the layout), so the BEV raster and the light map keep the map's size.
+    """
+    terrain = [p for p in layout.prisms if p.cls == "terrain"] or list(layout.prisms)
+    if not terrain:
+        return empty_mesh()
+    pts = np.array([q for p in terrain for q in p.footprint], np.float64)
+    x0, y0 = pts.min(0)
+    x1, y1 = pts.max(0)
+    z = max(p.z1_m for p in terrain) if terrain[0].cls == "terrain" else layout.ground_z_m
+    X0, Y0, X1, Y1 = x0 - reach_m, y0 - reach_m, x1 + reach_m, y1 + reach_m
+    quads = [
+        [(X0, Y0), (X1, Y0), (x1, y0), (x0, y0)],  # south
+        [(X1, Y0), (X1, Y1), (x1, y1), (x1, y0)],  # east
+        [(X1, Y1), (X0, Y1), (x0, y1), (x1, y1)],  # north
+        [(X0, Y1), (X0, Y0), (x0, y0), (x0, y1)],  # west
+    ]
+    v = np.array([(x, y, z) for q in quads for x, y in q], np.float64)
+    t = np.array([[4 * k, 4 * k + 1, 4 * k + 2, 4 * k, 4 * k + 2, 4 * k + 3] for k in range(4)]).reshape(-1, 3)
+    alb, refl = material_of("terrain", 0)
+    return _labelled(v, t, "terrain", 0, alb, refl, group=np.repeat(np.arange(4), 2))
 
 
 def _prism_mesh(prism: Prism) -> TriMesh:

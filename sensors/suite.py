@@ -175,14 +175,16 @@ class SensorSuite:
         self._static_points = np.unique(verts, axis=0) if len(verts) else np.zeros((0, 3))
         self._light: LightMap | None = None
         if self.atm.artificial > 0:
-            if len(verts):
-                lo, hi = verts[:, :2].min(0) - 50, verts[:, :2].max(0) + 50
+            # over the layout only (the far ground around it is unlit: lookups beyond clamp to the edge)
+            foot = np.array([q for p in world.layout.prisms for q in p.footprint], np.float64).reshape(-1, 2)
+            if len(foot):
+                lo, hi = foot.min(0) - 50, foot.max(0) + 50
             else:
                 lo, hi = np.array([-100.0, -100.0]), np.array([100.0, 100.0])
             res = max(0.5, float(max(hi - lo)) / 4000)
             self._light = _street_light_map(world, np.array([*lo, *hi]), res)
         s = scenario.sensors
-        self._bev_raster = static_raster(world.layout, s.bev_cell_m)
+        self._bev_raster = static_raster(world.layout, s.bev_cell_m) if s.bev else None
         self._biases: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._fixed: dict[tuple[str, str], StaticImage] = {}
         self._fixed_lidar: dict[str, StaticHits] = {}
@@ -228,7 +230,7 @@ class SensorSuite:
             biases = self._biases.get(agent.agent_id, (np.zeros(3), np.zeros(3)))
             imu = render_imu(agent, rig.imu, biases, rng, self.noise)
         s = self.scenario.sensors
-        bev = render_bev(agent, self._bev_raster, actors, s.bev_cell_m, s.bev_range_m)
+        bev = render_bev(agent, self._bev_raster, actors, s.bev_cell_m, s.bev_range_m) if s.bev else None
         return (lidar, gnss, imu, bev), {"lidar": t1 - t0, "labels": time.perf_counter() - t1}
 
     def _render_camera(self, agent: AgentState, cam, own: int | None, scene: TickScene, occ: Occluders,

@@ -306,8 +306,11 @@ class SensorsSpec(Model):
     rsu: RigSpec = Field(default_factory=default_rsu_rig)
     drone: RigSpec = Field(default_factory=default_drone_rig)
     image_scale: float = Field(1.0, gt=0.0, le=1.0)  # scales every camera's width and height (previews, tests)
+    bev: bool = True  # write /<agent>/bev grids (the paper's BEV segmentation labels); false saves their bytes
     bev_cell_m: float = Field(0.25, gt=0.01, le=5)
     bev_range_m: tuple[float, float] = (64.0, 40.0)  # [m] half extents x, y (paper section 4.2)
+    # LiDAR x, y, z as stored (docs/episode_format.md 3.4): integer 1/256 m counts, or float32 metres
+    lidar_positions: Literal["quantized", "float32"] = "quantized"
 
 
 # -------------------------------------------------------------------------------------- output
