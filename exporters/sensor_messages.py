@@ -80,7 +80,12 @@ def _stamp(msg, t_ns: int) -> None:
 
 def lidar_message(agent_id: str, frame, t_ns: int, positions: str = "quantized") -> PointCloud:
     """One sweep in the compact record of :mod:`cosim.io.points` (``positions``: ``quantized`` or ``float32``)."""
-    rec = encode_points(frame.points, frame.intensity, frame.ring, frame.class_id, frame.instance_id,
+    extra = {}
+    if getattr(frame, "t_offset_ns", None) is not None:
+        extra["t_offset_ns"] = np.asarray(frame.t_offset_ns, "<i4")
+    if getattr(frame, "return_kind", None) is not None:
+        extra["return"] = np.asarray(frame.return_kind, "u1")
+    rec = encode_points(frame.points, frame.intensity, frame.ring, frame.class_id, frame.instance_id, extra,
                         kind=positions)
     msg = PointCloud(frame_id=f"{agent_id}/lidar", point_stride=rec.dtype.itemsize, data=rec.tobytes())
     _stamp(msg, t_ns)

@@ -240,15 +240,17 @@ def prism_geometry(footprint: np.ndarray, z0: float, z1: float, bottom: bool = F
 
 # --------------------------------------------------------------------------------- materials
 
-#: Diffuse albedo (linear RGB 0..1) and LiDAR reflectivity per semantic class.
+#: Diffuse albedo (linear RGB 0..1) and diffuse LiDAR reflectivity at 905 nm per semantic class (asphalt
+#: dark, concrete and buildings middling, vegetation moderate in the near infrared; lane markings also
+#: carry a retro-reflective term, see cosim.sensors.lidar).
 _MATERIAL: dict[str, tuple[tuple[float, float, float], float]] = {
     "unlabelled": ((0.5, 0.5, 0.5), 0.3),
-    "road": ((0.16, 0.16, 0.17), 0.12),
-    "lane_marking": ((0.85, 0.85, 0.80), 0.75),
+    "road": ((0.16, 0.16, 0.17), 0.10),
+    "lane_marking": ((0.85, 0.85, 0.80), 0.45),
     "sidewalk": ((0.50, 0.48, 0.45), 0.30),
     "building": ((0.55, 0.50, 0.45), 0.35),
-    "vegetation": ((0.15, 0.35, 0.10), 0.45),
-    "terrain": ((0.32, 0.42, 0.18), 0.35),
+    "vegetation": ((0.15, 0.35, 0.10), 0.30),
+    "terrain": ((0.32, 0.42, 0.18), 0.25),
     "pole": ((0.45, 0.45, 0.47), 0.50),
     "street_light": ((0.40, 0.40, 0.42), 0.50),
     "rsu": ((0.70, 0.70, 0.20), 0.55),
@@ -529,6 +531,9 @@ def actor_material(cls: str, track_id: int, part: np.ndarray) -> tuple[np.ndarra
         paint = np.array((0.9, 0.9, 0.92), np.float32)
     table = np.array([paint, (0.05, 0.07, 0.09), (0.03, 0.03, 0.03), (0.95, 0.95, 0.9), (0.7, 0.05, 0.05),
                       (0.12, 0.12, 0.13)], np.float32)
-    refl_t = np.array([0.8, 0.15, 0.05, 0.9, 0.9, 0.2], np.float32)
+    # diffuse LiDAR reflectivity: paint by its brightness (dark paint low), glass and tyres low, lamp
+    # units middling (their reflectors add a retro-reflective term, see cosim.sensors.lidar)
+    paint_refl = 0.05 + 0.7 * float(paint @ np.array([0.2126, 0.7152, 0.0722], np.float32))
+    refl_t = np.array([paint_refl, 0.05, 0.03, 0.3, 0.3, 0.08], np.float32)
     emis_t = np.array([0.0, 0.0, 0.0, 1.0, 0.6, 0.0], np.float32)
     return table[part], refl_t[part], emis_t[part]

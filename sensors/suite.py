@@ -209,7 +209,7 @@ class SensorSuite:
         self.close()
 
     def _render_agent_base(self, agent: AgentState, rig: RigSpec, own: int | None, scene: TickScene,
-                           rng: np.random.Generator, actors: tuple[Actor, ...]):
+                           rng: np.random.Generator, actors: tuple[Actor, ...], t_ns: int):
         """LiDAR, GNSS, IMU and BEV of one agent (draws from ``rng`` in that order)."""
         t0 = time.perf_counter()
         lidar = None
@@ -219,7 +219,8 @@ class SensorSuite:
             if agent.kind == "rsu":  # RSUs stand still: the static world is cast once for their LiDAR
                 with self._fixed_lock:
                     fixed = self._fixed_lidar.setdefault(agent.agent_id, StaticHits())
-            lidar = render_lidar(agent.agent_id, rig.lidar, pose, scene, self.atm, rng, own, self.noise, fixed)
+            lidar = render_lidar(agent.agent_id, rig.lidar, pose, scene, self.atm, rng, own, self.noise, fixed,
+                                 agent, t_ns)
         t1 = time.perf_counter()
         gnss = None
         if rig.gnss is not None:
@@ -289,7 +290,7 @@ class SensorSuite:
             own = agent.track_id if agent.track_id is not None else own_track.get(agent.agent_id)
             occ = Occluders(self._thin, self._static_points, a_corners[a_tracks != own])
             srngs = arng.spawn(1 + len(rig.cameras))
-            base = self._pool.submit(self._render_agent_base, agent, rig, own, scene, srngs[0], actors)
+            base = self._pool.submit(self._render_agent_base, agent, rig, own, scene, srngs[0], actors, snapshot.t_ns)
             cams = [self._pool.submit(self._render_camera, agent, cam, own, scene, occ, tables, light, lut, r)
                     for cam, r in zip(rig.cameras, srngs[1:], strict=True)]
             jobs.append((agent, base, cams))

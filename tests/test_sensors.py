@@ -502,7 +502,8 @@ def test_frame_messages_topics_and_round_trips():
     assert inst.encoding == "32SC1"
     assert np.array_equal(np.frombuffer(inst.data, "<i4").reshape(64, 96), cf.instance.astype(np.int32))
     pc = msgs["/vehicle_0/lidar"]
-    assert pc.frame_id == "vehicle_0/lidar" and [fl.name for fl in pc.fields][-1] == "instance_id"
+    assert pc.frame_id == "vehicle_0/lidar"
+    assert [fl.name for fl in pc.fields][-3:] == ["instance_id", "t_offset_ns", "return"]
     rec = decode_point_cloud(pc).points
     assert np.array_equal(rec["instance_id"], af.lidar.instance_id)
     for k, name in enumerate("xyz"):

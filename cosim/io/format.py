@@ -47,7 +47,7 @@ TOPICS: tuple[TopicSpec, ...] = (
         "/<agent>/lidar",
         ("foxglove.PointCloud",),
         "<agent>/lidar",
-        "x, y, z [m], intensity, ring, class_id, instance_id",
+        "x, y, z (1/256 m counts or float32 m), intensity, ring, class_id, instance_id, t_offset_ns, return",
     ),
     TopicSpec(
         "/<agent>/<cam>/image",

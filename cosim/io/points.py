@@ -7,8 +7,8 @@ The writer stores points compactly; readers get one float view whatever was stor
   1/1024 m when the scenario asks for them (``sensors.lidar_positions: float32``, for viewers that
   need float positions);
 - ``intensity``: uint8 counts of 1/255 (0..1);
-- ``ring`` uint8, ``class_id`` uint8, ``instance_id`` uint32; further fields (``return``,
-  ``t_offset_ns``) as listed in the format.
+- ``ring`` uint8, ``class_id`` uint8, ``instance_id`` uint32, ``t_offset_ns`` int32 (firing time
+  relative to the sweep's end, <= 0), ``return`` uint8 (0 single, 1 strongest, 2 last of a dual pair).
 
 :func:`float_view` turns any stored record array into ``x``, ``y``, ``z`` float32 metres and
 ``intensity`` float32 in [0, 1], other fields unchanged, so consumers never see the storage types.
@@ -106,7 +106,7 @@ def float_view(stored: np.ndarray) -> np.ndarray:
 FIELD_TYPES: dict[str, tuple[str, ...]] = {
     "x": ("<i2", "<i4", "<f4"), "y": ("<i2", "<i4", "<f4"), "z": ("<i2", "<i4", "<f4"),
     "intensity": ("|u1", "<f4"), "ring": ("|u1", "<u2"), "class_id": ("|u1",), "instance_id": ("<u4",),
-    "return": ("|u1",), "t_offset_ns": ("<u4",),
+    "t_offset_ns": ("<i4",), "return": ("|u1",),
 }
 REQUIRED_FIELDS = ("x", "y", "z", "intensity", "ring", "class_id", "instance_id")
 
