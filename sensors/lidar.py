@@ -41,13 +41,14 @@ from cosim.snapshot import AgentState
 
 from .environment import Atmosphere
 from .rig import Pose, body_rotation, mount_rotation, rotate
-from .scene import StaticHits, TickScene
+from .scene import StaticHits, TickScene, cast
 
 MIN_RANGE_M = 0.3  # [m] returns closer than this are not reported (housing, mount)
 ACTOR_TIME_BINS = 8  # actors are moved to the centre of one of this many slices of a sweep
 #: Return kinds (``return`` field): the beam's only return, the strongest and the last of a dual pair.
 RETURN_SINGLE, RETURN_STRONGEST, RETURN_LAST = 0, 1, 2
 DUAL_MIN_SEPARATION_M = 1.0  # [m] a second surface nearer than this behind the first is the same return
+OWN_FACES_MAX = 12  # faces of its own shape a ray may cross (then the rest counts as a hit on nothing)
 
 
 @dataclass(frozen=True)
@@ -222,11 +223,13 @@ def firing_rays(d_sensor: np.ndarray, t_offset_s: np.ndarray, pose: Pose, agent:
     ``t_offset_s`` from the tick (position + velocity x t; body attitude turned by the body rates x t)."""
     if agent is None or not (np.any(agent.velocity_mps) or np.any(agent.angular_rate_radps)):
         return np.broadcast_to(pose.position_m, d_sensor.shape), rotate(d_sensor, pose.rotation)
+    v = np.asarray(agent.velocity_mps, np.float64)
+    if not np.any(agent.angular_rate_radps):  # translation only: the attitude of the tick
+        return pose.position_m + v * t_offset_s[:, None], rotate(d_sensor, pose.rotation)
     rb = body_rotation(agent)
     turn = np.asarray(agent.angular_rate_radps, np.float64)[None, :] * t_offset_s[:, None]  # body frame
     d_body = _rotate_about(rotate(d_sensor, mount_rotation(spec.mount)), turn)
     m_body = _rotate_about(np.broadcast_to(np.asarray(spec.mount.xyz_m, np.float64), d_sensor.shape), turn)
-    v = np.asarray(agent.velocity_mps, np.float64)
     origin = np.asarray(agent.position_m, np.float64) + v * t_offset_s[:, None] + rotate(m_body, rb)
     return origin, rotate(d_body, rb)
 
@@ -243,13 +246,46 @@ def _cast_binned(scene: TickScene, rays: np.ndarray, t_offset_s: np.ndarray, exc
         gid = np.full(len(rays), scene.miss, np.int32)
     lo = float(t_offset_s.min())
     width = (0.0 - lo) / ACTOR_TIME_BINS or 1.0
-    bins = np.minimum(((t_offset_s - lo) / width).astype(np.int64), ACTOR_TIME_BINS - 1)
+    # only rays that meet an actor's swept box (before the static world, unless they start inside a
+    # box, where the first box hit is its far side) can meet the actor at its own time
+    boxes, b_lo, b_hi = scene.swept_boxes(exclude, lo)
+    t_box, _ = cast(boxes, rays)
+    o_lo, o_hi = rays[:, :3].min(0), rays[:, :3].max(0)
+    inside = bool(np.any(np.all((o_hi >= b_lo) & (o_lo <= b_hi), axis=1)))
+    near = np.nonzero(np.isfinite(t_box) if inside else t_box < t)[0]
+    bins = np.minimum(((t_offset_s[near] - lo) / width).astype(np.int64), ACTOR_TIME_BINS - 1)
     for b in np.unique(bins):
-        idx = np.nonzero(bins == b)[0]
-        ta, ga = scene.cast(rays[idx], exclude, MIN_RANGE_M, with_static=False, dt_s=lo + (b + 0.5) * width)
+        idx = near[bins == b]
+        ta, ga = _cast_actors_without(scene, rays[idx], exclude, lo + (b + 0.5) * width)
         nearer = ta < t[idx]
         t[idx[nearer]] = ta[nearer]
         gid[idx[nearer]] = ga[nearer]
+    return t, gid
+
+
+def _cast_actors_without(scene: TickScene, rays: np.ndarray, exclude: int | None,
+                         dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Actors alone at ``dt_s`` from the tick, ignoring ``exclude``'s own shape: one scene of all actors
+    per time (shared by every sensor); rays that meet the own shape go on from just past each of its
+    faces (its parts, body, cabin and wheels, are closed boxes and cylinders: a few faces each)."""
+    t, gid = scene.cast(rays, None, MIN_RANGE_M, with_static=False, dt_s=dt_s)
+    if exclude is None:
+        return t, gid
+    track = np.concatenate([scene.actor_track, [-1]])
+    for _ in range(OWN_FACES_MAX):
+        own = np.nonzero(np.take(track, np.clip(gid - scene.n_static, 0, len(track) - 1)) == exclude)[0]
+        own = own[gid[own] < scene.miss]
+        if not len(own):
+            break
+        past = t[own] + np.float32(1e-3)
+        again = rays[own].copy()
+        again[:, :3] += again[:, 3:] * past[:, None]
+        t2, g2 = scene.cast(again, None, 0.0, with_static=False, dt_s=dt_s)
+        t[own] = past + t2
+        gid[own] = g2
+    else:
+        left = np.take(track, np.clip(gid - scene.n_static, 0, len(track) - 1)) == exclude
+        t[left], gid[left] = np.inf, scene.miss
     return t, gid
 
 

@@ -108,6 +108,7 @@ class TickScene:
     actors: TriMesh
     actor_track: np.ndarray  # (Ta,) int64 track id per actor triangle
     actor_velocity: np.ndarray | None = None  # (Va,) x 3 float64 [m/s] map velocity of each actor vertex
+    actor_spheres: np.ndarray | None = None  # (A, 8): centre (3), radius, velocity (3), track id per actor
     timer: CastTimer = field(default_factory=CastTimer)
     _cache: dict = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
@@ -117,7 +118,35 @@ class TickScene:
         mesh, track = place_actors(actors)
         vel = [np.broadcast_to(np.asarray(a.velocity_mps, np.float64), (len(template_for(a.cls).vertices), 3))
                for a in actors]
-        return cls(static, mesh, track, np.concatenate(vel) if vel else np.zeros((0, 3)))
+        spheres = np.array([[*a.center_m, 0.5 * float(np.linalg.norm(a.size_m)), *a.velocity_mps, a.track_id]
+                            for a in actors], np.float64).reshape(-1, 8)
+        return cls(static, mesh, track, np.concatenate(vel) if vel else np.zeros((0, 3)), spheres)
+
+    def swept_boxes(self, exclude_track: int | None, dt_min_s: float):
+        """Open3D scene of one axis-aligned box per actor (without ``exclude_track``) holding it over
+        [``dt_min_s``, 0] from the tick, and the boxes' corners ``lo``, ``hi`` (B, 3): a ray that misses
+        every box misses the actors at every time."""
+        key = ("swept", -1 if exclude_track is None else int(exclude_track), float(dt_min_s))
+        with self._lock:
+            if key in self._cache:
+                return self._cache[key]
+            sp = self.actor_spheres if self.actor_spheres is not None else np.zeros((0, 8))
+            if exclude_track is not None:
+                sp = sp[sp[:, 7] != exclude_track]
+            c0, c1 = sp[:, :3], sp[:, :3] + sp[:, 4:7] * dt_min_s
+            pad = sp[:, 3:4] + 0.05
+            lo, hi = np.minimum(c0, c1) - pad, np.maximum(c0, c1) + pad
+            parts = [_box_mesh(a, b) for a, b in zip(lo, hi, strict=True)]
+            if parts:
+                v = np.concatenate([p[0] for p in parts]).astype(np.float32)
+                t = np.concatenate([p[1] + 8 * k for k, p in enumerate(parts)]).astype(np.uint32)
+                scene = o3d.t.geometry.RaycastingScene()
+                scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(t))
+                _warm(scene)
+            else:
+                scene = None
+            self._cache[key] = (scene, lo, hi)
+            return self._cache[key]
 
     @property
     def actors_move(self) -> bool:
@@ -210,6 +239,16 @@ class TickScene:
             self.timer.seconds += time.perf_counter() - t0
             self.timer.rays += rays.shape[0]
         return t, gid
+
+
+def _box_mesh(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (8, 3) and triangles (12, 3) of the axis-aligned box [lo, hi]."""
+    (x0, y0, z0), (x1, y1, z1) = lo, hi
+    v = np.array([[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0], [x0, y0, z1], [x1, y0, z1], [x1, y1, z1],
+                  [x0, y1, z1]])
+    t = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5], [2, 3, 7],
+                  [2, 7, 6], [3, 0, 4], [3, 4, 7]])
+    return v, t
 
 
 class StaticHits:

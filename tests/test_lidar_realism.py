@@ -3,6 +3,7 @@ material, the rosette pattern, dual returns, labels after deskewing for every sc
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -19,7 +20,7 @@ from cosim.geometry import quat_from_rpy, rotation_matrix
 from cosim.io import deskew
 from cosim.io.decode import decode_point_cloud
 from cosim.scenario.model import AgentsSpec, LidarSpec, Mount, RigSpec, RsuAgents, Scenario, SensorsSpec, VehicleAgents
-from cosim.snapshot import AgentState, WorldSnapshot
+from cosim.snapshot import Actor, AgentState, WorldSnapshot
 from cosim.world.types import Prism, StaticLayout, World
 
 WALL_ID = 1_000_001
@@ -202,7 +203,11 @@ def _inside(points_map: np.ndarray, actor, margin: float) -> np.ndarray:
 def test_points_of_an_object_lie_in_its_box_after_deskewing(spec):
     base = synthetic_snapshot(n_vehicles=0, n_rsus=0, n_drones=0)
     agent = _vehicle(x=-50.0, y=0.0, rate_z=0.3)
-    _, pc = _cloud(_scenario(spec), synthetic_world(), agent, base.actors)
+    # the ego's own box moves with it (so the actors are cast per time slice, the own shape ignored)
+    own_box = Actor(999, "car", (-50.0, 0.0, 0.77), (4.5, 1.9, 1.5), agent.rotation, agent.velocity_mps, "vehicle_0")
+    agent = dataclasses.replace(agent, track_id=999)
+    _, pc = _cloud(_scenario(spec), synthetic_world(), agent, (*base.actors, own_box))
+    assert not (pc.points["instance_id"] == 999).any()
     flat = deskew(pc.xyz, pc.points["t_offset_ns"], _base_to_map(agent), _lidar_to_base(spec), agent.velocity_mps,
                   agent.angular_rate_radps)
     lidar_to_map = _base_to_map(agent) @ _lidar_to_base(spec)
