@@ -264,3 +264,38 @@ def test_a_standing_sensor_with_a_rosette_casts_each_frames_own_firings():
         alone = fresh.render(snaps[1], np.random.default_rng(0)).agents["rsu_0"].lidar
     assert np.array_equal(second.points, alone.points) and np.array_equal(second.instance_id, alone.instance_id)
     assert not np.array_equal(first.points[:100], second.points[:100])
+
+
+def test_deskew_tick_uses_the_poses_recorded_in_the_episode(tmp_path):
+    """Through a real file: /tf, the labels' velocity and the IMU's rates give back a flat wall."""
+    import yaml
+    from cosim.exporters.labels import label_messages
+    from cosim.exporters.mcap_writer import EpisodeWriter
+    from cosim.sensors.rig import sensor_transforms
+
+    from cosim.io import deskew_tick, open_episode
+    from cosim.io.synthetic import synthetic_metadata
+    from cosim.scenario.model import ImuSpec
+
+    rig = RigSpec(lidar=SPIN, cameras=[], gnss=None, imu=ImuSpec(gyro_noise_radps=0.0, gyro_bias_radps=0.0))
+    sc = Scenario(name="t", agents=AgentsSpec(vehicles=VehicleAgents(count=1), rsus=RsuAgents(count=0), drones=[]),
+                  sensors=SensorsSpec(vehicle=rig, bev=False))
+    agent = dataclasses.replace(_vehicle(rate_z=0.5), track_id=1)
+    box = Actor(1, "car", (0.0, 0.0, 0.77), (4.5, 1.9, 1.5), agent.rotation, agent.velocity_mps, "vehicle_0")
+    snap = WorldSnapshot(0, 0, (box,), (agent,))
+    path = tmp_path / "wall.mcap"
+    world = _wall_world()
+    with SensorSuite(sc, world, noise=False, encode_images=False) as suite, EpisodeWriter(path) as w:
+        w.add_metadata("episode", synthetic_metadata(1, ["vehicle_0"], True, world))
+        fs = suite.render(snap, np.random.default_rng(0))
+        for topic, msg in label_messages(snap, sensor_transforms(sc, agent)) + frame_messages(fs, 0):
+            w.write(topic, msg, 0)
+        w.add_attachment("scenario.yaml", "application/yaml", yaml.safe_dump(sc.model_dump(mode="json")).encode())
+        w.finish()
+    with open_episode(path) as ep:
+        tick = ep.tick(0)
+        raw = tick.points("vehicle_0")
+        flat = deskew_tick(tick, "vehicle_0")
+    wall = raw.points["instance_id"] == WALL_ID
+    assert np.ptp(raw.xyz[wall, 0]) > 0.3
+    np.testing.assert_allclose(flat[wall, 0], 50.0, atol=0.02)
