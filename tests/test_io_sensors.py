@@ -21,6 +21,7 @@ from cosim.io.validate import validate_episode
 from cosim.scenario.model import (
     AgentsSpec,
     CameraSpec,
+    CommSpec,
     HoverDrone,
     LidarSpec,
     RigSpec,
@@ -54,6 +55,7 @@ def rendered(tmp_path_factory):
             drone=_small(default_drone_rig()),
             bev_cell_m=1.0,
         ),
+        comm=CommSpec(enabled=False),  # sensors only: no link model writes /comm/links here
     )
     world = synthetic_world()
     suite = SensorSuite(sc, world)
