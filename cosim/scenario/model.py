@@ -326,6 +326,16 @@ class RuntimeSpec(Model):
     tick_timeout_s: float = Field(10.0, gt=0)  # one lockstep query
 
 
+# ------------------------------------------------------------------------------------- clients
+
+
+class ClientSpec(Model):
+    """A closed-loop client (``cosim.client``): the conductor waits for its action after every tick."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]*$", max_length=64)
+    timeout_s: float | None = Field(None, gt=0)  # [s] for its action per tick; None = runtime.tick_timeout_s
+
+
 # ------------------------------------------------------------------------------------ scenario
 
 
@@ -343,6 +353,16 @@ class Scenario(Model):
     sensors: SensorsSpec = SensorsSpec()
     output: OutputSpec = OutputSpec()
     runtime: RuntimeSpec = RuntimeSpec()
+    clients: list[ClientSpec] = Field(default_factory=list)
+
+    @field_validator("clients")
+    @classmethod
+    def _unique_clients(cls, clients: list[ClientSpec]) -> list[ClientSpec]:
+        names = [c.name for c in clients]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise ValueError(f"client names must be unique; repeated: {', '.join(dupes)}")
+        return clients
 
     @model_validator(mode="after")
     def _rates(self) -> Scenario:
