@@ -20,7 +20,7 @@ from cosim.errors import ActionRejected
 from cosim.io import open_episode
 from cosim.io.validate import validate_episode
 from cosim.transport import free_loopback_endpoint
-from tests.conftest import REPO
+from tests.conftest import REPO, children_of
 from tests.loop_clients import GOAL_ALTITUDE_M, GOAL_XY_M, SLOW_MPS
 
 SCENARIO = f"""\
@@ -161,7 +161,7 @@ def test_sigkilled_client_ends_the_run_naming_it_and_the_tick(tmp_path):
     loop = Loop(tmp_path, "observe", "--clients", "c0", "--duration", "60", "--set", "runtime.tick_timeout_s=120")
     try:
         loop.read_until(5)
-        workers = psutil.Process(loop.run.pid).children(recursive=True)
+        workers = children_of(loop.run.pid)
         assert workers  # the run's workers, to check afterwards
         loop.client.send_signal(signal.SIGKILL)
         t0 = time.monotonic()
