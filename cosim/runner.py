@@ -57,6 +57,7 @@ class EpisodeResult:
     sync_costs_s: list[float] = field(default_factory=list)  # per tick, max over workers of round trip - compute
     compute_s: dict[str, list[float]] = field(default_factory=dict)  # per worker role: its own step time
     loop_wall_s: float = 0.0  # the tick loop alone (no world build, worker start-up or finishing)
+    client_waits_s: list[float] = field(default_factory=list)  # per tick: observations out to the last action in
 
     @property
     def real_time_factor(self) -> float:
@@ -212,6 +213,7 @@ def run_episode(
         sync_costs_s=sync_costs,
         compute_s=compute,
         loop_wall_s=loop_wall_s,
+        client_waits_s=loop.waits_s if loop is not None else [],
     )
 
 

@@ -9,6 +9,7 @@ strategy changes, so escorting drones get their new target's state).
 
 from __future__ import annotations
 
+import time
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from typing import Any
@@ -39,6 +40,8 @@ class ClosedLoop:
         self._edges, self._max_lanes = network_facts(world.net_xml)
         self._applied: list[ClientAction] = []
         self._failed: list[dict[str, Any]] = []
+        self._publish_s = 0.0
+        self.waits_s: list[float] = []  # per tick: publish + wait for every client's action [s] (telemetry)
         self.endpoint = conductor.endpoint
         self.hub = ClientHub(conductor.session, conductor.prefix, s.clients,
                              default_timeout_s=s.runtime.tick_timeout_s,
@@ -73,11 +76,15 @@ class ClosedLoop:
             max_lanes=self._max_lanes,
             edges=self._edges,
         )
+        started = time.perf_counter()
         self.hub.publish(tick, t_ns, messages, context, last=last, failed=self._failed)
+        self._publish_s = time.perf_counter() - started
 
     def collect(self, tick: int) -> dict[str, list[dict[str, Any]]]:
         """The clients' actions after tick ``tick``, per worker role."""
+        started = time.perf_counter()
         self._applied = self.hub.collect(tick)
+        self.waits_s.append(time.perf_counter() - started + self._publish_s)  # telemetry only
         out: dict[str, list[dict[str, Any]]] = {"traffic": [], "drones": []}
         for a in self._applied:
             kind = a.action["type"]
