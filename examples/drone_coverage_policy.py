@@ -118,9 +118,10 @@ def main() -> int:
     try:
         run_policy("policy", endpoint, prefix)
     finally:
-        if run.wait() != 0:
-            print(f"cosim run failed with status {run.returncode}", file=sys.stderr)
-            return 1
+        status = run.wait()
+    if status != 0:
+        print(f"cosim run failed with status {status}", file=sys.stderr)
+        return 1
     base, policy = coverage(out / "hover" / "episode.mcap"), coverage(out / "policy" / "episode.mcap")
     print(f"scenario {args.scenario}, {args.duration:g} s, {n_drones} drones, image scale {args.image_scale:g}")
     print("objects of the connected vehicles seen by at least one agent (mean over ticks):")

@@ -44,7 +44,8 @@ clients: [{{name: c0}}]
 class Loop:
     """One `cosim run` with one client process, both started here."""
 
-    def __init__(self, tmp: Path, mode: str, *run_args: str, client: str = "c0", scenario: str = SCENARIO):
+    def __init__(self, tmp: Path, mode: str, *run_args: str, client: str = "c0", scenario: str = SCENARIO,
+                 client_argv: list[str] | None = None):
         tmp.mkdir(parents=True, exist_ok=True)
         (tmp / "scenario.yaml").write_text(scenario)
         self.out = tmp / "out"
@@ -54,9 +55,12 @@ class Loop:
             [sys.executable, "-m", "cosim.cli", "run", str(tmp / "scenario.yaml"), "--out", str(self.out), "-q",
              "--listen", endpoint, "--prefix", prefix, *run_args],
             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        self.client = subprocess.Popen([sys.executable, "-m", "tests.loop_clients", mode, client], cwd=REPO, env=env,
+        argv = client_argv or ["-m", "tests.loop_clients", mode, client]
+        self.client = subprocess.Popen([sys.executable, *argv], cwd=REPO, env=env,
                                        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self.lines: list[dict] = []
+        self.client_argv = client_argv
+        self.output = ""
 
     def read_until(self, tick: int) -> None:
         """Follow the client's output until it printed ``tick``."""
@@ -69,7 +73,9 @@ class Loop:
         _, err = self.run.communicate(timeout=timeout_s)
         if read_client and self.client.returncode != -signal.SIGKILL:
             out, _ = self.client.communicate(timeout=30)
-            self.lines += [json.loads(x) for x in out.splitlines() if x.strip()]
+            self.output = out
+            if not self.client_argv:
+                self.lines += [json.loads(x) for x in out.splitlines() if x.strip()]
         return self.run.returncode, err
 
     def kill(self) -> None:
@@ -184,6 +190,36 @@ def test_silent_client_times_out_naming_it_and_the_tick(tmp_path):
     assert rc == 1
     assert "client 'quiet' at tick 2: no action within 1.5 s" in err
     assert not list(loop.out.glob("*.mcap")) and not list(loop.out.glob(".*partial"))
+
+
+def test_example_client_follow_runs(tmp_path):
+    loop = Loop(tmp_path, "", "--clients", "follow", "--duration", "2",
+                client_argv=[str(REPO / "examples/client_follow.py")])
+    try:
+        rc, err = loop.finish(timeout_s=180)
+    finally:
+        loop.kill()
+    assert rc == 0, err
+    assert loop.client.returncode == 0
+    lines = loop.output.splitlines()
+    assert len(lines) == 10 and lines[0].startswith("tick 0: drone_0 is ") and lines[-1].startswith("tick 9: ")
+    with open_episode(loop.out / "loop_main_s0.mcap") as ep:
+        assert [a["action"]["type"] for a in ep.tick(1)["/actions"]["actions"]] == ["goto"]
+
+
+def test_example_drone_coverage_policy_compares_with_hovering_drones(tmp_path):
+    small = ["--set", "map.size_m=300", "--set", "agents.vehicles.count=2", "--set", "agents.rsus.count=1",
+             "--set", "traffic.density_veh_per_km=6"]
+    r = subprocess.run([sys.executable, str(REPO / "examples/drone_coverage_policy.py"), "--duration", "1.2",
+                        "--image-scale", "0.1", "--out", str(tmp_path), *small],
+                       cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    shares = {line.split()[0]: float(line.split()[2].rstrip("%")) for line in r.stdout.splitlines()
+              if line.strip().startswith(("hovering", "coverage"))}
+    assert set(shares) == {"hovering", "coverage"} and all(0.0 <= v <= 100.0 for v in shares.values())
+    with open_episode(tmp_path / "policy/episode.mcap") as policy, open_episode(tmp_path / "hover/episode.mcap") as h:
+        assert "/actions" in policy.topics and "/actions" not in h.topics
+        assert policy.n_ticks == h.n_ticks == 6 and any(t.endswith("/visibility") for t in policy.topics)
 
 
 # -- validation on arrival, no processes ------------------------------------------------------------------

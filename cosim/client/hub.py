@@ -75,6 +75,7 @@ class ClientHub:
         self._answered: set[str] = set()
         self._context: ActionContext | None = None
         self._published_s = 0.0  # time.monotonic() when the awaited tick went out
+        self._gone: set[str] = set()  # clients whose liveliness token went away (main thread only)
         self._keep = [
             session.declare_queryable(wire.client_key(prefix, "*", "*"), self._on_query),
             session.liveliness().declare_subscriber(wire.alive_key(prefix, "*"), self._on_liveliness, history=True),
@@ -148,6 +149,9 @@ class ClientHub:
         deadlines = {n: self._published_s + t for n, t in self._timeout_s.items()}
         while len(got) < len(self._specs):
             waiting = [n for n in self._specs if n not in got]
+            gone = [n for n in waiting if n in self._gone]  # a client that died after answering the last tick too
+            if gone:
+                raise ClientError(gone[0], "disconnected (liveliness lost)", tick=tick)
             first = min(waiting, key=lambda n: deadlines[n])
             remaining = deadlines[first] - time.monotonic()
             if remaining <= 0:
@@ -156,8 +160,8 @@ class ClientHub:
                 event = self._inbox.get(timeout=remaining)
             except queue.Empty:
                 continue
-            if isinstance(event, _Gone) and event.name in waiting:
-                raise ClientError(event.name, "disconnected (liveliness lost)", tick=tick)
+            if isinstance(event, _Gone):
+                self._gone.add(event.name)
             if isinstance(event, _Act) and event.tick == tick:
                 got[event.name] = event.actions
         return [ClientAction(n, tick, a) for n in self._specs for a in got[n]]
