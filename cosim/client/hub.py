@@ -166,13 +166,6 @@ class ClientHub:
                 got[event.name] = event.actions
         return [ClientAction(n, tick, a) for n in self._specs for a in got[n]]
 
-    def close(self) -> None:
-        with self._lock:
-            self._awaiting = None
-        for entity in self._keep:
-            entity.undeclare()
-        self._keep.clear()
-
     # -- Zenoh callbacks ------------------------------------------------------------------------
 
     def _on_query(self, query: zenoh.Query) -> None:
