@@ -20,7 +20,7 @@ from cosim.errors import ActionRejected
 from cosim.io import open_episode
 from cosim.io.validate import validate_episode
 from cosim.transport import free_loopback_endpoint
-from tests.conftest import REPO, children_of
+from tests.conftest import REPO, children_of, run_cli
 from tests.loop_clients import GOAL_ALTITUDE_M, GOAL_XY_M, SLOW_MPS
 
 SCENARIO = f"""\
@@ -220,6 +220,14 @@ def test_example_drone_coverage_policy_compares_with_hovering_drones(tmp_path):
     with open_episode(tmp_path / "policy/episode.mcap") as policy, open_episode(tmp_path / "hover/episode.mcap") as h:
         assert "/actions" in policy.topics and "/actions" not in h.topics
         assert policy.n_ticks == h.n_ticks == 6 and any(t.endswith("/visibility") for t in policy.topics)
+
+
+def test_repeated_client_names_are_bad_input(tmp_path):
+    (tmp_path / "s.yaml").write_text(SCENARIO)
+    r = run_cli("run", str(tmp_path / "s.yaml"), "--clients", "a,b,a", "--out", str(tmp_path))
+    assert r.returncode == 2
+    assert "clients" in r.stderr and "client names must be unique; repeated: a" in r.stderr
+    assert "Traceback" not in r.stderr
 
 
 # -- validation on arrival, no processes ------------------------------------------------------------------

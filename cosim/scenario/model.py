@@ -34,6 +34,12 @@ class Model(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid", validate_default=True)
 
 
+def _unique(names: list[str], rule: str) -> None:
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise ValueError(f"{rule}; repeated: {', '.join(dupes)}")
+
+
 def _rate_divides_tick(name: str, rate_hz: float, tick_hz: float) -> None:
     ratio = Fraction(rate_hz).limit_denominator(10_000) / Fraction(tick_hz).limit_denominator(10_000)
     if ratio.denominator != 1 or ratio < 1:
@@ -266,10 +272,7 @@ class RigSpec(Model):
     @field_validator("cameras")
     @classmethod
     def _unique_names(cls, cams: list[CameraSpec]) -> list[CameraSpec]:
-        names = [c.name for c in cams]
-        dupes = sorted({n for n in names if names.count(n) > 1})
-        if dupes:
-            raise ValueError(f"camera names must be unique within a rig; repeated: {', '.join(dupes)}")
+        _unique([c.name for c in cams], "camera names must be unique within a rig")
         return cams
 
 
@@ -358,10 +361,7 @@ class Scenario(Model):
     @field_validator("clients")
     @classmethod
     def _unique_clients(cls, clients: list[ClientSpec]) -> list[ClientSpec]:
-        names = [c.name for c in clients]
-        dupes = sorted({n for n in names if names.count(n) > 1})
-        if dupes:
-            raise ValueError(f"client names must be unique; repeated: {', '.join(dupes)}")
+        _unique([c.name for c in clients], "client names must be unique")
         return clients
 
     @model_validator(mode="after")
