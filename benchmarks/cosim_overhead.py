@@ -10,8 +10,10 @@ ratios, not absolute times, are what to compare across these shared machines.
 
 With ``--clients N`` it runs the scenario twice, without and with N closed-loop clients (processes that
 answer every tick at once with no actions), and prints the lockstep overhead per tick: the time from the
-observations going out to the last action coming in, and the tick loop's wall time per tick of both runs
-(with clients the workers can no longer step tick k+1 while tick k is written).
+observations going out to the last action coming in, the CPU time that exchange costs the conductor's
+thread and each client process (what it costs without the scheduling delays of a loaded machine), and the
+tick loop's wall time per tick of both runs (with clients the workers can no longer step tick k+1 while
+tick k is written).
 """
 
 from __future__ import annotations
@@ -67,8 +69,16 @@ def main() -> None:
         report_clients(args, r)
 
 
-#: A client that answers every tick at once with no actions (the observation is never decoded).
-CLIENT = "import sys\nfrom cosim.client import connect\nwith connect(sys.argv[1]) as c:\n    for _ in c.ticks(): pass\n"
+#: A client that answers every tick at once with no actions (the observation is never decoded); it prints
+#: its process CPU time per tick from the first observation to the last.
+CLIENT = """import sys, time
+from cosim.client import connect
+with connect(sys.argv[1]) as c:
+    for n, obs in enumerate(c.ticks()):
+        if n == 0:
+            cpu = time.process_time()
+print(f"{(time.process_time() - cpu) / n}")
+"""
 
 
 def report_clients(args: argparse.Namespace, alone: Any) -> None:
@@ -77,18 +87,20 @@ def report_clients(args: argparse.Namespace, alone: Any) -> None:
     overrides = [f"duration_s={args.duration}", "sensors.enabled=false", *args.set,
                  "clients=" + json.dumps([{"name": n} for n in names])]
     env = {**os.environ, "COSIM_ENDPOINT": endpoint, "COSIM_PREFIX": prefix}
-    procs = [subprocess.Popen([sys.executable, "-c", CLIENT, n], env=env) for n in names]
+    procs = [subprocess.Popen([sys.executable, "-c", CLIENT, n], env=env, stdout=subprocess.PIPE, text=True)
+             for n in names]
     try:
         with tempfile.TemporaryDirectory() as out:
             r = run_episode(load_scenario(args.scenario, overrides), Path(out), listen=endpoint, prefix=prefix)
     finally:
-        for proc in procs:
-            proc.wait(30)
+        client_cpu_ms = [float(proc.communicate(timeout=30)[0] or "nan") * 1e3 for proc in procs]
     wait_ms = [t * 1e3 for t in r.client_waits_s]
     per_tick_alone, per_tick = alone.loop_wall_s / alone.ticks * 1e3, r.loop_wall_s / r.ticks * 1e3
     print(f"clients             {args.clients}, answering at once; {r.ticks} ticks, labels only")
     print(f"client round trip   mean {statistics.mean(wait_ms):.2f} ms, p99 {percentile(wait_ms, 99):.2f} ms per tick "
           f"(observations out -> last action in)")
+    print(f"CPU per tick        conductor {statistics.mean(r.client_cpu_s) * 1e3:.2f} ms (publish, wait, check), "
+          f"client process {statistics.mean(client_cpu_ms):.2f} ms (receive, answer)")
     print(f"tick loop per tick  {per_tick_alone:.2f} ms without clients, {per_tick:.2f} ms with: "
           f"{per_tick - per_tick_alone:+.2f} ms per tick")
 

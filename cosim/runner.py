@@ -58,6 +58,7 @@ class EpisodeResult:
     compute_s: dict[str, list[float]] = field(default_factory=dict)  # per worker role: its own step time
     loop_wall_s: float = 0.0  # the tick loop alone (no world build, worker start-up or finishing)
     client_waits_s: list[float] = field(default_factory=list)  # per tick: observations out to the last action in
+    client_cpu_s: list[float] = field(default_factory=list)  # per tick: the runner thread's CPU time for the clients
 
     @property
     def real_time_factor(self) -> float:
@@ -214,6 +215,7 @@ def run_episode(
         compute_s=compute,
         loop_wall_s=loop_wall_s,
         client_waits_s=loop.waits_s if loop is not None else [],
+        client_cpu_s=loop.cpu_s if loop is not None else [],
     )
 
 

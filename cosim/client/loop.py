@@ -41,7 +41,9 @@ class ClosedLoop:
         self._applied: list[ClientAction] = []
         self._failed: list[dict[str, Any]] = []
         self._publish_s = 0.0
+        self._publish_cpu_s = 0.0
         self.waits_s: list[float] = []  # per tick: publish + wait for every client's action [s] (telemetry)
+        self.cpu_s: list[float] = []  # per tick: this thread's CPU time in publish + collect [s] (telemetry)
         self.endpoint = conductor.endpoint
         self.hub = ClientHub(conductor.session, conductor.prefix, s.clients,
                              default_timeout_s=s.runtime.tick_timeout_s,
@@ -76,15 +78,16 @@ class ClosedLoop:
             max_lanes=self._max_lanes,
             edges=self._edges,
         )
-        started = time.perf_counter()
+        started, cpu = time.perf_counter(), time.thread_time()
         self.hub.publish(tick, t_ns, messages, context, last=last, failed=self._failed)
-        self._publish_s = time.perf_counter() - started
+        self._publish_s, self._publish_cpu_s = time.perf_counter() - started, time.thread_time() - cpu
 
     def collect(self, tick: int) -> dict[str, list[dict[str, Any]]]:
         """The clients' actions after tick ``tick``, per worker role."""
-        started = time.perf_counter()
+        started, cpu = time.perf_counter(), time.thread_time()
         self._applied = self.hub.collect(tick)
         self.waits_s.append(time.perf_counter() - started + self._publish_s)  # telemetry only
+        self.cpu_s.append(time.thread_time() - cpu + self._publish_cpu_s)
         out: dict[str, list[dict[str, Any]]] = {"traffic": [], "drones": []}
         for a in self._applied:
             kind = a.action["type"]
