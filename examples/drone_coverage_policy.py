@@ -83,15 +83,17 @@ def run_policy(name: str, endpoint: str, prefix: str) -> None:
             client.act(plan(labels, unseen, drones))
 
 
-def coverage(path: Path) -> list[float]:
-    """Per tick: share of the connected vehicles' objects seen by at least one agent."""
-    shares = []
+def coverage(path: Path) -> tuple[list[float], list[float]]:
+    """Per tick: share of the connected vehicles' objects seen by at least one agent, and by a drone."""
+    by_any, by_drones = [], []
     with open_episode(path) as ep:
+        drones = [a for a in ep.agents if a.startswith("drone_")]
         for tick in ep.ticks(["/labels/objects", VISIBILITY]):
-            interest = objects_of_interest(tick.labels)
+            interest = set(objects_of_interest(tick.labels))
             if interest:
-                shares.append(len(set(interest) & seen_tracks(tick, ep.agents)) / len(interest))
-    return shares
+                by_any.append(len(interest & seen_tracks(tick, ep.agents)) / len(interest))
+                by_drones.append(len(interest & seen_tracks(tick, drones)) / len(interest))
+    return by_any, by_drones
 
 
 def main() -> int:
@@ -122,12 +124,13 @@ def main() -> int:
     if status != 0:
         print(f"cosim run failed with status {status}", file=sys.stderr)
         return 1
-    base, policy = coverage(out / "hover" / "episode.mcap"), coverage(out / "policy" / "episode.mcap")
+    (base, base_d), (policy, policy_d) = coverage(out / "hover" / "episode.mcap"), coverage(out / "policy" /
+                                                                                          "episode.mcap")
     print(f"scenario {args.scenario}, {args.duration:g} s, {n_drones} drones, image scale {args.image_scale:g}")
-    print("objects of the connected vehicles seen by at least one agent (mean over ticks):")
-    print(f"  hovering drones   {np.mean(base):.1%}  ({len(base)} ticks)")
-    print(f"  coverage policy   {np.mean(policy):.1%}  ({len(policy)} ticks)")
-    print(f"  difference        {np.mean(policy) - np.mean(base):+.1%}")
+    print("objects of the connected vehicles (mean over ticks)  seen by at least one agent | seen by a drone:")
+    print(f"  hovering drones   {np.mean(base):.1%} | {np.mean(base_d):.1%}  ({len(base)} ticks)")
+    print(f"  coverage policy   {np.mean(policy):.1%} | {np.mean(policy_d):.1%}  ({len(policy)} ticks)")
+    print(f"  difference        {np.mean(policy) - np.mean(base):+.1%} | {np.mean(policy_d) - np.mean(base_d):+.1%}")
     return 0
 
 
