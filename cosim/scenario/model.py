@@ -1,7 +1,7 @@
 """Scenario schema: frozen pydantic models, validated once at load.
 
 Every model forbids unknown keys; cross-field rules live on the model that owns the fields.
-Defaults reproduce the AirV2X-Perception setting (paper Table 2, design.md section 4).
+Defaults reproduce the AirV2X-Perception setting (paper Table 2, docs/conventions.md section 5).
 """
 
 from __future__ import annotations
