@@ -208,8 +208,9 @@ def test_example_client_follow_runs(tmp_path):
 
 
 def test_example_drone_coverage_policy_compares_with_hovering_drones(tmp_path):
-    small = ["--set", "map.size_m=300", "--set", "agents.vehicles.count=2", "--set", "agents.rsus.count=1",
-             "--set", "traffic.density_veh_per_km=6"]
+    small = ["--set", "map.size_m=300", "--set", "agents.vehicles.count=2", "--set", "agents.rsus.count=0",
+             "--set", "traffic.density_veh_per_km=20", "--set", "sensors.vehicle.lidar.channels=16",
+             "--set", "sensors.drone.lidar.channels=16"]
     r = subprocess.run([sys.executable, str(REPO / "examples/drone_coverage_policy.py"), "--duration", "1.2",
                         "--image-scale", "0.1", "--out", str(tmp_path), *small],
                        cwd=REPO, capture_output=True, text=True, timeout=600)
