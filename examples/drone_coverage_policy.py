@@ -4,7 +4,8 @@ Runs a scenario twice with ``cosim run`` (sensors on, so every agent's ``/visibi
 same hovering drones both times: once left alone, once commanded by this policy as a closed-loop client.
 It then prints, for both episodes, the share of the connected vehicles' objects (actors within
 ``RADIUS_M`` of a connected vehicle) that at least one agent sees (LiDAR returns or camera pixels), per
-tick and on average, measured from the episode files by the same code.
+tick and on average, measured from the episode files by the same code. ``cosim coverage EP.mcap``
+(docs/evaluation.md) scores either episode per ego vehicle and evaluation area, by agent type.
 
     python examples/drone_coverage_policy.py [--scenario town_urban_day_clear] [--duration 60] \
         [--image-scale 0.1] [--out out/coverage]
