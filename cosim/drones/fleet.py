@@ -227,7 +227,8 @@ class DroneFleet:
             goal = np.array(a.position_m, dtype=np.float64)
             z = planned_altitude(self.obstacles, polyline_points(np.array([pos[:2], goal])), a.altitude_m,
                                  d.clearance_m)
-            d.strategy = GoTo(pos, np.array([goal[0], goal[1], z]), min(a.speed_mps, spec.max_speed_mps))
+            d.strategy = GoTo(pos, np.array([goal[0], goal[1], z]), min(a.speed_mps, spec.max_speed_mps),
+                              start_velocity_mps=np.array(d.state.velocity_mps, dtype=np.float64))
         elif isinstance(a, Land):
             surface = self.obstacles.top_near(float(pos[0]), float(pos[1]), d.radius_m)
             goal = np.array([pos[0], pos[1], surface + d.radius_m + LAND_HOLD_M])

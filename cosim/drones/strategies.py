@@ -314,6 +314,7 @@ class GoTo(Strategy):
     accel_mps2: float = 1.5
     name: str = "goto"
     arrived_label: str = "arrived"
+    start_velocity_mps: np.ndarray | None = None  # (3,) the drone's velocity: a new goal does not stop it first
 
     def __post_init__(self) -> None:
         d = self.goal_m - self.start_m
@@ -322,7 +323,8 @@ class GoTo(Strategy):
         horizontal = math.hypot(d[0], d[1])
         self._yaw: float | None = math.atan2(d[1], d[0]) if horizontal > 1.0 else None
         self._s = 0.0
-        self._s_dot = 0.0
+        v0 = 0.0 if self.start_velocity_mps is None else float(self.start_velocity_mps @ self._dir)
+        self._s_dot = min(max(v0, 0.0), self.cruise_mps)
         self._last_t: float | None = None
         self._label = "approach"
 
