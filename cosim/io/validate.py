@@ -16,7 +16,9 @@ file yields a problem report, never an exception. Checks:
   LiDAR point, instance pixel and visibility entry refers to a track alive at that tick;
 - transforms: ``/tf`` forms one tree rooted at ``map`` (one parent per frame, no cycle), every
   agent has ``<agent>/base_link`` and every message's frame id is in the tree;
-- calibration: every image has a calibration on the same tick, same frame, same size.
+- calibration: every image has a calibration on the same tick, same frame, same size;
+- comm: ``/comm/links`` decodes (columns of one length, known link types and LOS states, finite
+  numbers, PER and delivery in [0, 1]) and names only the metadata's agents.
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ from mcap.records import (
 from mcap.stream_reader import StreamReader, get_chunk_data_stream
 
 from cosim.classes import OBJECT_CLASSES
+from cosim.comm.message import decode_links
 from cosim.errors import CosimError, FormatError, InputError
 from cosim.io.decode import PROTO_DECODERS, TransformTree, decode_transforms, parse_json, parse_proto
 from cosim.io.format import (
@@ -75,7 +78,7 @@ MAX_PER_KIND = 8
 class Problem:
     """One way the file departs from the format."""
 
-    #: structure | metadata | attachments | topics | completeness | time | labels | transforms | calibration
+    #: structure | metadata | attachments | topics | completeness | time | labels | transforms | calibration | comm
     check: str
     message: str
     tick: int | None = None
@@ -100,6 +103,7 @@ class ChunkFacts:
     compressed_size: int
     uncompressed_size: int
     compression: str
+    record_length: int  # [bytes] the chunk record, opcode and length prefix included
 
 
 @dataclass
@@ -167,6 +171,7 @@ class _Validator:
         self.data_ids: set[tuple[str, int]] = set()
         self.summary_ids: set[tuple[str, int]] = set()
         self.chunks: dict[int, ChunkFacts] = {}  # file offset -> what the chunk index must say about it
+        self.chunk_message_index_bytes: dict[int, int] = {}  # chunk offset -> bytes of its message indexes
         self.chunk_messages: dict[int, list[tuple[int, int]]] = {}  # last chunk: channel -> (log time, offset)
         self.chunk_indexes: list[ChunkIndex] = []
         self.chunk_channels: dict[int, set[int]] = {}  # chunk offset -> channels with messages in it
@@ -188,6 +193,7 @@ class _Validator:
         path = self.report.path
         size = path.stat().st_size
         offset_hint = MAGIC_BYTES
+        last_chunk: int | None = None  # the chunk whose message indexes follow, while they do
         try:
             with open(path, "rb") as f, open(path, "rb") as raw:
                 reader = StreamReader(f, emit_chunks=True, validate_crcs=True, record_size_limit=max(size, 1))
@@ -200,7 +206,10 @@ class _Validator:
                             len(record.data),
                             record.uncompressed_size,
                             record.compression,
+                            offset_hint - start,
                         )
+                        last_chunk = start
+                        self.chunk_message_index_bytes[start] = 0
                         self.chunk_messages = {}
                         for offset, inner in _chunk_records(record):
                             if isinstance(inner, Message):
@@ -209,11 +218,15 @@ class _Validator:
                         self.chunk_channels[start] = set(self.chunk_messages)
                     elif isinstance(record, MessageIndex):
                         self.message_indexes[start] = record.channel_id
+                        if last_chunk is not None:
+                            self.chunk_message_index_bytes[last_chunk] += offset_hint - start
                         self.check_message_index(record, start)
                     elif isinstance(record, Attachment):
+                        last_chunk = None
                         self.check_attachment_crc(raw, start, offset_hint, record.name)
                         self.on_record(record)
                     else:
+                        last_chunk = None
                         self.on_record(record)
         except Exception as exc:  # a corrupt file may break the MCAP parser in any way; report, never crash
             if isinstance(exc, EndOfFile | struct.error | RecordLengthLimitExceeded):
@@ -635,6 +648,8 @@ class _Validator:
             refs = self.pixel_tracks(tick, topic, value)
         elif pattern == "/<agent>/visibility" and isinstance(value, dict):
             refs = set(_track_ids_in(value))
+        elif pattern == "/comm/links":
+            self.check_links(tick, topic, value)
         dangling = sorted(refs - live)
         if dangling:
             self.problem(
@@ -644,6 +659,20 @@ class _Validator:
                 tick,
                 topic,
             )
+
+    def check_links(self, tick: int | None, topic: str, value: Any) -> None:
+        """``/comm/links``: decodable columns of one length, known values, every end a metadata agent."""
+        try:
+            links = decode_links(value)
+        except FormatError as exc:
+            self.problem("comm", str(exc), tick, topic)
+            return
+        unknown = sorted((set(links.tx) | set(links.rx)) - set(self.agents))
+        if unknown:
+            self.problem("comm", f"links name agents {unknown} not in the metadata's agents", tick, topic)
+        self_links = [a for a, b in zip(links.tx, links.rx, strict=True) if a == b]
+        if self_links:
+            self.problem("comm", f"links from an agent to itself: {sorted(set(self_links))}", tick, topic)
 
     def point_tracks(self, tick: int | None, topic: str, msg: Any) -> set[int]:
         try:
@@ -700,6 +729,8 @@ class _Validator:
                 "compressed_size": (ci.compressed_size, chunk.compressed_size),
                 "uncompressed_size": (ci.uncompressed_size, chunk.uncompressed_size),
                 "compression": (ci.compression, chunk.compression),
+                "chunk_length": (ci.chunk_length, chunk.record_length),
+                "message_index_length": (ci.message_index_length, self.chunk_message_index_bytes.get(offset, 0)),
             }
             bad = [f"{k} {a} != {b}" for k, (a, b) in fields.items() if a != b]
             pointed = {cid: self.message_indexes.get(off) for cid, off in ci.message_index_offsets.items()}
