@@ -20,7 +20,7 @@ SLOW_MPS = 5.0  # vehicle_0's commanded speed
 MAIN_PLAN = {
     0: [actions.goto("drone_0", *GOAL_XY_M, altitude_m=GOAL_ALTITUDE_M, speed_mps=8.0),
         actions.set_speed("vehicle_0", SLOW_MPS)],
-    1: [actions.strategy("drone_1", strategy="escort", target="vehicle_0", altitude_m=40.0),
+    1: [actions.strategy("drone_1", strategy="escort", target="vehicle_0", altitude_m=60.0),
         actions.land("drone_2", speed_mps=4.0)],
     4: [actions.change_lane("vehicle_0", 0)],
 }

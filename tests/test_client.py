@@ -34,7 +34,7 @@ agents:
   rsus: {{count: 0}}
   drones:
     - {{strategy: hover, altitude_m: 30, point: [0, 0], plan_altitude: false}}
-    - {{strategy: hover, altitude_m: 30, point: [-20, 0], plan_altitude: false}}
+    - {{strategy: hover, altitude_m: 50, point: [-20, 40], plan_altitude: false}}
     - {{strategy: hover, altitude_m: 20, point: [0, 20], plan_altitude: false}}
 sensors: {{enabled: false}}
 clients: [{{name: c0}}]
