@@ -34,7 +34,7 @@ from cosim.world.types import World
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = "1.0"
+FORMAT_VERSION = "1.1"
 #: Independent random streams derived from the scenario seed.
 SENSOR_STREAM = 0x5E5
 
@@ -283,7 +283,8 @@ class _SensorAdapter:
         """The sensor messages of rendered frames (waits for their image encodes)."""
         out = self._scenario.output
         return self._frame_messages(frames, frames.t_ns, image_format=out.image_format,
-                                    jpeg_quality=out.jpeg_quality)
+                                    jpeg_quality=out.jpeg_quality,
+                                    lidar_positions=self._scenario.sensors.lidar_positions)
 
     @property
     def static(self) -> Any:

@@ -175,14 +175,16 @@ class SensorSuite:
         self._static_points = np.unique(verts, axis=0) if len(verts) else np.zeros((0, 3))
         self._light: LightMap | None = None
         if self.atm.artificial > 0:
-            if len(verts):
-                lo, hi = verts[:, :2].min(0) - 50, verts[:, :2].max(0) + 50
+            # over the layout only (the far ground around it is unlit: lookups beyond clamp to the edge)
+            foot = np.array([q for p in world.layout.prisms for q in p.footprint], np.float64).reshape(-1, 2)
+            if len(foot):
+                lo, hi = foot.min(0) - 50, foot.max(0) + 50
             else:
                 lo, hi = np.array([-100.0, -100.0]), np.array([100.0, 100.0])
             res = max(0.5, float(max(hi - lo)) / 4000)
             self._light = _street_light_map(world, np.array([*lo, *hi]), res)
         s = scenario.sensors
-        self._bev_raster = static_raster(world.layout, s.bev_cell_m)
+        self._bev_raster = static_raster(world.layout, s.bev_cell_m) if s.bev else None
         self._biases: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._fixed: dict[tuple[str, str], StaticImage] = {}
         self._fixed_lidar: dict[str, StaticHits] = {}
@@ -207,7 +209,7 @@ class SensorSuite:
         self.close()
 
     def _render_agent_base(self, agent: AgentState, rig: RigSpec, own: int | None, scene: TickScene,
-                           rng: np.random.Generator, actors: tuple[Actor, ...]):
+                           rng: np.random.Generator, actors: tuple[Actor, ...], t_ns: int):
         """LiDAR, GNSS, IMU and BEV of one agent (draws from ``rng`` in that order)."""
         t0 = time.perf_counter()
         lidar = None
@@ -217,7 +219,8 @@ class SensorSuite:
             if agent.kind == "rsu":  # RSUs stand still: the static world is cast once for their LiDAR
                 with self._fixed_lock:
                     fixed = self._fixed_lidar.setdefault(agent.agent_id, StaticHits())
-            lidar = render_lidar(agent.agent_id, rig.lidar, pose, scene, self.atm, rng, own, self.noise, fixed)
+            lidar = render_lidar(agent.agent_id, rig.lidar, pose, scene, self.atm, rng, own, self.noise, fixed,
+                                 agent, t_ns)
         t1 = time.perf_counter()
         gnss = None
         if rig.gnss is not None:
@@ -228,7 +231,7 @@ class SensorSuite:
             biases = self._biases.get(agent.agent_id, (np.zeros(3), np.zeros(3)))
             imu = render_imu(agent, rig.imu, biases, rng, self.noise)
         s = self.scenario.sensors
-        bev = render_bev(agent, self._bev_raster, actors, s.bev_cell_m, s.bev_range_m)
+        bev = render_bev(agent, self._bev_raster, actors, s.bev_cell_m, s.bev_range_m) if s.bev else None
         return (lidar, gnss, imu, bev), {"lidar": t1 - t0, "labels": time.perf_counter() - t1}
 
     def _render_camera(self, agent: AgentState, cam, own: int | None, scene: TickScene, occ: Occluders,
@@ -287,7 +290,7 @@ class SensorSuite:
             own = agent.track_id if agent.track_id is not None else own_track.get(agent.agent_id)
             occ = Occluders(self._thin, self._static_points, a_corners[a_tracks != own])
             srngs = arng.spawn(1 + len(rig.cameras))
-            base = self._pool.submit(self._render_agent_base, agent, rig, own, scene, srngs[0], actors)
+            base = self._pool.submit(self._render_agent_base, agent, rig, own, scene, srngs[0], actors, snapshot.t_ns)
             cams = [self._pool.submit(self._render_camera, agent, cam, own, scene, occ, tables, light, lut, r)
                     for cam, r in zip(rig.cameras, srngs[1:], strict=True)]
             jobs.append((agent, base, cams))

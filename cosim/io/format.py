@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 #: Format version this code writes and reads (major.minor; readers refuse another major).
-FORMAT_VERSION = "1.0"
+FORMAT_VERSION = "1.1"
 
 MAP_FRAME = "map"
 #: Instance ids at or above this are static scene parts (buildings, poles...), not tracks; 0 is "nothing".
@@ -47,7 +47,7 @@ TOPICS: tuple[TopicSpec, ...] = (
         "/<agent>/lidar",
         ("foxglove.PointCloud",),
         "<agent>/lidar",
-        "x, y, z [m], intensity, ring, class_id, instance_id",
+        "x, y, z (1/256 m counts or float32 m), intensity, ring, class_id, instance_id, t_offset_ns, return",
     ),
     TopicSpec(
         "/<agent>/<cam>/image",
@@ -140,7 +140,9 @@ def expected_topics(scenario: Any, agents: list[str]) -> set[str]:
             out.add(f"/{agent}/gnss")
         if rig.imu is not None:
             out.add(f"/{agent}/imu")
-        out.update({f"/{agent}/bev", f"/{agent}/visibility"})
+        out.add(f"/{agent}/visibility")
+        if scenario.sensors.bev:
+            out.add(f"/{agent}/bev")
     return out
 
 

@@ -220,14 +220,25 @@ class Mount(Model):
 
 
 class LidarSpec(Model):
+    """A LiDAR (docs/episode_format.md 3.4). ``pattern`` names a scan pattern of the registry in
+    ``cosim.sensors.lidar``: ``spinning`` (``channels`` rings from ``lower_fov_deg`` to ``upper_fov_deg``,
+    ``horizontal_resolution_deg`` apart, one sweep per 1/``rotation_hz``) or ``rosette`` (a Livox-style
+    non-repetitive pattern: ``point_rate_hz`` points per second over a circular ``rosette_fov_deg`` about
+    the sensor's +x; one frame per 1/``rotation_hz``)."""
+
+    pattern: Literal["spinning", "rosette"] = "spinning"
     channels: int = Field(64, ge=1, le=256)
     upper_fov_deg: float = 10.0
     lower_fov_deg: float = -38.0
     horizontal_resolution_deg: float = Field(0.35, gt=0.01, le=10)
-    rotation_hz: float = Field(20.0, gt=0)
+    rotation_hz: float = Field(20.0, gt=0)  # sweeps (spinning) or frames (rosette) per second
+    point_rate_hz: float = Field(100_000.0, gt=0, le=5_000_000)  # rosette: points per second
+    rosette_fov_deg: float = Field(70.4, gt=1, lt=180)  # rosette: circular field of view (full angle)
     range_m: float = Field(120.0, gt=1, le=500)
     range_noise_m: float = Field(0.02, ge=0)
     dropout: float = Field(0.0, ge=0, lt=1)
+    motion_distortion: bool = True  # each firing at its own time within the sweep (false: one snapshot)
+    dual_returns: bool = False  # strongest and last return where a beam partly hits a near object
     mount: Mount = Mount(xyz_m=(0.0, 0.0, 1.9))
 
     @model_validator(mode="after")
@@ -311,8 +322,11 @@ class SensorsSpec(Model):
     rsu: RigSpec = Field(default_factory=default_rsu_rig)
     drone: RigSpec = Field(default_factory=default_drone_rig)
     image_scale: float = Field(1.0, gt=0.0, le=1.0)  # scales every camera's width and height (previews, tests)
+    bev: bool = True  # write /<agent>/bev grids (the paper's BEV segmentation labels); false saves their bytes
     bev_cell_m: float = Field(0.25, gt=0.01, le=5)
     bev_range_m: tuple[float, float] = (64.0, 40.0)  # [m] half extents x, y (paper section 4.2)
+    # LiDAR x, y, z as stored (docs/episode_format.md 3.4): integer 1/256 m counts, or float32 metres
+    lidar_positions: Literal["quantized", "float32"] = "quantized"
 
 
 # -------------------------------------------------------------------------------------- output
