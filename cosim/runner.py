@@ -26,6 +26,7 @@ import cosim
 from cosim.assemble import TrackRegistry, build_snapshot, escort_targets_of
 from cosim.classes import class_table
 from cosim.conductor import Conductor
+from cosim.errors import InputError
 from cosim.protocol import drone_from_dict, vehicle_from_dict
 from cosim.scenario import LoadedScenario
 from cosim.scenario.model import EscortDrone
@@ -79,6 +80,24 @@ def episode_path(loaded: LoadedScenario, out_dir: Path) -> Path:
     return Path(out_dir) / f"{stem}.mcap"
 
 
+def check_output_dir(out_dir: Path) -> None:
+    """Make sure episodes can be written into ``out_dir`` (created if missing) before any work is done.
+
+    Raises :class:`~cosim.errors.InputError` naming the folder for a path that is a file, lies under a file,
+    cannot be created or is not writable (read-only file system, no permission, ``/proc``).
+    """
+    out = Path(out_dir)
+    try:
+        if out.exists() and not out.is_dir():
+            raise InputError(f"output folder {out} is a file, not a folder")
+        out.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out, prefix=".cosim-write-check-"):
+            pass
+    except (OSError, ValueError) as exc:
+        reason = getattr(exc, "strerror", None) or str(exc)
+        raise InputError(f"cannot write episodes into output folder {out}: {reason}") from None
+
+
 def episode_metadata(loaded: LoadedScenario, world: World) -> dict[str, str]:
     """The ``episode`` metadata record (all values are strings; structured ones are JSON)."""
     s = loaded.scenario
@@ -128,6 +147,7 @@ def run_episode(
     s = loaded.scenario
     started = time.perf_counter()
     final = episode_path(loaded, out_dir)
+    check_output_dir(final.parent)
     with tempfile.TemporaryDirectory(prefix="cosim-world-") as workdir:
         world = build_world(loaded, Path(workdir))
     suite = _sensor_suite(loaded, world)
