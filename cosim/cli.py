@@ -163,7 +163,24 @@ def _register_more(sub: argparse._SubParsersAction) -> None:
         module.register(sub)
 
 
+def _end_failed_run(args: argparse.Namespace, status: int, as_program: bool) -> int:
+    """A failed or interrupted ``cosim run`` started as a program ends the process here, at once.
+
+    By now the workers are reaped and the episode's temporary file is deleted; what is left are render,
+    encoder and writer threads finishing abandoned work and the teardown of the native libraries, which
+    take seconds on a loaded machine while the user (or a batch scheduler) waits for the exit status.
+    """
+    if as_program and args.command == "run":
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+    return status
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """The ``cosim`` program. ``argv`` None: called as the program (a failed ``run`` then ends the process
+    without the interpreter's slow teardown); a list: called in-process, always returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
     level = [logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
@@ -178,10 +195,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     except CosimError as exc:
         print(f"cosim: failed: {exc}", file=sys.stderr)
-        return EXIT_FAILURE
+        return _end_failed_run(args, EXIT_FAILURE, argv is None)
     except KeyboardInterrupt:
         print("cosim: interrupted; workers stopped, no episode written", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return _end_failed_run(args, EXIT_INTERRUPTED, argv is None)
     except BrokenPipeError:  # `cosim info EP | head`: the reader went away, which is not an error
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_OK

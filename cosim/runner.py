@@ -168,8 +168,10 @@ def run_episode(
         prefix=prefix,
         worker_log_level=worker_log_level,
     ) as conductor:
+        rendered: list[Any] = []  # the frames handed to the writer last; on failure their encodes are dropped
         if suite is not None:
             cleanup.callback(suite.close)
+            cleanup.callback(lambda: rendered and rendered[-1].cancel_encodes())
         writer.add_metadata("episode", episode_metadata(loaded, world))
         conductor.start()
         loop_started = time.perf_counter()
@@ -194,8 +196,10 @@ def run_episode(
                 background.submit(t_ns, lambda labels=labels: labels)
             else:
                 # rendered here; encoded, serialised and written while the next tick renders
-                frames = suite.render(snapshot, np.random.default_rng([s.seed, tick, SENSOR_STREAM]))
+                # conductor.poll: a worker that dies or hangs meanwhile stops the frame, not just the next tick
+                frames = suite.render(snapshot, np.random.default_rng([s.seed, tick, SENSOR_STREAM]), conductor.poll)
                 background.submit(t_ns, lambda labels=labels, frames=frames: [*labels, *suite.messages(frames)])
+                rendered[:] = [frames]
             if progress is not None:
                 progress(tick + 1, s.n_ticks)
         background.flush()
@@ -263,8 +267,8 @@ class _SensorAdapter:
             out.extend(self._sensor_transforms(self._scenario, agent))
         return out
 
-    def render(self, snapshot: WorldSnapshot, rng: np.random.Generator) -> Any:
-        return self._suite.render(snapshot, rng)
+    def render(self, snapshot: WorldSnapshot, rng: np.random.Generator, check: Callable[[], None]) -> Any:
+        return self._suite.render(snapshot, rng, check)
 
     def messages(self, frames: Any) -> list[tuple[str, Any]]:
         """The sensor messages of rendered frames (waits for their image encodes)."""
