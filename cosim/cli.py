@@ -73,6 +73,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.external_workers and not args.listen:
         raise InputError("--external-workers needs --listen tcp/HOST:PORT so the workers can connect")
     out_dir = Path(args.out) if args.out else Path(loaded.scenario.output.dir)
+    if args.dry_run:
+        import yaml
+
+        from cosim.runner import check_output_dir, episode_path
+
+        path = episode_path(loaded, out_dir)
+        check_output_dir(path.parent)
+        print(f"# {path}: {loaded.scenario.n_ticks} ticks, {len(loaded.scenario.agent_ids())} agents")
+        print(yaml.safe_dump(loaded.resolved, sort_keys=False), end="")
+        return EXIT_OK
     update, close = _progress_bar(loaded.scenario.name, enabled=not args.quiet)
     try:
         result = run_episode(loaded, out_dir, progress=update, listen=args.listen,
@@ -135,6 +145,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="do not start workers; wait for `cosim worker ... --connect` on --listen")
     run.add_argument("--prefix", help="Zenoh key prefix of the episode (default: fresh; 'cosim/external' "
                                       "with --external-workers)")
+    run.add_argument("--dry-run", action="store_true", help="check the scenario and the output folder and print "
+                                                            "the resolved scenario (YAML); build and run nothing")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     run.set_defaults(func=cmd_run)
 

@@ -169,8 +169,8 @@ def run_episode(
         worker_log_level=worker_log_level,
     ) as conductor:
         rendered: list[Any] = []  # the frames handed to the writer last; on failure their encodes are dropped
-        if suite is not None:
-            cleanup.callback(suite.close)
+        if suite is not None:  # on failure: drop the pending encodes, do not wait for abandoned sensors
+            cleanup.push(lambda failed, *_: suite.close(wait=failed is None))
             cleanup.callback(lambda: rendered and rendered[-1].cancel_encodes())
         writer.add_metadata("episode", episode_metadata(loaded, world))
         conductor.start()
@@ -276,8 +276,8 @@ class _SensorAdapter:
         return self._frame_messages(frames, frames.t_ns, image_format=out.image_format,
                                     jpeg_quality=out.jpeg_quality)
 
-    def close(self) -> None:
-        self._suite.close()
+    def close(self, wait: bool = True) -> None:
+        self._suite.close(wait)
 
 
 def _sensor_suite(loaded: LoadedScenario, world: World) -> _SensorAdapter | None:

@@ -205,9 +205,10 @@ class SensorSuite:
     def rig(self, agent: AgentState) -> RigSpec:
         return self.scenario.rig_for(agent.agent_id)
 
-    def close(self) -> None:
-        """Stop the render threads (idle threads also end with the interpreter)."""
-        self._pool.shutdown(wait=True)
+    def close(self, wait: bool = True) -> None:
+        """Stop the render threads (idle threads also end with the interpreter). ``wait=False``: do not wait for
+        sensors still rendering an abandoned frame (queued ones are cancelled either way)."""
+        self._pool.shutdown(wait=wait, cancel_futures=True)
 
     def __enter__(self) -> SensorSuite:
         return self

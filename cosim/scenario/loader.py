@@ -184,17 +184,22 @@ def _load_with_extends(path: Path, seen: tuple[Path, ...]) -> YamlDoc:
 def apply_override(doc: YamlDoc, assignment: str) -> None:
     """Apply one ``a.b.0.c=value`` override; the value is parsed as YAML (``3``, ``true``, ``[1, 2]``)."""
     key, sep, raw = assignment.partition("=")
-    source = f"--set {assignment}"
+    source = f"--set {_printable(assignment)}"
     if not sep or not key.strip():
         raise ScenarioError("expected KEY=VALUE, for example --set environment.weather=foggy", source=source)
     parts: list[str | int] = [int(p) if p.isdigit() else p for p in key.strip().split(".")]
     try:
         node = yaml.compose(raw, Loader=_LineLoader) if raw.strip() else None
         value = _construct(node, source, tuple(parts), {}) if node is not None else None if raw.strip() else ""
+    except yaml.reader.ReaderError as exc:
+        raise ScenarioError(f"value is not valid YAML: control character U+{int(exc.character):04X} is not allowed",
+                            path=_printable(key), source=source) from None
+    except yaml.MarkedYAMLError as exc:
+        raise ScenarioError(f"value is not valid YAML: {exc.problem}", path=_printable(key), source=source) from None
     except yaml.YAMLError as exc:
-        raise ScenarioError(f"value is not valid YAML: {exc}", path=key, source=source) from None
+        raise ScenarioError(f"value is not valid YAML: {exc}", path=_printable(key), source=source) from None
     except RecursionError:
-        raise ScenarioError("value is nested too deeply", path=key, source=source) from None
+        raise ScenarioError("value is nested too deeply", path=_printable(key), source=source) from None
     node: Any = doc.data
     for i, part in enumerate(parts[:-1]):
         if isinstance(node, list):
@@ -218,6 +223,12 @@ def apply_override(doc: YamlDoc, assignment: str) -> None:
     for k in [k for k in doc.marks if k[: len(parts)] == tuple(parts)]:
         del doc.marks[k]
     doc.marks[tuple(parts)] = (source, None)  # type: ignore[assignment]
+
+
+def _printable(text: str, limit: int = 120) -> str:
+    """``text`` for an error message: control characters escaped, long text shortened."""
+    shown = text if text.isprintable() else text.encode("unicode_escape").decode("ascii")
+    return shown if len(shown) <= limit else f"{shown[: limit - 20]}... ({len(text)} characters)"
 
 
 _UNION_TAGS = ("hover", "patrol", "escort")

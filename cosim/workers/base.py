@@ -91,7 +91,8 @@ def _loop(role: str, inbox: queue.Queue[Any], engine: Engine) -> int:
                 reply = engine.step(step)
                 reply["compute_ns"] = time.perf_counter_ns() - started
                 last_tick = step.tick
-            elif verb == "close":
+            elif verb == "close":  # release the engine first: once acknowledged, this process may be killed
+                engine.close()
                 query.reply(query.key_expr, protocol.encode({"closed": True}))
                 return 0
             else:
