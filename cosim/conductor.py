@@ -34,7 +34,7 @@ from cosim.workers import ROLES, spawned_worker_main
 log = logging.getLogger(__name__)
 
 _CLOSE_GRACE_S = 2.0  # [s] for a worker to acknowledge "close" and exit before it is terminated
-_FAILED_EXIT_GRACE_S = 0.1  # [s] for a worker to exit after acknowledging "close" when the episode failed
+_FAILED_EXIT_GRACE_S = 0.0  # [s] after its "close" acknowledgement (engine released) when the episode failed
 _CLOSE_TICK = -2  # tick id of the close queries (init uses -1)
 
 
@@ -261,7 +261,8 @@ class Conductor:
             except queue.Empty:
                 if time.monotonic() >= pending.deadline:
                     self._raise_timeout(pending, results)
-                self._check_processes(shown_tick)
+                # closing: a worker that already died must not keep the others from being closed
+                self._check_processes(shown_tick, pending.roles if pending.tick == _CLOSE_TICK else ROLES)
                 continue
             self._take(event, pending, results)
         if pending is self._outstanding:
@@ -314,9 +315,9 @@ class Conductor:
 
     # -- process health -------------------------------------------------------------------------
 
-    def _check_processes(self, tick: int | None) -> None:
+    def _check_processes(self, tick: int | None, roles: tuple[str, ...] = ROLES) -> None:
         for role, proc in self._procs.items():
-            if not proc.is_alive():
+            if role in roles and not proc.is_alive():
                 raise WorkerError(role, self._death_reason(role), tick=tick)
 
     def _death_reason(self, role: str) -> str:
