@@ -210,7 +210,10 @@ def test_hostile_scenario_files_get_one_message_naming_the_file(tmp_path, capsys
         "long_extends.yaml": (("name: x\nextends: " + "a" * 10_000 + "\n").encode(),
                               ":2: extends: cannot open the base scenario"),
         "nul_extends.yaml": (b'name: x\nextends: "a\\0b"\n', ":2: extends: cannot open the base scenario"),
-        "deep.yaml": (("name: x\ndescription: " + "[" * 5000 + "]" * 5000 + "\n").encode(), "nested too deeply"),
+        "deep.yaml": (("name: x\ndescription: " + "[" * 5000 + "]" * 5000 + "\n").encode(),
+                      ":2: invalid YAML: brackets nested more than 100 levels deep"),
+        "deep_block.yaml": (("name: x\ndescription:\n" + "".join(" " * i + "- \n" for i in range(0, 3000, 2))).encode(),
+                            ":204: invalid YAML: indented more than 400 columns (nested too deeply)"),
         "tagged.yaml": (b"name: x\nseed: !!int nope\n", ":2: seed: invalid value 'nope'"),
         "date.yaml": (b"name: x\nduration_s: 2024-13-45\n", "duration_s"),
     }

@@ -105,6 +105,42 @@ def dotted(path: Iterable[str | int]) -> str:
 MAX_YAML_BYTES = 4 * 1024 * 1024
 
 
+#: Deepest ``[``/``{`` nesting read (PyYAML's scanner takes time quadratic in it; scenarios need 5).
+MAX_FLOW_DEPTH = 100
+MAX_INDENT = 400  # [columns] of leading spaces, the same bound for block nesting
+
+
+def _deeper_than(text: str, limit: int) -> int | None:
+    """The 1-based line where flow brackets nest deeper than ``limit``, else None (quotes and comments skipped)."""
+    depth, line, quote = 0, 1, ""
+    prev = "\n"
+    i, n = 0, len(text)
+    while i < n:
+        c = text[i]
+        if c == "\n":
+            line += 1
+        if quote:
+            if c == "\\" and quote == '"':
+                i += 1
+            elif c == quote:
+                quote = ""
+        elif c in "'\"" and (prev in " \t\n[{,:" or depth):
+            quote = c
+        elif c == "#" and prev in " \t\n":
+            j = text.find("\n", i)
+            i = n if j < 0 else j
+            continue
+        elif c in "[{":
+            depth += 1
+            if depth > limit:
+                return line
+        elif c in "]}" and depth:
+            depth -= 1
+        prev = c
+        i += 1
+    return None
+
+
 def parse_yaml(path: Path) -> YamlDoc:
     """Parse a YAML mapping keeping line marks; every problem (unreadable, binary, control characters,
     invalid YAML, too deep) is one :class:`ScenarioError` naming the file and, where known, the line."""
@@ -124,6 +160,14 @@ def parse_yaml(path: Path) -> YamlDoc:
         line = raw[: exc.start].count(b"\n") + 1
         raise ScenarioError(f"not a text file: byte {exc.start} is not UTF-8 (0x{raw[exc.start]:02x})", line=line,
                             source=source) from None
+    too_deep = _deeper_than(text, MAX_FLOW_DEPTH)
+    if too_deep is not None:
+        raise ScenarioError(f"invalid YAML: brackets nested more than {MAX_FLOW_DEPTH} levels deep", line=too_deep,
+                            source=source)
+    for number, row in enumerate(text.splitlines(), 1):
+        if len(row) - len(row.lstrip(" ")) > MAX_INDENT:
+            raise ScenarioError(f"invalid YAML: indented more than {MAX_INDENT} columns (nested too deeply)",
+                                line=number, source=source)
     try:
         node = yaml.compose(text, Loader=_LineLoader)
         if node is None:
@@ -188,6 +232,9 @@ def apply_override(doc: YamlDoc, assignment: str) -> None:
     if not sep or not key.strip():
         raise ScenarioError("expected KEY=VALUE, for example --set environment.weather=foggy", source=source)
     parts: list[str | int] = [int(p) if p.isdigit() else p for p in key.strip().split(".")]
+    if _deeper_than(raw, MAX_FLOW_DEPTH) is not None:
+        raise ScenarioError(f"value is not valid YAML: brackets nested more than {MAX_FLOW_DEPTH} levels deep",
+                            path=_printable(key), source=source)
     try:
         node = yaml.compose(raw, Loader=_LineLoader) if raw.strip() else None
         value = _construct(node, source, tuple(parts), {}) if node is not None else None if raw.strip() else ""
