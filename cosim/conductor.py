@@ -34,6 +34,7 @@ from cosim.workers import ROLES, spawned_worker_main
 log = logging.getLogger(__name__)
 
 _CLOSE_GRACE_S = 2.0  # [s] for a worker to acknowledge "close" and exit before it is terminated
+_FAILED_CLOSE_S = 0.5  # [s] for the "close" acknowledgement when the episode failed (then the worker is killed)
 _FAILED_EXIT_GRACE_S = 0.0  # [s] after its "close" acknowledgement (engine released) when the episode failed
 _CLOSE_TICK = -2  # tick id of the close queries (init uses -1)
 
@@ -170,7 +171,8 @@ class Conductor:
             # Wait for the acknowledgements, so that a worker ends on "close" (status 0) rather than on
             # seeing the conductor's liveliness token vanish (status 1).
             with contextlib.suppress(WorkerError, zenoh.ZError):
-                self._query_all("close", _CLOSE_TICK, {r: {} for r in responsive}, _CLOSE_GRACE_S)
+                self._query_all("close", _CLOSE_TICK, {r: {} for r in responsive},
+                                _FAILED_CLOSE_S if failed else _CLOSE_GRACE_S)
         deadline = time.monotonic() + (_FAILED_EXIT_GRACE_S if failed else _CLOSE_GRACE_S)
         for proc in self._procs.values():
             proc.join(max(0.0, deadline - time.monotonic()))

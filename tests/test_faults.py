@@ -15,6 +15,7 @@ import subprocess
 import sys
 import time
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
 
 import psutil
@@ -28,15 +29,22 @@ WORKER_NAMES = ("cosim-traffic", "cosim-drones")
 SMALL = ["--no-sensors", "--set", "map.size_m=300", "--set", "traffic.density_veh_per_km=6"]
 
 
-def start(out: Path, *args: str, mark: str = "") -> tuple[subprocess.Popen, Path]:
-    """``cosim run ARGS`` with stderr in a file (so its exit can be timed apart from pipe EOF); ``mark`` is put
-    into the environment, which every process it starts inherits."""
+@contextlib.contextmanager
+def running(out: Path, *args: str) -> Iterator[tuple[subprocess.Popen, Path, str]]:
+    """``cosim run ARGS`` with stderr in a file (so its exit is timed apart from pipe EOF), and a mark in its
+    environment, which every process it starts inherits; whatever is left is killed on the way out."""
     err = out.parent / f"{out.name}.stderr"
+    mark = uuid.uuid4().hex
     env = {**os.environ, "COSIM_TEST_MARK": mark}
     with open(err, "w") as f:
         proc = subprocess.Popen([sys.executable, "-m", "cosim.cli", "run", *args, "--out", str(out), "-q"],
                                 cwd=REPO, stdout=subprocess.DEVNULL, stderr=f, env=env)
-    return proc, err
+    try:
+        yield proc, err, mark
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        kill_all(marked(mark))
 
 
 def marked(mark: str) -> list[psutil.Process]:
@@ -93,9 +101,7 @@ def kill_all(procs) -> None:
 def test_conductor_killed_while_workers_start_leaves_no_process_behind(tmp_path, delay_s):
     """The delay counts from the first worker process's appearance: 0.2 s is inside its interpreter start-up
     and imports (before the engines are even imported), 1 s its Zenoh connection, 3 s the engines' init."""
-    mark = uuid.uuid4().hex
-    proc, err = start(tmp_path / "out", "scenarios/default.yaml", "--duration", "60", *SMALL, mark=mark)
-    try:
+    with running(tmp_path / "out", "scenarios/default.yaml", "--duration", "60", *SMALL) as (proc, err, mark):
         wait_for(lambda: spawned_children(proc.pid), proc, err)
         time.sleep(delay_s)
         assert proc.poll() is None, err.read_text()
@@ -107,10 +113,6 @@ def test_conductor_killed_while_workers_start_leaves_no_process_behind(tmp_path,
         while leftover and time.monotonic() - t_kill < 2.0:
             time.sleep(0.05)
             leftover = marked(mark)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        kill_all(marked(mark))
     assert len(started) >= 2, started  # the conductor and at least one worker were there
     assert leftover == [], [(p.pid, p.name(), p.cmdline()) for p in leftover]
 
@@ -122,10 +124,8 @@ def fault_while_rendering(tmp_path: Path, role: str, sig: signal.Signals, *run_a
     """Start a sensor episode, wait until its first tick is on disk (the next frame is rendering), send ``sig``
     to the ``role`` worker; returns (seconds from the signal to the exit, exit status, stderr)."""
     out = tmp_path / "out"
-    mark = uuid.uuid4().hex
-    proc, err = start(out, "scenarios/default.yaml", "--duration", "60", *run_args, mark=mark)
     partial = out / ".default_s0.mcap.partial"
-    try:
+    with running(out, "scenarios/default.yaml", "--duration", "60", *run_args) as (proc, err, mark):
         workers = wait_for(lambda: named if len(named := {p.name(): p for p in spawned_children(proc.pid)
                                                           if p.name() in WORKER_NAMES}) == 2 else None,
                            proc, err, period_s=0.05)
@@ -137,10 +137,6 @@ def fault_while_rendering(tmp_path: Path, role: str, sig: signal.Signals, *run_a
         elapsed = time.monotonic() - t_signal
         time.sleep(0.5)
         leftover = marked(mark)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        kill_all(marked(mark))
     text = err.read_text()
     assert leftover == [], [(p.pid, p.name()) for p in leftover]
     assert "Traceback" not in text, text

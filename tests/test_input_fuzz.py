@@ -25,6 +25,10 @@ from tests.conftest import REPO, SCENARIOS
 SCENARIO_EXAMPLES = 120
 SWEEP_EXAMPLES = 40
 DUMPER = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
+#: The same examples every run (derandomize, no example database), no per-example deadline on a loaded machine.
+BOUNDED = settings(deadline=None, derandomize=True, database=None,
+                   suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
+                                          HealthCheck.data_too_large])
 KINDS = ("wrong_type", "extreme_number", "non_finite", "control_char", "deep_nesting", "delete_key",
          "duplicate_key")
 
@@ -156,29 +160,26 @@ def workdir(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("fuzz")
 
 
-@settings(max_examples=SCENARIO_EXAMPLES, deadline=None, derandomize=True, database=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
-                                 HealthCheck.data_too_large])
+def run_mutated(capsys, workdir: Path, kind: str, text: str, *args: str) -> None:
+    """Write ``text`` as ``<kind>.yaml``, run ``cosim ARGS FILE-ARGS`` and check the outcome."""
+    f = workdir / f"{kind}.yaml"
+    f.write_text(text, encoding="utf-8", errors="surrogatepass")
+    RUNS[f"{kind}_files"] += 1
+    status, err = run_cli(capsys, [args[0], str(f), *args[1:]])
+    check(status, err, text)
+
+
+@settings(BOUNDED, max_examples=SCENARIO_EXAMPLES)
 @given(text=mutated_text(_scenario_seeds()))
 def test_mutated_scenarios_exit_0_or_2_without_a_traceback(capsys, workdir, text):
-    f = workdir / "scenario.yaml"
-    f.write_text(text, encoding="utf-8", errors="surrogatepass")
-    RUNS["scenario_files"] += 1
-    status, err = run_cli(capsys, ["run", str(f), "--dry-run", "--out", str(workdir / "out")])
-    check(status, err, text)
+    run_mutated(capsys, workdir, "scenario", text, "run", "--dry-run", "--out", str(workdir / "out"))
 
 
-@settings(max_examples=SWEEP_EXAMPLES, deadline=None, derandomize=True, database=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
-                                 HealthCheck.data_too_large])
+@settings(BOUNDED, max_examples=SWEEP_EXAMPLES)
 @given(text=mutated_text(_sweep_seeds()))
 def test_mutated_sweeps_exit_0_or_2_without_a_traceback(capsys, workdir, text):
-    f = workdir / "sweep.yaml"
-    f.write_text(text, encoding="utf-8", errors="surrogatepass")
-    RUNS["sweep_files"] += 1
-    status, err = run_cli(capsys, ["batch", str(f), "--out", str(workdir / "batch"), "--dry-run",
-                                   "--calibrate-s", "0"])
-    check(status, err, text)
+    run_mutated(capsys, workdir, "sweep", text, "batch", "--out", str(workdir / "batch"), "--dry-run",
+                "--calibrate-s", "0")
 
 
 def test_every_kind_of_mutation_was_tried():

@@ -58,7 +58,7 @@ def test_truncated_file_is_reported_not_crashed(good, tmp_path, keep_fraction, c
     assert any("truncated" in p.message for p in found)
     assert main(["validate", str(cut)]) == 1
     assert "truncated" in capsys.readouterr().out
-    assert main(["info", str(cut)]) == 1  # runtime failure with a message, no traceback
+    assert main(["info", str(cut)]) == 2  # bad input (the file is not a readable episode): a message, no traceback
     assert "truncated or corrupt" in capsys.readouterr().err
 
 
