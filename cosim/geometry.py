@@ -1,4 +1,4 @@
-"""Frames, rotations and unit conversions (design.md section 3), in one place.
+"""Frames, rotations and unit conversions (docs/conventions.md sections 1, 2 and 4), in one place.
 
 World frame ``map`` is ENU in metres; body frames are FLU; camera optical frames are x right,
 y down, z forward. Quaternions are (x, y, z, w). Yaw is about +z from +x, in radians.

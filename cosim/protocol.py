@@ -24,7 +24,7 @@ ROLES = ("traffic", "drones")
 
 @dataclass(frozen=True, slots=True)
 class VehicleState:
-    """One SUMO vehicle at a tick, already converted to the box convention (design.md section 3)."""
+    """One SUMO vehicle at a tick, already converted to the box convention (docs/conventions.md section 4)."""
 
     sumo_id: str
     cls: str

@@ -1,4 +1,4 @@
-"""Episode tools on the command line: ``cosim info | validate | replay | render``.
+"""Episode tools on the command line: ``cosim info | validate | replay | render | comm``.
 
 Registered into ``cosim`` by :func:`register` (cosim/cli.py calls it). Each command parses its
 arguments and calls a typed function in :mod:`cosim.io`; errors are raised as
@@ -8,10 +8,15 @@ arguments and calls a typed function in :mod:`cosim.io`; errors are raised as
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
+import signal
 import sys
+import threading
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from cosim.errors import InputError
 
@@ -85,13 +90,17 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from cosim.io.replay import ReplayOptions, replay_episode
+    from cosim.io.replay import DEFAULT_FOXGLOVE_HOST, ReplayEndpoints, ReplayOptions, replay_episode
     from cosim.transport import check_endpoint
 
     if args.rate <= 0:
         raise InputError(f"--rate must be > 0, got {args.rate}")
     for e in (args.connect or []) + (args.listen or []):
         check_endpoint(e)
+    if args.foxglove_host and args.foxglove is None:
+        raise InputError("--foxglove-host needs --foxglove [PORT]")
+    if args.foxglove is not None and not 0 <= args.foxglove <= 65535:
+        raise InputError(f"--foxglove port must be 0..65535, got {args.foxglove}")
     opts = ReplayOptions(
         rate=args.rate,
         loop=args.loop,
@@ -101,10 +110,25 @@ def cmd_replay(args: argparse.Namespace) -> int:
         prefix=args.prefix,
         wait_subscribers_s=args.wait,
         foxglove_port=args.foxglove,
+        foxglove_host=args.foxglove_host or DEFAULT_FOXGLOVE_HOST,
     )
-    try:
-        stats = replay_episode(_episode(args.episode), opts)
-    except KeyboardInterrupt:
+
+    def announce(where: ReplayEndpoints) -> None:
+        keys = f"keys {where.prefix}/**"
+        for endpoint in where.subscriber_endpoints():
+            print(f"zenoh     {endpoint}  (subscribers connect here: connect/endpoints; {keys})", flush=True)
+        for endpoint in where.zenoh_connect:
+            print(f"zenoh     connected to {endpoint}  ({keys})", flush=True)
+        if where.foxglove_url:
+            print(f"foxglove  {where.foxglove_url}  (Foxglove: Open connection > Foxglove WebSocket)", flush=True)
+
+    stop = threading.Event()
+    with _stop_on_signals(stop):
+        try:
+            stats = replay_episode(_episode(args.episode), opts, stop, on_ready=announce)
+        except KeyboardInterrupt:
+            stop.set()
+    if stop.is_set():
         print("cosim: replay stopped", file=sys.stderr)
         return EXIT_INTERRUPTED
     print(
@@ -112,6 +136,22 @@ def cmd_replay(args: argparse.Namespace) -> int:
         f"in {stats.wall_s:.2f} s under {opts.prefix}/"
     )
     return EXIT_OK
+
+
+@contextlib.contextmanager
+def _stop_on_signals(stop: threading.Event) -> Iterator[None]:
+    """The first Ctrl-C (or SIGTERM) sets ``stop`` so the replay winds down; a second one interrupts at once."""
+
+    def first(signum: int, frame: Any) -> None:
+        stop.set()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    previous = {s: signal.signal(s, first) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 def cmd_render(args: argparse.Namespace) -> int:
@@ -131,8 +171,23 @@ def cmd_render(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_comm(args: argparse.Namespace) -> int:
+    from cosim.comm.summary import comm_report, format_summary, summary_json
+
+    out = Path(args.out) if args.out else None
+    rows, n_ticks, written = comm_report(_episode(args.episode), out, args.tick, dpi=args.dpi)
+    if args.json:
+        print(json.dumps({"ticks": n_ticks, "link_types": summary_json(rows), "plots": [str(p) for p in written]},
+                         indent=2))
+        return EXIT_OK
+    print(format_summary(rows, n_ticks))
+    for p in written:
+        print(p)
+    return EXIT_OK
+
+
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add ``info``, ``validate``, ``replay`` and ``render`` to the ``cosim`` command."""
+    """Add ``info``, ``validate``, ``replay``, ``render`` and ``comm`` to the ``cosim`` command."""
     p = sub.add_parser("info", help="what an episode holds: scenario, conditions, agents, topics, size")
     p.add_argument("episode", help="episode file (.mcap)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
@@ -175,7 +230,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         nargs="?",
         const=8765,
         metavar="PORT",
-        help="also serve the replay to Foxglove over WebSocket (needs foxglove-sdk; default port 8765)",
+        help="also serve the replay to Foxglove over WebSocket (needs foxglove-sdk; default port 8765, 0 = any free)",
+    )
+    p.add_argument(
+        "--foxglove-host",
+        metavar="HOST",
+        help="address the Foxglove server listens on (default 127.0.0.1; 0.0.0.0 for other machines)",
     )
     p.set_defaults(func=cmd_replay)
 
@@ -186,3 +246,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--agents", nargs="+", metavar="AGENT", help="agents for contact sheets (default all)")
     p.add_argument("--dpi", type=int, default=80, help="figure resolution (default 80)")
     p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("comm", help="V2X links of an episode: summary per link type (LOS, SNR, delivery) and plots")
+    p.add_argument("episode", help="episode file (.mcap) written with comm.enabled")
+    p.add_argument("--out", help="folder for comm_quality.png and comm_map_t<tick>.png (default: no plots)")
+    p.add_argument("--tick", type=int, help="tick of the link map (default: the middle one)")
+    p.add_argument("--json", action="store_true", help="machine-readable summary")
+    p.add_argument("--dpi", type=int, default=80, help="figure resolution (default 80)")
+    p.set_defaults(func=cmd_comm)

@@ -1,4 +1,4 @@
-"""Zenoh configuration for cosim's topology (design.md section 5).
+"""Zenoh configuration for cosim's topology (docs/conventions.md section 6).
 
 The conductor runs a Zenoh *router* listening on a loopback TCP endpoint; workers are *clients*
 connected to it. Multicast scouting is off everywhere, so nothing leaves the machine unless the user

@@ -1,4 +1,4 @@
-"""Labels and transforms of one snapshot as episode messages (design.md section 6).
+"""Labels and transforms of one snapshot as episode messages (docs/episode_format.md sections 3.1-3.3).
 
 - ``/tf`` (foxglove.FrameTransforms): ``map -> <agent>/base_link`` for every connected agent, plus
   the rig's ``<agent>/base_link -> <agent>/<sensor>`` (and camera optical frames) when given.

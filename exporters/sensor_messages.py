@@ -1,4 +1,4 @@
-"""Sensor frames -> (topic, message) pairs for the episode writer (design.md section 6).
+"""Sensor frames -> (topic, message) pairs for the episode writer (docs/episode_format.md sections 3.4-3.10).
 
 Foxglove protobuf messages wherever a schema exists; the IMU and visibility topics, which have
 none, come as ``(topic, (schema_name, json_schema, payload_dict))``. Every timestamp inside a

@@ -69,3 +69,79 @@ def test_colour_helpers():
 def test_tick_selection():
     assert parse_ticks(None, 10) == [0, 5, 9]
     assert parse_ticks("0:10:4,-1", 10) == [0, 4, 8, 9]
+
+
+def _fill_instance_with_every_track(tick, topic, msg):
+    """Edit for the synthetic episode: vehicle_0's rear instance image holds tracks 1, 2, 3 in bands of rows."""
+    if topic != "/vehicle_0/rear/instance":
+        return msg
+    ids = (np.arange(msg.height * msg.width, dtype=np.int32).reshape(msg.height, msg.width) // msg.width) % 3 + 1
+    msg.data = ids.tobytes()
+    return msg
+
+
+def test_box_edges_are_drawn_where_the_projected_corners_are(tmp_path):
+    from cosim.io.render import BOX_COLOURS, camera_with_boxes
+
+    path = write_synthetic_episode(
+        tmp_path / "ep.mcap", ticks=2, width=320, height=240, edit=_fill_instance_with_every_track
+    )
+    with open_episode(path) as ep:
+        tick = ep.tick(1)
+        raw = tick.image("vehicle_0", "rear").array
+        drawn = camera_with_boxes(ep, tick, "vehicle_0", "rear")
+        labels = tick.labels
+        optical_from_map = np.linalg.inv(tick.transforms.to_root(tick.image("vehicle_0", "rear").frame_id))
+        K = tick.calibration("vehicle_0", "rear").K
+    truck = labels.classes.index("truck")  # the truck drives 5 m behind vehicle_0: in its rear camera
+    assert labels.rotations[truck] == pytest.approx([0, 0, 0, 1])  # axis-aligned: corners by hand
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    corners = labels.centers_m[truck] + signs * labels.sizes_m[truck] / 2
+    cam = corners @ optical_from_map[:3, :3].T + optical_from_map[:3, 3]
+    assert (cam[:, 2] > 1).all()  # every corner in front of the camera
+    uv = cam[:, :2] / cam[:, 2:3] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    edges = [(uv[i], uv[j]) for i in range(8) for j in range(i + 1, 8) if np.count_nonzero(signs[i] != signs[j]) == 1]
+    assert len(edges) == 12
+    is_box = (drawn == BOX_COLOURS["truck"]).all(axis=2)
+    on_edges = 0
+    for a, b in edges:  # every point along every edge inside the image lies on a box-coloured pixel (+-1 px)
+        for f in np.linspace(0.0, 1.0, 41):
+            u, v = a + f * (b - a)
+            if 0 <= u < 320 and 0 <= v < 240:
+                col, row = int(u), int(v)
+                assert is_box[max(row - 1, 0) : row + 2, max(col - 1, 0) : col + 2].any(), (a, b, f)
+                on_edges += 1
+    assert on_edges > 200
+    changed = (drawn != raw).any(axis=2)
+    assert (changed == is_box).all()  # nothing else drawn: the drone is behind, vehicle_0 is the ego
+    rows, cols = np.nonzero(changed)
+    centres = np.stack([cols + 0.5, rows + 0.5], axis=1)
+    dist = np.full(len(centres), np.inf)
+    for a, b in edges:  # and every drawn pixel touches a projected edge
+        t = np.clip((centres - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1)
+        dist = np.minimum(dist, np.hypot(*(centres - (a + t[:, None] * (b - a))).T))
+    assert dist.max() <= np.sqrt(0.5) + 1e-9
+    assert 0 < changed.mean() < 0.2
+
+
+def test_only_boxes_the_camera_sees_are_drawn(episode):
+    """In the plain synthetic episode the truck is not in the rear camera's instance image: no box drawn."""
+    from cosim.io.render import camera_with_boxes
+
+    with open_episode(episode) as ep:
+        tick = ep.tick(1)
+        assert "truck" in tick.labels.classes
+        for agent in ep.agents:
+            for cam in ep.cameras(agent):
+                assert (camera_with_boxes(ep, tick, agent, cam) == tick.image(agent, cam).array).all()
+
+
+def test_instance_colours():
+    from cosim.classes import OBJECT_CLASSES
+    from cosim.io.render import BOX_COLOURS, colourise_instance
+
+    rgb = colourise_instance(np.array([[0, 1, 2, 3, 1]]))
+    assert tuple(rgb[0, 0]) == (0, 0, 0)
+    assert (rgb[0, 1] == rgb[0, 4]).all() and len({tuple(c) for c in rgb[0, 1:4]}) == 3
+    assert (rgb[0, 1:].max(axis=1) > 96).all()
+    assert set(BOX_COLOURS) == set(OBJECT_CLASSES)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
+import signal
 import time
 
 import pytest
@@ -23,26 +24,35 @@ def subscribe(endpoint: str, key: str, expected: int, ready, out, timeout_s: flo
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    got: list[tuple[str, str, dict, bytes, float]] = []
     with zenoh.open(conf) as session:
         sub = session.declare_subscriber(key)
         ready.set()
-        deadline = time.monotonic() + timeout_s
-        while len(got) < expected and time.monotonic() < deadline:
-            sample = sub.try_recv()
-            if sample is None:
-                time.sleep(0.001)
-                continue
-            got.append(
-                (
-                    str(sample.key_expr),
-                    str(sample.encoding),
-                    json.loads(sample.attachment.to_bytes()),
-                    sample.payload.to_bytes(),
-                    time.monotonic(),
-                )
-            )
+        got = _collect(
+            sub,
+            expected,
+            timeout_s,
+            lambda sample: (
+                str(sample.key_expr),
+                str(sample.encoding),
+                json.loads(sample.attachment.to_bytes()),
+                sample.payload.to_bytes(),
+                time.monotonic(),
+            ),
+        )
     out.put(got)
+
+
+def _collect(sub, expected: int, timeout_s: float, convert) -> list:
+    """``convert(sample)`` for the first ``expected`` samples a Zenoh subscriber receives within ``timeout_s``."""
+    got = []
+    deadline = time.monotonic() + timeout_s
+    while len(got) < expected and time.monotonic() < deadline:
+        sample = sub.try_recv()
+        if sample is None:
+            time.sleep(0.001)
+            continue
+        got.append(convert(sample))
+    return got
 
 
 def _replay_into_subscriber(path, expected, extra_args, key="cosim/replay/**"):
@@ -105,8 +115,11 @@ def test_replay_bad_input_exits_2(tmp_path, capsys):
     assert main(["replay", str(path), "--topics", "/nope", "--wait", "0"]) == 2
     assert main(["replay", str(path), "--connect", "nonsense"]) == 2
     assert main(["replay", str(tmp_path / "absent.mcap")]) == 2
+    assert main(["replay", str(path), "--foxglove-host", "0.0.0.0"]) == 2
+    assert main(["replay", str(path), "--foxglove", "70000"]) == 2
     err = capsys.readouterr().err
     assert "--rate must be > 0" in err and "no topic matches '/nope'" in err and "invalid endpoint" in err
+    assert "--foxglove-host needs --foxglove" in err and "port must be 0..65535" in err
 
 
 def _foxglove_messages(port: int, wanted: int, timeout_s: float = 30.0) -> list[dict]:
@@ -207,11 +220,147 @@ def test_ctrl_c_stops_a_looping_replay(tmp_path):
             free_loopback_endpoint(),
         ],
         cwd=REPO,
+        stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
     )
-    time.sleep(3.0)
+    # Interrupt once the replay is serving (it prints its endpoint then), not after a fixed sleep: on a
+    # loaded machine the interpreter may still be importing after seconds.
+    ready = proc.stdout.readline()
+    assert ready.startswith("zenoh"), (ready, proc.stderr.read() if proc.poll() is not None else "")
+    time.sleep(0.5)
     assert proc.poll() is None, proc.stderr.read()  # still looping
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 130 and "replay stopped" in err
+
+
+class _ReplayProcess:
+    """``cosim replay`` in its own interpreter; stdout lines are collected by a thread (readline never blocks us)."""
+
+    def __init__(self, *args: str):
+        import queue
+        import subprocess
+        import sys
+        import threading
+
+        from tests.conftest import REPO
+
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "cosim.cli", "replay", *args],
+            cwd=REPO,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        self.lines: queue.Queue[str | None] = queue.Queue()
+
+        def pump() -> None:
+            for line in self.proc.stdout:
+                self.lines.put(line)
+            self.lines.put(None)
+
+        threading.Thread(target=pump, daemon=True).start()
+
+    def line_starting(self, word: str, timeout_s: float = 60.0) -> str:
+        """The first stdout line whose first word is ``word`` (fails when the process ends first)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            line = self.lines.get(timeout=max(deadline - time.monotonic(), 0.01))
+            if line is None:
+                break
+            if line.split() and line.split()[0] == word:
+                return line
+        self.proc.kill()
+        _, err = self.proc.communicate(timeout=30)
+        raise AssertionError(f"cosim replay printed no {word!r} line; stderr: {err}")
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.communicate(timeout=30)
+
+
+def subscribe_with_default_config(endpoint: str, key: str, expected: int, out, timeout_s: float) -> None:
+    """Child process: Zenoh's default configuration plus only ``connect/endpoints``, as the README says."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    with zenoh.open(conf) as session:
+        sub = session.declare_subscriber(key)
+        got = _collect(sub, expected, timeout_s, lambda sample: (str(sample.key_expr), sample.payload.to_bytes()))
+    out.put(got)
+
+
+@pytest.mark.integration
+def test_replay_prints_the_endpoint_a_subscriber_connects_to(tmp_path):
+    """A subscriber in another process that connects to the printed endpoint receives every message."""
+    path = write_synthetic_episode(tmp_path / "ep.mcap", ticks=5, sensors=False)
+    with open_episode(path) as ep:
+        sent = [(topic_key("cosim/replay", m.topic), m.data) for m in ep.messages()]
+    listen = free_loopback_endpoint()
+    replay = _ReplayProcess(str(path), "--rate", "100", "--wait", "60", "--listen", listen)
+    ctx = mp.get_context("spawn")
+    out = ctx.Queue()
+    child = None
+    try:
+        line = replay.line_starting("zenoh")
+        endpoint = line.split()[1]
+        assert endpoint == listen and "connect/endpoints" in line and "cosim/replay/**" in line
+        args = (endpoint, "cosim/replay/**", len(sent), out, 90)
+        child = ctx.Process(target=subscribe_with_default_config, args=args)
+        child.start()
+        got = out.get(timeout=120)
+        assert replay.proc.wait(timeout=60) == 0
+    finally:
+        replay.close()
+        if child is not None:
+            child.join(30)
+            if child.is_alive():
+                child.kill()
+    assert got == sent
+
+
+@pytest.mark.integration
+def test_ctrl_c_right_after_a_foxglove_client_disconnects_stops_the_replay(tmp_path):
+    """A real WebSocket client subscribes, receives data and goes away; Ctrl-C then ends the replay with 130."""
+    pytest.importorskip("foxglove")
+    from websockets.sync.client import connect
+
+    path = write_synthetic_episode(tmp_path / "ep.mcap", ticks=5)
+    replay = _ReplayProcess(
+        str(path), "--loop", "--wait", "0", "--listen", free_loopback_endpoint(),
+        "--foxglove", "0", "--foxglove-host", "127.0.0.1",
+    )
+    try:
+        url = replay.line_starting("foxglove").split()[1]
+        assert url.startswith("ws://127.0.0.1:") and int(url.rsplit(":", 1)[1]) > 0
+        with connect(url, subprotocols=["foxglove.sdk.v1"], max_size=None, open_timeout=30) as ws:
+            assert json.loads(ws.recv(timeout=30))["op"] == "serverInfo"
+            advertise = json.loads(ws.recv(timeout=30))
+            assert advertise["op"] == "advertise"
+            channels = [c["id"] for c in advertise["channels"]]
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": i, "channelId": c}
+                                                                     for i, c in enumerate(channels)]}))
+            binary = 0
+            while binary < 50:  # message data frames: the replay is sending to this client
+                binary += isinstance(ws.recv(timeout=30), bytes)
+        replay.proc.send_signal(signal.SIGINT)
+        _, err = replay.proc.communicate(timeout=30)  # a hang fails here
+        assert replay.proc.returncode == 130, err
+        assert "replay stopped" in err and "Traceback" not in err
+    finally:
+        replay.close()
+
+
+def test_replay_urls_name_a_reachable_host():
+    import socket
+
+    from cosim.io.replay import foxglove_url, reachable_endpoint
+
+    assert foxglove_url("127.0.0.1", 8765) == "ws://127.0.0.1:8765"
+    assert foxglove_url("0.0.0.0", 8765) == f"ws://{socket.gethostname()}:8765"
+    assert foxglove_url("::1", 9000) == "ws://[::1]:9000"
+    assert reachable_endpoint("tcp/0.0.0.0:7447") == f"tcp/{socket.gethostname()}:7447"
+    assert reachable_endpoint("tcp/10.0.0.5:7447") == "tcp/10.0.0.5:7447"

@@ -1,6 +1,12 @@
 """``cosim render``: PNG previews of chosen ticks (matplotlib, Agg backend, no display needed).
 
-- ``contact_<agent>_t<tick>.png``: one row per camera of the agent: RGB, depth, semantic classes.
+- ``contact_<agent>_t<tick>.png``: one row per camera of the agent: RGB with the labelled 3D boxes
+  projected onto it, depth, semantic classes, instance ids. A box is drawn (its 12 edges, in its
+  class's ``BOX_COLOURS``) when its track id appears in the camera's instance image, so what is drawn is what
+  the camera sees; without an instance image every box in front of the camera is drawn. The
+  agent's own box is never drawn. Projection: ``/tf`` gives map <- optical frame, the camera's
+  ``calibration`` gives K; pixel (col, row) covers u in [col, col + 1), v in [row, row + 1)
+  (docs/episode_format.md).
 - ``bev_t<tick>.png``: top view of the map frame: the static layout (roads, buildings... from the
   ``world.json`` attachment), every agent, every labelled box, and every agent's LiDAR points moved
   into ``map`` through ``/tf`` (coloured by semantic class when the cloud has a ``class_id`` field,
@@ -27,6 +33,21 @@ log = logging.getLogger(__name__)
 AGENT_STYLE = {"vehicle": ("o", "#1f77b4"), "rsu": ("s", "#d4a000"), "drone": ("^", "#d62728")}
 MAX_BEV_POINTS = 60_000  # per plot, subsampled evenly
 DEPTH_MAX_M = 120.0
+NEAR_M = 0.1  # [m] box edges are cut where they pass behind this optical z
+#: Box outline colours on camera images: bright, so they stand out on roads, sky and at night.
+BOX_COLOURS: dict[str, tuple[int, int, int]] = {
+    "car": (255, 215, 0),
+    "van": (255, 128, 0),
+    "truck": (255, 0, 255),
+    "bus": (0, 255, 255),
+    "motorcycle": (0, 255, 0),
+    "bicycle": (255, 48, 48),
+    "drone": (255, 255, 255),
+}
+#: Corner order of a box: bit 0 = +x (front), bit 1 = +y (left), bit 2 = +z (top), in the box's body frame.
+_CORNER_SIGNS = np.array([[(i & 1) * 2 - 1, (i >> 1 & 1) * 2 - 1, (i >> 2 & 1) * 2 - 1] for i in range(8)], float)
+#: The 12 edges of a box as corner index pairs.
+BOX_EDGES = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]])
 
 
 def semantic_palette(class_table: dict[str, Any] | None = None) -> np.ndarray:
@@ -46,6 +67,123 @@ def colourise_semantic(ids: np.ndarray, palette: np.ndarray) -> np.ndarray:
     return palette[np.clip(ids.astype(np.int64), 0, 255)]
 
 
+def colourise_instance(ids: np.ndarray) -> np.ndarray:
+    """Instance ids (H, W) -> RGB (H, W, 3) uint8: a fixed bright colour per id, black for 0 (no actor)."""
+    ids = ids.astype(np.uint64)
+    h = (ids * np.uint64(2654435761)) & np.uint64(0xFFFFFF)  # Knuth's multiplicative hash: neighbours differ
+    rgb = np.stack([(h >> np.uint64(s)) & np.uint64(0xFF) for s in (16, 8, 0)], axis=-1).astype(np.uint8)
+    rgb = (rgb // 2 + 96).astype(np.uint8)  # 96..223: never black, never white
+    rgb[ids == 0] = 0
+    return rgb
+
+
+def box_corners(centers_m: np.ndarray, sizes_m: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+    """Corners (N, 8, 3) [m, map] of boxes: centres (N, 3), sizes (N, 3) = l, w, h, rotations (N, 4) x, y, z, w."""
+    from cosim.io.decode import quat_to_matrix
+
+    if len(centers_m) == 0:
+        return np.zeros((0, 8, 3))
+    rot = np.stack([quat_to_matrix(q) for q in rotations])
+    local = _CORNER_SIGNS[None] * (np.asarray(sizes_m, float)[:, None, :] / 2)
+    return np.einsum("nij,nkj->nki", rot, local) + np.asarray(centers_m, float)[:, None, :]
+
+
+def project_box_edges(corners_map: np.ndarray, map_from_optical: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pixel end points (N, 12, 2, 2) [u, v] of every box edge (BOX_EDGES), NaN for edges wholly behind.
+
+    An edge crossing the plane optical z = NEAR_M is cut there, so boxes around or beside the camera
+    draw only their visible part. ``map_from_optical`` is the 4x4 ``/tf`` chain map <- optical.
+    """
+    if len(corners_map) == 0:
+        return np.zeros((0, len(BOX_EDGES), 2, 2))
+    inv = np.linalg.inv(map_from_optical)
+    p = corners_map @ inv[:3, :3].T + inv[:3, 3]  # (N, 8, 3) optical: x right, y down, z forward
+    a, b = p[:, BOX_EDGES[:, 0]], p[:, BOX_EDGES[:, 1]]  # (N, 12, 3)
+    za, zb = a[..., 2:3], b[..., 2:3]
+    dz = zb - za
+    t = (NEAR_M - za) / np.where(dz == 0, 1.0, dz)
+    cut = a + t * (b - a)  # where the edge meets z = NEAR_M (used only for edges that cross it)
+    ends = np.stack([np.where(za < NEAR_M, cut, a), np.where(zb < NEAR_M, cut, b)], axis=2)  # (N, 12, 2, 3)
+    ends[(za < NEAR_M)[..., 0] & (zb < NEAR_M)[..., 0]] = np.nan
+    uv = ends[..., :2] / ends[..., 2:3]
+    return uv * np.array([K[0, 0], K[1, 1]]) + np.array([K[0, 2], K[1, 2]])
+
+
+def _clip_segment(p0: np.ndarray, p1: np.ndarray, w: int, h: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Liang-Barsky: the part of p0-p1 inside [0, w) x [0, h), or None."""
+    d = p1 - p0
+    t0, t1 = 0.0, 1.0
+    for pk, qk in ((-d[0], p0[0]), (d[0], w - 1e-6 - p0[0]), (-d[1], p0[1]), (d[1], h - 1e-6 - p0[1])):
+        if pk == 0:
+            if qk < 0:
+                return None
+            continue
+        r = qk / pk
+        if pk < 0:
+            t0 = max(t0, r)
+        else:
+            t1 = min(t1, r)
+        if t0 > t1:
+            return None
+    return p0 + t0 * d, p0 + t1 * d
+
+
+def draw_segments(rgb: np.ndarray, segments: np.ndarray, colours: np.ndarray, thickness_px: int = 1) -> np.ndarray:
+    """A copy of ``rgb`` (H, W, 3) uint8 with line segments (M, 2, 2) [u, v] drawn in ``colours`` (M, 3).
+
+    Every pixel whose square the segment passes through (sampled at least twice per pixel) is painted,
+    widened to a ``thickness_px`` square; NaN segments are skipped.
+    """
+    out = rgb.copy()
+    h, w = out.shape[:2]
+    lo = -((thickness_px - 1) // 2)
+    d_col, d_row = (o.ravel() for o in np.meshgrid(np.arange(lo, lo + thickness_px), np.arange(lo, lo + thickness_px)))
+    for seg, colour in zip(segments, colours, strict=True):
+        if not np.isfinite(seg).all():
+            continue
+        clipped = _clip_segment(seg[0], seg[1], w, h)
+        if clipped is None:
+            continue
+        p0, p1 = clipped
+        n = int(np.ceil(2 * np.abs(p1 - p0).max())) + 1
+        t = np.linspace(0.0, 1.0, n)[:, None]
+        px = np.floor(p0 + t * (p1 - p0)).astype(np.int64)
+        cols = (px[:, 0, None] + d_col[None, :]).ravel()
+        rows = (px[:, 1, None] + d_row[None, :]).ravel()
+        keep = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+        out[rows[keep], cols[keep]] = colour
+    return out
+
+
+def camera_with_boxes(ep: Episode, tick: Tick, agent: str, camera: str) -> np.ndarray:
+    """The camera's RGB image (H, W, 3) uint8 with the labelled boxes it sees drawn (module docstring)."""
+    img = tick.image(agent, camera).array
+    rgb = np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else img[..., :3]
+    needed = ("/labels/objects", "/tf", f"/{agent}/{camera}/calibration")
+    if not all(t in tick for t in needed):
+        return rgb
+    labels = tick.labels
+    keep = np.array([aid != agent for aid in labels.agent_ids], bool)
+    inst_topic = f"/{agent}/{camera}/instance"
+    if inst_topic in tick:
+        seen = np.unique(tick[inst_topic].array)
+        keep &= np.isin(labels.track_ids, seen[seen != 0])
+    if not keep.any():
+        return rgb
+    frame = tick.image(agent, camera).frame_id
+    try:
+        map_from_optical = tick.transforms.to_root(frame)
+    except CosimError as exc:
+        log.warning("tick %d: %s; no boxes on %s %s", tick.index, exc, agent, camera)
+        return rgb
+    K = tick.calibration(agent, camera).K
+    corners = box_corners(labels.centers_m[keep], labels.sizes_m[keep], labels.rotations[keep])
+    edges = project_box_edges(corners, map_from_optical, K)  # (N, 12, 2, 2)
+    colours = np.array([BOX_COLOURS.get(labels.classes[i], (255, 255, 255)) for i in np.flatnonzero(keep)])
+    thickness = max(1, round(rgb.shape[1] / 320))  # about 1 px in the sheet, whatever the camera's width
+    return draw_segments(rgb, edges.reshape(-1, 2, 2), np.repeat(colours, len(BOX_EDGES), axis=0), thickness)
+
+
 def _save(fig: Any, path: Path, dpi: int) -> Path:
     import io
 
@@ -60,19 +198,19 @@ def _save(fig: Any, path: Path, dpi: int) -> Path:
 
 
 def contact_sheet(ep: Episode, tick: Tick, agent: str, path: Path, dpi: int = 80) -> Path | None:
-    """One agent's cameras at one tick: RGB | depth | semantic per row. None when it has no camera."""
+    """One agent's cameras at one tick: RGB with boxes | depth | semantic | instance per row (None: no camera)."""
     import matplotlib.pyplot as plt
 
     cams = [c for c in ep.cameras(agent) if f"/{agent}/{c}/image" in tick]
     if not cams:
         return None
     palette = semantic_palette(ep.class_table)
-    kinds = [("image", "RGB"), ("depth", "depth [m]"), ("semantic", "semantic")]
+    kinds = [("image", "RGB + 3D boxes"), ("depth", "depth [m]"), ("semantic", "semantic"), ("instance", "instance")]
     aspect = 9 / 16
     first = tick.image(agent, cams[0]).array
     if first.ndim >= 2 and first.shape[1]:
         aspect = first.shape[0] / first.shape[1]
-    fig, axes = plt.subplots(len(cams), 3, figsize=(12, 4 * aspect * len(cams) + 0.6), squeeze=False)
+    fig, axes = plt.subplots(len(cams), 4, figsize=(16, 4 * aspect * len(cams) + 0.6), squeeze=False)
     for r, cam in enumerate(cams):
         for c, (kind, title) in enumerate(kinds):
             ax = axes[r][c]
@@ -84,13 +222,15 @@ def contact_sheet(ep: Episode, tick: Tick, agent: str, path: Path, dpi: int = 80
                 continue
             img = tick[topic]
             if kind == "image":
-                ax.imshow(img.array, cmap=None if img.array.ndim == 3 else "gray")
+                ax.imshow(camera_with_boxes(ep, tick, agent, cam))
             elif kind == "depth":
                 d = img.depth_m
                 shown = ax.imshow(d, cmap="turbo_r", vmin=0.0, vmax=min(DEPTH_MAX_M, float(np.nanmax(d, initial=1.0))))
                 fig.colorbar(shown, ax=ax, fraction=0.03, pad=0.01)
-            else:
+            elif kind == "semantic":
                 ax.imshow(colourise_semantic(img.array if img.array.ndim == 2 else img.array[..., 0], palette))
+            else:
+                ax.imshow(colourise_instance(img.array if img.array.ndim == 2 else img.array[..., 0]))
             if r == 0:
                 ax.set_title(title, fontsize=10)
             if c == 0:
@@ -239,7 +379,8 @@ def render_episode(
     layout = layout_polygons(ep)
     wanted = ["/tf", "/labels/objects", *[f"/{a}/lidar" for a in ep.agents]]
     for a in agents:
-        wanted += [f"/{a}/{c}/{k}" for c in ep.cameras(a) for k in ("image", "depth", "semantic")]
+        kinds = ("image", "depth", "semantic", "instance", "calibration")
+        wanted += [f"/{a}/{c}/{k}" for c in ep.cameras(a) for k in kinds]
     wanted = [t for t in wanted if t in ep.topics]
     for k in ticks:
         tick = ep.tick(k, topics=wanted)

@@ -9,16 +9,25 @@ queryable at ``<prefix>_schema/<topic without slash>`` (outside ``<prefix>/**``,
 the whole prefix receives messages only).
 
 Zenoh follows cosim's conventions (cosim/transport.py): peer mode, multicast scouting off,
-endpoints given explicitly; by default the replayer listens on ``tcp/127.0.0.1:7447``.
+endpoints given explicitly; by default the replayer listens on ``tcp/127.0.0.1:7447``. A subscriber
+therefore finds it only by connecting to that endpoint (``connect/endpoints``); a default Zenoh
+configuration, which relies on multicast scouting, hears nothing. ``on_ready`` receives the endpoints
+and the Foxglove URL before the first message, so the command line can print them.
 Messages are sent reliably with blocking congestion control, in log-time order.
+
+Stopping: ``stop`` is checked between messages and at least every ``STOP_POLL_S`` while waiting, and
+the Foxglove server and the Zenoh session are closed with a time limit each (``CLOSE_TIMEOUT_S``), so
+an interrupted replay ends promptly even when a WebSocket client has just gone away.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import socket
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,7 +39,11 @@ log = logging.getLogger(__name__)
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 DEFAULT_PREFIX = "cosim/replay"
+DEFAULT_FOXGLOVE_HOST = "127.0.0.1"
 LINGER_S = 0.5  # [s] kept open after the last message so queued data leaves the process
+STOP_POLL_S = 0.1  # [s] longest wait between two looks at the stop event
+CLOSE_TIMEOUT_S = 3.0  # [s] longest wait for the Foxglove server or the Zenoh session to close
+_WILDCARD_HOSTS = ("0.0.0.0", "::", "[::]")
 
 
 @dataclass(frozen=True)
@@ -43,6 +56,38 @@ class ReplayOptions:
     prefix: str = DEFAULT_PREFIX
     wait_subscribers_s: float = 5.0  # wait up to this long for a matching subscriber (0 = do not wait)
     foxglove_port: int | None = None
+    foxglove_host: str = DEFAULT_FOXGLOVE_HOST
+
+
+@dataclass(frozen=True)
+class ReplayEndpoints:
+    """Where to find a running replay (given to ``on_ready`` before the first message)."""
+
+    zenoh_listen: list[str]  # the replayer listens here: subscribers put these in connect/endpoints
+    zenoh_connect: list[str]  # the replayer connected to these (a router or a listening subscriber)
+    prefix: str
+    foxglove_url: str | None  # ws://HOST:PORT for Foxglove's "Foxglove WebSocket" connection
+
+    def subscriber_endpoints(self) -> list[str]:
+        """Endpoints a subscriber on this host connects to (wildcard hosts replaced by this host's name)."""
+        return [reachable_endpoint(e) for e in self.zenoh_listen]
+
+
+def _reachable_host(host: str) -> str:
+    return socket.gethostname() if host in _WILDCARD_HOSTS else host
+
+
+def reachable_endpoint(endpoint: str) -> str:
+    """``tcp/0.0.0.0:7447`` -> ``tcp/<this host's name>:7447``; other endpoints unchanged."""
+    proto, _, rest = endpoint.partition("/")
+    host, _, port = rest.rpartition(":")
+    return f"{proto}/{_reachable_host(host)}:{port}" if host in _WILDCARD_HOSTS else endpoint
+
+
+def foxglove_url(host: str, port: int) -> str:
+    """The URL Foxglove connects to: ``ws://127.0.0.1:8765`` (a wildcard host becomes this host's name)."""
+    shown = _reachable_host(host)
+    return f"ws://[{shown}]:{port}" if ":" in shown else f"ws://{shown}:{port}"
 
 
 @dataclass(frozen=True)
@@ -87,7 +132,7 @@ def open_session(connect: list[str], listen: list[str]) -> Any:
 class _Foxglove:
     """Optional live view: the foxglove-sdk WebSocket server, one channel per topic."""
 
-    def __init__(self, port: int, ep: Episode, topics: list[str]):
+    def __init__(self, host: str, port: int, ep: Episode, topics: list[str]):
         try:
             import foxglove
             from foxglove import Channel, Context, Schema
@@ -95,9 +140,10 @@ class _Foxglove:
             raise InputError("--foxglove needs the foxglove-sdk package: pip install foxglove-sdk") from None
         context = self._context = Context()  # this replay's channels only; held for the server's lifetime
         try:
-            self._server = foxglove.start_server(port=port, host="127.0.0.1", context=context, name="cosim replay")
+            self._server = foxglove.start_server(port=port, host=host, context=context, name="cosim replay")
         except Exception as exc:  # the SDK raises its own error types
-            raise InputError(f"cannot serve Foxglove on 127.0.0.1:{port}: {exc}") from None
+            raise InputError(f"cannot serve Foxglove on {host}:{port}: {exc}") from None
+        self.url = foxglove_url(host, self._server.port)
         self._channels: dict[str, Any] = {}
         schemas = ep.schemas()
         for t in topics:
@@ -109,21 +155,49 @@ class _Foxglove:
                 schema=Schema(name=name, encoding=encoding, data=data),
                 context=context,
             )
-        log.info("Foxglove WebSocket server on ws://127.0.0.1:%d", port)
+        log.info("Foxglove WebSocket server on %s", self.url)
 
     def send(self, topic: str, data: bytes, log_time_ns: int) -> None:
         self._channels[topic].log(data, log_time=log_time_ns)
 
     def close(self) -> None:
-        for channel in self._channels.values():
-            channel.close()
-        self._server.stop()
+        def stop_server() -> None:
+            for channel in self._channels.values():
+                channel.close()
+            self._server.stop()
+
+        _close_within(stop_server, "the Foxglove server")
 
 
-def replay_episode(path: str | Path, opts: ReplayOptions, stop: threading.Event | None = None) -> ReplayStats:
+def _close_within(close: Callable[[], None], what: str, timeout_s: float = CLOSE_TIMEOUT_S) -> None:
+    """Run ``close`` in a helper thread and wait at most ``timeout_s``: shutting down never hangs the caller."""
+    errors: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            close()
+        except Exception as exc:  # reported below; closing must not mask the replay's own outcome
+            errors.append(exc)
+
+    closer = threading.Thread(target=run, name=f"close {what}", daemon=True)
+    closer.start()
+    closer.join(timeout_s)
+    if closer.is_alive():
+        log.warning("%s did not close within %.0f s; leaving it behind", what, timeout_s)
+    elif errors:
+        log.warning("closing %s failed: %s", what, errors[0])
+
+
+def replay_episode(
+    path: str | Path,
+    opts: ReplayOptions,
+    stop: threading.Event | None = None,
+    on_ready: Callable[[ReplayEndpoints], None] | None = None,
+) -> ReplayStats:
     """Publish the episode's messages (see the module docstring); returns what was sent.
 
-    ``stop`` ends the replay early (Ctrl-C does too). Raises InputError for bad topics or endpoints.
+    ``stop`` ends the replay early (Ctrl-C does too); ``on_ready`` gets the endpoints once the Zenoh
+    session and the Foxglove server are up. Raises InputError for bad topics or endpoints.
     """
     import zenoh
 
@@ -135,7 +209,15 @@ def replay_episode(path: str | Path, opts: ReplayOptions, stop: threading.Event 
             raise InputError(str(exc.args[0])) from None
         listen = opts.listen or ([] if opts.connect else [DEFAULT_LISTEN])
         session = open_session(opts.connect, listen)
-        fox = _Foxglove(opts.foxglove_port, ep, topics) if opts.foxglove_port is not None else None
+        try:
+            fox = (
+                _Foxglove(opts.foxglove_host, opts.foxglove_port, ep, topics)
+                if opts.foxglove_port is not None
+                else None
+            )
+        except BaseException:
+            _close_within(session.close, "the Zenoh session")
+            raise
         try:
             publishers = {
                 t: session.declare_publisher(
@@ -150,6 +232,8 @@ def replay_episode(path: str | Path, opts: ReplayOptions, stop: threading.Event 
             queryable = session.declare_queryable(
                 f"{opts.prefix.rstrip('/')}_schema/**", lambda q: _answer_schema(q, opts.prefix, schemas)
             )
+            if on_ready is not None:
+                on_ready(ReplayEndpoints(listen, list(opts.connect), opts.prefix, fox.url if fox else None))
             _wait_for_subscriber(list(publishers.values()), opts.wait_subscribers_s, stop)
             sent, loops, started = 0, 0, time.perf_counter()
             while not stop.is_set():
@@ -157,7 +241,7 @@ def replay_episode(path: str | Path, opts: ReplayOptions, stop: threading.Event 
                 loops += 1
                 if not opts.loop:
                     break
-            stop.wait(LINGER_S)
+            _wait(stop, LINGER_S)
             wall = time.perf_counter() - started
             queryable.undeclare()
             for p in publishers.values():
@@ -165,8 +249,19 @@ def replay_episode(path: str | Path, opts: ReplayOptions, stop: threading.Event 
         finally:
             if fox is not None:
                 fox.close()
-            session.close()
+            _close_within(session.close, "the Zenoh session")
     return ReplayStats(sent, loops, wall)
+
+
+def _wait(stop: threading.Event, seconds: float) -> bool:
+    """Wait ``seconds`` or until ``stop`` is set (True then), looking at ``stop`` every STOP_POLL_S."""
+    deadline = time.perf_counter() + seconds
+    while not stop.is_set():
+        left = deadline - time.perf_counter()
+        if left <= 0:
+            return False
+        stop.wait(min(left, STOP_POLL_S))
+    return True
 
 
 def _answer_schema(query: Any, prefix: str, schemas: dict[str, tuple[str, str, bytes]]) -> None:
@@ -184,7 +279,7 @@ def _wait_for_subscriber(publishers: list[Any], timeout_s: float, stop: threadin
     while time.perf_counter() < deadline and not stop.is_set():
         if any(p.matching_status.matching for p in publishers):
             return
-        stop.wait(0.02)
+        _wait(stop, 0.02)
     log.warning("no subscriber after %.1f s; replaying anyway", timeout_s)
 
 
@@ -211,7 +306,7 @@ def _one_pass(
             first = m.log_time_ns
         due = started + send_offset_s(m.log_time_ns, first, rate)
         delay = due - time.perf_counter()
-        if delay > 0 and stop.wait(delay):
+        if delay > 0 and _wait(stop, delay):
             break
         attachment = json.dumps(
             {

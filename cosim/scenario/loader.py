@@ -6,6 +6,7 @@ The result is one frozen :class:`~cosim.scenario.model.Scenario`. Every problem 
 
 from __future__ import annotations
 
+import copy
 import datetime
 import difflib
 import json
@@ -19,7 +20,7 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from cosim.errors import ScenarioError
-from cosim.scenario.model import RuleError, Scenario, complete_rigs, merge_fields
+from cosim.scenario.model import EnvironmentSpec, MapSpec, RuleError, Scenario, complete_rigs, merge_fields
 
 Key = tuple[str | int, ...]
 
@@ -39,6 +40,15 @@ class YamlDoc:
 
     data: dict[str, Any]
     marks: dict[Key, tuple[str, int]] = field(default_factory=dict)
+    before_overrides: dict[str, Any] | None = None  # ``data`` as it was before the first override
+
+
+#: Keys that set an episode's conditions -> (name in the episode metadata, the schema's default).
+CONDITION_KEYS: dict[Key, tuple[str, str]] = {
+    ("map", "kind"): ("environment", MapSpec.model_fields["kind"].default),
+    ("environment", "weather"): ("weather", EnvironmentSpec.model_fields["weather"].default),
+    ("environment", "lighting"): ("lighting", EnvironmentSpec.model_fields["lighting"].default),
+}
 
 
 @dataclass(frozen=True)
@@ -247,6 +257,8 @@ def apply_override(doc: YamlDoc, assignment: str) -> None:
         raise ScenarioError(f"value is not valid YAML: {exc}", path=_printable(key), source=source) from None
     except RecursionError:
         raise ScenarioError("value is nested too deeply", path=_printable(key), source=source) from None
+    if doc.before_overrides is None:
+        doc.before_overrides = copy.deepcopy(doc.data)
     node: Any = doc.data
     for i, part in enumerate(parts[:-1]):
         if isinstance(node, list):
@@ -432,8 +444,39 @@ def validate_doc(doc: YamlDoc, file: Path | None) -> LoadedScenario:
         scenario = Scenario.model_validate(doc.data)
     except ValidationError as exc:
         raise located_error(exc, doc) from None
+    scenario = describe_overridden_conditions(scenario, doc)
     resolved = scenario.model_dump(mode="json")
     return LoadedScenario(scenario, file, resolved, file.parent if file else Path.cwd())
+
+
+def _condition_values(data: dict[str, Any]) -> dict[str, Any]:
+    out = {}
+    for path, (name, default) in CONDITION_KEYS.items():
+        node: Any = data
+        for part in path:
+            node = node.get(part) if isinstance(node, dict) else None
+        out[name] = default if node is None else node
+    return out
+
+
+def describe_overridden_conditions(scenario: Scenario, doc: YamlDoc) -> Scenario:
+    """The scenario with its description amended when overrides changed its conditions.
+
+    A description is written for the file's conditions ("rural roads at night"); after ``--set
+    environment.lighting=day`` (or a sweep's axis) it would describe another episode. The amended
+    text keeps the author's words and says what changed: ``... [overridden: lighting day, not night]``.
+    A description set by an override itself is left as it is.
+    """
+    if doc.before_overrides is None or str(doc.marks.get(("description",), ("",))[0]).startswith("--set"):
+        return scenario
+    before = _condition_values(doc.before_overrides)
+    now = _condition_values(scenario.model_dump(mode="json"))
+    changed = [f"{name} {now[name]}, not {before[name]}" for name in now if now[name] != before[name]]
+    if not changed:
+        return scenario
+    note = f"[overridden: {'; '.join(changed)}]"
+    text = f"{scenario.description} {note}" if scenario.description else note
+    return scenario.model_copy(update={"description": text})
 
 
 def shipped_scenarios() -> list[tuple[str, Path]]:

@@ -1,0 +1,70 @@
+"""The documentation stays true: references point at files in the repository, the keys table at the schema."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+import yaml
+
+from cosim.scenario.model import Scenario
+from tests.conftest import REPO
+
+SOURCES = [
+    *REPO.glob("*.md"),
+    *REPO.glob("Makefile"),
+    *(p for d in ("cosim", "sensors", "exporters", "scenarios", "sweeps", "docs", "examples", "benchmarks", "tests")
+      for p in (REPO / d).rglob("*") if p.suffix in (".py", ".yaml", ".md", ".toml")),
+]
+
+
+def _text(path) -> str:
+    return path.read_text(encoding="utf-8")
+
+
+def test_nothing_points_outside_the_repository():
+    """Code and docs cite docs/*.md; design notes outside the repository are not there for users."""
+    me = REPO / "tests" / "test_docs.py"
+    bad = [f"{p.relative_to(REPO)}:{n}" for p in SOURCES if p != me
+           for n, line in enumerate(_text(p).splitlines(), 1) if "design.md" in line or "../shared" in line]
+    assert not bad, f"references to files outside the repository: {bad}"
+
+
+def test_every_cited_doc_and_section_exists():
+    headings = {p.name: {m.group(1) for m in re.finditer(r"^#+ (\d+(?:\.\d+)?)[. ]", _text(p), re.M)}
+                for p in (REPO / "docs").glob("*.md")}
+    cited = 0
+    for p in SOURCES:
+        for m in re.finditer(r"docs/(\w+\.md)(?: sections? ([\d.]+)(?:(?:-| and |, )([\d.]+))*)?", _text(p)):
+            cited += 1
+            assert m.group(1) in headings, f"{p.relative_to(REPO)} cites docs/{m.group(1)}, which does not exist"
+            for section in filter(None, (m.group(2), m.group(3))):
+                assert section in headings[m.group(1)], f"{p.relative_to(REPO)}: no section {section} in {m.group(1)}"
+    assert cited > 10
+
+
+def _keys_table() -> list[tuple[str, str]]:
+    readme = _text(REPO / "README.md")
+    table = readme.split("### Scenario keys you will use", 1)[1].split("\n\n", 3)[2]
+    rows = [line.split(" | ") for line in table.splitlines()[2:]]
+    return [(row[0].strip("| `"), row[1]) for row in rows]
+
+
+def _lookup(data, dotted: str):
+    for part in dotted.split("."):
+        data = data[int(part)] if isinstance(data, list) else data[part]
+    return data
+
+
+def test_the_readme_keys_table_matches_the_schema():
+    defaults = Scenario(name="x").model_dump(mode="json")
+    rows = _keys_table()
+    assert "sensors.image_scale" in dict(rows) and len(rows) >= 20
+    checked = 0
+    for key, default in rows:
+        value = _lookup(defaults, key)  # KeyError: the table names a key the schema does not have
+        literal = re.match(r"`([^`]*)`", default)
+        if literal:
+            assert yaml.safe_load(literal.group(1)) == pytest.approx(value), key
+            checked += 1
+    assert checked >= 20
