@@ -175,6 +175,7 @@ def run_episode(
             cleanup.callback(lambda: rendered and rendered[-1].cancel_encodes())
         writer.add_metadata("episode", episode_metadata(loaded, world))
         conductor.start()
+        log.info("workers ready; stepping %d ticks", s.n_ticks)
         loop_started = time.perf_counter()
         pending = None
         for tick in range(s.n_ticks):
