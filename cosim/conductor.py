@@ -34,7 +34,7 @@ from cosim.workers import ROLES, spawned_worker_main
 log = logging.getLogger(__name__)
 
 _CLOSE_GRACE_S = 2.0  # [s] for a worker to acknowledge "close" and exit before it is terminated
-_FAILED_CLOSE_S = 0.5  # [s] for the "close" acknowledgement when the episode failed (then the worker is killed)
+_FAILED_CLOSE_S = 0.25  # [s] for the "close" acknowledgement when the episode failed (then the worker is killed)
 _FAILED_EXIT_GRACE_S = 0.0  # [s] after its "close" acknowledgement (engine released) when the episode failed
 _CLOSE_TICK = -2  # tick id of the close queries (init uses -1)
 
