@@ -159,8 +159,8 @@ class Conductor:
     def shutdown(self, *, failed: bool = False) -> None:
         """Ask the responsive workers to close, kill the others, then make sure every child process is gone.
 
-        ``failed``: the episode is lost anyway, so a worker gets only a short grace to exit after its
-        acknowledgement before it is killed (the user waits for the error message, not for engines to unload).
+        ``failed``: the episode is lost anyway, so a worker gets ``_FAILED_CLOSE_S`` to acknowledge (it releases
+        its engine first) and is then killed (the user waits for the error message, not for processes to unload).
         """
         for role in self._unresponsive:  # a stopped or hung worker would only make us wait: no grace
             proc = self._procs.get(role)
