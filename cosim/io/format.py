@@ -83,6 +83,7 @@ TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec("/<agent>/imu", ("cosim.Imu",), "<agent>/imu", "specific force, angular rate (body FLU)"),
     TopicSpec("/<agent>/bev", ("foxglove.Grid",), "map", "ego-centred semantic BEV, one uint8 field per layer"),
     TopicSpec("/<agent>/visibility", ("cosim.Visibility",), "-", "per object seen: LiDAR hits, pixels per camera"),
+    TopicSpec("/actions", ("cosim.ActionArray",), "-", "closed-loop clients' actions applied in the step to this tick"),
     TopicSpec("/comm/links", ("cosim.LinkArray",), "map", "every ordered link: LOS, path loss, SNR, PER, rate, delay"),
 )
 
@@ -121,6 +122,8 @@ CAMERA_TOPICS: dict[str, str] = {"rgb": "image", "depth": "depth", "semantic": "
 def expected_topics(scenario: Any, agents: list[str]) -> set[str]:
     """Every topic an episode of ``scenario`` (a :class:`cosim.scenario.model.Scenario`) must hold."""
     out = set(LABEL_TOPICS)
+    if scenario.clients:
+        out.add("/actions")
     comm = getattr(scenario, "comm", None)
     if comm is not None and comm.enabled:
         out.add("/comm/links")
