@@ -55,9 +55,13 @@ def parse_ticks(spec: str | None, n_ticks: int) -> list[int]:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
+    from cosim.errors import FormatError
     from cosim.io.info import episode_info, format_info
 
-    info = episode_info(_episode(args.episode), bytes_per_family=not args.no_bytes)
+    try:
+        info = episode_info(_episode(args.episode), bytes_per_family=not args.no_bytes)
+    except FormatError as exc:  # not an episode at all: bad input, like a missing file
+        raise InputError(str(exc)) from None
     print(json.dumps(info.as_dict(), indent=2) if args.json else format_info(info))
     return EXIT_OK
 

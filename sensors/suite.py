@@ -13,7 +13,8 @@ import logging
 import math
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,6 +39,7 @@ from .visibility import VisibilityFrame, render_visibility
 log = logging.getLogger(__name__)
 
 VEHICLE_CLASSES = ("car", "van", "truck", "bus", "motorcycle")
+CHECK_PERIOD_S = 0.05  # [s] how often render() calls its check while it waits for the sensors
 
 
 @dataclass(frozen=True)
@@ -62,6 +64,13 @@ class SensorFrameSet:
     t_ns: int
     agents: dict[str, AgentFrames]
     timing_s: dict[str, float] = field(default_factory=dict, compare=False)
+
+    def cancel_encodes(self) -> None:
+        """Drop the image encodes not started yet (the frames are abandoned, e.g. the episode failed)."""
+        for agent in self.agents.values():
+            for cam in agent.cameras.values():
+                if cam.encoded is not None:
+                    cam.encoded[1].cancel()
 
 
 def _shaded(albedo: np.ndarray, normals: np.ndarray, atm: Atmosphere) -> np.ndarray:
@@ -198,9 +207,10 @@ class SensorSuite:
     def rig(self, agent: AgentState) -> RigSpec:
         return self.scenario.rig_for(agent.agent_id)
 
-    def close(self) -> None:
-        """Stop the render threads (idle threads also end with the interpreter)."""
-        self._pool.shutdown(wait=True)
+    def close(self, wait: bool = True) -> None:
+        """Stop the render threads (idle threads also end with the interpreter). ``wait=False``: do not wait for
+        sensors still rendering an abandoned frame (queued ones are cancelled either way)."""
+        self._pool.shutdown(wait=wait, cancel_futures=True)
 
     def __enter__(self) -> SensorSuite:
         return self
@@ -261,8 +271,14 @@ class SensorSuite:
         )
         return frame, {"camera_cast": t1 - t0, "shading": t2 - t1, "labels": time.perf_counter() - t2}
 
-    def render(self, snapshot: WorldSnapshot, rng: np.random.Generator) -> SensorFrameSet:
-        """Every agent's sensors at ``snapshot.t_ns`` (see the module docstring)."""
+    def render(self, snapshot: WorldSnapshot, rng: np.random.Generator,
+               check: Callable[[], None] | None = None) -> SensorFrameSet:
+        """Every agent's sensors at ``snapshot.t_ns`` (see the module docstring).
+
+        ``check`` is called every ``CHECK_PERIOD_S`` while the frame renders; whatever it raises abandons the
+        frame (sensors not started yet are cancelled) and propagates, so a caller can stop a long frame at
+        once, e.g. when a simulation worker has died.
+        """
         t_start = time.perf_counter()
         timing = {"scene": 0.0, "lidar": 0.0, "camera_cast": 0.0, "shading": 0.0, "labels": 0.0}
         scene = TickScene.build(self.static, snapshot.actors)
@@ -295,6 +311,19 @@ class SensorSuite:
                     for cam, r in zip(rig.cameras, srngs[1:], strict=True)]
             jobs.append((agent, base, cams))
         out: dict[str, AgentFrames] = {}
+        try:
+            for _, base_f, cam_fs in jobs:
+                _wait(base_f, check)
+                for f in cam_fs:
+                    _wait(f, check)
+        except BaseException:
+            for _, base_f, cam_fs in jobs:
+                for f in (base_f, *cam_fs):
+                    if not f.cancel() and f.done() and f.exception() is None and f is not base_f:
+                        encoded = f.result()[0].encoded
+                        if encoded is not None:
+                            encoded[1].cancel()
+            raise
         for agent, base_f, cam_fs in jobs:
             rig = self.rig(agent)
             (lidar, gnss, imu, bev), t_base = base_f.result()
@@ -316,6 +345,15 @@ class SensorSuite:
         timing["rays"] = float(scene.timer.rays)
         timing["total"] = time.perf_counter() - t_start
         return SensorFrameSet(snapshot.tick, snapshot.t_ns, out, timing)
+
+
+def _wait(future: Future, check: Callable[[], None] | None) -> None:
+    """Wait until ``future`` is done, calling ``check()`` every ``CHECK_PERIOD_S`` meanwhile."""
+    if check is None:
+        wait([future])
+        return
+    while not wait([future], timeout=CHECK_PERIOD_S).done:
+        check()
 
 
 def rig_cam_outputs(rig: RigSpec, name: str) -> tuple[str, ...]:

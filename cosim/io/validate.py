@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import struct
 import zlib
 from collections import defaultdict
@@ -548,6 +549,9 @@ class _Validator:
         parents: dict[str, list[str]] = defaultdict(list)
         for t in tree.transforms:
             parents[t.child].append(t.parent)
+            if not (np.isfinite(t.translation_m).all() and np.isfinite(t.rotation).all()):
+                self.problem("transforms", f"transform {t.parent} -> {t.child} is not finite: translation "
+                                           f"{t.translation_m.tolist()}, rotation {t.rotation.tolist()}", tick, "/tf")
         for child, ps in parents.items():
             if len(ps) > 1:
                 self.problem("transforms", f"frame {child!r} has {len(ps)} parents: {', '.join(ps)}", tick, "/tf")
@@ -602,6 +606,8 @@ class _Validator:
         except (KeyError, TypeError, ValueError) as exc:
             self.problem("labels", f"object without a usable track_id/class ({exc})", tick, "/labels/objects")
             return None
+        for where, value in _non_finite(objs, "")[:3]:
+            self.problem("labels", f"{where[1:]} is not finite ({value})", tick, "/labels/objects")
         live = set(ids)
         if len(live) != len(ids):
             dupes = sorted({i for i in ids if ids.count(i) > 1})
@@ -881,6 +887,17 @@ class _Validator:
                     topic=topic,
                 )
         r.ticks = len(seen_ticks)
+
+
+def _non_finite(value: Any, path: str) -> list[tuple[str, float]]:
+    """(dotted path, value) of every NaN or infinity in decoded JSON (JSON parsers accept NaN and Infinity)."""
+    if isinstance(value, float):
+        return [] if math.isfinite(value) else [(path, value)]
+    if isinstance(value, dict):
+        return [hit for k, v in value.items() for hit in _non_finite(v, f"{path}.{k}")]
+    if isinstance(value, list):
+        return [hit for i, v in enumerate(value) for hit in _non_finite(v, f"{path}.{i}")]
+    return []
 
 
 def _chunk_records(chunk: Chunk) -> list[tuple[int, Any]]:
