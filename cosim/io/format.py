@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 #: Format version this code writes and reads (major.minor; readers refuse another major).
-FORMAT_VERSION = "1.0"
+FORMAT_VERSION = "1.1"
 
 MAP_FRAME = "map"
 #: Instance ids at or above this are static scene parts (buildings, poles...), not tracks; 0 is "nothing".
@@ -47,7 +47,7 @@ TOPICS: tuple[TopicSpec, ...] = (
         "/<agent>/lidar",
         ("foxglove.PointCloud",),
         "<agent>/lidar",
-        "x, y, z [m], intensity, ring, class_id, instance_id",
+        "x, y, z (1/256 m counts or float32 m), intensity, ring, class_id, instance_id, t_offset_ns, return",
     ),
     TopicSpec(
         "/<agent>/<cam>/image",
@@ -83,6 +83,7 @@ TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec("/<agent>/imu", ("cosim.Imu",), "<agent>/imu", "specific force, angular rate (body FLU)"),
     TopicSpec("/<agent>/bev", ("foxglove.Grid",), "map", "ego-centred semantic BEV, one uint8 field per layer"),
     TopicSpec("/<agent>/visibility", ("cosim.Visibility",), "-", "per object seen: LiDAR hits, pixels per camera"),
+    TopicSpec("/actions", ("cosim.ActionArray",), "-", "closed-loop clients' actions applied in the step to this tick"),
     TopicSpec("/comm/links", ("cosim.LinkArray",), "map", "every ordered link: LOS, path loss, SNR, PER, rate, delay"),
 )
 
@@ -121,6 +122,8 @@ CAMERA_TOPICS: dict[str, str] = {"rgb": "image", "depth": "depth", "semantic": "
 def expected_topics(scenario: Any, agents: list[str]) -> set[str]:
     """Every topic an episode of ``scenario`` (a :class:`cosim.scenario.model.Scenario`) must hold."""
     out = set(LABEL_TOPICS)
+    if scenario.clients:
+        out.add("/actions")
     comm = getattr(scenario, "comm", None)
     if comm is not None and comm.enabled:
         out.add("/comm/links")
@@ -137,7 +140,9 @@ def expected_topics(scenario: Any, agents: list[str]) -> set[str]:
             out.add(f"/{agent}/gnss")
         if rig.imu is not None:
             out.add(f"/{agent}/imu")
-        out.update({f"/{agent}/bev", f"/{agent}/visibility"})
+        out.add(f"/{agent}/visibility")
+        if scenario.sensors.bev:
+            out.add(f"/{agent}/bev")
     return out
 
 
