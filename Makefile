@@ -1,6 +1,7 @@
 # Two commands for a fresh Debian machine with Python 3.11 (see README):
 #   make run    install into .venv if needed, then generate the default episode
 #   make test   install the test extras if needed, then run the whole suite
+#   make image  build the Docker image (README, "Containers")
 SHELL := /bin/bash
 .DEFAULT_GOAL := help
 
@@ -9,23 +10,36 @@ VPY         := $(VENV)/bin/python
 STAMP       := $(VENV)/.cosim-installed
 TEST_STAMP  := $(VENV)/.cosim-test-installed
 PYTHON      ?= $(shell command -v python3.11 2>/dev/null || command -v python3 2>/dev/null)
-SYSTEM_LIBS := libusb-1.0-0 libgl1 libegl1 libgomp1
+SYSTEM_LIBS := libusb-1.0-0 libgl1 libegl1 libgomp1 libatomic1 libxrender1
 APT_LINE    := apt-get update && apt-get install -y --no-install-recommends $(SYSTEM_LIBS)
 SCENARIO    ?= scenarios/default.yaml
 PYTEST_ARGS ?=
+# make image: BASE is the image to build on (docker/base.sh makes cosim-base:bookworm without a
+# registry); WHEELHOUSE=1 (default) fills wheelhouse/ on the host first so the build needs no network;
+# WHEELHOUSE=0 leaves wheelhouse/ as it is (empty in a fresh clone: pip in the build uses PyPI);
+# EXTRAS e.g. ray (`make clean` before changing it: the wheelhouse is rebuilt only when pyproject.toml changes).
+IMAGE       ?= cosim
+BASE        ?= python:3.11-slim
+WHEELHOUSE  ?= 1
+EXTRAS      ?=
+DOCKER      ?= docker
+WHEEL_STAMP := wheelhouse/.stamp
 
-.PHONY: help run test sysdeps lint bench clean
+.PHONY: help run test sysdeps lint bench clean image base-image wheelhouse
 
 help:
 	@echo "make run    generate the default episode ($(SCENARIO)) into out/"
 	@echo "make test   run the whole test suite"
 	@echo "make lint   ruff"
 	@echo "make bench  co-simulation overhead benchmark"
+	@echo "make image  Docker image $(IMAGE) (BASE=$(BASE) WHEELHOUSE=$(WHEELHOUSE) EXTRAS=$(EXTRAS))"
+	@echo "make base-image  cosim-base:bookworm from Debian packages (root, debootstrap; no registry)"
 
-# Open3D's wheel links against these system libraries; install them when we can, else say how.
+# The Open3D and SUMO wheels (libsumo, netconvert) link against these system libraries; install them
+# when we can, else say how.
 sysdeps:
 	@missing=""; \
-	for lib in libusb-1.0.so.0 libGL.so.1 libEGL.so.1 libgomp.so.1; do \
+	for lib in libusb-1.0.so.0 libGL.so.1 libEGL.so.1 libgomp.so.1 libatomic.so.1 libXrender.so.1; do \
 	  ldconfig -p 2>/dev/null | grep -q "$$lib" || missing="$$missing $$lib"; \
 	done; \
 	if [ -n "$$missing" ]; then \
@@ -78,5 +92,22 @@ lint: $(TEST_STAMP)
 bench: sysdeps $(STAMP)
 	$(VPY) benchmarks/cosim_overhead.py
 
+# Every dependency as a wheel (plus the build backend), for `pip install --no-index` in the image.
+$(WHEEL_STAMP): pyproject.toml | $(VPY)
+	find wheelhouse -name '*.whl' -delete
+	$(VPY) -m pip wheel --quiet --wheel-dir wheelhouse '.$(if $(EXTRAS),[$(EXTRAS)])' 'setuptools>=68' wheel
+	rm -f wheelhouse/cosim-*.whl
+	@touch $@
+
+wheelhouse: $(WHEEL_STAMP)
+
+base-image:
+	docker/base.sh cosim-base:bookworm
+
+image: $(if $(filter 1,$(WHEELHOUSE)),$(WHEEL_STAMP))
+	$(DOCKER) build --build-arg BASE=$(BASE) --build-arg EXTRAS=$(EXTRAS) -t $(IMAGE) .
+	@$(DOCKER) image ls $(IMAGE) --format '{{.Repository}}:{{.Tag}} {{.Size}}'
+
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache
+	find wheelhouse -name '*.whl' -delete; rm -f $(WHEEL_STAMP)

@@ -139,6 +139,9 @@ def cmd_report(args: argparse.Namespace) -> int:
     report = build_report(Path(args.dir), md_path=Path(args.md) if args.md else None,
                           img_dir=Path(args.img_dir) if args.img_dir else None, img_prefix=args.prefix)
     print(f"report   {report.md_path} ({report.episodes} episodes, {report.hours:.3f} h)")
+    for node, t in report.stats["nodes"].items():
+        print(f"node     {node}: {t['episodes']} episodes, {t['sim_s']:.1f} sim s in {t['span_s']:.1f} s "
+              f"({t['sim_per_wall']:.3f} sim s per wall s)")
     for p in report.images:
         print(f"plot     {p}")
     return EXIT_OK

@@ -9,7 +9,9 @@ so they must be importable module-level functions.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
+import re
 import socket
 import time
 import traceback
@@ -57,6 +59,38 @@ def run_real_episode(job: Job, progress: Progress) -> dict[str, Any]:
             "messages": result.messages}
 
 
+_CONTAINER_ID = re.compile(r"(?:docker|containers|libpod|containerd|cri-containerd)[-/:]([0-9a-f]{64})")
+
+
+@functools.cache
+def container_id() -> str | None:
+    """The id of the Docker (or Podman, containerd) container this process runs in, else None.
+
+    Read from ``/proc/self/cgroup`` (cgroup v1: ``.../docker/<id>``) or, under cgroup v2 where that
+    file says only ``0::/``, from ``/proc/self/mountinfo`` (``/var/lib/docker/containers/<id>/hostname``).
+    """
+    for name in ("/proc/self/cgroup", "/proc/self/mountinfo"):
+        try:
+            with open(name, encoding="utf-8", errors="replace") as f:
+                found = container_id_in(f.read())
+        except OSError:
+            continue
+        if found:
+            return found
+    return None
+
+
+def container_id_in(text: str) -> str | None:
+    """The first container id named in a ``/proc/<pid>/cgroup`` or ``mountinfo`` text, else None."""
+    found = _CONTAINER_ID.search(text)
+    return found.group(1) if found else None
+
+
+def placement() -> dict[str, Any]:
+    """Where this process runs: ``host`` name and ``container`` id (None outside a container)."""
+    return {"host": socket.gethostname(), "container": container_id()}
+
+
 def versions() -> dict[str, str]:
     import cosim
     from cosim.runner import dependency_versions
@@ -79,7 +113,7 @@ def execute(job: Job, fn: EpisodeFn, progress: Progress) -> dict[str, Any]:
             ticks_at.append(time.perf_counter() - started)
         progress(done, total)
 
-    outcome: dict[str, Any] = {"episode": job.episode_id, "host": socket.gethostname(), "pid": os.getpid()}
+    outcome: dict[str, Any] = {"episode": job.episode_id, **placement(), "pid": os.getpid()}
     try:
         info = fn(job, on_progress)
         path = job.path

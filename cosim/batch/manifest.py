@@ -8,8 +8,9 @@ recorded size and sha256: a file that is merely present proves nothing.
 Record fields: ``episode`` (id), ``sweep``, ``split``, ``file`` (relative to the output folder),
 ``labels``, ``params``, ``seed``, ``duration_s``, ``scenario_sha256`` (of the resolved scenario),
 ``status`` (running | done | failed), ``attempts`` (all attempts so far, over every run of the batch),
-``wall_time_s``, ``size_bytes``, ``sha256``, ``versions``, ``error``, ``retrying``, ``worker``,
-``host``, ``time_unix`` (wall clock of the record; for ordering only).
+``wall_time_s``, ``size_bytes``, ``sha256``, ``versions``, ``error``, ``retrying``, ``worker``, where
+the attempt ran (``host`` name, ``node``: the Ray node id or null for local processes, ``container``:
+the Docker container id or null), ``time_unix`` (wall clock of the record; for ordering only).
 """
 
 from __future__ import annotations

@@ -1,10 +1,11 @@
 """Ray executor: one Ray task per episode attempt, on a fresh worker process each (``max_calls=1``).
 
 Ray's own task retries are off: the batch loop retries, so every attempt lands in the manifest. A
-worker that dies (``WorkerCrashedError``, node lost) becomes a failed attempt like any other. At most
-``max_in_flight`` tasks are submitted at once so a thousand-episode sweep does not flood the
-scheduler. Episode files are written by the task itself to ``--out``, so on a multi-node cluster the
-output folder must be a filesystem every node mounts at the same path.
+worker that dies (``WorkerCrashedError``, node lost) becomes a failed attempt like any other. At
+most ``max_in_flight`` tasks are submitted at once so a thousand-episode sweep does not flood the
+scheduler. The progress actor lives on the driver's node, and losing it costs only progress lines.
+Episode files are written by the task itself to ``--out``, so on a multi-node cluster the output
+folder must be a filesystem every node mounts at the same path.
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from cosim.batch.job import EpisodeFn, Job, execute, run_real_episode
 from cosim.errors import CosimError, InputError
 
 log = logging.getLogger(__name__)
+
+SINK_TIMEOUT_S = 30.0  # a progress poll waits at most this long for the progress actor
 
 
 class _ProgressSink:
@@ -46,7 +49,9 @@ def _task(job: Job, fn: EpisodeFn, sink: Any) -> dict[str, Any]:
             last[0] = now
             sink.put.remote(job.episode_id, done, total)  # fire and forget
 
-    return execute(job, fn, progress)
+    import ray
+
+    return {**execute(job, fn, progress), "node": ray.get_runtime_context().get_node_id()}
 
 
 class RayExecutor:
@@ -77,9 +82,25 @@ class RayExecutor:
         self.max_in_flight = max_in_flight or max(1, 2 * int(cpus / cpus_per_episode))
         self._remote = ray.remote(max_calls=1, max_retries=0, num_cpus=cpus_per_episode)(_task)
         self._fn_ref = ray.put(episode_fn)
-        self._sink = ray.remote(num_cpus=0)(_ProgressSink).remote()
+        self._sink = self._new_sink()
         self._pending: dict[Any, tuple[Job, int]] = {}  # task ref -> (job, status slot)
         self.status_lines = min(self.max_in_flight, 8)
+
+    def _new_sink(self) -> Any:
+        """The progress actor, on the driver's own node: a worker node lost must not take it along."""
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+        here = NodeAffinitySchedulingStrategy(self._ray.get_runtime_context().get_node_id(), soft=True)
+        return self._ray.remote(num_cpus=0, scheduling_strategy=here)(_ProgressSink).remote()
+
+    def _drain(self) -> list[tuple[str, int, int]]:
+        """Progress reported since the last poll; lost progress (the actor gone) only costs the display."""
+        try:
+            return self._ray.get(self._sink.drain.remote(), timeout=SINK_TIMEOUT_S)
+        except self._ray.exceptions.RayError as exc:
+            log.warning("progress reports lost (%s); starting a new progress actor", type(exc).__name__)
+            self._sink = self._new_sink()
+            return []
 
     def has_capacity(self) -> bool:
         return len(self._pending) < self.max_in_flight
@@ -103,7 +124,7 @@ class RayExecutor:
         ready, _ = self._ray.wait(list(self._pending), num_returns=len(self._pending), timeout=timeout_s)
         events = []
         running = {job.episode_id: (job, slot) for job, slot in self._pending.values()}
-        for episode_id, done, total in self._ray.get(self._sink.drain.remote()):
+        for episode_id, done, total in self._drain():
             if episode_id in running:
                 job, slot = running[episode_id]
                 events.append(Event("progress", job, self.worker_name(slot), done=done, total=total))

@@ -1,8 +1,9 @@
 """``cosim report DIR``: the dataset statistics the AirV2X-Perception paper shows, for a batch folder.
 
 Hours per split; shares of weather, lighting, environment (by driving time) and drone strategy (by
-drone time); objects per class (unique track ids per episode, summed); agents per scene. Written as
-Markdown plus PNG plots (matplotlib, Agg backend).
+drone time); objects per class (unique track ids per episode, summed); agents per scene; throughput
+per node (where each episode ran, from the manifest). Written as Markdown plus PNG plots
+(matplotlib, Agg backend).
 
 The episode list comes from the manifest (last record per episode, status ``done``); each episode's
 conditions come from its own ``episode`` metadata record and its objects from ``/labels/objects``.
@@ -92,6 +93,36 @@ def collect(out_dir: Path) -> tuple[list[EpisodeStats], dict[str, int]]:
             raise FormatError(f"{path}: listed as done in the manifest but missing")
         out.append(episode_stats(path, rec["episode"], rec.get("split", "all"), rec.get("duration_s")))
     return out, dict(status)
+
+
+def node_label(record: dict[str, Any]) -> str:
+    """The node an episode ran on: host, then the Ray node id and container id (shortened) when present."""
+    parts = [str(record.get("host") or "?")]
+    if record.get("node"):
+        parts.append(f"ray:{str(record['node'])[:12]}")
+    if record.get("container"):
+        parts.append(f"container:{str(record['container'])[:12]}")
+    return " ".join(parts)
+
+
+def throughput(records: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
+    """Per node: ``episodes``, ``sim_s`` (driving time), ``busy_s`` (sum of episode wall times),
+    ``span_s`` (first start to last finish) and ``sim_per_wall`` (sim_s / span_s: what the node added
+    to the batch's speed, with all its workers)."""
+    groups: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for rec in records:
+        if rec.get("status") == "done":
+            groups[node_label(rec)].append(rec)
+    out = {}
+    for label, recs in sorted(groups.items()):
+        busy = sum(float(r.get("wall_time_s") or 0.0) for r in recs)
+        ends = [float(r.get("time_unix") or 0.0) for r in recs]
+        starts = [e - float(r.get("wall_time_s") or 0.0) for e, r in zip(ends, recs, strict=True)]
+        span = max(ends) - min(starts)
+        sim = sum(float(r.get("duration_s") or 0.0) for r in recs)
+        out[label] = {"episodes": len(recs), "sim_s": sim, "busy_s": busy, "span_s": span,
+                      "sim_per_wall": sim / span if span > 0 else 0.0}
+    return out
 
 
 def summarize(episodes: list[EpisodeStats]) -> dict[str, Any]:
@@ -221,6 +252,10 @@ def _markdown(stats: dict[str, Any], status: dict[str, int], images: list[Path],
     out += [f"| {k} | {v} |" for k, v in stats["agents_per_scene"].items()]
     out += ["", "| agent kind | min | mean | max |", "|---|---:|---:|---:|"]
     out += [f"| {k} | {lo} | {mean:.2f} | {hi} |" for k, (lo, mean, hi) in stats["agents_per_kind"].items()]
+    out += ["", "| node | episodes | sim s | episode wall s | span s | sim s per wall s |",
+            "|---|---:|---:|---:|---:|---:|"]
+    out += [f"| {k} | {v['episodes']} | {v['sim_s']:.1f} | {v['busy_s']:.1f} | {v['span_s']:.1f} | "
+            f"{v['sim_per_wall']:.3f} |" for k, v in stats["nodes"].items()]
     out.append("")
     for p in images:
         rel = os.path.relpath(p, md_path.parent)
@@ -238,7 +273,7 @@ def build_report(out_dir: Path, *, md_path: Path | None = None, img_dir: Path | 
     episodes, status = collect(out_dir)
     if not episodes:
         raise InputError(f"{out_dir}: the manifest lists no finished episode")
-    stats = summarize(episodes)
+    stats = {**summarize(episodes), "nodes": throughput(list(latest_records(out_dir).values()))}
     md = Path(md_path) if md_path else out_dir / "report.md"
     images = _plots(stats, Path(img_dir) if img_dir else md.parent, img_prefix)
     md.parent.mkdir(parents=True, exist_ok=True)

@@ -114,7 +114,8 @@ def run_batch(plan: Plan, out_dir: Path | str, executor: Executor, *, retries: i
                     continue
                 ep, job, outcome = by_id[ev.job.episode_id], ev.job, ev.outcome or {}
                 rec = {**_base_record(ep, sweep), "attempts": attempts[ep.id], "worker": ev.worker,
-                       "host": outcome.get("host"), "wall_time_s": outcome.get("wall_time_s"),
+                       "host": outcome.get("host"), "node": outcome.get("node"),
+                       "container": outcome.get("container"), "wall_time_s": outcome.get("wall_time_s"),
                        "versions": outcome.get("versions")}
                 if outcome.get("ok"):
                     manifest.append({**rec, "status": "done", "size_bytes": outcome["size_bytes"],

@@ -1,0 +1,226 @@
+"""The Docker image, built and run: one episode inside a container, then a 3-way shard matrix.
+
+Skipped with the reason when no Docker daemon answers (CI's ``.ci/run`` starts one as root). The
+image is built the offline way (README, "Containers"): a base made by ``docker/base.sh``
+(debootstrap + ``docker import``, no registry) and the dependency wheels from the host. Both are
+cached outside the clone: the base as a Docker image tagged with the hash of ``docker/base.sh``,
+the wheels in ``$COSIM_CI_CACHE`` (default ``~/.cache/cosim-ci``) keyed by the hash of
+``pyproject.toml``'s dependency lists. Containers run as the test's own user, so bind-mounted output stays removable.
+Deselect with ``-m "not container"``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import subprocess
+import sys
+import time
+import tomllib
+import uuid
+from pathlib import Path
+
+import pytest
+
+from cosim.batch.manifest import deterministic_view, latest_records, sha256_file, verify
+from cosim.batch.report import build_report
+from cosim.io.validate import validate_episode
+
+from .conftest import REPO, run_cli
+
+pytestmark = [pytest.mark.container, pytest.mark.integration, pytest.mark.timeout(3600)]
+log = logging.getLogger(__name__)
+
+CACHE = Path(os.environ.get("COSIM_CI_CACHE", Path.home() / ".cache" / "cosim-ci"))
+BUILD_CONTEXT = ("Dockerfile", ".dockerignore", "pyproject.toml", "README.md", "cosim", "sensors", "exporters",
+                 "scenarios", "sweeps")
+SMOKE = REPO / "sweeps" / "smoke.yaml"
+EPISODE_ARGS = ("scenarios/default.yaml", "--duration", "2", "--no-sensors", "--set", "map.size_m=300",
+                "--set", "traffic.density_veh_per_km=6", "-q")
+
+
+def _hash(*paths: Path) -> str:
+    h = hashlib.sha256()
+    for p in paths:
+        h.update(p.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def docker(*args: str, timeout: float = 120, check: bool = True) -> subprocess.CompletedProcess:
+    r = subprocess.run(["docker", *args], capture_output=True, text=True, timeout=timeout)
+    if check and r.returncode != 0:
+        raise AssertionError(f"docker {' '.join(args[:3])} ... failed ({r.returncode}): {r.stderr[-3000:]}")
+    return r
+
+
+def _daemon_problem() -> str | None:
+    if shutil.which("docker") is None:
+        return "no docker client on PATH (CI's .ci/run installs docker.io as root)"
+    try:
+        r = subprocess.run(["docker", "info", "--format", "{{.ServerVersion}}"], capture_output=True, text=True,
+                           timeout=30)
+    except subprocess.TimeoutExpired:
+        return "docker info did not answer within 30 s"
+    if r.returncode != 0 or not r.stdout.strip():
+        return f"no Docker daemon reachable: {(r.stderr.strip().splitlines() or ['?'])[-1]}"
+    return None
+
+
+@pytest.fixture(scope="module")
+def base_image() -> str:
+    problem = _daemon_problem()
+    if problem:
+        pytest.skip(problem)
+    tag = f"cosim-base:bookworm-{_hash(REPO / 'docker' / 'base.sh')}"
+    if docker("image", "inspect", tag, check=False).returncode == 0:
+        return tag
+    if os.geteuid() != 0 or shutil.which("debootstrap") is None:
+        pytest.skip(f"no base image {tag}, and making one needs root and debootstrap (docker/base.sh)")
+    started = time.monotonic()
+    r = subprocess.run(["nice", "-n", "10", str(REPO / "docker" / "base.sh"), tag], capture_output=True,
+                       text=True, timeout=1800)
+    assert r.returncode == 0, f"docker/base.sh failed: {r.stderr[-3000:]}"
+    log.warning("base image %s made in %.0f s", tag, time.monotonic() - started)
+    return tag
+
+
+def _dependencies_key() -> str:
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())
+    deps = [project["build-system"]["requires"], project["project"]["dependencies"]]
+    return hashlib.sha256(json.dumps(deps).encode()).hexdigest()[:16]
+
+
+@pytest.fixture(scope="module")
+def wheelhouse() -> Path:
+    """Every dependency as a wheel, built once per dependency list (the network is needed only then)."""
+    path = CACHE / f"wheelhouse-{_dependencies_key()}"
+    if (path / ".complete").exists():
+        return path
+    tmp = CACHE / f".wheelhouse-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir(parents=True)
+    try:
+        r = subprocess.run(["nice", "-n", "10", sys.executable, "-m", "pip", "wheel", "--quiet", "--wheel-dir",
+                            str(tmp), str(REPO), "setuptools>=68", "wheel"], capture_output=True, text=True,
+                           timeout=1800)
+        assert r.returncode == 0, f"pip wheel failed: {r.stderr[-3000:]}"
+        for w in tmp.glob("cosim-*.whl"):
+            w.unlink()  # the project itself is built from the context, the wheelhouse holds dependencies
+        (tmp / ".complete").touch()
+        shutil.rmtree(path, ignore_errors=True)
+        tmp.rename(path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return path
+
+
+@pytest.fixture(scope="module")
+def image(base_image: str, wheelhouse: Path, tmp_path_factory) -> str:
+    """The repository's Dockerfile built from a copy of the sources plus the wheelhouse (no network)."""
+    ctx = tmp_path_factory.mktemp("docker-context")
+    ignore = shutil.ignore_patterns("__pycache__", "*.mcap", "*.partial")
+    for name in BUILD_CONTEXT:
+        src = REPO / name
+        if src.is_dir():
+            shutil.copytree(src, ctx / name, ignore=ignore)
+        else:
+            shutil.copy2(src, ctx / name)
+    (ctx / "wheelhouse").mkdir()
+    for whl in wheelhouse.glob("*.whl"):
+        try:
+            os.link(whl, ctx / "wheelhouse" / whl.name)
+        except OSError:
+            shutil.copy2(whl, ctx / "wheelhouse" / whl.name)
+    tag = "cosim-ci:test"
+    started = time.monotonic()
+    r = subprocess.run(["nice", "-n", "10", "docker", "build", "--build-arg", f"BASE={base_image}", "-t", tag,
+                        str(ctx)], capture_output=True, text=True, timeout=1800)
+    assert r.returncode == 0, f"docker build failed:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
+    size = docker("image", "inspect", tag, "--format", "{{.Size}}").stdout.strip()
+    log.warning("image %s built in %.0f s, %.0f MB", tag, time.monotonic() - started, int(size) / 1e6)
+    shutil.rmtree(ctx, ignore_errors=True)
+    return tag
+
+
+def run_container(image: str, out: Path, *args: str, detach: bool = False, timeout: float = 600) -> str:
+    """``docker run`` as the calling user with ``out`` mounted at /out; returns stdout (the id if detached).
+
+    A detached container is kept after it exits (for its status and log): remove it with ``docker rm``."""
+    out.mkdir(parents=True, exist_ok=True)
+    cmd = ["run", "-u", f"{os.getuid()}:{os.getgid()}", "-v", f"{out}:/out", "--label", "cosim-ci=1"]
+    cmd.append("-d" if detach else "--rm")
+    r = docker(*cmd, image, *args, timeout=timeout)
+    return r.stdout.strip()
+
+
+def objects_of(path: Path) -> list[tuple[int, bytes]]:
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        return [(m.log_time, m.data) for _s, _c, m in make_reader(f).iter_messages(topics=["/labels/objects"])]
+
+
+def test_episode_in_a_container_validates_and_matches_the_host(image, tmp_path):
+    inside, host = tmp_path / "inside", tmp_path / "host"
+    run_container(image, inside, "run", *EPISODE_ARGS, "--out", "/out")
+    r = run_cli("run", *EPISODE_ARGS, "--out", str(host), timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    [episode] = list(inside.glob("*.mcap"))
+    assert episode.stat().st_uid == os.getuid()  # written as the caller, not as the container's root
+    report = validate_episode(episode, pixels=False)
+    assert report.ok, report.problems[:5]
+    inside_objects = objects_of(episode)
+    assert len(inside_objects) == 10  # 2 s at 5 Hz
+    assert inside_objects == objects_of(host / episode.name)
+
+
+def messages_and_metadata(path: Path) -> tuple[list[tuple[str, int, bytes]], dict[str, dict[str, str]]]:
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        messages = [(c.topic, m.log_time, m.data) for _s, c, m in reader.iter_messages()]
+        return messages, {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+
+
+def test_three_shard_containers_fill_one_folder_like_a_local_batch(image, smoke_batch, tmp_path):
+    # Byte for byte, the shards are compared with one unsharded batch in the same image: the episode
+    # metadata records the Python version (Debian's 3.11.2 in the image), which may differ from the host's.
+    # With the host's batch every message and every other metadata field must be equal.
+    host_batch = smoke_batch
+    smoke_batch = tmp_path / "local"
+    run_container(image, smoke_batch, "batch", "smoke", "--out", "/out", "--workers", "2", "-q", timeout=900)
+    out = tmp_path / "matrix"
+    ids = [run_container(image, out, "batch", "smoke", "--out", "/out", "--shard", f"{i}/3", "-q", detach=True)
+           for i in range(3)]
+    try:
+        for cid in ids:
+            status = docker("wait", cid, timeout=900).stdout.strip()
+            logs = docker("logs", "--tail", "30", cid, check=False)
+            assert status == "0", f"shard container {cid[:12]} exited {status}:\n{logs.stdout}\n{logs.stderr}"
+    finally:
+        docker("rm", "-f", *ids, check=False)
+    assert sorted(p.name for p in out.glob("manifest*.jsonl")) == [f"manifest.shard{i:03d}of003.jsonl"
+                                                                    for i in range(3)]
+    union, local = latest_records(out), latest_records(smoke_batch)
+    assert len(union) == len(local) == 6
+    assert all(verify(out, rec) for rec in union.values())
+    assert deterministic_view(union.values()) == deterministic_view(local.values())
+    for rec in local.values():
+        assert sha256_file(out / rec["file"]) == sha256_file(smoke_batch / rec["file"])
+    # Where each episode ran: the three containers, each id being one the test started.
+    assert {rec["container"] for rec in union.values()} == set(ids)
+    assert all(rec["host"] == rec["container"][:12] for rec in union.values())
+    assert len({rec["container"] for rec in local.values()}) == 1  # the unsharded batch's one container
+    for rec in latest_records(host_batch).values():
+        (ours, our_meta), (theirs, their_meta) = messages_and_metadata(out / rec["file"]), \
+            messages_and_metadata(host_batch / rec["file"])
+        assert ours == theirs, f"{rec['file']}: messages differ between the image and the host"
+        for meta in (our_meta, their_meta):
+            meta["episode"].pop("versions")
+        assert our_meta == their_meta
+    nodes = build_report(out, md_path=tmp_path / "report.md").stats["nodes"]
+    assert sorted(n["episodes"] for n in nodes.values()) == [2, 2, 2]
+    assert all(n["sim_per_wall"] > 0 for n in nodes.values())
