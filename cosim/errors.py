@@ -57,5 +57,14 @@ class CollisionError(CosimError):
         super().__init__(f"{agent_id} collided with {what} at tick {tick}")
 
 
+class DroneCollisionError(CollisionError):
+    """Two drones came so close that their rotors touch."""
+
+    def __init__(self, agent_id: str, other_id: str, tick: int, distance_m: float):
+        self.other_id = other_id
+        self.distance_m = distance_m
+        super().__init__(agent_id, tick, f"{other_id} ({distance_m:.2f} m between their centres)")
+
+
 class FormatError(CosimError):
     """An episode file does not follow docs/episode_format.md."""

@@ -22,7 +22,7 @@ from cosim.drones.report import fly_escort, fly_hover, fly_patrol, rms
 from cosim.drones.routes import road_graph
 from cosim.drones.strategies import SWING_FEEDFORWARD, Escort, Hover, Patrol
 from cosim.drones.wind import Wind
-from cosim.errors import CollisionError, InputError, ScenarioError, WorkerError
+from cosim.errors import CollisionError, DroneCollisionError, InputError, ScenarioError, WorkerError
 from cosim.geometry import rotation_matrix
 from cosim.protocol import EscortTarget
 from cosim.scenario.model import (
@@ -170,9 +170,11 @@ def test_generated_patrol_loops_go_around_blocks_along_roads():
         assert np.allclose(np.sort(np.abs(legs), axis=1), [[0.0, 100.0]] * 4)
         assert np.min(legs[:-1, 0] * legs[1:, 1] - legs[:-1, 1] * legs[1:, 0]) > 0
     assert len({frozenset(map(tuple, w.tolist())) for w in loops}) == 4  # four different blocks
-    # A longer loop goes around the centre junction along the roads.
-    big = build_strategy(PatrolDrone(loop_length_m=800.0), 0, world, obs, graph, set()).waypoints_m
-    assert len(big) == 8 and (200.0, 200.0) not in {tuple(w) for w in big[:, :2]}
+    # A longer loop goes around the centre junction along the roads (the ring of 8 junctions; points
+    # in the middle of a straight side are not waypoints).
+    big = build_strategy(PatrolDrone(loop_length_m=800.0), 0, world, obs, graph, set()).waypoints_m[:, :2]
+    assert {tuple(w) for w in big} <= corners - {(200.0, 200.0)}
+    assert np.sum(np.linalg.norm(np.roll(big, -1, axis=0) - big, axis=1)) == pytest.approx(800.0)
 
 
 def test_generated_patrol_loop_without_roads_circles_junctions():
@@ -452,3 +454,107 @@ def test_shipped_default_scenario_flies_over_its_built_world(tmp_path):
         for s in per_tick:
             assert obs.hit(np.array(s.position_m), 1.0) is None
     assert [s.strategy for s in states[-1]] == [d.strategy for d in loaded.scenario.agents.drones]
+
+
+# --------------------------------------------------------------------------- separation (issue 11)
+
+
+def test_layers_separate_drones_that_share_airspace():
+    from cosim.drones.separation import layer_gap, plan_layers
+
+    gap = layer_gap(15.0)
+    assert gap >= 15.0
+    hover = np.array([[200.0, 200.0]])
+    far_hover = np.array([[0.0, 0.0]])
+    loop_over_hover = np.array([[190.0, 190.0], [300.0, 190.0], [300.0, 300.0], [190.0, 300.0]])
+    # hover 60, patrol 70 over it, an escort 40, a far hover 70, a second escort 45
+    z = plan_layers([60.0, 70.0, 40.0, 70.0, 45.0], [hover, loop_over_hover, None, far_hover, None], 15.0)
+    assert z[0] == 60.0 and z[2] == 40.0  # free layers are kept
+    assert z[1] == pytest.approx(60.0 + gap)  # raised, never lowered
+    assert z[3] == 70.0  # the far hover meets neither the hover nor the loop, and clears the escort
+    assert all(abs(z[4] - z[j]) >= gap - 1e-9 for j in range(4)) and z[4] >= 45.0  # an escort meets everyone
+    # Separation 0 turns layering off.
+    assert plan_layers([60.0, 60.0], [hover, hover], 0.0) == [60.0, 60.0]
+
+
+def test_yield_rule_raises_the_lower_priority_drone_and_holds_it_until_clear():
+    from cosim.drones.control import Reference
+    from cosim.drones.separation import yield_plan
+
+    # An escort (drone_1) 30 m west of a hover (drone_0), both at 60 m, flying east at 10 m/s toward it.
+    pos = np.array([[100.0, 0.0, 60.0], [70.0, 0.0, 60.0], [400.0, 0.0, 60.0]])
+    vel = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    y = yield_plan(pos, vel, ["hover", "escort", "patrol"], 15.0)
+    assert not y[0].bands and not y[2].bands  # the hover yields to nobody; the far patrol meets nobody
+    assert y[1].hold and len(y[1].bands) == 1
+    ref = Reference(np.array([80.0, 0.0, 60.0]), np.array([10.0, 0, 0]), np.zeros(3), 0.0)
+    out = y[1].apply(ref, pos[1])
+    assert out.position_m[2] >= 60.0 + 15.0
+    assert out.position_m[:2] == pytest.approx(pos[1, :2]) and not out.velocity_mps.any()  # holds: climb first
+    # Moving away: no yielding. Once above the band, it goes on (raised, not held).
+    assert not yield_plan(pos, -vel, ["hover", "escort", "patrol"], 15.0)[1].bands
+    pos[1, 2] = 80.0
+    y = yield_plan(pos, vel, ["hover", "escort", "patrol"], 15.0)
+    assert y[1].bands and not y[1].hold
+    out = y[1].apply(ref, pos[1])
+    assert out.position_m[:2] == pytest.approx(ref.position_m[:2]) and out.position_m[2] >= 75.0
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_drones_crossing_at_one_altitude_collide_unless_separated(backend):
+    """Two patrols fly the same line in opposite directions at the same altitude: with separation
+    off they collide (an error naming both drones and the tick); with the default they pass 15 m apart."""
+    env = EnvironmentSpec(wind_mps=0.0, gust_mps=0.0)
+    east = PatrolDrone(waypoints=[(20.0, 380.0), (380.0, 380.0)], altitude_m=60.0, speed_mps=10.0)
+    west = PatrolDrone(waypoints=[(380.0, 380.0), (20.0, 380.0)], altitude_m=60.0, speed_mps=10.0)
+
+    def run(separation_m: float) -> DroneFleet:
+        agents = AgentsSpec(drones=[east, west], drone_backend=backend, vehicles=VehicleAgents(count=1),
+                            drone_separation_m=separation_m)
+        fleet = DroneFleet(Scenario(name="cross", agents=agents, environment=env), demo_world())
+        try:
+            fly(fleet, 40.0)
+        finally:
+            fleet.close()
+        return fleet
+
+    with pytest.raises(CollisionError, match=r"drone_0 collided with drone_1 .* at tick \d+") as err:
+        run(0.0)
+    assert isinstance(err.value, DroneCollisionError)
+    assert err.value.other_id == "drone_1" and 60 <= err.value.tick <= 140  # they meet after ~18 s
+    fleet = run(15.0)
+    assert 15.0 < fleet.min_separation_m < 40.0  # they did meet, apart
+
+
+@pytest.fixture(scope="module")
+def shipped_flights(tmp_path_factory):
+    """Every shipped scenario's drones for 60 s over its built world, escorts following real SUMO traffic."""
+    from cosim.drones.survey import Survey, shipped_scenarios
+    from cosim.scenario.loader import load_scenario
+
+    survey = Survey(tmp_path_factory.mktemp("survey"))
+    out = {}
+    for path in shipped_scenarios():
+        loaded = load_scenario(path, ["duration_s=60", "sensors.enabled=false"])
+        out[path.stem] = survey.measure(loaded)
+    return out
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(900)  # the module fixture flies 12 scenarios (about 60 s of CPU on a quiet machine)
+def test_shipped_scenarios_keep_drones_apart(shipped_flights):
+    assert len(shipped_flights) >= 12
+    for name, m in shipped_flights.items():
+        assert m["min_distance_m"] > m["separation_m"] == 15.0, (name, m)
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(900)
+def test_patrols_fly_over_lanes_on_every_map_kind(shipped_flights):
+    medians: dict[str, list[float]] = {}
+    for m in shipped_flights.values():
+        medians.setdefault(m["map"], []).extend(m["patrol_median_lane_distance_m"].values())
+    assert set(medians) == {"urban", "suburban", "rural", "highway"}
+    for kind, values in medians.items():
+        assert values and max(values) < 5.0, (kind, values)

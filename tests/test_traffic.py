@@ -255,3 +255,67 @@ def test_step_rate_in_whole_milliseconds(tmp_path: Path) -> None:
         assert set(first) == set(later)
     finally:
         sim.close()
+
+
+# ------------------------------------------------------------------- traffic that changes (issue 11)
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("kind", KINDS)
+def test_vehicles_enter_and_leave_at_steady_density(kind: str, tmp_path: Path) -> None:
+    """In 60 s of real SUMO, background vehicles leave and new ones (new ids) enter; the number on the
+    road stays near the planned one; connected vehicles stay; an id that left never comes back."""
+    loaded, world, ticks = _episode(kind, tmp_path)
+    connected = {f"vehicle_{i}" for i in range(loaded.scenario.agents.vehicles.count)}
+    planned = {v.get("id") for v in ET.fromstring(world.routes_xml).iter("vehicle")}
+    first = {s.sumo_id for s in ticks[0]}
+    seen: set[str] = set()
+    gone: set[str] = set()
+    for k, states in enumerate(ticks):
+        ids = {s.sumo_id for s in states}
+        assert connected <= ids, f"tick {k}"
+        assert not ids & gone, f"tick {k}: {sorted(ids & gone)} came back"
+        gone |= seen - ids
+        seen |= ids
+        assert abs(len(ids) - len(first)) <= max(3, 0.15 * len(first)), f"tick {k}: {len(ids)} vs {len(first)}"
+    entered = seen - planned
+    assert len(gone) >= 3 and len(entered) >= 3, (len(gone), len(entered))
+    assert not gone & connected
+    assert all(v.startswith("bg_") for v in entered)
+    # Track ids: one per SUMO id, so a new vehicle never inherits one.
+    from cosim.assemble import TrackRegistry
+
+    tracks = TrackRegistry()
+    ids = {v: tracks("sumo", v) for states in ticks for v in (s.sumo_id for s in states)}
+    assert len(set(ids.values())) == len(ids)
+
+
+@pytest.mark.integration
+def test_class_shares_over_20_seeds_follow_the_mix(tmp_path: Path) -> None:
+    """Route generation for 20 episodes on a small town (about 8 vehicles each): over the batch every
+    class is within 5 points of ``traffic.mix`` (one vehicle of every class per episode is not)."""
+    from collections import Counter
+
+    from cosim.traffic.vtypes import class_of_type
+    from cosim.world.build import STAGE_ROUTES, stage_rng
+    from cosim.world.routes import plan_vehicles, read_sumolib, routes_xml
+
+    def scenario(seed: int):
+        return load_scenario_data({"name": "mix", "seed": seed, "map": {"kind": "urban", "size_m": 200},
+                                   "traffic": {"density_veh_per_km": 4}, "agents": {"vehicles": {"count": 1}}})
+
+    world = build_world(scenario(0), tmp_path / "w")
+    net, road_km = read_sumolib(world.net_xml), read_network(world.net_xml).road_length_km()
+    counts: Counter[str] = Counter()
+    per_episode = []
+    for seed in range(20):
+        sc = scenario(seed).scenario
+        xml = routes_xml(plan_vehicles(net, sc, road_km, stage_rng(seed, STAGE_ROUTES)))
+        classes = [class_of_type(v.get("type")) for v in ET.fromstring(xml).iter("vehicle")]
+        counts.update(classes)
+        per_episode.append(len(classes))
+    assert max(per_episode) <= 12  # small episodes, where rounding every class up would show
+    total = sum(counts.values())
+    mix = scenario(0).scenario.traffic.mix
+    for cls, share in mix.items():
+        assert abs(counts[cls] / total - share) <= 0.05, f"{cls}: {counts[cls]} of {total}, configured {share:.2f}"

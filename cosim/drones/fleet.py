@@ -18,7 +18,17 @@ from cosim.drones.backends import backend_class
 from cosim.drones.backends.base import DynamicsBackend
 from cosim.drones.control import BodyState, Controller, Limits, yaw_of
 from cosim.drones.obstacles import Obstacles
-from cosim.drones.routes import RoadGraph, hover_point, patrol_loop, ranked_junctions, road_graph, world_centre
+from cosim.drones.routes import (
+    LanePaths,
+    RoadGraph,
+    hover_point,
+    lane_paths,
+    patrol_loop,
+    ranked_junctions,
+    road_graph,
+    world_centre,
+)
+from cosim.drones.separation import Yield, closest_pair, plan_layers, yield_plan
 from cosim.drones.strategies import (
     Escort,
     Hover,
@@ -29,7 +39,7 @@ from cosim.drones.strategies import (
     polyline_points,
 )
 from cosim.drones.wind import Wind
-from cosim.errors import CollisionError, ScenarioError, WorkerError
+from cosim.errors import CollisionError, DroneCollisionError, ScenarioError, WorkerError
 from cosim.geometry import quat_from_matrix, quat_from_rpy
 from cosim.protocol import DroneState, EscortTarget
 from cosim.scenario.model import EscortDrone, HoverDrone, PatrolDrone, Scenario
@@ -62,10 +72,11 @@ def build_strategy(
     obstacles: Obstacles,
     roads: RoadGraph | None = None,
     taken: set | None = None,
+    lanes: LanePaths | None = None,
 ) -> Strategy:
     """The strategy of one drone; ``kind_index`` counts drones of the same strategy (0, 1, ...);
     generated patrol loops follow ``roads`` (:func:`road_graph`) when given, avoiding blocks in
-    ``taken`` (see :func:`patrol_loop`).
+    ``taken`` (see :func:`patrol_loop`) over the lane centre lines ``lanes`` (:func:`lane_paths`).
 
     The planned altitude covers the whole path the strategy flies, including the transit from
     ``spec.start`` when one is given. An escort starts at its offset point when the first
@@ -83,7 +94,7 @@ def build_strategy(
         if spec.waypoints is not None:
             wps = np.array(spec.waypoints, dtype=np.float64)
         else:
-            wps = patrol_loop(world, kind_index, spec.loop_length_m, roads, taken)
+            wps = patrol_loop(world, kind_index, spec.loop_length_m, roads, taken, lanes)
         path = np.vstack([wps, wps[:1]]) if start is None else np.vstack([start, wps, wps[:1]])
         z = planned_altitude(obstacles, polyline_points(path), spec.altitude_m, clearance)
         return Patrol(np.column_stack([wps, np.full(len(wps), z)]), spec.speed_mps, spec.reach_radius_m)
@@ -98,8 +109,31 @@ def build_strategy(
     raise TypeError(f"unknown drone spec {type(spec).__name__}")
 
 
+def way_of(spec: HoverDrone | PatrolDrone | EscortDrone, strategy: Strategy) -> np.ndarray | None:
+    """(N, 2) where a drone can fly, for layer planning: a hover's point, a patrol's loop (with the
+    transit from ``spec.start``); None for an escort (it goes wherever its vehicle goes)."""
+    if isinstance(strategy, Hover):
+        way = strategy.point_m[None, :2]
+    elif isinstance(strategy, Patrol):
+        way = strategy.waypoints_m[:, :2]
+    else:
+        return None
+    return way if spec.start is None else np.vstack([np.array([spec.start], dtype=np.float64), way])
+
+
+def flight_z(strategy: Strategy) -> float:
+    """[m] the planned flight z of a strategy before layering (an escort: at its start)."""
+    return float(strategy.start()[0][2])
+
+
 class DroneFleet:
-    """All drones of a scenario, physics at ``agents.drone_physics_hz``."""
+    """All drones of a scenario, physics at ``agents.drone_physics_hz``.
+
+    Drones keep ``agents.drone_separation_m`` from each other (:mod:`cosim.drones.separation`:
+    altitude layers, and yielding in flight); two drones closer than their rotor discs allow raise
+    :class:`DroneCollisionError`. ``min_separation_m`` is the smallest centre distance between two
+    drones seen at any physics step so far (inf with fewer than two drones).
+    """
 
     def __init__(self, scenario: Scenario, world: World):
         a = scenario.agents
@@ -122,16 +156,21 @@ class DroneFleet:
         half = self.frame.half_extents_m
         needs_roads = any(isinstance(d, PatrolDrone) and d.waypoints is None for d in a.drones)
         roads = road_graph(world.net_xml) if needs_roads else {}
+        lanes = lane_paths(world.net_xml) if needs_roads else {}
         taken: set = set()
         counts: dict[str, int] = {}
         self._drones: list[_Drone] = []
         self._t_ns: int | None = None
+        self.separation_m = a.drone_separation_m
+        self._contact_m = 2.0 * float(math.hypot(half[0], half[1]))  # [m] two rotor-tip circles touch
+        self._yields: list[Yield] = []
+        self.min_separation_m = math.inf
         try:
             for i, spec in enumerate(a.drones):
                 k = counts.get(spec.strategy, 0)
                 counts[spec.strategy] = k + 1
                 try:
-                    strategy = build_strategy(spec, k, self.world, self.obstacles, roads, taken)
+                    strategy = build_strategy(spec, k, self.world, self.obstacles, roads, taken, lanes)
                 except ValueError as exc:
                     raise ScenarioError(str(exc), path=f"agents.drones.{i}") from exc
                 backend = backend_class(a.drone_backend_of(i))(self.frame, self.dt_s, world)
@@ -148,14 +187,22 @@ class DroneFleet:
                     clearance_m=spec.clearance_m if spec.plan_altitude else None,
                 )
                 self._drones.append(drone)
-                self._place(drone, spec.start)
+            layers = plan_layers(
+                [flight_z(d.strategy) for d in self._drones],
+                [way_of(spec, d.strategy) for spec, d in zip(a.drones, self._drones, strict=True)],
+                self.separation_m,
+            )
+            for spec, d, z in zip(a.drones, self._drones, layers, strict=True):
+                d.strategy.fly_at(z)
+                self._place(d, spec.start)
                 log.info(
                     "%s: %s on %s, starts at %s",
-                    drone.agent_id,
+                    d.agent_id,
                     spec.strategy,
-                    backend.name,
-                    np.round(drone.state.position_m, 1).tolist(),
+                    d.backend.name,
+                    np.round(d.state.position_m, 1).tolist(),
                 )
+            self._check_separation(0)
         except Exception:
             self.close()
             raise
@@ -187,6 +234,7 @@ class DroneFleet:
                 if isinstance(d.strategy, Escort):
                     d.strategy.observe(0.0, escort_targets.get(d.agent_id))
                     self._place(d, self.scenario.agents.drones[i].start)
+            self._check_separation(0)
             self._t_ns = 0
             return [self._state_of(d) for d in self._drones]
         span = t_ns - self._t_ns
@@ -202,16 +250,33 @@ class DroneFleet:
                 d.strategy.observe(t_prev_s, escort_targets.get(d.agent_id))
         n_steps = (span // self.tick_ns) * self.substeps
         for k in range(n_steps):
+            if k % self.substeps == 0:
+                self._yields = yield_plan(
+                    np.array([d.state.position_m for d in self._drones]).reshape(-1, 3),
+                    np.array([d.state.velocity_mps for d in self._drones]).reshape(-1, 3),
+                    [d.strategy.name for d in self._drones],
+                    self.separation_m,
+                )
             t_s = t_prev_s + k * self.dt_s
-            for d in self._drones:
-                self._physics_step(d, t_s, tick)
+            for d, y in zip(self._drones, self._yields, strict=True):
+                self._physics_step(d, y, t_s, tick)
+            self._check_separation(tick)
         self._t_ns = t_ns
         return [self._state_of(d) for d in self._drones]
 
-    def _physics_step(self, d: _Drone, t_s: float, tick: int) -> None:
-        """One physics step of ``dt_s`` starting at ``t_s``: guidance, control, dynamics, checks."""
+    def _check_separation(self, tick: int) -> None:
+        """Track the smallest distance between two drones; raise when two touch."""
+        if len(self._drones) < 2:
+            return
+        dist, i, j = closest_pair(np.array([d.state.position_m for d in self._drones]))
+        self.min_separation_m = min(self.min_separation_m, dist)
+        if dist < self._contact_m:
+            raise DroneCollisionError(self._drones[i].agent_id, self._drones[j].agent_id, tick, dist)
+
+    def _physics_step(self, d: _Drone, y: Yield, t_s: float, tick: int) -> None:
+        """One physics step of ``dt_s`` starting at ``t_s``: guidance, separation, control, dynamics, checks."""
         s = d.state
-        ref = d.strategy.reference(t_s, s)
+        ref = y.apply(d.strategy.reference(t_s, s), s.position_m)
         if d.clearance_m is not None:
             ref = climb_first(ref, s, self.obstacles)
         cmd = d.controller.update(s, ref)

@@ -1,11 +1,15 @@
 """Where strategies fly when the scenario does not say: hover points and patrol loops from the world.
 
-Pure functions of the world (and an index), so every run picks the same places.
+Pure functions of the world (and an index), so every run picks the same places. Generated patrols
+fly over lane centre lines (:func:`lane_paths`): around a block, around a junction, or, where the
+roads form no loop of the right size (a highway), out along the road and back on the other
+carriageway.
 """
 
 from __future__ import annotations
 
 import heapq
+import itertools
 import math
 import tempfile
 from pathlib import Path
@@ -45,6 +49,33 @@ def hover_point(world: World, k: int) -> np.ndarray:
 
 
 RoadGraph = dict[str, list[tuple[str, float]]]
+#: (from junction, to junction) -> (N, 2) map x, y [m] of a lane centre line from one to the other
+LanePaths = dict[tuple[str, str], np.ndarray]
+
+
+def _drivable_edges(net_xml: bytes) -> list:
+    """The network's non-internal edges that passenger cars may use, by id; none without a network."""
+    if not net_xml.strip():
+        return []
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "map.net.xml"
+        path.write_bytes(net_xml)
+        net = sumolib.net.readNet(str(path))
+    edges = [e for e in net.getEdges() if e.getFunction() != "internal" and e.allows("passenger")]
+    return sorted(edges, key=lambda e: e.getID())
+
+
+def lane_paths(net_xml: bytes) -> LanePaths:
+    """For every drivable edge between two junctions, the centre line of its middle lane (the shortest
+    edge where two join the same junctions). Empty when the world carries no network."""
+    out: dict[tuple[str, str], tuple[float, np.ndarray]] = {}
+    for e in _drivable_edges(net_xml):
+        a, b = e.getFromNode().getID(), e.getToNode().getID()
+        lanes = e.getLanes()
+        shape = np.array(lanes[(len(lanes) - 1) // 2].getShape(), dtype=np.float64)[:, :2]
+        if a != b and ((a, b) not in out or e.getLength() < out[(a, b)][0]):
+            out[(a, b)] = (e.getLength(), shape)
+    return {k: v[1] for k, v in out.items()}
 
 
 def road_graph(net_xml: bytes) -> RoadGraph:
@@ -52,16 +83,8 @@ def road_graph(net_xml: bytes) -> RoadGraph:
 
     Empty when the world carries no network. Read with sumolib from a temporary file.
     """
-    if not net_xml.strip():
-        return {}
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "map.net.xml"
-        path.write_bytes(net_xml)
-        net = sumolib.net.readNet(str(path))
     links: dict[str, dict[str, float]] = {}
-    for e in net.getEdges():
-        if e.getFunction() == "internal" or not e.allows("passenger"):
-            continue
+    for e in _drivable_edges(net_xml):
         a, b = e.getFromNode().getID(), e.getToNode().getID()
         if a == b:
             continue
@@ -177,12 +200,91 @@ def block_around(p: np.ndarray, pos: dict[str, tuple[float, float]], graph: Road
     return _drop_spikes(loop)
 
 
+def _simplify(xy: np.ndarray, tol_m: float) -> np.ndarray:
+    """Douglas-Peucker: the points of the open polyline ``xy`` (N, 2) needed to stay within ``tol_m``."""
+    if len(xy) <= 2:
+        return xy
+    a, b = xy[0], xy[-1]
+    ab = b - a
+    n = float(np.hypot(ab[0], ab[1]))
+    rel = xy[1:-1] - a
+    d = np.abs(ab[0] * rel[:, 1] - ab[1] * rel[:, 0]) / n if n > 1e-9 else np.hypot(rel[:, 0], rel[:, 1])
+    i = int(np.argmax(d))
+    if d[i] <= tol_m:
+        return np.array([a, b])
+    return np.vstack([_simplify(xy[: i + 2], tol_m)[:-1], _simplify(xy[i + 1 :], tol_m)])
+
+
+def lane_polyline(ids: list[str], lanes: LanePaths, pos: dict[str, tuple[float, float]], closed: bool) -> np.ndarray:
+    """(N, 2) the way through junctions ``ids`` over lane centre lines (the lane from a to b, else the
+    lane from b to a backwards, else the straight line), repeated points dropped, simplified to 0.5 m;
+    ``closed``: back to the first junction too (the closing point not repeated)."""
+    legs = list(zip(ids, ids[1:] + ids[:1], strict=True)) if closed else list(itertools.pairwise(ids))
+    parts = []
+    for a, b in legs:
+        if (a, b) in lanes:
+            parts.append(lanes[(a, b)])
+        elif (b, a) in lanes:
+            parts.append(lanes[(b, a)][::-1])
+        else:
+            parts.append(np.array([pos[a], pos[b]], dtype=np.float64))
+    xy = np.concatenate(parts) if parts else np.zeros((0, 2))
+    keep = [0] + [i for i in range(1, len(xy)) if np.hypot(*(xy[i] - xy[i - 1])) > 0.5]
+    xy = xy[keep]
+    if closed:
+        if len(xy) > 1 and np.hypot(*(xy[-1] - xy[0])) <= 0.5:
+            xy = xy[:-1]
+        return _simplify(np.vstack([xy, xy[:1]]), 0.5)[:-1]
+    return _simplify(xy, 0.5)
+
+
+def _cut(xy: np.ndarray, length_m: float) -> np.ndarray:
+    """The first ``length_m`` of the open polyline ``xy`` (N, 2)."""
+    seg = np.hypot(*np.diff(xy, axis=0).T)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if s[-1] <= length_m:
+        return xy
+    i = int(np.searchsorted(s, length_m, side="right")) - 1
+    u = (length_m - s[i]) / max(seg[i], 1e-9)
+    return np.vstack([xy[: i + 1], xy[i] + u * (xy[i + 1] - xy[i])])
+
+
+def out_and_back(
+    start: str, graph: RoadGraph, lanes: LanePaths, pos: dict[str, tuple[float, float]], loop_length_m: float
+) -> np.ndarray | None:
+    """(N, 2) a patrol along the road from junction ``start`` for half of ``loop_length_m`` and back on
+    the lanes of the other direction (the other carriageway): toward the junction whose road distance
+    is nearest to half the length (ties by id), cut there. None when no road leaves ``start``."""
+    half = 0.5 * loop_length_m
+    best: tuple[float, str] | None = None
+    for goal in sorted(graph):
+        if goal == start:
+            continue
+        path = shortest_path(graph, start, goal)
+        if path is None:
+            continue
+        d = sum(dict(graph[a])[b] for a, b in itertools.pairwise(path))
+        if best is None or abs(d - half) < best[0]:
+            best = (abs(d - half), goal)
+    if best is None:
+        return None
+    ids = shortest_path(graph, start, best[1]) or []
+    out = _cut(lane_polyline(ids, lanes, pos, closed=False), half)
+    back = lane_polyline(ids[::-1], lanes, pos, closed=False)
+    back_len = float(np.sum(np.hypot(*np.diff(back, axis=0).T)))
+    back = _cut(back[::-1], min(half, back_len))[::-1]  # its last ``half`` metres, ending at the start
+    xy = np.vstack([out, back])
+    keep = [0] + [i for i in range(1, len(xy)) if np.hypot(*(xy[i] - xy[i - 1])) > 0.5]
+    return xy[keep]
+
+
 def patrol_loop(
     world: World,
     k: int,
     loop_length_m: float,
     graph: RoadGraph | None = None,
     taken: set[frozenset[tuple[float, float]]] | None = None,
+    lanes: LanePaths | None = None,
 ) -> np.ndarray:
     """(N, 2) closed patrol loop (last point not repeated) of about ``loop_length_m`` for patrol drone ``k``.
 
@@ -190,13 +292,17 @@ def patrol_loop(
     block at one of its corners (the k-th side first) whose perimeter is within 0.4 to 2.5 times
     the requested length and that is not in ``taken`` (vertex sets of loops other drones fly; the
     chosen one is added); otherwise around the junction itself, through one junction per
-    45-degree sector at about the radius of a circle of that perimeter, joined along the roads.
-    Without roads the ring's legs are straight; with fewer than 4 sectors filled, a square.
+    45-degree sector at about the radius of a circle of that perimeter, joined along the roads;
+    otherwise (fewer than 4 sectors filled: a highway, a country road) out along the road and back
+    (:func:`out_and_back`). With ``lanes`` (:func:`lane_paths`) the way between junctions follows
+    the lane centre lines. Without roads the ring's legs are straight; with fewer than 4 sectors
+    filled, a square.
     """
     js = ranked_junctions(world)
     centre = np.array(js[k % len(js)].position_m) if js else world_centre(world)
     pos = {j.junction_id: j.position_m for j in world.junctions}
     roads = {a: [(b, d) for b, d in adj if b in pos] for a, adj in (graph or {}).items() if a in pos}
+    lanes = lanes or {}
     if roads and js:
         for side in range(k, k + 4):  # the drone's side first, then the others
             ang = math.pi / 4.0 + math.pi / 2.0 * (side % 4)
@@ -210,7 +316,7 @@ def patrol_loop(
             if 0.4 * loop_length_m <= perimeter <= 2.5 * loop_length_m and key not in (taken or ()):
                 if taken is not None:
                     taken.add(key)
-                return xy
+                return lane_polyline(block, lanes, pos, closed=True)
     radius = loop_length_m / (2.0 * math.pi)
     picks: dict[int, tuple[float, Junction]] = {}
     for j in js:
@@ -227,7 +333,12 @@ def patrol_loop(
         if roads:
             ids = _along_roads(ring, roads, js[k % len(js)].junction_id)
             if len(ids) >= 3:
-                return np.array([pos[j] for j in ids], dtype=np.float64)
-        return np.array([j.position_m for j in ring], dtype=np.float64)
+                return lane_polyline(ids, lanes, pos, closed=True)
+        else:
+            return np.array([j.position_m for j in ring], dtype=np.float64)
+    if roads and js:
+        xy = out_and_back(js[k % len(js)].junction_id, roads, lanes, pos, loop_length_m)
+        if xy is not None and len(xy) >= 2:
+            return xy
     half = loop_length_m / 8.0
     return centre + np.array([[-half, -half], [half, -half], [half, half], [-half, half]])

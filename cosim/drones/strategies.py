@@ -93,6 +93,10 @@ class Strategy(ABC):
     def label(self) -> str:
         """Short state of the strategy ("hold", "to_wp_3", "tracking", ...)."""
 
+    @abstractmethod
+    def fly_at(self, z_m: float) -> None:
+        """Fly at map z ``z_m`` [m] (an altitude layer) instead of the planned one; never lower."""
+
 
 @dataclass
 class Hover(Strategy):
@@ -111,6 +115,9 @@ class Hover(Strategy):
 
     def label(self) -> str:
         return self._label
+
+    def fly_at(self, z_m: float) -> None:
+        self.point_m[2] = max(self.point_m[2], z_m)
 
 
 def corner_speed(prev_dir: np.ndarray, next_dir: np.ndarray, cruise_mps: float) -> float:
@@ -200,6 +207,9 @@ class Patrol(Strategy):
 
     def label(self) -> str:
         return f"to_wp_{self._next}"
+
+    def fly_at(self, z_m: float) -> None:
+        self.waypoints_m[:, 2] = np.maximum(self.waypoints_m[:, 2], z_m)
 
 
 @dataclass
@@ -297,3 +307,9 @@ class Escort(Strategy):
 
     def label(self) -> str:
         return self._label
+
+    def fly_at(self, z_m: float) -> None:
+        """The layer becomes the lowest the escort flies (it still climbs over buildings)."""
+        self.height_m = max(self.height_m, z_m - self.obstacles.ground_z_m)
+        self.fallback_start_m[2] = max(self.fallback_start_m[2], z_m)
+        self._z_m = max(self._z_m, z_m)

@@ -183,6 +183,8 @@ class AgentsSpec(Model):
     drone_backend: DynamicsBackend = "jsbsim"
     drone_physics_hz: float = Field(50.0, gt=0)  # dynamics rate; whole multiple of tick_hz
     drone_mass_kg: float = Field(3.5, gt=0.2, le=30)
+    #: [m] kept between any two drones in flight (altitude layers, yielding); 0 turns it off
+    drone_separation_m: float = Field(15.0, ge=0.0, le=200.0)
 
     def drone_backend_of(self, index: int) -> DynamicsBackend:
         return self.drones[index].backend or self.drone_backend

@@ -3,7 +3,9 @@
 ``python -m cosim.traffic.acceptance [--kinds urban suburban rural highway] [--seed 0] [--duration 60]``
 builds each world, runs :class:`~cosim.traffic.TrafficSim` tick by tick and prints one JSON line per
 kind: classes seen, share of box centres on the road surface, worst bird's-eye overlap, connected
-vehicles missing, RSU distances to their junctions, class shares, teleports and collisions.
+vehicles missing, RSU distances to their junctions, class shares (of the vehicles seen and of the
+boxes over all ticks), vehicles entering and leaving per minute, vehicles on the road (first, least,
+most), teleports and collisions.
 """
 
 from __future__ import annotations
@@ -36,6 +38,8 @@ def episode_metrics(loaded: LoadedScenario, workdir: Path) -> dict[str, Any]:
     on = total = missing = 0
     worst, worst_at = 0.0, None
     vehicles: dict[str, str] = {}
+    boxes: Counter[str] = Counter()
+    on_road: list[int] = []
     sim = TrafficSim(sc, world, workdir / "sumo")
     try:
         for k in range(sc.n_ticks):
@@ -48,7 +52,13 @@ def episode_metrics(loaded: LoadedScenario, workdir: Path) -> dict[str, Any]:
                 worst, worst_at = overlap, {"tick": k, "pair": list(pair or ())}
             missing += len(connected - {s.sumo_id for s in states})
             vehicles.update({s.sumo_id: s.cls for s in states})
+            boxes.update(s.cls for s in states)
+            on_road.append(len(states))
+            if k == 0:
+                entered0, left0 = sim.entered, sim.left
         teleports, collisions = sim.teleports, sim.collisions
+        minutes = (sc.n_ticks - 1) * sc.tick_ns / 60e9
+        entered, left = sim.entered - entered0, sim.left - left0
     finally:
         sim.close()
     junctions = {j.junction_id: j.position_m for j in world.junctions}
@@ -65,7 +75,11 @@ def episode_metrics(loaded: LoadedScenario, workdir: Path) -> dict[str, Any]:
         "connected_missing_ticks": missing,
         "rsu_junction_dist_m": [round(math.dist(r.position_m[:2], junctions[r.junction_id]), 2) for r in world.rsus],
         "class_share": {c: round(counts[c] / max(len(vehicles), 1), 3) for c in sorted(sc.traffic.mix)},
+        "class_share_of_boxes": {c: round(boxes[c] / max(sum(boxes.values()), 1), 3) for c in sorted(sc.traffic.mix)},
         "class_share_wanted": {c: round(v, 3) for c, v in sorted(sc.traffic.mix.items())},
+        "entered_per_min": round(entered / max(minutes, 1e-9), 1),
+        "left_per_min": round(left / max(minutes, 1e-9), 1),
+        "on_road_first_min_max": [on_road[0], min(on_road), max(on_road)],
         "teleports": teleports,
         "collisions": collisions,
     }

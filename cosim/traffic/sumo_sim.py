@@ -3,9 +3,12 @@
 libsumo allows one simulation per process; the traffic worker owns one :class:`TrafficSim`.
 SUMO time = :data:`WARMUP_S` + episode time: vehicles depart at SUMO time 0 (standing) and the
 warm-up lets them get moving, so at episode t = 0 every connected vehicle is on the road.
-Routes are extended before they end (:meth:`TrafficSim._extend_routes`), so no vehicle runs out of
-route on a network where its class can always go on; on open networks (OSM, user nets) vehicles
-that reach a fringe leave and their track simply ends.
+Connected vehicles' routes are extended before they end (:meth:`TrafficSim._extend_routes`), so they
+stay for the whole episode on a network where their class can always go on. Background vehicles
+drive to a sink at the edge of the map (:func:`cosim.world.routes.sources_and_sinks`) and leave; each
+one that leaves is replaced by a new vehicle of the same class (a new id ``bg_<nnnn>``, never reused)
+entering from a random source, so the number of vehicles and the class shares stay as planned while
+the vehicles change (:meth:`TrafficSim._replace`).
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from __future__ import annotations
 import bisect
 import logging
 import math
+import xml.etree.ElementTree as ET
 from fractions import Fraction
 from pathlib import Path
 
@@ -24,9 +28,9 @@ from cosim.errors import WorkerError
 from cosim.geometry import sumo_front_to_center, wrap_angle
 from cosim.protocol import VehicleState
 from cosim.scenario.model import Scenario
-from cosim.traffic.vtypes import SUMO_VCLASS, class_of_type
+from cosim.traffic.vtypes import SUMO_VCLASS, VARIANTS, class_of_type
 from cosim.world.netgen import sumo_binary
-from cosim.world.routes import read_sumolib, strong_core
+from cosim.world.routes import read_sumolib, sources_and_sinks, strong_core
 from cosim.world.types import World
 
 log = logging.getLogger(__name__)
@@ -68,6 +72,11 @@ class TrafficSim:
         self._rng = np.random.default_rng([scenario.seed, 10])
         net = read_sumolib(world.net_xml)
         self._targets = {c: strong_core(net, c) for c in sorted(set(SUMO_VCLASS.values()))}
+        self._gates = {c: sources_and_sinks(net, c) for c in sorted(set(SUMO_VCLASS.values()))}
+        planned = [v.get("id", "") for v in ET.fromstring(world.routes_xml).iter("vehicle")] if world.routes_xml else []
+        self._next_bg = 1 + max((int(v[3:]) for v in planned if v.startswith("bg_") and v[3:].isdigit()), default=-1)
+        self._first_new = self._next_bg  # ids from here on entered during the run
+        self._class: dict[str, str] = {}  # background vehicle id -> object class, from its departure
         cmd = [
             sumo_binary("sumo"),
             "-n",
@@ -108,6 +117,8 @@ class TrafficSim:
         self._route_len: dict[str, int] = {}
         self.teleports = 0  # vehicles SUMO teleported (jam resolution is off, so this stays 0)
         self.collisions = 0  # vehicles SUMO found in a collision (lane-based check)
+        self.entered = 0  # background vehicles that entered after SUMO time 0 (replacements)
+        self.left = 0  # background vehicles that reached their sink and left the map
         self._closed = False
         self._advance_to(self._warmup_steps)
         present = set(libsumo.vehicle.getIDList())
@@ -131,18 +142,51 @@ class TrafficSim:
             self.collisions += libsumo.simulation.getCollidingVehiclesNumber()
             for vid in libsumo.simulation.getDepartedIDList():
                 libsumo.vehicle.subscribe(vid, SUBSCRIBED)
-            for vid in libsumo.simulation.getArrivedIDList():
+                if not vid.startswith("vehicle_"):
+                    self._class[vid] = class_of_type(libsumo.vehicle.getTypeID(vid))
+                    self.entered += vid >= f"bg_{self._first_new:04d}"
+            for vid in sorted(libsumo.simulation.getArrivedIDList()):
                 self._trails.pop(vid, None)
                 self._route_len.pop(vid, None)
+                cls = self._class.pop(vid, None)
+                if cls is not None:
+                    self.left += 1
+                    self._replace(cls)
             res = libsumo.vehicle.getAllSubscriptionResults()
             self._record_trails(res)
             self._extend_routes(res)
         self._dt = dt
 
+    def _replace(self, cls: str) -> None:
+        """Send a new background vehicle of class ``cls`` in from a random source to a random sink.
+
+        It is added now and departs at the next step, at the start of its source edge at the highest
+        safe speed (SUMO keeps it waiting while the entry is blocked)."""
+        vclass = SUMO_VCLASS[cls]
+        sources, sinks = self._gates[vclass]
+        variants = VARIANTS[cls]
+        variant = variants[int(self._rng.integers(len(variants)))]
+        vid = f"bg_{self._next_bg:04d}"
+        for _ in range(10 if sources and sinks else 0):
+            a = sources[int(self._rng.integers(len(sources)))]
+            b = sinks[int(self._rng.integers(len(sinks)))]
+            edges = libsumo.simulation.findRoute(a, b, vType=variant.type_id).edges
+            if not edges:
+                continue
+            libsumo.route.add(f"route_{vid}", list(edges))
+            libsumo.vehicle.add(vid, f"route_{vid}", typeID=variant.type_id, depart="now", departLane="best",
+                                departPos="base", departSpeed="max")
+            self._next_bg += 1
+            return
+        log.info("no route from a source to a sink for a %s; the map keeps one fewer", cls)
+
     def _extend_routes(self, res: dict[str, dict[int, object]]) -> None:
-        """Give every vehicle on one of its last route edges a new random destination (sorted id order)."""
+        """Give every connected vehicle on one of its last route edges a new random destination (sorted
+        id order); background vehicles drive on to their sink."""
         v = libsumo.vehicle
         for vid in sorted(res):
+            if not vid.startswith("vehicle_"):
+                continue
             r = res[vid]
             idx = int(r[tc.VAR_ROUTE_INDEX])
             if vid not in self._route_len:

@@ -1,16 +1,21 @@
 """Initial traffic as a SUMO route file: vehicle types, background vehicles and connected vehicles.
 
 Every vehicle departs at SUMO time 0 at a drawn position on a drawn lane, spaced so that no two
-overlap, with a route inside the part of the network where its class can always go on (the
-strongly connected core for its vClass). The traffic adapter extends routes before they end, so
-vehicles stay for the whole episode. Class counts follow ``traffic.mix`` by largest remainders,
-so the mix is exact up to rounding rather than sampled.
+overlap. Connected vehicles get a route inside the part of the network where their class can always
+go on (the strongly connected core for its vClass); the traffic adapter extends their routes before
+they end, so they stay for the whole episode. Background vehicles drive to a sink, a road that ends
+at a gateway of the map (:func:`gateways`: a junction on the edge of the network or a dead end), and
+leave there; the adapter sends a new vehicle of the same class in from a source, so traffic changes
+while the density stays as configured.
+
+Class counts are a systematic sample of ``traffic.mix`` (:func:`class_counts`): within one of the
+exact share per class in every episode, and the expected count is exactly the share, so the shares
+over a batch follow the mix however small each episode is.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import tempfile
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -28,6 +33,7 @@ log = logging.getLogger(__name__)
 MIN_LANE_M = 20.0  # [m] shortest lane a vehicle departs on
 END_CLEARANCE_M = 12.0  # [m] no departure closer than this to a lane's end
 ROUTE_TARGETS = 1  # random destinations in the initial route (the adapter extends routes as they run out)
+GATEWAY_M = 30.0  # [m] junctions this close to the edge of the network's junction bounds are gateways
 
 
 @dataclass(frozen=True)
@@ -40,22 +46,20 @@ class PlannedVehicle:
     route: tuple[str, ...]
 
 
-def class_counts(mix: dict[str, float], n: int) -> dict[str, int]:
-    """Vehicles per class for ``n`` vehicles: largest-remainder rounding of ``mix`` (shares sum to 1),
-    except that every class with a positive share gets at least one vehicle when ``n`` allows."""
-    raw = {c: mix[c] * n for c in sorted(mix)}
-    counts = {c: math.floor(v) for c, v in raw.items()}
-    rest = n - sum(counts.values())
-    for c in sorted(raw, key=lambda c: (-(raw[c] - counts[c]), c))[:rest]:
-        counts[c] += 1
-    for c in sorted(raw, key=lambda c: raw[c]):
-        if counts[c] == 0 and mix[c] > 0:
-            donors = [d for d in counts if counts[d] > 1]
-            if donors:
-                donor = max(donors, key=lambda d: (counts[d] - raw[d], counts[d], d))
-                counts[donor] -= 1
-                counts[c] += 1
-    return counts
+def class_counts(mix: dict[str, float], n: int, rng: np.random.Generator) -> dict[str, int]:
+    """Vehicles per class for ``n`` vehicles: a systematic sample of ``mix`` (shares sum to 1).
+
+    The classes' shares are laid end to end on [0, n) and counted at the points u, u + 1, ...,
+    u + n - 1 for one uniform draw u: every class gets the floor or the ceiling of ``share * n``,
+    the counts sum to ``n``, and the expected count of every class is exactly ``share * n`` (no
+    class is rounded up or down in every episode, so a batch of small episodes keeps the mix).
+    """
+    classes = sorted(mix)
+    edges = np.concatenate([[0.0], np.cumsum([mix[c] * n for c in classes])])
+    edges[-1] = n  # no rounding slack at the end
+    points = float(rng.uniform(0.0, 1.0)) + np.arange(n)
+    hits = np.searchsorted(edges, points, side="right") - 1
+    return {c: int(np.count_nonzero(hits == i)) for i, c in enumerate(classes)}
 
 
 def read_sumolib(net_xml: bytes) -> sumolib.net.Net:
@@ -106,6 +110,57 @@ def random_route(
     return route
 
 
+def gateways(net: sumolib.net.Net) -> set[str]:
+    """Ids of the junctions where traffic enters and leaves the map: dead ends (the network's own
+    fringe) and junctions within :data:`GATEWAY_M` of the bounds of all junctions (where the roads
+    of a generated town or highway would go on beyond the map)."""
+    nodes = [n for n in net.getNodes() if n.getType() != "internal"]
+    if not nodes:
+        return set()
+    xy = np.array([n.getCoord()[:2] for n in nodes])
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    out = set()
+    for n, (x, y) in zip(nodes, xy, strict=True):
+        near = min(x - lo[0], hi[0] - x, y - lo[1], hi[1] - y) <= GATEWAY_M
+        neighbours = {e.getToNode().getID() for e in n.getOutgoing()}
+        neighbours |= {e.getFromNode().getID() for e in n.getIncoming()}
+        if near or n.getType() == "dead_end" or len(neighbours - {n.getID()}) <= 1:
+            out.add(n.getID())
+    return out
+
+
+def sources_and_sinks(net: sumolib.net.Net, vclass: str) -> tuple[list[str], list[str]]:
+    """Edges ``vclass`` may use that leave a gateway (sources) and that end at one (sinks), sorted.
+
+    A network without gateways (none can happen on a non-empty network: its outermost junctions
+    are gateways) gets every allowed edge as both: vehicles then enter and leave at the roadside,
+    as from a parking place.
+    """
+    gates = gateways(net)
+    edges = sorted((e for e in net.getEdges() if e.getFunction() != "internal" and e.allows(vclass)),
+                   key=lambda e: e.getID())
+    sources = [e.getID() for e in edges if e.getFromNode().getID() in gates]
+    sinks = [e.getID() for e in edges if e.getToNode().getID() in gates]
+    if not sources or not sinks:
+        every = [e.getID() for e in edges]
+        return every, every
+    return sources, sinks
+
+
+def route_to_sink(
+    net: sumolib.net.Net, start: str, sinks: list[str], vclass: str, rng: np.random.Generator, attempts: int = 10
+) -> list[str] | None:
+    """Shortest route from edge ``start`` to a randomly drawn sink edge, or None when none is reachable."""
+    for _ in range(attempts):
+        sink = sinks[int(rng.integers(len(sinks)))]
+        if sink == start:
+            return [start]
+        path, _cost = net.getShortestPath(net.getEdge(start), net.getEdge(sink), vClass=vclass)
+        if path:
+            return [e.getID() for e in path]
+    return None
+
+
 class _LaneOccupancy:
     """Occupied front-bumper intervals per lane, so departures keep their gaps."""
 
@@ -122,11 +177,14 @@ class _LaneOccupancy:
 def plan_vehicles(
     net: sumolib.net.Net, scenario: Scenario, road_km: float, rng: np.random.Generator
 ) -> list[PlannedVehicle]:
-    """Connected vehicles first (ids vehicle_<i>), then background (ids bg_<nnnn>)."""
+    """Connected vehicles first (ids vehicle_<i>), then background (ids bg_<nnnn>).
+
+    Connected vehicles' routes stay in the strongly connected core; background routes end at a sink.
+    """
     n_bg = round(scenario.traffic.density_veh_per_km * road_km)
     n_conn = scenario.agents.vehicles.count
     # the mix holds for all vehicles on the road, connected ones included
-    counts = class_counts(dict(scenario.traffic.mix), n_bg + n_conn)
+    counts = class_counts(dict(scenario.traffic.mix), n_bg + n_conn, rng)
     conn_cls = scenario.agents.vehicles.vclass
     counts[conn_cls] = max(0, counts.get(conn_cls, 0) - n_conn)
     wanted: list[tuple[str, str]] = [
@@ -137,6 +195,7 @@ def plan_vehicles(
     wanted += [(f"bg_{k:04d}", bg_classes[i]) for k, i in enumerate(order)]
 
     cores: dict[str, list[str]] = {}
+    sinks: dict[str, list[str]] = {}
     lanes: dict[str, list[sumolib.net.lane.Lane]] = {}
     occ = _LaneOccupancy()
     out: list[PlannedVehicle] = []
@@ -144,6 +203,7 @@ def plan_vehicles(
         vclass = SUMO_VCLASS[cls]
         if vclass not in cores:
             cores[vclass] = strong_core(net, vclass)
+            sinks[vclass] = sources_and_sinks(net, vclass)[1]
             lanes[vclass] = [
                 ln
                 for eid in cores[vclass]
@@ -181,7 +241,10 @@ def plan_vehicles(
             log.info("no free place for %s; traffic is denser than the map holds", vid)
             continue
         ln, pos = placed
-        route = random_route(net, ln.getEdge().getID(), cores[vclass], vclass, rng)
+        start = ln.getEdge().getID()
+        route = None if vid.startswith("vehicle_") else route_to_sink(net, start, sinks[vclass], vclass, rng)
+        if route is None:  # connected, or no sink reachable: drive in the core (routes are extended)
+            route = random_route(net, start, cores[vclass], vclass, rng)
         out.append(PlannedVehicle(vid, variant, ln.getID(), ln.getIndex(), round(pos, 2), tuple(route)))
     return out
 
