@@ -34,7 +34,7 @@ from cosim.world.types import World
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = "1.0"
+FORMAT_VERSION = "1.1"
 #: Independent random streams derived from the scenario seed.
 SENSOR_STREAM = 0x5E5
 
