@@ -34,7 +34,7 @@ class TrafficEngine:
         if self._sim is None:
             raise CosimError("step before init")
         vehicles = self._sim.step_to(request.t_ns)
-        return {"tick": request.tick, "t_ns": request.t_ns, "vehicles": vehicles}
+        return {"tick": request.tick, "t_ns": request.t_ns, "vehicles": vehicles, "events": self._sim.events()}
 
     def close(self) -> None:
         if self._sim is not None:
