@@ -18,11 +18,14 @@ Each event has one record per tick for the ``/events`` topic (:meth:`Timeline.re
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import libsumo
+import numpy as np
 
 from cosim.protocol import VehicleState
 from cosim.scenario.model import AccidentEvent, BreakdownEvent, EventSpec, LaneClosureEvent, RoadBlockEvent, Scenario
@@ -96,11 +99,14 @@ def static_box(sid: str, x: float, y: float, z_ground: float, yaw: float, size_m
 class Timeline:
     """Applies a scenario's events to the running SUMO simulation (one per TrafficSim)."""
 
-    def __init__(self, scenario: Scenario, tick_ns: int) -> None:
+    def __init__(self, scenario: Scenario, destinations: Callable[[str], list[str]], rng: np.random.Generator
+                 ) -> None:
+        """``destinations(vid)``: edges a vehicle may be sent to instead when its destination is blocked."""
         self.scenario = scenario
+        self._destinations = destinations
+        self._rng = rng
         self._pending = sorted(enumerate(scenario.events), key=lambda ie: (ie[1].at_s, ie[0]))
         self._active: list[_Active] = []
-        self._tick_ns = tick_ns
         self.hazard_lights = scenario.environment.lighting in ("dusk", "night")
         self.pinned: dict[str, tuple[float, float, float]] = {}  # SUMO id -> label centre x, y and yaw
         if scenario.events:
@@ -187,7 +193,12 @@ class Timeline:
         route = list(v.getRoute(vid))
         idx, lane = v.getRouteIndex(vid), v.getLaneIndex(vid)
         road = v.getRoadID(vid)
-        pos = (v.getLanePosition(vid) if not road.startswith(":") else 0.0) + spec.ahead_m
+        pos = v.getLanePosition(vid) + spec.ahead_m
+        if road.startswith(":"):  # in a junction: the route index still names the edge it came from
+            idx, pos = idx + 1, spec.ahead_m
+            links = libsumo.lane.getLinks(v.getLaneID(vid))
+            if links:  # the lane the junction lane leads onto
+                lane = int(str(links[0][0]).rsplit("_", 1)[1])
         for edge in route[max(idx, 0):]:
             length = libsumo.lane.getLength(f"{edge}_0")
             if pos <= length - EDGE_MARGIN_M:
@@ -287,6 +298,23 @@ class Timeline:
         mx, my, myaw = lane_pose(start.edge, start.lane, e.place.pos_m + spec.length_m / 2)
         e.zone_m = rect(mx, my, myaw, spec.length_m, lane_w)
 
+    def _reroute_around(self, vid: str, edge: str) -> None:
+        """A new route avoiding ``edge``; a new destination when ``edge`` was the destination."""
+        v = libsumo.vehicle
+        with contextlib.suppress(libsumo.TraCIException):  # no route at all: handled below
+            v.rerouteTraveltime(vid)
+        if edge not in v.getRoute(vid)[v.getRouteIndex(vid) + 1:]:
+            return
+        candidates = [d for d in self._destinations(vid) if d != edge]
+        for k in self._rng.permutation(len(candidates))[:20]:
+            try:
+                v.changeTarget(vid, candidates[int(k)])
+            except libsumo.TraCIException:
+                continue
+            if edge not in v.getRoute(vid)[v.getRouteIndex(vid) + 1:]:
+                return
+        log.info("road block: no way around %s for %s; it waits before the block", edge, vid)
+
     def _block(self, e: _Active) -> None:
         assert e.place is not None
         edge = e.place.edge
@@ -296,10 +324,7 @@ class Timeline:
         for vid in libsumo.vehicle.getIDList():
             route = libsumo.vehicle.getRoute(vid)
             if edge in route[libsumo.vehicle.getRouteIndex(vid) + 1:]:
-                try:
-                    libsumo.vehicle.rerouteTraveltime(vid)
-                except libsumo.TraCIException as exc:
-                    log.info("road block: %s not rerouted (%s)", vid, exc)
+                self._reroute_around(vid, edge)
         z = libsumo.simulation.convert3D(edge, 1.0, 0)[2]
         for i in range(n_lanes):
             w = libsumo.lane.getWidth(f"{edge}_{i}")

@@ -121,7 +121,7 @@ class TrafficSim:
         self.entered = 0  # background vehicles that entered after SUMO time 0 (replacements)
         self.left = 0  # background vehicles that reached their sink and left the map
         self._closed = False
-        self.timeline = Timeline(scenario, scenario.tick_ns)
+        self.timeline = Timeline(scenario, self._destinations, np.random.default_rng([scenario.seed, 11]))
         self._advance_to(self._warmup_steps)
         present = set(libsumo.vehicle.getIDList())
         missing = [f"vehicle_{i}" for i in range(scenario.agents.vehicles.count) if f"vehicle_{i}" not in present]
@@ -184,6 +184,13 @@ class TrafficSim:
             self._next_bg += 1
             return
         log.info("no route from a source to a sink for a %s; the map keeps one fewer", cls)
+
+    def _destinations(self, vid: str) -> list[str]:
+        """Where a vehicle may be sent: anywhere in its class's core for connected vehicles, sinks otherwise."""
+        vclass = libsumo.vehicle.getVehicleClass(vid)
+        if vid.startswith("vehicle_"):
+            return list(self._targets.get(vclass, []))
+        return list(self._gates.get(vclass, ([], []))[1])
 
     def _extend_routes(self, res: dict[str, dict[int, object]]) -> None:
         """Give every connected vehicle on one of its last route edges a new random destination (sorted
