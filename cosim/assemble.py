@@ -25,6 +25,10 @@ class TrackRegistry:
     def __len__(self) -> int:
         return len(self._ids)
 
+    def get(self, source: str, source_id: str) -> int | None:
+        """The track id of an actor already seen, or None (hands out nothing)."""
+        return self._ids.get((source, source_id))
+
     def __call__(self, source: str, source_id: str) -> int:
         key = (source, source_id)
         track = self._ids.get(key)

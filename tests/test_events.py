@@ -148,3 +148,37 @@ def test_bad_events_name_key_path_and_line(tmp_path: Path, text, path, line, wor
     assert (err.value.path, err.value.line) == (path, line), str(err.value)
     for w in words:
         assert w in str(err.value)
+
+
+@pytest.mark.integration
+def test_episode_carries_events_and_validates(tmp_path: Path):
+    """A real run (SUMO, drones, Zenoh, MCAP, labels only): /events every tick with track ids of the same tick's
+    labels, the obstacles labelled static_obstacle, the events in the metadata, and `cosim validate` clean."""
+    import json
+
+    from cosim.io import open_episode
+    from tests.conftest import run_cli
+
+    r = run_cli("run", "scenarios/event_lane_closure.yaml", "--duration", "2", "--out", str(tmp_path), "--no-sensors",
+                "--set", "agents.rsus.count=0", "--set", "map.size_m=300")
+    assert r.returncode == 0, r.stderr
+    path = tmp_path / "event_lane_closure_s0.mcap"
+    v = run_cli("validate", str(path))
+    assert v.returncode == 0, v.stdout + v.stderr
+    with open_episode(path) as ep:
+        assert ep.format_version == "1.1"
+        assert ep.metadata["events"][0]["kind"] == "construction_zone"
+        assert "pedestrian" in ep.metadata["class_table"]["object_classes"]
+    from mcap.reader import make_reader
+
+    labels, events = {}, {}
+    with open(path, "rb") as f:
+        for _, ch, m in make_reader(f).iter_messages(topics=["/labels/objects", "/events"]):
+            (labels if ch.topic == "/labels/objects" else events)[m.log_time] = json.loads(m.data)
+    assert sorted(events) == sorted(labels) and len(events) == 10
+    for t, msg in events.items():
+        (e,) = msg["events"]
+        assert e["state"] == "active" and e["kind"] == "construction_zone"
+        classes = {o["track_id"]: o["class"] for o in labels[t]["objects"]}
+        assert len(e["obstacle_track_ids"]) >= 3
+        assert {classes[i] for i in e["obstacle_track_ids"]} == {"static_obstacle"}

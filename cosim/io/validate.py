@@ -616,6 +616,9 @@ class _Validator:
             refs = self.pixel_tracks(tick, topic, value)
         elif pattern == "/<agent>/visibility" and isinstance(value, dict):
             refs = set(_track_ids_in(value))
+        elif pattern == "/events" and isinstance(value, dict):
+            refs = {int(t) for e in value.get("events", []) if isinstance(e, dict)
+                    for key in ("vehicle_track_ids", "obstacle_track_ids") for t in e.get(key, [])}
         dangling = sorted(refs - live)
         if dangling:
             self.problem(
