@@ -133,6 +133,7 @@ def run_episode(
     with tempfile.TemporaryDirectory(prefix="cosim-world-") as workdir:
         world = build_world(loaded, Path(workdir))
     suite = _sensor_suite(loaded, world)
+    links = _link_model(loaded, world, suite)
     tracks = TrackRegistry()
     escorts = {f"drone_{i}": d.target for i, d in enumerate(s.agents.drones) if isinstance(d, EscortDrone)}
     tick_times: list[float] = []
@@ -176,6 +177,8 @@ def run_episode(
                 payload = events_payload(tick, t_ns, replies["traffic"].get("events", []),
                                          lambda sid: tracks.get("sumo", sid))
                 labels.append(("/events", ("cosim.Events", EVENTS_SCHEMA, payload)))
+            if links is not None:
+                labels.append(links.message(snapshot))
             if suite is None:
                 background.submit(t_ns, lambda labels=labels: labels)
             else:
@@ -258,6 +261,11 @@ class _SensorAdapter:
         return self._frame_messages(frames, frames.t_ns, image_format=out.image_format,
                                     jpeg_quality=out.jpeg_quality)
 
+    @property
+    def static(self) -> Any:
+        """The suite's static scene (Open3D, built once), shared with the link model."""
+        return self._suite.static
+
     def close(self) -> None:
         self._suite.close()
 
@@ -266,3 +274,19 @@ def _sensor_suite(loaded: LoadedScenario, world: World) -> _SensorAdapter | None
     if not loaded.scenario.sensors.enabled:
         return None
     return _SensorAdapter(loaded, world)
+
+
+def _link_model(loaded: LoadedScenario, world: World, suite: _SensorAdapter | None) -> Any:
+    """The ``/comm/links`` model (None when ``comm.enabled`` is false); it ray-casts through the
+    sensor suite's static scene, or through the walls of the layout when sensors are off."""
+    s = loaded.scenario
+    if not s.comm.enabled:
+        return None
+    from cosim.comm.links import LinkModel
+    from cosim.comm.los import LinkScene
+
+    if suite is not None:
+        scene = LinkScene.of_static(suite.static, world.layout.ground_z_m)
+    else:
+        scene = LinkScene.from_layout(world.layout)
+    return LinkModel(s.comm, scene, world.map_kind, s.seed, s.tick_ns)

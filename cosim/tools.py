@@ -1,4 +1,4 @@
-"""Episode tools on the command line: ``cosim info | validate | replay | render``.
+"""Episode tools on the command line: ``cosim info | validate | replay | render | comm``.
 
 Registered into ``cosim`` by :func:`register` (cosim/cli.py calls it). Each command parses its
 arguments and calls a typed function in :mod:`cosim.io`; errors are raised as
@@ -167,8 +167,23 @@ def cmd_render(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_comm(args: argparse.Namespace) -> int:
+    from cosim.comm.summary import comm_report, format_summary, summary_json
+
+    out = Path(args.out) if args.out else None
+    rows, n_ticks, written = comm_report(_episode(args.episode), out, args.tick, dpi=args.dpi)
+    if args.json:
+        print(json.dumps({"ticks": n_ticks, "link_types": summary_json(rows), "plots": [str(p) for p in written]},
+                         indent=2))
+        return EXIT_OK
+    print(format_summary(rows, n_ticks))
+    for p in written:
+        print(p)
+    return EXIT_OK
+
+
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add ``info``, ``validate``, ``replay`` and ``render`` to the ``cosim`` command."""
+    """Add ``info``, ``validate``, ``replay``, ``render`` and ``comm`` to the ``cosim`` command."""
     p = sub.add_parser("info", help="what an episode holds: scenario, conditions, agents, topics, size")
     p.add_argument("episode", help="episode file (.mcap)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
@@ -227,3 +242,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--agents", nargs="+", metavar="AGENT", help="agents for contact sheets (default all)")
     p.add_argument("--dpi", type=int, default=80, help="figure resolution (default 80)")
     p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("comm", help="V2X links of an episode: summary per link type (LOS, SNR, delivery) and plots")
+    p.add_argument("episode", help="episode file (.mcap) written with comm.enabled")
+    p.add_argument("--out", help="folder for comm_quality.png and comm_map_t<tick>.png (default: no plots)")
+    p.add_argument("--tick", type=int, help="tick of the link map (default: the middle one)")
+    p.add_argument("--json", action="store_true", help="machine-readable summary")
+    p.add_argument("--dpi", type=int, default=80, help="figure resolution (default 80)")
+    p.set_defaults(func=cmd_comm)

@@ -220,10 +220,15 @@ def test_ctrl_c_stops_a_looping_replay(tmp_path):
             free_loopback_endpoint(),
         ],
         cwd=REPO,
+        stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
     )
-    time.sleep(3.0)
+    # Interrupt once the replay is serving (it prints its endpoint then), not after a fixed sleep: on a
+    # loaded machine the interpreter may still be importing after seconds.
+    ready = proc.stdout.readline()
+    assert ready.startswith("zenoh"), (ready, proc.stderr.read() if proc.poll() is not None else "")
+    time.sleep(0.5)
     assert proc.poll() is None, proc.stderr.read()  # still looping
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=30)

@@ -1,5 +1,6 @@
 """Reading cosim episodes (docs/episode_format.md): ``open_episode(path)`` and the decoded types."""
 
+from cosim.comm.message import LinkSet
 from cosim.io.decode import (
     Boxes,
     Calibration,
@@ -21,6 +22,7 @@ __all__ = [
     "GnssFix",
     "Grid",
     "Image",
+    "LinkSet",
     "Objects",
     "PointCloud",
     "RawMessage",

@@ -3,7 +3,8 @@
 Every decoder is a pure function ``bytes -> value`` chosen by the channel's schema name; the
 registry :data:`DECODERS` lists them. Protobuf schemas without a dedicated decoder come back as
 protobuf messages (built from the schema stored in the file); JSON messages come back as dicts,
-except ``cosim.ObjectArray`` which becomes :class:`Objects`.
+except ``cosim.ObjectArray`` which becomes :class:`Objects` and ``cosim.LinkArray``
+(``/comm/links``) which becomes :class:`~cosim.comm.message.LinkSet`.
 
 Frames and units are those of the format: positions in metres, rotations (x, y, z, w)
 quaternions parent <- child, time in integer ns since the episode start.
@@ -23,6 +24,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from google.protobuf.message import DecodeError
 from google.protobuf.message import Message as ProtoMessage
 
+from cosim.comm.message import decode_links
 from cosim.errors import FormatError
 
 # ----------------------------------------------------------------------------------- types
@@ -571,6 +573,7 @@ PROTO_DECODERS: dict[str, Callable[[Any], Any]] = {
 #: JSON schema name -> decoder of the parsed payload.
 JSON_DECODERS: dict[str, Callable[[Any], Any]] = {
     "cosim.ObjectArray": decode_objects,
+    "cosim.LinkArray": decode_links,
 }
 
 DECODERS = {**PROTO_DECODERS, **JSON_DECODERS}

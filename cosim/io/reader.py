@@ -23,6 +23,7 @@ from typing import Any, BinaryIO
 
 from mcap.reader import SeekingReader, make_reader
 
+from cosim.comm.message import LinkSet
 from cosim.errors import CosimError, FormatError, InputError
 from cosim.io.decode import (
     Boxes,
@@ -217,6 +218,10 @@ class Tick:
 
     def visibility(self, agent: str) -> Any:
         return self[f"/{agent}/visibility"]
+
+    def links(self) -> LinkSet:
+        """``/comm/links`` as arrays (:class:`cosim.comm.message.LinkSet`), when ``comm.enabled``."""
+        return self["/comm/links"]
 
 
 class Episode:

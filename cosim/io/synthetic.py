@@ -370,8 +370,13 @@ def write_synthetic_episode(
     ``edit`` sees every message before it is written and may drop, replace or re-time it (tests use it
     to make defective files); ``metadata`` overrides keys of the ``episode`` record.
     """
+    from cosim.comm.links import LinkModel
+    from cosim.comm.los import LinkScene
+    from cosim.scenario.model import CommSpec
+
     world = synthetic_world()
     tracks = TrackRegistry()
+    links = LinkModel(CommSpec(), LinkScene.from_layout(world.layout), world.map_kind, 0, TICK_NS)
     with EpisodeWriter(Path(path), compression=compression) as w:
         first = synthetic_snapshot(0, tracks, world)
         agents = [a.agent_id for a in first.agents]
@@ -380,6 +385,7 @@ def write_synthetic_episode(
             snap = synthetic_snapshot(k, tracks, world)
             rig = [t for a in snap.agents for t in _rig(a.agent_id, a.kind)] if sensors else []
             messages = label_messages(snap, rig) + (sensor_messages(snap, width, height) if sensors else [])
+            messages.append(links.message(snap))
             for topic, msg in messages:
                 out = edit(k, topic, msg) if edit is not None else msg
                 if out is None:

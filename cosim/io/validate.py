@@ -15,7 +15,9 @@ file yields a problem report, never an exception. Checks:
   LiDAR point, instance pixel and visibility entry refers to a track alive at that tick;
 - transforms: ``/tf`` forms one tree rooted at ``map`` (one parent per frame, no cycle), every
   agent has ``<agent>/base_link`` and every message's frame id is in the tree;
-- calibration: every image has a calibration on the same tick, same frame, same size.
+- calibration: every image has a calibration on the same tick, same frame, same size;
+- comm: ``/comm/links`` decodes (columns of one length, known link types and LOS states, finite
+  numbers, PER and delivery in [0, 1]) and names only the metadata's agents.
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ from mcap.records import (
 from mcap.stream_reader import StreamReader, get_chunk_data_stream
 
 from cosim.classes import OBJECT_CLASSES
+from cosim.comm.message import decode_links
 from cosim.errors import CosimError, FormatError, InputError
 from cosim.io.decode import PROTO_DECODERS, TransformTree, decode_transforms, parse_json, parse_proto
 from cosim.io.format import (
@@ -74,7 +77,7 @@ MAX_PER_KIND = 8
 class Problem:
     """One way the file departs from the format."""
 
-    #: structure | metadata | attachments | topics | completeness | time | labels | transforms | calibration
+    #: structure | metadata | attachments | topics | completeness | time | labels | transforms | calibration | comm
     check: str
     message: str
     tick: int | None = None
@@ -619,6 +622,8 @@ class _Validator:
         elif pattern == "/events" and isinstance(value, dict):
             refs = {int(t) for e in value.get("events", []) if isinstance(e, dict)
                     for key in ("vehicle_track_ids", "obstacle_track_ids") for t in e.get(key, [])}
+        elif pattern == "/comm/links":
+            self.check_links(tick, topic, value)
         dangling = sorted(refs - live)
         if dangling:
             self.problem(
@@ -628,6 +633,20 @@ class _Validator:
                 tick,
                 topic,
             )
+
+    def check_links(self, tick: int | None, topic: str, value: Any) -> None:
+        """``/comm/links``: decodable columns of one length, known values, every end a metadata agent."""
+        try:
+            links = decode_links(value)
+        except FormatError as exc:
+            self.problem("comm", str(exc), tick, topic)
+            return
+        unknown = sorted((set(links.tx) | set(links.rx)) - set(self.agents))
+        if unknown:
+            self.problem("comm", f"links name agents {unknown} not in the metadata's agents", tick, topic)
+        self_links = [a for a, b in zip(links.tx, links.rx, strict=True) if a == b]
+        if self_links:
+            self.problem("comm", f"links from an agent to itself: {sorted(set(self_links))}", tick, topic)
 
     def point_tracks(self, tick: int | None, topic: str, msg: Any) -> set[int]:
         try:

@@ -392,6 +392,38 @@ class RuntimeSpec(Model):
     tick_timeout_s: float = Field(10.0, gt=0)  # one lockstep query
 
 
+# ---------------------------------------------------------------------------------------- comm
+
+#: Modulation and coding schemes of the link model (their Qm and R: cosim/comm/phy.py).
+McsName = Literal["qpsk_1_3", "qpsk_1_2", "qpsk_3_4", "16qam_1_2", "16qam_3_4", "64qam_2_3", "64qam_3_4"]
+
+
+class CommSpec(Model):
+    """V2X links per tick (``/comm/links``, docs/comm.md). Defaults: 5.9 GHz C-V2X sidelink (PC5),
+    20 MHz, 23 dBm, 3 dBi antennas, 9 dB noise figure (the TR 37.885 evaluation assumptions).
+    ``enabled: false`` writes no ``/comm/links`` topic (the episode is as without a link model)."""
+
+    enabled: bool = True
+    carrier_ghz: float = Field(5.9, gt=0.4, le=100.0)  # [GHz] carrier frequency
+    bandwidth_mhz: float = Field(20.0, gt=0.0, le=400.0)  # [MHz] channel bandwidth (noise and rate)
+    tx_power_dbm: float = Field(23.0, ge=-30.0, le=50.0)  # [dBm] transmit power of every agent
+    antenna_gain_dbi: float = Field(3.0, ge=-20.0, le=30.0)  # [dBi] gain of each end's antenna
+    noise_figure_db: float = Field(9.0, ge=0.0, le=30.0)  # [dB] receiver noise figure
+    environment: Literal["auto", "urban", "highway"] = "auto"  # TR 37.885 setting; auto: from map.kind
+    air_ground_model: Literal["auto", "umi_av", "uma_av", "rma_av"] = "auto"  # TR 36.777 Annex B; auto: by setting
+    vehicle_antenna_z_m: float = Field(1.6, ge=0.0, le=10.0)  # [m] antenna above a vehicle's base_link (ground)
+    rsu_antenna_z_m: float = Field(0.5, ge=0.0, le=10.0)  # [m] antenna above an RSU's base_link (mast top)
+    drone_antenna_z_m: float = Field(0.0, ge=-2.0, le=2.0)  # [m] antenna above a drone's base_link (centre)
+    shadow_fading: bool = True  # False: no shadow fading (path loss only; for tests and comparisons)
+    mcs: McsName = "qpsk_1_2"  # modulation and coding of every message
+    overhead_share: float = Field(0.42, ge=0.0, lt=1.0)  # [1] resources not carrying data (DMRS, guard, band edges)
+    shannon_efficiency: float = Field(0.6, gt=0.0, le=1.0)  # [1] alpha of the attenuated Shannon bound
+    per_waterfall_db: float = Field(2.0, gt=0.0, le=20.0)  # [dB] SNR span in which PER falls from 90 % to 10 %
+    message_bytes: int = Field(1600, ge=1, le=100_000_000)  # [B] size of the message each agent sends per tick
+    processing_delay_ms: float = Field(2.0, ge=0.0, le=10_000.0)  # [ms] encoding + decoding at the two ends
+    access_delay_ms: float = Field(10.0, ge=0.0, le=10_000.0)  # [ms] waiting for the sidelink resource
+
+
 # ------------------------------------------------------------------------------------ scenario
 
 
@@ -410,6 +442,7 @@ class Scenario(Model):
     output: OutputSpec = OutputSpec()
     runtime: RuntimeSpec = RuntimeSpec()
     events: list[EventSpec] = Field(default_factory=list)
+    comm: CommSpec = CommSpec()
 
     @model_validator(mode="after")
     def _rates(self) -> Scenario:
