@@ -160,7 +160,7 @@ def test_episode_carries_events_and_validates(tmp_path: Path):
     from tests.conftest import run_cli
 
     r = run_cli("run", "scenarios/event_lane_closure.yaml", "--duration", "2", "--out", str(tmp_path), "--no-sensors",
-                "--set", "agents.rsus.count=0", "--set", "map.size_m=300")
+                "--set", "agents.rsus.count=0", "--set", "map.size_m=300", "--set", "parked.density_veh_per_km=40")
     assert r.returncode == 0, r.stderr
     path = tmp_path / "event_lane_closure_s0.mcap"
     v = run_cli("validate", str(path))
@@ -182,3 +182,20 @@ def test_episode_carries_events_and_validates(tmp_path: Path):
         classes = {o["track_id"]: o["class"] for o in labels[t]["objects"]}
         assert len(e["obstacle_track_ids"]) >= 3
         assert {classes[i] for i in e["obstacle_track_ids"]} == {"static_obstacle"}
+    # parked vehicles: the same boxes every tick, flagged, never overlapped by a moving box
+    parked = [{o["track_id"]: o for o in msg["objects"] if o.get("parked")} for msg in labels.values()]
+    assert len(parked[0]) >= 5 and all(p == parked[0] for p in parked)
+    assert {o["class"] for o in parked[0].values()} <= {"car", "van", "truck", "bus", "motorcycle", "bicycle"}
+    for msg in labels.values():
+        moving = [o for o in msg["objects"] if not o.get("parked") and o["class"] != "drone"]
+        for p in parked[0].values():
+            for o in moving:
+                assert convex_overlap_area(_corners(p), _corners(o)) == 0.0, (p["track_id"], o["track_id"])
+
+
+def _corners(o) -> np.ndarray:
+    from cosim.world.geom import rect
+
+    qx, qy, qz, qw = o["rotation"]
+    yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
+    return rect(o["center_m"][0], o["center_m"][1], o["size_m"][0], o["size_m"][1], float(yaw))

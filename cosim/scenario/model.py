@@ -313,6 +313,12 @@ class SensorsSpec(Model):
 
 
 
+class ParkedSpec(Model):
+    """Parked vehicles beside the kerbs (docs/conventions.md): classes drawn by ``traffic.mix``."""
+
+    density_veh_per_km: float = Field(0.0, ge=0.0, le=150.0)  # per km of road edge, as many as fit
+
+
 # -------------------------------------------------------------------------------------- events
 
 
@@ -442,6 +448,7 @@ class Scenario(Model):
     output: OutputSpec = OutputSpec()
     runtime: RuntimeSpec = RuntimeSpec()
     events: list[EventSpec] = Field(default_factory=list)
+    parked: ParkedSpec = ParkedSpec()
     comm: CommSpec = CommSpec()
 
     @model_validator(mode="after")
