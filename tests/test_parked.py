@@ -21,8 +21,8 @@ def _box(p) -> np.ndarray:
 
 def _samples(p, step_m: float = 0.1) -> np.ndarray:
     """Points covering a parked box (grid and border) in map x, y."""
-    l, w = p.size_m[0], p.size_m[1]
-    u, v = np.meshgrid(np.linspace(-l / 2, l / 2, max(2, math.ceil(l / step_m) + 1)),
+    length, w = p.size_m[0], p.size_m[1]
+    u, v = np.meshgrid(np.linspace(-length / 2, length / 2, max(2, math.ceil(length / step_m) + 1)),
                        np.linspace(-w / 2, w / 2, max(2, math.ceil(w / step_m) + 1)))
     c, s = math.cos(p.yaw_rad), math.sin(p.yaw_rad)
     return np.stack([p.center_m[0] + c * u.ravel() - s * v.ravel(), p.center_m[1] + s * u.ravel() + c * v.ravel()], 1)

@@ -70,8 +70,8 @@ def place_parked(
                           and grown[:, 1].max() < ymax)
                 if inside and occupied.free(grown):
                     occupied.add(grown)
-                    out.append(ParkedVehicle(f"parked_{len(out):04d}", cls, v.type_id,
-                                             (round(float(cx), 3), round(float(cy), 3), round(GROUND_Z + v.height_m / 2, 3)),
+                    centre = (round(float(cx), 3), round(float(cy), 3), round(GROUND_Z + v.height_m / 2, 3))
+                    out.append(ParkedVehicle(f"parked_{len(out):04d}", cls, v.type_id, centre,
                                              (v.length_m, v.width_m, v.height_m), round(float(yaw), 6)))
             s += v.length_m + SLOT_GAP_M
     return out
