@@ -314,7 +314,7 @@ class SensorsSpec(Model):
 
 
 class ParkedSpec(Model):
-    """Parked vehicles beside the kerbs (docs/conventions.md): classes drawn by ``traffic.mix``."""
+    """Parked vehicles beside the kerbs (cosim/world/parking.py): classes drawn by ``traffic.mix``."""
 
     density_veh_per_km: float = Field(0.0, ge=0.0, le=150.0)  # per km of road edge, as many as fit
 
