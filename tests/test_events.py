@@ -199,3 +199,13 @@ def _corners(o) -> np.ndarray:
     qx, qy, qz, qw = o["rotation"]
     yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
     return rect(o["center_m"][0], o["center_m"][1], o["size_m"][0], o["size_m"][1], float(yaw))
+
+
+def test_incidents_sweep_has_an_events_axis():
+    from cosim.batch.plan import plan_file
+
+    plan = plan_file(Path(__file__).resolve().parents[1] / "sweeps" / "incidents.yaml")
+    kinds = {tuple(e["kind"] for e in ep.scenario["events"]) for ep in plan.episodes}
+    assert kinds == {(), ("breakdown",), ("accident",), ("construction_zone",), ("road_block",)}
+    assert plan.combinations == 15 and len(plan.episodes) == 30
+    assert all(ep.scenario["parked"]["density_veh_per_km"] == 20 for ep in plan.episodes)
