@@ -209,3 +209,39 @@ def test_incidents_sweep_has_an_events_axis():
     assert kinds == {(), ("breakdown",), ("accident",), ("construction_zone",), ("road_block",)}
     assert plan.combinations == 15 and len(plan.episodes) == 30
     assert all(ep.scenario["parked"]["density_veh_per_km"] == 20 for ep in plan.episodes)
+
+
+@pytest.mark.integration
+def test_lidar_points_of_obstacles_and_parked_vehicles_lie_in_their_boxes(tmp_path: Path):
+    """Sensors agree with the labels for the new boxes: every LiDAR return carrying the track id of a
+    static obstacle or a parked vehicle lies inside that box grown by 0.1 m."""
+    import json
+
+    from cosim.geometry import rotation_matrix
+    from cosim.io import open_episode
+    from tests.conftest import run_cli
+
+    r = run_cli("run", "scenarios/event_lane_closure.yaml", "--duration", "0.4", "--out", str(tmp_path),
+                "--set", "sensors.image_scale=0.1", "--set", "agents.rsus.count=0", "--set", "map.size_m=300",
+                "--set", "parked.density_veh_per_km=40")
+    assert r.returncode == 0, r.stderr
+    hit = {"static_obstacle": 0, "parked": 0}
+    with open_episode(tmp_path / "event_lane_closure_s0.mcap") as ep:
+        for tick in ep.ticks():
+            objects = {o["track_id"]: o for o in json.loads(tick.raw("/labels/objects").data)["objects"]}
+            for topic in tick.topics:
+                if not topic.endswith("/lidar"):
+                    continue
+                cloud = tick[topic]
+                to_map = tick.transforms.to_root(cloud.frame_id)
+                xyz = cloud.xyz @ to_map[:3, :3].T + to_map[:3, 3]
+                for tid in np.unique(cloud.points["instance_id"]):
+                    o = objects.get(int(tid))
+                    if o is None or not (o["class"] == "static_obstacle" or o.get("parked")):
+                        continue
+                    rot = rotation_matrix(tuple(o["rotation"]))
+                    local = (xyz[cloud.points["instance_id"] == tid] - np.array(o["center_m"])) @ rot
+                    excess = np.abs(local) - np.array(o["size_m"]) / 2
+                    assert excess.max() <= 0.1, (topic, o["class"], int(tid), float(excess.max()))
+                    hit["parked" if o.get("parked") else "static_obstacle"] += 1
+    assert hit["static_obstacle"] > 0 and hit["parked"] > 0, hit
