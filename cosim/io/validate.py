@@ -102,6 +102,7 @@ class ChunkFacts:
     compressed_size: int
     uncompressed_size: int
     compression: str
+    record_length: int  # [bytes] the chunk record, opcode and length prefix included
 
 
 @dataclass
@@ -169,6 +170,7 @@ class _Validator:
         self.data_ids: set[tuple[str, int]] = set()
         self.summary_ids: set[tuple[str, int]] = set()
         self.chunks: dict[int, ChunkFacts] = {}  # file offset -> what the chunk index must say about it
+        self.chunk_message_index_bytes: dict[int, int] = {}  # chunk offset -> bytes of its message indexes
         self.chunk_messages: dict[int, list[tuple[int, int]]] = {}  # last chunk: channel -> (log time, offset)
         self.chunk_indexes: list[ChunkIndex] = []
         self.chunk_channels: dict[int, set[int]] = {}  # chunk offset -> channels with messages in it
@@ -190,6 +192,7 @@ class _Validator:
         path = self.report.path
         size = path.stat().st_size
         offset_hint = MAGIC_BYTES
+        last_chunk: int | None = None  # the chunk whose message indexes follow, while they do
         try:
             with open(path, "rb") as f, open(path, "rb") as raw:
                 reader = StreamReader(f, emit_chunks=True, validate_crcs=True, record_size_limit=max(size, 1))
@@ -202,7 +205,10 @@ class _Validator:
                             len(record.data),
                             record.uncompressed_size,
                             record.compression,
+                            offset_hint - start,
                         )
+                        last_chunk = start
+                        self.chunk_message_index_bytes[start] = 0
                         self.chunk_messages = {}
                         for offset, inner in _chunk_records(record):
                             if isinstance(inner, Message):
@@ -211,11 +217,15 @@ class _Validator:
                         self.chunk_channels[start] = set(self.chunk_messages)
                     elif isinstance(record, MessageIndex):
                         self.message_indexes[start] = record.channel_id
+                        if last_chunk is not None:
+                            self.chunk_message_index_bytes[last_chunk] += offset_hint - start
                         self.check_message_index(record, start)
                     elif isinstance(record, Attachment):
+                        last_chunk = None
                         self.check_attachment_crc(raw, start, offset_hint, record.name)
                         self.on_record(record)
                     else:
+                        last_chunk = None
                         self.on_record(record)
         except Exception as exc:  # a corrupt file may break the MCAP parser in any way; report, never crash
             if isinstance(exc, EndOfFile | struct.error | RecordLengthLimitExceeded):
@@ -703,6 +713,8 @@ class _Validator:
                 "compressed_size": (ci.compressed_size, chunk.compressed_size),
                 "uncompressed_size": (ci.uncompressed_size, chunk.uncompressed_size),
                 "compression": (ci.compression, chunk.compression),
+                "chunk_length": (ci.chunk_length, chunk.record_length),
+                "message_index_length": (ci.message_index_length, self.chunk_message_index_bytes.get(offset, 0)),
             }
             bad = [f"{k} {a} != {b}" for k, (a, b) in fields.items() if a != b]
             pointed = {cid: self.message_indexes.get(off) for cid, off in ci.message_index_offsets.items()}

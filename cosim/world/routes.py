@@ -131,6 +131,8 @@ def gateways(net: sumolib.net.Net) -> set[str]:
 
 def sources_and_sinks(net: sumolib.net.Net, vclass: str) -> tuple[list[str], list[str]]:
     """Edges ``vclass`` may use that leave a gateway (sources) and that end at one (sinks), sorted.
+    Sources are at least :data:`MIN_LANE_M` long, so that the longest vehicle enters on its edge
+    (a bus inserted on a short U-turn connector would reach back over the junction behind it).
 
     A network without gateways (none can happen on a non-empty network: its outermost junctions
     are gateways) gets every allowed edge as both: vehicles then enter and leave at the roadside,
@@ -139,10 +141,10 @@ def sources_and_sinks(net: sumolib.net.Net, vclass: str) -> tuple[list[str], lis
     gates = gateways(net)
     edges = sorted((e for e in net.getEdges() if e.getFunction() != "internal" and e.allows(vclass)),
                    key=lambda e: e.getID())
-    sources = [e.getID() for e in edges if e.getFromNode().getID() in gates]
+    sources = [e.getID() for e in edges if e.getFromNode().getID() in gates and e.getLength() >= MIN_LANE_M]
     sinks = [e.getID() for e in edges if e.getToNode().getID() in gates]
     if not sources or not sinks:
-        every = [e.getID() for e in edges]
+        every = [e.getID() for e in edges if e.getLength() >= MIN_LANE_M]
         return every, every
     return sources, sinks
 

@@ -1,0 +1,175 @@
+"""A map-style dataset over episodes for training without MCAP knowledge (no torch needed).
+
+    from cosim.io.dataset import CooperativeDataset
+
+    ds = CooperativeDataset(["out/a.mcap", "out/b.mcap"])        # one sample per (episode, tick, ego)
+    sample = ds[0]
+    sample["boxes"]      # (M, 7) float32 [x, y, z, l, w, h, yaw] in the ego LiDAR frame (FLU, metres, rad)
+    sample["lidar"][i]   # (N_i, 4) float32 x, y, z, intensity of agent i, in agent i's LiDAR frame
+    sample["lidar_to_ego"][i]                                    # (4, 4) ego LiDAR <- agent i's LiDAR
+
+It is a plain sequence (``__len__``, ``__getitem__``) returning numpy arrays, so
+``torch.utils.data.DataLoader(ds, batch_size=..., collate_fn=...)`` takes it as it is (samples hold
+lists of different lengths: give a ``collate_fn``, see examples/train_loop.py). Episodes are opened
+lazily in each process that reads them, so DataLoader workers each open their own files.
+
+Defaults are the AirV2X-Perception paper's (section 4.2): detection range x in [-140.8, 140.8] m,
+y in [-40, 40] m, z in [-3, 1] m around the ego LiDAR; agents within 120 m (vehicles, RSUs) or 180 m
+(drones) of the ego take part. Frames and units are cosim's (docs/episode_format.md): right-handed,
+x forward, y left, z up.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cosim.errors import InputError
+from cosim.io.decode import quat_to_matrix
+from cosim.io.reader import Episode, open_episode
+
+PAPER_LIDAR_RANGE_M = (-140.8, -40.0, -3.0, 140.8, 40.0, 1.0)
+PAPER_COMM_RANGE_M = {"vehicle": 120.0, "rsu": 120.0, "drone": 180.0}
+
+
+@dataclass(frozen=True)
+class SampleKey:
+    """Which sample an index is: episode file, tick, ego agent."""
+
+    episode: Path
+    tick: int
+    ego: str
+
+
+class CooperativeDataset:
+    """Samples over (episode, tick, ego agent); see the module docstring for what a sample holds.
+
+    ``ego_kinds``: agent kinds that serve as ego (default vehicles). ``classes``: object classes kept as
+    boxes (default every object class of the episode). ``cameras``: also load every agent's images,
+    intrinsics and camera poses. ``every``: keep ticks 0, every, 2 every...
+    """
+
+    def __init__(self, episodes: Sequence[str | Path], *, ego_kinds: Sequence[str] = ("vehicle",),
+                 classes: Sequence[str] | None = None, cameras: bool = False, every: int = 1,
+                 lidar_range_m: Sequence[float] = PAPER_LIDAR_RANGE_M,
+                 comm_range_m: dict[str, float] | None = None, include_ego_box: bool = False):
+        if every < 1:
+            raise InputError(f"every must be >= 1, got {every}")
+        if len(lidar_range_m) != 6:
+            raise InputError(f"lidar_range_m needs 6 numbers (xmin, ymin, zmin, xmax, ymax, zmax), got {lidar_range_m}")
+        self.paths = [Path(p) for p in episodes]
+        self.ego_kinds = tuple(ego_kinds)
+        self.classes = tuple(classes) if classes is not None else None
+        self.cameras = cameras
+        self.lidar_range_m = tuple(float(v) for v in lidar_range_m)
+        self.comm_range_m = dict(comm_range_m or PAPER_COMM_RANGE_M)
+        self.include_ego_box = include_ego_box
+        self.keys: list[SampleKey] = []
+        self._agents: dict[Path, list[str]] = {}
+        self._open: dict[Path, Episode] = {}
+        self._pid = os.getpid()
+        for path in self.paths:
+            with open_episode(path) as ep:
+                agents = list(ep.agents)
+                self._agents[path] = agents
+                egos = [a for a in agents if a.rsplit("_", 1)[0] in self.ego_kinds]
+                self.keys.extend(SampleKey(path, k, e) for k in range(0, ep.n_ticks, every) for e in egos)
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state["_open"] = {}
+        return state
+
+    def _episode(self, path: Path) -> Episode:
+        if self._pid != os.getpid():  # a DataLoader worker: never share file handles across processes
+            self._open, self._pid = {}, os.getpid()
+        if path not in self._open:
+            self._open[path] = open_episode(path)
+        return self._open[path]
+
+    def close(self) -> None:
+        for ep in self._open.values():
+            ep.close()
+        self._open = {}
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"sample {index} out of range: {len(self)} samples")
+        key = self.keys[index]
+        ep = self._episode(key.episode)
+        agents = self._agents[key.episode]
+        topics = ["/tf", "/labels/objects"] + [t for a in agents for t in (f"/{a}/lidar",) if t in ep.topics]
+        if self.cameras:
+            topics += [f"/{a}/{c}/{what}" for a in agents for c in ep.cameras(a) for what in ("image", "calibration")]
+        tick = ep.tick(key.tick, topics=topics)
+        tf = tick.transforms
+        lidar_frame = {a: f"{a}/lidar" if f"/{a}/lidar" in tick else f"{a}/base_link" for a in agents}
+        map_from = {a: tf.to_root(lidar_frame[a]) for a in agents}
+        ego_from_map = np.linalg.inv(map_from[key.ego])
+        ego_xyz = map_from[key.ego][:3, 3]
+        chosen = [key.ego] + [
+            a for a in agents if a != key.ego
+            and np.linalg.norm(map_from[a][:3, 3] - ego_xyz) <= self.comm_range_m.get(a.rsplit("_", 1)[0], np.inf)
+        ]
+        sample: dict[str, Any] = {
+            "episode": str(key.episode), "tick": key.tick, "t_ns": tick.t_ns, "ego": key.ego, "agents": chosen,
+            "lidar_to_ego": np.stack([ego_from_map @ map_from[a] for a in chosen]),
+            "lidar": [], "lidar_class": [], "lidar_instance": [],
+        }
+        for a in chosen:
+            if f"/{a}/lidar" in tick:
+                p = tick.points(a).points
+                sample["lidar"].append(np.stack([p["x"], p["y"], p["z"], p["intensity"]], axis=1).astype(np.float32))
+                sample["lidar_class"].append(np.asarray(p["class_id"], np.uint8))
+                sample["lidar_instance"].append(np.asarray(p["instance_id"], np.int64))
+            else:
+                sample["lidar"].append(np.zeros((0, 4), np.float32))
+                sample["lidar_class"].append(np.zeros(0, np.uint8))
+                sample["lidar_instance"].append(np.zeros(0, np.int64))
+        sample.update(self._boxes(tick, ego_from_map, key.ego))
+        if self.cameras:
+            sample.update(self._images(ep, tick, chosen, ego_from_map))
+        return sample
+
+    def _boxes(self, tick: Any, ego_from_map: np.ndarray, ego: str) -> dict[str, np.ndarray]:
+        labels = tick.labels
+        ego_track = next((a.get("track_id") for a in labels.agents if a["agent_id"] == ego), None)
+        keep = []
+        boxes = []
+        for i, track in enumerate(labels.track_ids):
+            if self.classes is not None and labels.classes[i] not in self.classes:
+                continue
+            if not self.include_ego_box and ego_track is not None and int(track) == int(ego_track):
+                continue
+            c = ego_from_map[:3, :3] @ labels.centers_m[i] + ego_from_map[:3, 3]
+            lo, hi = np.array(self.lidar_range_m[:3]), np.array(self.lidar_range_m[3:])
+            if not ((c >= lo) & (c <= hi)).all():
+                continue
+            r = ego_from_map[:3, :3] @ quat_to_matrix(labels.rotations[i])
+            boxes.append([*c, *labels.sizes_m[i], np.arctan2(r[1, 0], r[0, 0])])
+            keep.append(i)
+        return {
+            "boxes": np.asarray(boxes, np.float32).reshape(-1, 7),
+            "track_ids": np.asarray([int(labels.track_ids[i]) for i in keep], np.int64),
+            "classes": [labels.classes[i] for i in keep],
+        }
+
+    def _images(self, ep: Episode, tick: Any, agents: list[str], ego_from_map: np.ndarray) -> dict[str, Any]:
+        out: dict[str, Any] = {"camera_names": [], "images": [], "intrinsics": [], "camera_to_ego": []}
+        for a in agents:
+            names = [c for c in ep.cameras(a) if f"/{a}/{c}/image" in tick]
+            out["camera_names"].append(names)
+            out["images"].append([tick.image(a, c).array for c in names])
+            out["intrinsics"].append(np.stack([tick.calibration(a, c).K for c in names]) if names
+                                     else np.zeros((0, 3, 3)))
+            poses = [ego_from_map @ tick.transforms.to_root(f"{a}/{c}/optical") for c in names]
+            out["camera_to_ego"].append(np.stack(poses) if poses else np.zeros((0, 4, 4)))
+        return out

@@ -1,0 +1,56 @@
+"""``cosim export``: registered into the ``cosim`` command by :func:`register` (cosim/cli.py calls it)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from cosim.errors import InputError
+
+EXIT_OK = 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from cosim.exporters.export import ExportOptions, get_format, run_export
+    from tqdm import tqdm
+
+    get_format(args.format)  # an unknown format fails before any work
+    if args.every < 1:
+        raise InputError(f"--every must be >= 1, got {args.every}")
+    bar: list[tqdm] = []
+
+    def progress(done: int, total: int) -> None:
+        if not bar:
+            bar.append(tqdm(total=total, desc=f"export {args.format}", unit="agent-frame", file=sys.stderr,
+                            disable=args.quiet or not sys.stderr.isatty(), dynamic_ncols=True, mininterval=0.2))
+        bar[0].update(done - bar[0].n)
+
+    try:
+        result = run_export(Path(args.source), args.format, Path(args.out),
+                            ExportOptions(every=args.every, masks=args.masks),
+                            split=args.split, workers=args.workers, progress=progress)
+    finally:
+        if bar:
+            bar[0].close()
+    for p in result.written:
+        print(f"exported {p}")
+    for p in result.skipped:
+        print(f"skipped  {p} (already complete)")
+    print(f"{len(result.written)} sequence(s) written, {len(result.skipped)} skipped, "
+          f"{result.agent_frames} agent-frames")
+    return EXIT_OK
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``export`` to the ``cosim`` command."""
+    p = sub.add_parser("export", help="episodes into the AirV2X-Perception or OPV2V/V2XSet layout (docs/exports.md)")
+    p.add_argument("source", help="episode file (.mcap) or batch folder (its manifest gives the splits)")
+    p.add_argument("--format", required=True, metavar="FORMAT", help="airv2x or opv2v")
+    p.add_argument("--out", required=True, help="export root (no date-like YYYY_MM_DD_HH_MM_SS in its path)")
+    p.add_argument("--split", help="split folder for every episode (default: the manifest's split, or train)")
+    p.add_argument("--every", type=int, default=1, metavar="K", help="keep every K-th tick (default 1)")
+    p.add_argument("--workers", type=int, default=1, metavar="N", help="processes writing ticks (default 1)")
+    p.add_argument("--masks", action="store_true", help="also semantic and instance images (AirV2X)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_export)

@@ -1,0 +1,135 @@
+"""Unit tests of the CARLA conventions (exporters/carla_frames.py) and the export file writers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import open3d as o3d
+import pytest
+from cosim.exporters import carla_frames as cf
+from cosim.exporters.export import FORMATS, ExportFormat, get_format, register_format, sequence_name
+from cosim.exporters.export_io import pcd_ascii
+
+from cosim.errors import InputError
+from cosim.geometry import quat_from_rpy, rotation_matrix
+
+F = np.diag([1.0, -1.0, 1.0])
+
+
+def loader_x_to_world(pose):
+    """``x_to_world`` as OpenCOOD writes it out element by element (transformation_utils.py)."""
+    x, y, z, roll, yaw, pitch = pose
+    cy, sy = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
+    cr, sr = np.cos(np.radians(roll)), np.sin(np.radians(roll))
+    cp, sp = np.cos(np.radians(pitch)), np.sin(np.radians(pitch))
+    m = np.identity(4)
+    m[:3, 3] = (x, y, z)
+    m[0, 0], m[0, 1], m[0, 2] = cp * cy, cy * sp * sr - sy * cr, -cy * sp * cr - sy * sr
+    m[1, 0], m[1, 1], m[1, 2] = sy * cp, sy * sp * sr + cy * cr, -sy * sp * cr + cy * sr
+    m[2, 0], m[2, 1], m[2, 2] = sp, -cp * sr, cp * cr
+    return m
+
+
+def test_enu_to_carla_pose_is_f_r_f_over_random_angles():
+    rng = np.random.default_rng(7)
+    for _ in range(500):
+        roll, pitch, yaw = rng.uniform(-math.pi, math.pi), rng.uniform(-1.5, 1.5), rng.uniform(-math.pi, math.pi)
+        r = rotation_matrix(quat_from_rpy(roll, pitch, yaw))
+        p = rng.uniform(-500, 500, 3)
+        pose = cf.carla_pose(p, r)
+        # the documented rule: y -> -y, roll -> roll, pitch -> -pitch, yaw -> -yaw (degrees)
+        assert pose == pytest.approx([p[0], -p[1], p[2], math.degrees(roll), -math.degrees(yaw),
+                                      -math.degrees(pitch)], abs=1e-9)
+        m = loader_x_to_world(pose)
+        assert np.allclose(m[:3, :3], F @ r @ F, atol=1e-12)
+        assert np.allclose(m[:3, 3], F @ p)
+        assert np.allclose(cf.carla_matrix(pose), m, atol=1e-12)
+
+
+@pytest.mark.parametrize("pitch_deg", [90.0, -90.0])
+def test_a_nadir_pose_still_rebuilds_its_rotation(pitch_deg):
+    for yaw in (-170.0, -30.0, 0.0, 45.0, 120.0):
+        for roll in (0.0, 25.0):
+            r = rotation_matrix(quat_from_rpy(math.radians(roll), math.radians(pitch_deg), math.radians(yaw)))
+            pose = cf.carla_pose((1.0, 2.0, 3.0), r)
+            assert np.allclose(loader_x_to_world(pose)[:3, :3], F @ r @ F, atol=1e-7)
+
+
+def test_relative_poses_sum_back_to_the_world_pose_as_the_loader_adds_them():
+    rng = np.random.default_rng(1)
+    agent, sensor = rng.uniform(-180, 180, 6).tolist(), rng.uniform(-180, 180, 6).tolist()
+    rel = cf.relative_pose(sensor, agent)
+    assert [r + a for r, a in zip(rel, agent, strict=True)] == pytest.approx(sensor, abs=1e-9)
+
+
+def test_boxes_location_plus_center_is_the_centre_and_extent_is_half():
+    r = rotation_matrix(quat_from_rpy(0.1, -0.2, 2.0))
+    loc, centre = cf.box_location_center((10.0, 20.0, 1.0), r, (4.0, 2.0, 1.5))
+    assert np.add(loc, centre) == pytest.approx([10.0, -20.0, 1.0])
+    assert cf.half_extent((4.0, 2.0, 1.5)) == [2.0, 1.0, 0.75]
+    level_loc, level_centre = cf.box_location_center((0.0, 0.0, 0.75), np.eye(3), (4.0, 2.0, 1.5))
+    assert level_centre == pytest.approx([0.0, 0.0, 0.75]) and level_loc == pytest.approx([0.0, 0.0, 0.0])
+    assert cf.speed_kmh((3.0, 4.0, 0.0)) == pytest.approx(18.0) and cf.speed_mps((3.0, 4.0, 0.0)) == 5.0
+
+
+def test_points_flip_y_and_the_extrinsic_maps_lidar_points_into_the_unreal_camera_frame():
+    assert cf.carla_points(np.array([[1.0, 2.0, 3.0]])).tolist() == [[1.0, -2.0, 3.0]]
+    lidar = np.eye(4)
+    lidar[:3, 3] = (0.5, 0.2, 1.9)
+    cam = np.eye(4)
+    cam[:3, :3] = rotation_matrix(quat_from_rpy(0.0, 0.0, math.radians(90.0)))  # looking left (+y FLU)
+    cam[:3, 3] = (0.0, 0.0, 1.6)
+    e = cf.lidar_to_camera(lidar, cam)
+    # a point 10 m to the left of the camera (FLU), i.e. y = -10 + ... in CARLA's LiDAR frame
+    p_map = np.array([0.0, 10.0, 1.6, 1.0])
+    p_lidar_carla = cf.carla_points((np.linalg.inv(lidar) @ p_map)[None, :3])[0]
+    assert (e @ np.r_[p_lidar_carla, 1.0])[:3] == pytest.approx([10.0, 0.0, 0.0])  # straight ahead
+
+
+def test_depth_and_id_rgb24_round_trip():
+    d = np.array([[0.5, 12.345, np.nan], [999.0, 0.0, 65.536]])
+    back = cf.decode_depth_rgb24(cf.encode_depth_rgb24(d))
+    assert back[0, 2] == pytest.approx(1000.0)
+    assert np.allclose(np.delete(back.ravel(), 2), np.delete(np.nan_to_num(d, nan=1000.0).ravel(), 2), atol=1e-4)
+    ids = np.array([[0, 7, 1_000_123]])
+    rgb = cf.encode_id_rgb24(ids).astype(np.int64)
+    assert (rgb[..., 0] + 256 * rgb[..., 1] + 65536 * rgb[..., 2]).tolist() == ids.tolist()
+    with pytest.raises(ValueError):
+        cf.encode_id_rgb24(np.array([-1]))
+
+
+def test_the_ascii_pcd_reads_back_through_open3d_with_intensity_in_red(tmp_path):
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform(-150, 150, (2000, 3))
+    xyz[0] = (-9999.9994, 0.0004, 9999.9994)
+    intensity = rng.uniform(0, 1, 2000)
+    path = tmp_path / "a.pcd"
+    path.write_bytes(pcd_ascii(xyz, intensity))
+    pcd = o3d.io.read_point_cloud(str(path))
+    assert np.abs(np.asarray(pcd.points) - xyz).max() <= 0.0005 + 1e-9
+    colours = np.asarray(pcd.colors)
+    assert np.abs(colours[:, 0] - intensity).max() <= 0.5 / 255 + 1e-9
+    assert (colours[:, 1:] == 0).all()
+    with pytest.raises(ValueError, match="beyond"):
+        pcd_ascii(np.array([[10_001.0, 0.0, 0.0]]), np.zeros(1))
+
+
+def test_the_format_registry_lists_known_formats_and_refuses_duplicates():
+    assert get_format("airv2x").name == "airv2x" and get_format("opv2v").split_dir("val") == "validate"
+    with pytest.raises(InputError, match="known: airv2x, opv2v"):
+        get_format("kitti")
+
+    class Duplicate(ExportFormat):
+        name = "airv2x"
+
+    with pytest.raises(ValueError, match="registered twice"):
+        register_format(Duplicate)
+    assert FORMATS["airv2x"] is not Duplicate
+
+
+def test_sequence_names_look_like_date_times_and_follow_the_content():
+    a, b = sequence_name("0" * 64), sequence_name("f" * 64)
+    for n in (a, b):
+        assert len(n) == 19 and [len(x) for x in n.split("_")] == [4, 2, 2, 2, 2, 2]
+    assert a != b and sequence_name("0" * 64) == a
