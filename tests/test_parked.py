@@ -64,12 +64,20 @@ def test_parked_vehicles_overlap_nothing(world):
 
 
 @pytest.mark.integration
-def test_parked_placement_is_deterministic_and_off_by_default(world, tmp_path):
-    from cosim.world import build_world
+def test_parked_placement_is_deterministic_and_off_by_default(world):
+    """Placement again on the same layout with the same random stream gives the same vehicles; density 0
+    (the default) places none. Parking has its own stream, so it never changes the layout."""
+    from cosim.scenario.model import ParkedSpec, Scenario
+    from cosim.world.build import STAGE_PARKED, stage_rng
+    from cosim.world.network import read_network
+    from cosim.world.parking import place_parked
 
     loaded, w = world
-    again = build_world(loaded, tmp_path / "again")
-    assert again.parked == w.parked
-    off = load_scenario_data({**loaded.resolved, "parked": {"density_veh_per_km": 0}})
-    none = build_world(off, tmp_path / "off")
-    assert none.parked == () and none.layout == w.layout  # parking takes its own random stream
+    sc = loaded.scenario
+    net = read_network(w.net_xml)
+    again = place_parked(net, list(w.layout.prisms), w.bounds_m, sc.parked, sc.traffic.mix,
+                         stage_rng(sc.seed, STAGE_PARKED))
+    assert tuple(again) == w.parked
+    assert Scenario(name="x").parked == ParkedSpec() and ParkedSpec().density_veh_per_km == 0
+    assert place_parked(net, list(w.layout.prisms), w.bounds_m, ParkedSpec(), sc.traffic.mix,
+                        stage_rng(sc.seed, STAGE_PARKED)) == []
