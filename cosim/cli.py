@@ -6,6 +6,7 @@ Exit codes: 0 ok, 1 runtime failure, 2 bad input, 130 interrupted.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import sys
@@ -67,6 +68,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         overrides.append(f"seed={args.seed}")
     if args.no_sensors:
         overrides.append("sensors.enabled=false")
+    if args.clients is not None:
+        names = [n.strip() for n in args.clients.split(",") if n.strip()]
+        overrides.append("clients=" + json.dumps([{"name": n} for n in names]))
     loaded = load_scenario(args.scenario, overrides)
     if args.listen:
         check_endpoint(args.listen)
@@ -135,6 +139,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="do not start workers; wait for `cosim worker ... --connect` on --listen")
     run.add_argument("--prefix", help="Zenoh key prefix of the episode (default: fresh; 'cosim/external' "
                                       "with --external-workers)")
+    run.add_argument("--clients", metavar="NAME[,NAME...]",
+                     help="closed-loop clients to wait for after every tick (replaces the scenario's clients); "
+                          "they connect with cosim.client.connect on --listen / --prefix")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     run.set_defaults(func=cmd_run)
 

@@ -111,6 +111,12 @@ class Conductor:
     def __exit__(self, *exc: object) -> None:
         self.shutdown()
 
+    @property
+    def session(self) -> zenoh.Session:
+        """The router session (closed-loop clients are served on it: cosim.client.hub)."""
+        assert self._session is not None, "Conductor used outside its with-block"
+        return self._session
+
     def start(self) -> None:
         """Start (or wait for) the workers and have each build its engine from the world."""
         if not self.external:
@@ -177,14 +183,16 @@ class Conductor:
         return self.collect(self.send_step(tick, t_ns, escort_targets))
 
     def send_step(self, tick: int, t_ns: int, escort_targets: dict[str, protocol.EscortTarget],
-                  roles: tuple[str, ...] = ROLES) -> _Pending:
+                  roles: tuple[str, ...] = ROLES, actions: dict[str, list[dict[str, Any]]] | None = None) -> _Pending:
         """Send tick ``tick``'s step requests to ``roles`` without waiting (see :meth:`collect`).
 
         This lets the workers compute the next tick while the caller writes and renders this one.
+        ``actions`` maps a role to the closed-loop clients' actions it applies before stepping.
         """
+        actions = actions or {}
         requests = {
-            "traffic": protocol.StepRequest(tick, t_ns),
-            "drones": protocol.StepRequest(tick, t_ns, escort_targets),
+            "traffic": protocol.StepRequest(tick, t_ns, actions=actions.get("traffic", [])),
+            "drones": protocol.StepRequest(tick, t_ns, escort_targets, actions.get("drones", [])),
         }
         return self._send("step", tick, {r: requests[r] for r in roles}, self._tick_timeout_s)
 

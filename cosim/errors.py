@@ -68,3 +68,22 @@ class DroneCollisionError(CollisionError):
 
 class FormatError(CosimError):
     """An episode file does not follow docs/episode_format.md."""
+
+
+class ClientError(WorkerError):
+    """A closed-loop client (``cosim.client``) went away or broke the protocol during an episode."""
+
+    def __init__(self, client: str, message: str, *, tick: int | None = None):
+        self.worker = f"client {client}"
+        self.client = client
+        self.tick = tick
+        at = f" at tick {tick}" if tick is not None else ""
+        CosimError.__init__(self, f"client {client!r}{at}: {message}")
+
+
+class ClientTimeout(ClientError, SyncTimeout):
+    """A closed-loop client did not send its action for a tick in time."""
+
+
+class ActionRejected(CosimError):
+    """An action sent by a client was refused on arrival (unknown agent, impossible value); the episode goes on."""

@@ -79,6 +79,8 @@ class StepRequest:
     tick: int
     t_ns: int
     escort_targets: dict[str, EscortTarget] = field(default_factory=dict)
+    #: closed-loop clients' actions for this worker's agents, applied before the step (cosim.client.actions)
+    actions: list[dict[str, Any]] = field(default_factory=list)
 
 
 def encode(obj: Any) -> bytes:
@@ -125,4 +127,4 @@ def step_request_from_dict(d: dict[str, Any]) -> StepRequest:
         k: EscortTarget(tuple(v["center_m"]), v["yaw_rad"], tuple(v["velocity_mps"]))
         for k, v in d.get("escort_targets", {}).items()
     }
-    return StepRequest(d["tick"], d["t_ns"], targets)
+    return StepRequest(d["tick"], d["t_ns"], targets, d.get("actions", []))

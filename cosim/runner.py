@@ -57,6 +57,8 @@ class EpisodeResult:
     sync_costs_s: list[float] = field(default_factory=list)  # per tick, max over workers of round trip - compute
     compute_s: dict[str, list[float]] = field(default_factory=dict)  # per worker role: its own step time
     loop_wall_s: float = 0.0  # the tick loop alone (no world build, worker start-up or finishing)
+    client_waits_s: list[float] = field(default_factory=list)  # per tick: observations out to the last action in
+    client_cpu_s: list[float] = field(default_factory=list)  # per tick: the runner thread's CPU time for the clients
 
     @property
     def real_time_factor(self) -> float:
@@ -154,7 +156,10 @@ def run_episode(
         if suite is not None:
             cleanup.callback(suite.close)
         writer.add_metadata("episode", episode_metadata(loaded, world))
+        loop = _closed_loop(conductor, loaded, world, escorts)
         conductor.start()
+        if loop is not None:
+            loop.wait_connected()
         loop_started = time.perf_counter()
         pending = None
         for tick in range(s.n_ticks):
@@ -162,7 +167,7 @@ def run_episode(
             t0 = time.perf_counter()
             replies = _first_tick(conductor, escorts) if pending is None else conductor.collect(pending)
             vehicles = [vehicle_from_dict(v) for v in replies["traffic"]["vehicles"]]
-            if tick + 1 < s.n_ticks:  # the workers compute the next tick while this one is assembled and written
+            if loop is None and tick + 1 < s.n_ticks:  # workers compute tick k+1 while tick k is written
                 pending = conductor.send_step(tick + 1, t_ns + s.tick_ns, escort_targets_of(vehicles, escorts))
             drones = [drone_from_dict(d) for d in replies["drones"]["drones"]]
             snapshot = build_snapshot(tick, t_ns, vehicles, drones, world, tracks)
@@ -177,14 +182,28 @@ def run_episode(
                 payload = events_payload(tick, t_ns, replies["traffic"].get("events", []),
                                          lambda sid: tracks.get("sumo", sid))
                 labels.append(("/events", ("cosim.Events", EVENTS_SCHEMA, payload)))
+            if loop is not None:
+                labels.append(loop.record(tick, t_ns, replies))
             if links is not None:
                 labels.append(links.message(snapshot))
             if suite is None:
                 background.submit(t_ns, lambda labels=labels: labels)
+                messages = labels
+            elif loop is not None and loop.wants_sensor_topics():  # the clients get them before tick k+1
+                frames = suite.render(snapshot, np.random.default_rng([s.seed, tick, SENSOR_STREAM]))
+                messages = [*labels, *suite.messages(frames)]
+                background.submit(t_ns, lambda messages=messages: messages)
             else:
                 # rendered here; encoded, serialised and written while the next tick renders
                 frames = suite.render(snapshot, np.random.default_rng([s.seed, tick, SENSOR_STREAM]))
                 background.submit(t_ns, lambda labels=labels, frames=frames: [*labels, *suite.messages(frames)])
+                messages = labels
+            if loop is not None:  # closed loop: tick k+1 is stepped with the clients' actions on tick k
+                loop.publish(tick, t_ns, vehicles, messages, last=tick + 1 == s.n_ticks)
+                if tick + 1 < s.n_ticks:
+                    actions = loop.collect(tick)
+                    pending = conductor.send_step(tick + 1, t_ns + s.tick_ns, escort_targets_of(vehicles, escorts),
+                                                  actions=actions)
             if progress is not None:
                 progress(tick + 1, s.n_ticks)
         background.flush()
@@ -204,7 +223,18 @@ def run_episode(
         sync_costs_s=sync_costs,
         compute_s=compute,
         loop_wall_s=loop_wall_s,
+        client_waits_s=loop.waits_s if loop is not None else [],
+        client_cpu_s=loop.cpu_s if loop is not None else [],
     )
+
+
+def _closed_loop(conductor: Conductor, loaded: LoadedScenario, world: World, escorts: dict[str, str]) -> Any:
+    """The closed-loop side of the episode (cosim.client.loop), or None without clients."""
+    if not loaded.scenario.clients:
+        return None
+    from cosim.client.loop import ClosedLoop
+
+    return ClosedLoop(conductor, loaded, world, escorts)
 
 
 def _first_tick(conductor: Conductor, escorts: dict[str, str]) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""``/events`` messages: the scenario timeline's incidents at one tick (docs/episode_format.md section 3.12).
+"""``/events`` messages: the scenario timeline's incidents at one tick (docs/episode_format.md section 3.13).
 
 The traffic worker reports each event with SUMO ids; here they become track ids of the same tick's
 ``/labels/objects`` (vehicles involved, static obstacles placed).

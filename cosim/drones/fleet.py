@@ -31,6 +31,7 @@ from cosim.drones.routes import (
 from cosim.drones.separation import Yield, closest_pair, plan_layers, yield_plan
 from cosim.drones.strategies import (
     Escort,
+    GoTo,
     Hover,
     Patrol,
     Strategy,
@@ -49,6 +50,7 @@ log = logging.getLogger(__name__)
 
 WIND_STREAM = 0xD12E  # SeedSequence tag of the drones' random streams
 MIN_PHYSICS_HZ = 20.0  # [Hz] the attitude and rate loops need at least this (unstable at 5 Hz)
+LAND_HOLD_M = 0.5  # [m] a landed drone holds this far above the surface under it (no touchdown model)
 
 
 @dataclass
@@ -263,6 +265,45 @@ class DroneFleet:
             self._check_separation(tick)
         self._t_ns = t_ns
         return [self._state_of(d) for d in self._drones]
+
+    def command(self, action: dict, tick: int) -> str | None:
+        """Apply one closed-loop client action (cosim.client.actions, already validated) from now on;
+        returns why it cannot be applied, else None. The drone keeps its airframe and speed limit."""
+        from cosim.client.actions import Escort as EscortAction
+        from cosim.client.actions import GoTo as GoToAction
+        from cosim.client.actions import Land, SetStrategy, parse_action
+
+        a = parse_action(action)
+        if a.agent not in self.agent_ids:
+            return f"no drone {a.agent}"
+        i = self.agent_ids.index(a.agent)
+        d, spec = self._drones[i], self.scenario.agents.drones[i]
+        pos = np.array(d.state.position_m, dtype=np.float64)
+        if isinstance(a, GoToAction):
+            goal = np.array(a.position_m, dtype=np.float64)
+            z = planned_altitude(self.obstacles, polyline_points(np.array([pos[:2], goal])), a.altitude_m,
+                                 d.clearance_m)
+            d.strategy = GoTo(pos, np.array([goal[0], goal[1], z]), min(a.speed_mps, spec.max_speed_mps),
+                              start_velocity_mps=np.array(d.state.velocity_mps, dtype=np.float64))
+        elif isinstance(a, Land):
+            surface = self.obstacles.top_near(float(pos[0]), float(pos[1]), d.radius_m)
+            goal = np.array([pos[0], pos[1], surface + d.radius_m + LAND_HOLD_M])
+            d.strategy = GoTo(pos, goal, a.speed_mps, name="land", arrived_label="landed")
+        elif isinstance(a, SetStrategy | EscortAction):
+            new = a.drone if isinstance(a, SetStrategy) else EscortDrone(
+                target=a.target, offset_m=a.offset_m, altitude_m=a.altitude_m, clearance_m=spec.clearance_m,
+                plan_altitude=spec.plan_altitude)
+            generated = isinstance(new, PatrolDrone) and new.waypoints is None
+            roads = road_graph(self.world.net_xml) if generated else None
+            lanes = lane_paths(self.world.net_xml) if generated else None
+            try:
+                d.strategy = build_strategy(new, i, self.world, self.obstacles, roads, set(), lanes)
+            except ValueError as exc:
+                return str(exc)
+        else:
+            return f"{a.type} is not a drone action"
+        log.info("%s at tick %d: %s", a.agent, tick, a.type)
+        return None
 
     def _check_separation(self, tick: int) -> None:
         """Track the smallest distance between two drones; raise when two touch."""

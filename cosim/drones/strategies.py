@@ -313,3 +313,64 @@ class Escort(Strategy):
         self.height_m = max(self.height_m, z_m - self.obstacles.ground_z_m)
         self.fallback_start_m[2] = max(self.fallback_start_m[2], z_m)
         self._z_m = max(self._z_m, z_m)
+
+
+@dataclass
+class GoTo(Strategy):
+    """Fly a straight line from ``start_m`` to ``goal_m`` (both (3,)) at up to ``cruise_mps``, then hold.
+
+    The reference moves along the line with a trapezoid speed profile (``accel_mps2``) that stops on the
+    goal, and waits for a drone that lags behind it, as a patrol does. Used for the ``goto`` and ``land``
+    actions of closed-loop clients (``name`` tells them apart in the labels).
+    """
+
+    start_m: np.ndarray
+    goal_m: np.ndarray
+    cruise_mps: float
+    accel_mps2: float = 1.5
+    name: str = "goto"
+    arrived_label: str = "arrived"
+    start_velocity_mps: np.ndarray | None = None  # (3,) the drone's velocity: a new goal does not stop it first
+
+    def __post_init__(self) -> None:
+        d = self.goal_m - self.start_m
+        self._length_m = float(np.linalg.norm(d))
+        self._dir = d / self._length_m if self._length_m > 1e-9 else ZERO3
+        horizontal = math.hypot(d[0], d[1])
+        self._yaw: float | None = math.atan2(d[1], d[0]) if horizontal > 1.0 else None
+        self._s = 0.0
+        v0 = 0.0 if self.start_velocity_mps is None else float(self.start_velocity_mps @ self._dir)
+        self._s_dot = min(max(v0, 0.0), self.cruise_mps)
+        self._last_t: float | None = None
+        self._label = "approach"
+
+    def start(self) -> tuple[np.ndarray, float]:
+        return self.start_m.copy(), self._yaw or 0.0
+
+    def reference(self, t_s: float, s: BodyState) -> Reference:
+        dt = 0.0 if self._last_t is None else t_s - self._last_t
+        self._last_t = t_s
+        if self._yaw is None:
+            self._yaw = math.atan2(s.rotation[1, 0], s.rotation[0, 0])  # pure climbs and descents keep the heading
+        to_go = self._length_m - self._s
+        v_allowed = min(self.cruise_mps, math.sqrt(2.0 * self.accel_mps2 * max(to_go, 0.0)))
+        ref_now = self.start_m + self._s * self._dir
+        lag = float(np.linalg.norm(ref_now - s.position_m))
+        v_allowed *= min(1.0, max(0.0, 1.0 - (lag - 4.0) / 6.0))
+        s_dot = min(v_allowed, self._s_dot + self.accel_mps2 * dt)
+        self._s = min(self._length_m, self._s + s_dot * dt)
+        a_t = (s_dot - self._s_dot) / dt if dt > 0 else 0.0
+        self._s_dot = s_dot if self._s < self._length_m else 0.0
+        done = self._s >= self._length_m
+        near = float(np.linalg.norm(s.position_m - self.goal_m)) <= HOLD_RADIUS_M
+        self._label = self.arrived_label if done and near else "approach"
+        pos = self.goal_m if done else self.start_m + self._s * self._dir
+        return Reference(pos, self._s_dot * self._dir, (0.0 if done else a_t) * self._dir, self._yaw)
+
+    def label(self) -> str:
+        return self._label
+
+    def fly_at(self, z_m: float) -> None:
+        """The goal is at least at ``z_m``; the line from the start is re-planned."""
+        self.goal_m = np.array([self.goal_m[0], self.goal_m[1], max(float(self.goal_m[2]), z_m)])
+        self.__post_init__()

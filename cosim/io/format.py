@@ -84,6 +84,7 @@ TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec("/<agent>/imu", ("cosim.Imu",), "<agent>/imu", "specific force, angular rate (body FLU)"),
     TopicSpec("/<agent>/bev", ("foxglove.Grid",), "map", "ego-centred semantic BEV, one uint8 field per layer"),
     TopicSpec("/<agent>/visibility", ("cosim.Visibility",), "-", "per object seen: LiDAR hits, pixels per camera"),
+    TopicSpec("/actions", ("cosim.ActionArray",), "-", "closed-loop clients' actions applied in the step to this tick"),
     TopicSpec("/comm/links", ("cosim.LinkArray",), "map", "every ordered link: LOS, path loss, SNR, PER, rate, delay"),
 )
 
@@ -124,6 +125,8 @@ def expected_topics(scenario: Any, agents: list[str]) -> set[str]:
     out = set(LABEL_TOPICS)
     if getattr(scenario, "events", None):
         out.add("/events")
+    if scenario.clients:
+        out.add("/actions")
     comm = getattr(scenario, "comm", None)
     if comm is not None and comm.enabled:
         out.add("/comm/links")

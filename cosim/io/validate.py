@@ -9,6 +9,7 @@ file yields a problem report, never an exception. Checks:
 - attachments: scenario, network, routes, world layout;
 - topics: each topic's schema is the one the format names for it;
 - completeness: every tick 0..n_ticks-1 has exactly one message on every topic;
+- actions: ``/actions`` entries answer the previous tick and name agents of the episode;
 - time: log times non-decreasing in file order, on the tick grid, inside the episode,
   ``publish_time == log_time`` and the message's own timestamp equal to its log time;
 - labels: unique track ids of known classes, one stable class per track, every box, agent,
@@ -439,6 +440,8 @@ class _Validator:
                 continue
             self.check_frame_ids(tick, topic, value, frames)
             self.check_sensor(tick, topic, value, live)
+            if topic == "/actions":
+                self.check_actions(tick, value)
             if topic.endswith("/image"):
                 images[topic] = (value.frame_id, _image_size(value))
             elif topic.endswith("/calibration"):
@@ -615,6 +618,22 @@ class _Validator:
             if not any(d.type == d.ALL for d in boxes.deletions):
                 self.problem("labels", "no delete-all before the boxes", tick, "/labels/boxes")
         return live
+
+    def check_actions(self, tick: int | None, value: Any) -> None:
+        """``/actions`` (3.11): answers to the previous tick, for agents of this episode."""
+        entries = value.get("actions") if isinstance(value, dict) else None
+        if not isinstance(entries, list) or not isinstance(value.get("failed"), list):
+            self.problem("structure", "no 'actions' and 'failed' lists", tick, "/actions")
+            return
+        for e in entries:
+            action = e.get("action") if isinstance(e, dict) else None
+            if not isinstance(action, dict) or not isinstance(e.get("client"), str):
+                self.problem("structure", f"malformed entry {e!r}", tick, "/actions")
+            elif tick is not None and e.get("observed_tick") != tick - 1:
+                self.problem("time", f"observed_tick {e.get('observed_tick')} is not tick - 1", tick, "/actions")
+            elif self.meta is not None and action.get("agent") not in self.agents:
+                self.problem("labels", f"action for {action.get('agent')!r}, not an agent of this episode", tick,
+                             "/actions")
 
     def check_sensor(self, tick: int | None, topic: str, value: Any, live: set[int] | None) -> None:
         """Track references of one sensor message (LiDAR instance ids, instance pixels, visibility)."""

@@ -34,6 +34,12 @@ class Model(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid", validate_default=True)
 
 
+def _unique(names: list[str], rule: str) -> None:
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise ValueError(f"{rule}; repeated: {', '.join(dupes)}")
+
+
 def _rate_divides_tick(name: str, rate_hz: float, tick_hz: float) -> None:
     ratio = Fraction(rate_hz).limit_denominator(10_000) / Fraction(tick_hz).limit_denominator(10_000)
     if ratio.denominator != 1 or ratio < 1:
@@ -268,10 +274,7 @@ class RigSpec(Model):
     @field_validator("cameras")
     @classmethod
     def _unique_names(cls, cams: list[CameraSpec]) -> list[CameraSpec]:
-        names = [c.name for c in cams]
-        dupes = sorted({n for n in names if names.count(n) > 1})
-        if dupes:
-            raise ValueError(f"camera names must be unique within a rig; repeated: {', '.join(dupes)}")
+        _unique([c.name for c in cams], "camera names must be unique within a rig")
         return cams
 
 
@@ -398,6 +401,16 @@ class RuntimeSpec(Model):
     tick_timeout_s: float = Field(10.0, gt=0)  # one lockstep query
 
 
+# ------------------------------------------------------------------------------------- clients
+
+
+class ClientSpec(Model):
+    """A closed-loop client (``cosim.client``): the conductor waits for its action after every tick."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]*$", max_length=64)
+    timeout_s: float | None = Field(None, gt=0)  # [s] for its action per tick; None = runtime.tick_timeout_s
+
+
 # ---------------------------------------------------------------------------------------- comm
 
 #: Modulation and coding schemes of the link model (their Qm and R: cosim/comm/phy.py).
@@ -450,6 +463,13 @@ class Scenario(Model):
     events: list[EventSpec] = Field(default_factory=list)
     parked: ParkedSpec = ParkedSpec()
     comm: CommSpec = CommSpec()
+    clients: list[ClientSpec] = Field(default_factory=list)
+
+    @field_validator("clients")
+    @classmethod
+    def _unique_clients(cls, clients: list[ClientSpec]) -> list[ClientSpec]:
+        _unique([c.name for c in clients], "client names must be unique")
+        return clients
 
     @model_validator(mode="after")
     def _rates(self) -> Scenario:

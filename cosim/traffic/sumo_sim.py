@@ -19,6 +19,7 @@ import math
 import xml.etree.ElementTree as ET
 from fractions import Fraction
 from pathlib import Path
+from typing import Any
 
 import libsumo
 import numpy as np
@@ -315,6 +316,33 @@ class TrafficSim:
             yaw_rate_radps=yaw_rate,
             agent_id=vid if vid.startswith("vehicle_") else None,
         )
+
+    # --------------------------------------------------------------------- client actions
+    def command(self, action: dict[str, Any]) -> str | None:
+        """Apply one closed-loop client action (cosim.client.actions, already validated) to a vehicle;
+        returns SUMO's reason when it refuses (no route to the edge, vehicle gone), else None."""
+        v, vid, kind = libsumo.vehicle, action["agent"], action["type"]
+        try:
+            if kind == "set_speed":
+                v.setSpeed(vid, -1.0 if action["speed_mps"] is None else action["speed_mps"])
+            elif kind == "slow_down":
+                v.slowDown(vid, action["speed_mps"], action["duration_s"])
+            elif kind == "change_lane":
+                lanes = libsumo.edge.getLaneNumber(v.getRoadID(vid)) if not v.getRoadID(vid).startswith(":") else 0
+                if action["lane_index"] >= lanes:
+                    return f"{vid} is on edge {v.getRoadID(vid)!r} with {lanes} lanes"
+                v.changeLane(vid, action["lane_index"], action["duration_s"])
+            elif kind == "change_target":
+                v.changeTarget(vid, action["edge"])
+            elif kind == "set_route":
+                v.setRoute(vid, action["edges"])
+            else:
+                return f"{kind} is not a vehicle action"
+        except libsumo.TraCIException as exc:
+            return f"SUMO: {exc}"
+        if kind in ("change_target", "set_route"):
+            self._route_len[vid] = len(v.getRoute(vid))
+        return None
 
     def close(self) -> None:
         if not self._closed:

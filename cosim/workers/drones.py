@@ -28,8 +28,9 @@ class DroneEngine:
     def step(self, request: protocol.StepRequest) -> dict[str, Any]:
         if self._fleet is None:
             raise CosimError("step before init")
+        failed = [{"action": a, "error": err} for a in request.actions if (err := self._fleet.command(a, request.tick))]
         drones = self._fleet.step_to(request.t_ns, request.tick, request.escort_targets)
-        return {"tick": request.tick, "t_ns": request.t_ns, "drones": drones}
+        return {"tick": request.tick, "t_ns": request.t_ns, "drones": drones, "failed": failed}
 
     def close(self) -> None:
         if self._fleet is not None:

@@ -33,8 +33,10 @@ class TrafficEngine:
     def step(self, request: protocol.StepRequest) -> dict[str, Any]:
         if self._sim is None:
             raise CosimError("step before init")
+        failed = [{"action": a, "error": err} for a in request.actions if (err := self._sim.command(a))]
         vehicles = self._sim.step_to(request.t_ns)
-        return {"tick": request.tick, "t_ns": request.t_ns, "vehicles": vehicles, "events": self._sim.events()}
+        return {"tick": request.tick, "t_ns": request.t_ns, "vehicles": vehicles, "failed": failed,
+                "events": self._sim.events()}
 
     def close(self) -> None:
         if self._sim is not None:
