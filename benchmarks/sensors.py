@@ -5,7 +5,9 @@
 
 Rig: 5 vehicles (LiDAR + 6 cameras), 5 RSUs (LiDAR + 4 cameras), 5 drones (LiDAR + 1 gimbal camera),
 every camera 1280x720, on the world that ``build_world`` makes for scenarios/default.yaml, with
-background traffic; ``--frames`` different snapshots (each measured against the references).
+background traffic moving at ``--speed`` (LiDAR motion distortion casts each firing at its own time;
+``--lidar-snapshot`` turns that off, ``--dual-returns`` on); ``--frames`` different snapshots (each
+measured against the references).
 
 The frame time is measured the way ``cosim run`` works: the sensors of frame k+1 render while the
 episode's writer thread encodes and writes frame k (``BackgroundWriter``); it is the wall time of
@@ -50,10 +52,13 @@ log = logging.getLogger("bench")
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def paper_rig_scenario(path: Path, compression: str | None = None, **env):
+def paper_rig_scenario(path: Path, compression: str | None = None, lidar: dict | None = None, **env):
     data = json.loads(json.dumps(load_scenario(path).resolved))
     if compression:
         data["output"]["compression"] = compression
+    for kind in ("vehicle", "rsu", "drone"):
+        if lidar and data["sensors"][kind].get("lidar"):
+            data["sensors"][kind]["lidar"].update(lidar)
     data["agents"]["vehicles"]["count"] = 5
     data["agents"]["rsus"]["count"] = 5
     data["agents"]["drones"] = [{"strategy": "hover", "altitude_m": 40 + 10 * i} for i in range(5)]
@@ -155,7 +160,9 @@ def run(args) -> None:
     from cosim.exporters.sensor_messages import frame_messages
 
     env = {k: v for k, v in (("weather", args.weather), ("lighting", args.lighting)) if v}
-    loaded = paper_rig_scenario(ROOT / "scenarios" / "default.yaml", compression=args.compression, **env)
+    lidar = {"motion_distortion": not args.lidar_snapshot, "dual_returns": args.dual_returns}
+    loaded = paper_rig_scenario(ROOT / "scenarios" / "default.yaml", compression=args.compression, lidar=lidar,
+                                **env)
     sc = loaded.scenario
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
@@ -171,7 +178,8 @@ def run(args) -> None:
               f"{sc.environment.weather} {sc.environment.lighting}; "
               f"image format {sc.output.image_format}, MCAP chunk compression {sc.output.compression}; "
               f"block_px {args.block_px}; {args.frames} snapshots, pipelined episodes of {args.episode_frames} frames")
-        snaps = [world_snapshot(world, 5, 5, args.background, seed=k, tick=k) for k in range(args.frames)]
+        snaps = [world_snapshot(world, 5, 5, args.background, seed=k, tick=k, speed_mps=args.speed)
+                 for k in range(args.frames)]
 
         def messages(frames):
             return frame_messages(frames, frames.t_ns, image_format=sc.output.image_format)
@@ -203,7 +211,7 @@ def run(args) -> None:
             return rows
 
         # the pipelined episode cycles through the snapshots (ticks 0, 1, ...: the same scenes again)
-        episode = [world_snapshot(world, 5, 5, args.background, seed=k % len(snaps), tick=k)
+        episode = [world_snapshot(world, 5, 5, args.background, seed=k % len(snaps), tick=k, speed_mps=args.speed)
                    for k in range(args.episode_frames)]
 
         def pipelined(name: str) -> float:
@@ -312,6 +320,10 @@ def main() -> None:
     ap.add_argument("--weather", choices=("clear", "cloudy", "foggy", "rainy"), help="default: the scenario's")
     ap.add_argument("--lighting", choices=("day", "dusk", "night"), help="default: the scenario's")
     ap.add_argument("--pictures", type=Path, help="write the weather x lighting pictures here and exit")
+    ap.add_argument("--speed", type=float, default=12.0, help="road users' speed [m/s] (drones half): what "
+                    "LiDAR motion distortion works on")
+    ap.add_argument("--lidar-snapshot", action="store_true", help="LiDARs without motion distortion")
+    ap.add_argument("--dual-returns", action="store_true", help="LiDARs with dual returns")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     if args.pictures:

@@ -77,6 +77,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.external_workers and not args.listen:
         raise InputError("--external-workers needs --listen tcp/HOST:PORT so the workers can connect")
     out_dir = Path(args.out) if args.out else Path(loaded.scenario.output.dir)
+    if args.dry_run:
+        import yaml
+
+        from cosim.runner import check_output_dir, episode_path
+
+        path = episode_path(loaded, out_dir)
+        check_output_dir(path.parent)
+        print(f"# {path}: {loaded.scenario.n_ticks} ticks, {len(loaded.scenario.agent_ids())} agents")
+        print(yaml.safe_dump(loaded.resolved, sort_keys=False), end="")
+        return EXIT_OK
     update, close = _progress_bar(loaded.scenario.name, enabled=not args.quiet)
     try:
         result = run_episode(loaded, out_dir, progress=update, listen=args.listen,
@@ -142,6 +152,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--clients", metavar="NAME[,NAME...]",
                      help="closed-loop clients to wait for after every tick (replaces the scenario's clients); "
                           "they connect with cosim.client.connect on --listen / --prefix")
+    run.add_argument("--dry-run", action="store_true", help="check the scenario and the output folder and print "
+                                                            "the resolved scenario (YAML); build and run nothing")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     run.set_defaults(func=cmd_run)
 
@@ -170,7 +182,24 @@ def _register_more(sub: argparse._SubParsersAction) -> None:
         module.register(sub)
 
 
+def _end_failed_run(args: argparse.Namespace, status: int, as_program: bool) -> int:
+    """A failed or interrupted ``cosim run`` started as a program ends the process here, at once.
+
+    By now the workers are reaped and the episode's temporary file is deleted; what is left are render,
+    encoder and writer threads finishing abandoned work and the teardown of the native libraries, which
+    take seconds on a loaded machine while the user (or a batch scheduler) waits for the exit status.
+    """
+    if as_program and args.command == "run":
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+    return status
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """The ``cosim`` program. ``argv`` None: called as the program (a failed ``run`` then ends the process
+    without the interpreter's slow teardown); a list: called in-process, always returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
     level = [logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
@@ -185,10 +214,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     except CosimError as exc:
         print(f"cosim: failed: {exc}", file=sys.stderr)
-        return EXIT_FAILURE
+        return _end_failed_run(args, EXIT_FAILURE, argv is None)
     except KeyboardInterrupt:
         print("cosim: interrupted; workers stopped, no episode written", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return _end_failed_run(args, EXIT_INTERRUPTED, argv is None)
     except BrokenPipeError:  # `cosim info EP | head`: the reader went away, which is not an error
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_OK

@@ -26,6 +26,7 @@ import cosim
 from cosim.assemble import TrackRegistry, build_snapshot, escort_targets_of
 from cosim.classes import class_table
 from cosim.conductor import Conductor
+from cosim.errors import InputError
 from cosim.protocol import drone_from_dict, vehicle_from_dict
 from cosim.scenario import LoadedScenario
 from cosim.scenario.model import EscortDrone
@@ -81,6 +82,24 @@ def episode_path(loaded: LoadedScenario, out_dir: Path) -> Path:
     return Path(out_dir) / f"{stem}.mcap"
 
 
+def check_output_dir(out_dir: Path) -> None:
+    """Make sure episodes can be written into ``out_dir`` (created if missing) before any work is done.
+
+    Raises :class:`~cosim.errors.InputError` naming the folder for a path that is a file, lies under a file,
+    cannot be created or is not writable (read-only file system, no permission, ``/proc``).
+    """
+    out = Path(out_dir)
+    try:
+        if out.exists() and not out.is_dir():
+            raise InputError(f"output folder {out} is a file, not a folder")
+        out.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out, prefix=".cosim-write-check-"):
+            pass
+    except (OSError, ValueError) as exc:
+        reason = getattr(exc, "strerror", None) or str(exc)
+        raise InputError(f"cannot write episodes into output folder {out}: {reason}") from None
+
+
 def episode_metadata(loaded: LoadedScenario, world: World) -> dict[str, str]:
     """The ``episode`` metadata record (all values are strings; structured ones are JSON)."""
     s = loaded.scenario
@@ -132,6 +151,7 @@ def run_episode(
     s = loaded.scenario
     started = time.perf_counter()
     final = episode_path(loaded, out_dir)
+    check_output_dir(final.parent)
     with tempfile.TemporaryDirectory(prefix="cosim-world-") as workdir:
         world = build_world(loaded, Path(workdir))
     suite = _sensor_suite(loaded, world)
@@ -153,13 +173,16 @@ def run_episode(
         prefix=prefix,
         worker_log_level=worker_log_level,
     ) as conductor:
-        if suite is not None:
-            cleanup.callback(suite.close)
+        rendered: list[Any] = []  # the frames handed to the writer last; on failure their encodes are dropped
+        if suite is not None:  # on failure: drop the pending encodes, do not wait for abandoned sensors
+            cleanup.push(lambda failed, *_: suite.close(wait=failed is None))
+            cleanup.callback(lambda: rendered and rendered[-1].cancel_encodes())
         writer.add_metadata("episode", episode_metadata(loaded, world))
         loop = _closed_loop(conductor, loaded, world, escorts)
         conductor.start()
         if loop is not None:
             loop.wait_connected()
+        log.info("workers ready; stepping %d ticks", s.n_ticks)
         loop_started = time.perf_counter()
         pending = None
         for tick in range(s.n_ticks):
@@ -190,13 +213,15 @@ def run_episode(
                 background.submit(t_ns, lambda labels=labels: labels)
                 messages = labels
             elif loop is not None and loop.wants_sensor_topics():  # the clients get them before tick k+1
-                frames = suite.render(snapshot, np.random.default_rng([s.seed, tick, SENSOR_STREAM]))
+                frames = suite.render(snapshot, np.random.default_rng([s.seed, tick, SENSOR_STREAM]), conductor.poll)
                 messages = [*labels, *suite.messages(frames)]
                 background.submit(t_ns, lambda messages=messages: messages)
             else:
                 # rendered here; encoded, serialised and written while the next tick renders
-                frames = suite.render(snapshot, np.random.default_rng([s.seed, tick, SENSOR_STREAM]))
+                # conductor.poll: a worker that dies or hangs meanwhile stops the frame, not just the next tick
+                frames = suite.render(snapshot, np.random.default_rng([s.seed, tick, SENSOR_STREAM]), conductor.poll)
                 background.submit(t_ns, lambda labels=labels, frames=frames: [*labels, *suite.messages(frames)])
+                rendered[:] = [frames]
                 messages = labels
             if loop is not None:  # closed loop: tick k+1 is stepped with the clients' actions on tick k
                 loop.publish(tick, t_ns, vehicles, messages, last=tick + 1 == s.n_ticks)
@@ -282,22 +307,23 @@ class _SensorAdapter:
             out.extend(self._sensor_transforms(self._scenario, agent))
         return out
 
-    def render(self, snapshot: WorldSnapshot, rng: np.random.Generator) -> Any:
-        return self._suite.render(snapshot, rng)
+    def render(self, snapshot: WorldSnapshot, rng: np.random.Generator, check: Callable[[], None]) -> Any:
+        return self._suite.render(snapshot, rng, check)
 
     def messages(self, frames: Any) -> list[tuple[str, Any]]:
         """The sensor messages of rendered frames (waits for their image encodes)."""
         out = self._scenario.output
         return self._frame_messages(frames, frames.t_ns, image_format=out.image_format,
-                                    jpeg_quality=out.jpeg_quality)
+                                    jpeg_quality=out.jpeg_quality,
+                                    lidar_positions=self._scenario.sensors.lidar_positions)
 
     @property
     def static(self) -> Any:
         """The suite's static scene (Open3D, built once), shared with the link model."""
         return self._suite.static
 
-    def close(self) -> None:
-        self._suite.close()
+    def close(self, wait: bool = True) -> None:
+        self._suite.close(wait)
 
 
 def _sensor_suite(loaded: LoadedScenario, world: World) -> _SensorAdapter | None:

@@ -55,9 +55,13 @@ def parse_ticks(spec: str | None, n_ticks: int) -> list[int]:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
+    from cosim.errors import FormatError
     from cosim.io.info import episode_info, format_info
 
-    info = episode_info(_episode(args.episode))
+    try:
+        info = episode_info(_episode(args.episode), bytes_per_family=not args.no_bytes)
+    except FormatError as exc:  # not an episode at all: bad input, like a missing file
+        raise InputError(str(exc)) from None
     print(json.dumps(info.as_dict(), indent=2) if args.json else format_info(info))
     return EXIT_OK
 
@@ -187,6 +191,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="what an episode holds: scenario, conditions, agents, topics, size")
     p.add_argument("episode", help="episode file (.mcap)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--no-bytes", action="store_true",
+                   help="skip the bytes per topic family (which reads every message)")
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("validate", help="check episodes against docs/episode_format.md (exit 1 on problems)")

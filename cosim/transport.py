@@ -33,9 +33,16 @@ def check_endpoint(endpoint: str) -> str:
     return endpoint
 
 
+#: Zenoh session lease [ms]: a peer that sends nothing (not even keep-alives, four per lease) for this long is
+#: disconnected, so a stopped or frozen worker loses its liveliness token within about this time (Zenoh's
+#: default is 10 000 ms, which made a hung worker take longer to notice than the tick timeout).
+LEASE_MS = 3000
+
+
 def _config(mode: str, *, listen: list[str] | None = None, connect: list[str] | None = None) -> zenoh.Config:
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("transport/link/tx/lease", str(LEASE_MS))
     conf.insert_json5("scouting/multicast/enabled", "false")
     if mode != "client":
         conf.insert_json5("scouting/gossip/enabled", "false")

@@ -48,11 +48,11 @@ def describe(path: Path, max_ticks: int) -> None:
                 if agent in cams:
                     cam = cams[agent]
                     rgb = tick.image(agent, cam).array
-                    depth_mm = tick.depth(agent, cam).array
-                    hit = depth_mm > 0
+                    depth_m = tick.depth(agent, cam).depth_m  # float32 metres, NaN where nothing was hit
+                    hit = ~np.isnan(depth_m)
                     parts.append(
                         f"{cam} {rgb.shape[1]}x{rgb.shape[0]}, median depth "
-                        f"{np.median(depth_mm[hit]) / 1000 if hit.any() else float('nan'):.1f} m"
+                        f"{np.median(depth_m[hit]) if hit.any() else float('nan'):.1f} m"
                     )
                 if parts:
                     print(f"    {agent:<10} " + "; ".join(parts))

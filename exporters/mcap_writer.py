@@ -175,9 +175,12 @@ class BackgroundWriter:
         self.writer = writer
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="cosim-writer")
         self._pending: Future | None = None
+        self._abandoned = False
 
     def _write(self, t_ns: int, build: Callable[[], Iterable[tuple[str, Any]]]) -> None:
         for topic, message in build():
+            if self._abandoned:
+                return
             self.writer.write(topic, message, t_ns)
 
     def flush(self) -> None:
@@ -204,5 +207,15 @@ class BackgroundWriter:
     def __enter__(self) -> BackgroundWriter:
         return self
 
+    def abandon(self) -> None:
+        """Stop without waiting: the tick being written is dropped at its next message (the episode failed and
+        its :class:`EpisodeWriter` is about to delete the file)."""
+        self._abandoned = True
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        self._pending = None
+
     def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
-        self.close()
+        if exc_type is None:
+            self.close()
+        else:
+            self.abandon()

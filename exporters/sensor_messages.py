@@ -22,18 +22,15 @@ from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
-__all__ = ["POINT_DTYPE", "encode_jpeg", "encode_png", "frame_messages"]
+from cosim.io.points import encode_points
+
+__all__ = ["depth_image", "encode_jpeg", "encode_png", "frame_messages", "lidar_message"]
 
 _F = PackedElementField.NumericType
 
-#: LiDAR point record: x, y, z, intensity float32; ring uint16; class_id uint8; pad; instance_id uint32.
-POINT_DTYPE = np.dtype(
-    {"names": ["x", "y", "z", "intensity", "ring", "class_id", "instance_id"],
-     "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "u1", "<u4"],
-     "offsets": [0, 4, 8, 12, 16, 18, 20], "itemsize": 24}
-)
-_POINT_FIELDS = [("x", 0, _F.FLOAT32), ("y", 4, _F.FLOAT32), ("z", 8, _F.FLOAT32), ("intensity", 12, _F.FLOAT32),
-                 ("ring", 16, _F.UINT16), ("class_id", 18, _F.UINT8), ("instance_id", 20, _F.UINT32)]
+#: numpy type -> foxglove numeric type of a packed field.
+_NUMERIC = {"|u1": _F.UINT8, "|i1": _F.INT8, "<u2": _F.UINT16, "<i2": _F.INT16, "<u4": _F.UINT32,
+            "<i4": _F.INT32, "<f4": _F.FLOAT32, "<f8": _F.FLOAT64}
 
 IMU_SCHEMA = {
     "title": "cosim.Imu",
@@ -81,27 +78,38 @@ def _stamp(msg, t_ns: int) -> None:
     msg.timestamp.FromNanoseconds(int(t_ns))
 
 
-def lidar_message(agent_id: str, frame, t_ns: int) -> PointCloud:
-    rec = np.zeros(frame.n_points, POINT_DTYPE)
-    rec["x"], rec["y"], rec["z"] = frame.points[:, 0], frame.points[:, 1], frame.points[:, 2]
-    rec["intensity"] = frame.intensity
-    rec["ring"] = frame.ring
-    rec["class_id"] = frame.class_id
-    rec["instance_id"] = frame.instance_id
-    msg = PointCloud(frame_id=f"{agent_id}/lidar", point_stride=POINT_DTYPE.itemsize, data=rec.tobytes())
+def lidar_message(agent_id: str, frame, t_ns: int, positions: str = "quantized") -> PointCloud:
+    """One sweep in the compact record of :mod:`cosim.io.points` (``positions``: ``quantized`` or ``float32``)."""
+    extra = {}
+    if getattr(frame, "t_offset_ns", None) is not None:
+        extra["t_offset_ns"] = np.asarray(frame.t_offset_ns, "<i4")
+    if getattr(frame, "return_kind", None) is not None:
+        extra["return"] = np.asarray(frame.return_kind, "u1")
+    rec = encode_points(frame.points, frame.intensity, frame.ring, frame.class_id, frame.instance_id, extra,
+                        kind=positions)
+    msg = PointCloud(frame_id=f"{agent_id}/lidar", point_stride=rec.dtype.itemsize, data=rec.tobytes())
     _stamp(msg, t_ns)
     msg.pose.orientation.w = 1.0
-    for name, off, typ in _POINT_FIELDS:
-        msg.fields.add(name=name, offset=off, type=typ)
+    for name in rec.dtype.names:
+        typ, off = rec.dtype.fields[name][:2]
+        msg.fields.add(name=name, offset=off, type=_NUMERIC[typ.str])
     return msg
 
 
-def depth_mm(depth_m: np.ndarray) -> np.ndarray:
-    """Planar depth [m] float32 -> uint16 [mm]; 0 = no return (sky or beyond 65.535 m)."""
-    mm = depth_m * np.float32(1000.0)
-    np.rint(mm, out=mm)
-    np.copyto(mm, 0, where=~(mm <= 65535))  # inf and nan fail the test too
-    return mm.astype("<u2")
+#: [m] depth is stored rounded to multiples of this (docs/episode_format.md 3.5): error <= 0.49 mm at any
+#: range, and zstd compresses the zeroed low mantissa bits (3.4x smaller than unrounded float32).
+DEPTH_QUANTUM_M = 2.0**-10
+
+
+def depth_image(depth_m: np.ndarray) -> np.ndarray:
+    """Planar depth (H, W) float32 [m] (inf on a miss) -> the stored ``32FC1`` image: float32 metres on
+    the :data:`DEPTH_QUANTUM_M` grid (exact below 16 km; float32 steps are coarser beyond), NaN where
+    nothing was hit."""
+    out = np.array(depth_m, "<f4") * np.float32(1.0 / DEPTH_QUANTUM_M)  # powers of two: exact
+    np.rint(out, out=out)
+    out *= np.float32(DEPTH_QUANTUM_M)
+    np.copyto(out, np.float32(np.nan), where=~np.isfinite(out))
+    return out
 
 
 def _raw(frame_id: str, t_ns: int, img: np.ndarray, encoding: str) -> RawImage:
@@ -172,10 +180,10 @@ _GROUP = "<group>"  # placeholder topic: the future gives a list of (topic, mess
 
 
 def _label_images(base: str, fid: str, cam, t_ns: int) -> list[tuple[str, RawImage]]:
-    """Depth (16UC1 mm), semantic (mono8) and instance (32SC1) images of one camera."""
+    """Depth (32FC1 m), semantic (mono8) and instance (32SC1) images of one camera."""
     out = []
     if cam.depth is not None:
-        out.append((f"{base}/depth", _raw(fid, t_ns, depth_mm(cam.depth), "16UC1")))
+        out.append((f"{base}/depth", _raw(fid, t_ns, depth_image(cam.depth), "32FC1")))
     if cam.semantic is not None:
         out.append((f"{base}/semantic", _raw(fid, t_ns, cam.semantic, "mono8")))
     if cam.instance is not None:
@@ -185,11 +193,11 @@ def _label_images(base: str, fid: str, cam, t_ns: int) -> list[tuple[str, RawIma
     return out
 
 
-def _agent_messages(af: AgentFrames, t_ns: int, image_format: str, jpeg_quality: int) -> list:
+def _agent_messages(af: AgentFrames, t_ns: int, image_format: str, jpeg_quality: int, lidar_positions: str) -> list:
     a = af.agent_id
     out: list = []
     if af.lidar is not None:
-        out.append((f"/{a}/lidar", lidar_message(a, af.lidar, t_ns)))
+        out.append((f"/{a}/lidar", lidar_message(a, af.lidar, t_ns, lidar_positions)))
     for name, cam in af.cameras.items():
         fid = f"{a}/{name}/optical"
         base = f"/{a}/{name}"
@@ -215,16 +223,17 @@ def _agent_messages(af: AgentFrames, t_ns: int, image_format: str, jpeg_quality:
 
 
 def frame_messages(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png",
-                   jpeg_quality: int = 90) -> list[tuple[str, object]]:
+                   jpeg_quality: int = 90, lidar_positions: str = "quantized") -> list[tuple[str, object]]:
     """Every sensor topic of one tick, agents in frame order (see the module docstring).
 
     Image encoding runs in a thread pool: frames rendered by the suite already carry a started encode
     (``CameraFrame.encoded``) in the scenario's format; other formats are submitted here first and
-    collected last, so they run while the other messages are built.
+    collected last, so they run while the other messages are built. ``lidar_positions``: how point
+    positions are stored (``sensors.lidar_positions``, see :mod:`cosim.io.points`).
     """
     pending = []
     for af in frames.agents.values():
-        pending.extend(_agent_messages(af, t_ns, image_format, jpeg_quality))
+        pending.extend(_agent_messages(af, t_ns, image_format, jpeg_quality, lidar_positions))
     out: list[tuple[str, object]] = []
     for topic, msg in pending:
         if topic == _GROUP:

@@ -1,36 +1,65 @@
-"""Spinning LiDAR: one ray per (channel, azimuth) over a full sweep, cast at the tick's pose.
+"""LiDAR: a scan pattern's firings cast from where the sensor is when each fires.
 
-Output points are in the sensor frame ``<agent>/lidar`` (FLU at the mount). Intensity is the
-surface reflectivity times the cosine of the incidence angle times the two-way atmospheric
-transmittance. Weather (see :mod:`cosim.sensors.environment`): fog removes returns beyond the
-visibility distance and thins those approaching it, dims the rest, and adds near-range backscatter;
-rain adds dropout, range noise and spurious near returns from drops.
+Scan patterns are a registry (:func:`register_pattern`, :func:`scan_pattern`): ``spinning`` (a
+64-channel rotating LiDAR) and ``rosette`` (a Livox-style non-repetitive pattern of two counter-rotating
+prisms). A pattern gives every firing's direction in the sensor frame, its ring and its time
+``t_offset_ns`` (<= 0) relative to the sweep's end, which is the tick time.
+
+Motion distortion (``motion_distortion``, on by default): each firing is cast at its own time, the
+sensor pose extrapolated from the tick's pose with the agent's velocity and body rates, the actors
+moved by their velocities (in :data:`ACTOR_TIME_BINS` bins per sweep). Each point is the measurement
+``direction x range`` in the sensor frame of its firing, as a real sensor reports it, and the sweep is
+stamped at its end: points of a moving sensor are smeared, and :func:`cosim.io.deskew` undoes it with
+the recorded poses. Off: every firing at the tick pose and time (``t_offset_ns`` = 0).
+
+Intensity (:func:`intensity_model`) follows the LiDAR range equation for extended Lambertian
+targets, P ~ rho cos(alpha) / R^2 (Hoefle and Pfeifer, 2007, "Correction of laser scanning intensity
+data: data and model-driven approaches", ISPRS J. Photogramm. Remote Sens. 62(6)), reported
+range-normalised as sensors' calibrated reflectivity is (the 1/R^2 divided out), times the two-way
+atmospheric transmittance, plus an incidence-independent retro-reflective term for glass-bead lane
+markings and vehicle reflectors. Rain wets upward-facing surfaces (lower reflectivity).
+
+Weather (see :mod:`cosim.sensors.environment`): fog removes returns beyond the visibility distance and
+thins those approaching it, dims the rest, and adds near-range backscatter; rain adds dropout, range
+noise and spurious near returns from drops. Dual returns (``dual_returns``): where a beam's footprint
+straddles a near object's edge or a rain drop, the beam reports the strongest and the last return.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
 
+from cosim.classes import SEMANTIC_ID
+from cosim.errors import CosimError
 from cosim.scenario.model import LidarSpec
+from cosim.snapshot import AgentState
 
 from .environment import Atmosphere
-from .rig import Pose, rotate
-from .scene import StaticHits, TickScene
+from .rig import Pose, body_rotation, mount_rotation, rotate
+from .scene import StaticHits, TickScene, cast
 
 MIN_RANGE_M = 0.3  # [m] returns closer than this are not reported (housing, mount)
+ACTOR_TIME_BINS = 8  # actors are moved to the centre of one of this many slices of a sweep
+#: Return kinds (``return`` field): the beam's only return, the strongest and the last of a dual pair.
+RETURN_SINGLE, RETURN_STRONGEST, RETURN_LAST = 0, 1, 2
+DUAL_MIN_SEPARATION_M = 1.0  # [m] a second surface nearer than this behind the first is the same return
+OWN_FACES_MAX = 12  # faces of its own shape a ray may cross (then the rest counts as a hit on nothing)
 
 
 @dataclass(frozen=True)
 class LidarFrame:
     """One sweep. N returns; every array has length N and row i describes return i.
 
-    ``points`` (N, 3) float32 [m] in the sensor frame; ``intensity`` (N,) float32 in [0, 1];
-    ``ring`` (N,) uint16 (0 = lowest channel); ``class_id`` (N,) uint8 semantic id (0 for spurious
-    weather returns); ``instance_id`` (N,) uint32 (track id, static instance id, or 0).
+    ``points`` (N, 3) float32 [m] in the sensor frame of the return's firing (see the module docstring);
+    ``intensity`` (N,) float32 in [0, 1]; ``ring`` (N,) uint16 (0 = lowest channel); ``class_id`` (N,)
+    uint8 semantic id (0 for spurious weather returns); ``instance_id`` (N,) uint32 (track id, static
+    instance id, or 0); ``t_offset_ns`` (N,) int32 <= 0, firing time relative to the sweep's end;
+    ``return_kind`` (N,) uint8 (:data:`RETURN_SINGLE`, :data:`RETURN_STRONGEST`, :data:`RETURN_LAST`).
     """
 
     agent_id: str
@@ -39,15 +68,60 @@ class LidarFrame:
     ring: np.ndarray
     class_id: np.ndarray
     instance_id: np.ndarray
+    t_offset_ns: np.ndarray | None = None
+    return_kind: np.ndarray | None = None
 
     @property
     def n_points(self) -> int:
         return int(self.points.shape[0])
 
 
+# ----------------------------------------------------------------------------- scan patterns
+
+
+@dataclass(frozen=True)
+class Beams:
+    """Firings of one sweep: ``directions`` (N, 3) float64 unit vectors in the sensor frame, ``ring``
+    (N,) uint16, ``t_offset_ns`` (N,) int64 <= 0 (firing time relative to the sweep's end).
+    ``repeats``: every sweep fires the same directions (a standing sensor may keep its static hits)."""
+
+    directions: np.ndarray
+    ring: np.ndarray
+    t_offset_ns: np.ndarray
+    repeats: bool = False
+
+
+ScanPattern = Callable[[LidarSpec, int], Beams]
+_PATTERNS: dict[str, ScanPattern] = {}
+
+
+def register_pattern(name: str) -> Callable[[ScanPattern], ScanPattern]:
+    """Decorator: add a scan pattern ``(spec, t_end_ns) -> Beams`` under ``name``."""
+
+    def add(fn: ScanPattern) -> ScanPattern:
+        if name in _PATTERNS:
+            raise CosimError(f"scan pattern {name!r} is already registered")
+        _PATTERNS[name] = fn
+        return fn
+
+    return add
+
+
+def scan_pattern(name: str) -> ScanPattern:
+    try:
+        return _PATTERNS[name]
+    except KeyError:
+        raise CosimError(f"unknown LiDAR scan pattern {name!r}; known: {', '.join(sorted(_PATTERNS))}") from None
+
+
+def sweep_ns(spec: LidarSpec) -> int:
+    """Duration [ns] of one sweep (spinning) or frame (rosette)."""
+    return round(1e9 / spec.rotation_hz)
+
+
 @lru_cache(maxsize=16)
 def beam_pattern(spec: LidarSpec) -> tuple[np.ndarray, np.ndarray]:
-    """Unit ray directions (C * A, 3) float64 in the sensor frame and ring index (C * A,) uint16.
+    """Spinning pattern: unit ray directions (C * A, 3) float64 in the sensor frame and ring (C * A,) uint16.
 
     Channels are evenly spaced from ``lower_fov_deg`` (ring 0) to ``upper_fov_deg``; azimuths cover
     360 deg counter-clockwise from the sensor's +x at ``horizontal_resolution_deg``.
@@ -61,6 +135,160 @@ def beam_pattern(spec: LidarSpec) -> tuple[np.ndarray, np.ndarray]:
     return d, ring
 
 
+@lru_cache(maxsize=16)
+def _spinning(spec: LidarSpec) -> Beams:
+    d, ring = beam_pattern(spec)
+    n_az = len(d) // spec.channels
+    # the head turns counter-clockwise starting behind the sensor (azimuth 180 deg): the seam is at the
+    # back; every channel of one azimuth fires at once; the last azimuth fires at the sweep's end
+    step = (np.arange(n_az) - n_az // 2) % n_az
+    t = -np.rint((n_az - 1 - step) * (sweep_ns(spec) / n_az)).astype(np.int64)
+    return Beams(d, ring, np.tile(t, spec.channels), repeats=True)
+
+
+@register_pattern("spinning")
+def spinning_pattern(spec: LidarSpec, t_end_ns: int) -> Beams:
+    """The same firings every sweep (see :func:`beam_pattern`)."""
+    return _spinning(spec)
+
+
+#: Rosette prism rates [Hz]: two counter-rotating deflections of equal size; an irrational ratio makes
+#: the pattern non-repetitive (it keeps filling the field of view as time goes on).
+ROSETTE_HZ = (1_227.0, 1_227.0 * (math.sqrt(5.0) - 1.0) / 2.0 * 1.37)
+
+
+@register_pattern("rosette")
+def rosette_pattern(spec: LidarSpec, t_end_ns: int) -> Beams:
+    """Livox-style rosette: firing i of the frame ending at ``t_end_ns`` fires at the absolute time
+    t_i (``point_rate_hz`` firings per second, the last at ``t_end_ns``); its direction is tilted from
+    +x by the sum of two counter-rotating deflections of ``rosette_fov_deg`` / 4 each, so the pattern
+    covers the circular field of view more densely the longer it is accumulated. Ring 0."""
+    n = max(1, round(spec.point_rate_hz / spec.rotation_hz))
+    dt_ns = 1e9 / spec.point_rate_hz
+    k = np.arange(n, dtype=np.float64)
+    t_abs_s = (t_end_ns - (n - 1 - k) * dt_ns) * 1e-9
+    a = math.radians(spec.rosette_fov_deg) / 4.0
+    p1, p2 = 2 * math.pi * ROSETTE_HZ[0] * t_abs_s, -2 * math.pi * ROSETTE_HZ[1] * t_abs_s
+    u = a * (np.cos(p1) + np.cos(p2))
+    v = a * (np.sin(p1) + np.sin(p2))
+    r = np.hypot(u, v)  # angle from the axis [rad]
+    phi = np.arctan2(v, u)
+    d = np.stack([np.cos(r), np.sin(r) * np.cos(phi), np.sin(r) * np.sin(phi)], axis=1)
+    t_off = -np.rint((n - 1 - k) * dt_ns).astype(np.int64)
+    return Beams(d, np.zeros(n, np.uint16), t_off)
+
+
+# ------------------------------------------------------------------------------ intensity
+
+#: Incidence-independent retro-reflective reflectivity per semantic class (glass-bead lane markings).
+_RETRO_BY_CLASS = np.zeros(256, np.float32)
+_RETRO_BY_CLASS[SEMANTIC_ID["lane_marking"]] = 0.35
+LAMP_RETRO = 0.6  # vehicles' lamp units carry reflectors
+
+
+def wet_factor(rain_mm_h: float) -> float:
+    """Reflectivity factor of upward-facing surfaces under rain: a water film reflects the beam
+    specularly away (down to half at 10 mm/h and more)."""
+    return 1.0 - 0.5 * min(1.0, rain_mm_h / 10.0)
+
+
+def intensity_model(rho_diffuse: np.ndarray, rho_retro: np.ndarray, cos_incidence: np.ndarray, range_m: np.ndarray,
+                    beta_per_m: float) -> np.ndarray:
+    """Reported intensity (N,) float64 in [0, 1]: (rho_d cos(alpha) + rho_r) exp(-2 beta R), clipped.
+
+    The received power of an extended Lambertian target is P ~ rho cos(alpha) / R^2 (Hoefle and
+    Pfeifer 2007); the sensor reports it range-normalised (x R^2 / R_ref^2, its calibrated reflectivity),
+    so what is left of range is the two-way atmospheric loss exp(-2 beta R).
+    """
+    i = rho_diffuse * np.clip(cos_incidence, 0.0, 1.0) + rho_retro
+    if beta_per_m > 0:
+        i = i * np.exp(-2.0 * beta_per_m * range_m)
+    return np.clip(i, 0.0, 1.0)
+
+
+# ------------------------------------------------------------------------------- rendering
+
+
+def _rotate_about(v: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
+    """Each row of ``v`` (N, 3) rotated by the rotation vector in the same row of ``rotvec`` (Rodrigues)."""
+    theta = np.linalg.norm(rotvec, axis=1, keepdims=True)
+    k = rotvec / np.where(theta > 0, theta, 1.0)
+    c, s = np.cos(theta), np.sin(theta)
+    return v * c + np.cross(k, v) * s + k * (k * v).sum(axis=1, keepdims=True) * (1.0 - c)
+
+
+def firing_rays(d_sensor: np.ndarray, t_offset_s: np.ndarray, pose: Pose, agent: AgentState | None,
+                spec: LidarSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Ray origins (N, 3) and unit directions (N, 3) in map of each firing: the sensor pose at
+    ``t_offset_s`` from the tick (position + velocity x t; body attitude turned by the body rates x t)."""
+    if agent is None or not (np.any(agent.velocity_mps) or np.any(agent.angular_rate_radps)):
+        return np.broadcast_to(pose.position_m, d_sensor.shape), rotate(d_sensor, pose.rotation)
+    v = np.asarray(agent.velocity_mps, np.float64)
+    if not np.any(agent.angular_rate_radps):  # translation only: the attitude of the tick
+        return pose.position_m + v * t_offset_s[:, None], rotate(d_sensor, pose.rotation)
+    rb = body_rotation(agent)
+    turn = np.asarray(agent.angular_rate_radps, np.float64)[None, :] * t_offset_s[:, None]  # body frame
+    d_body = _rotate_about(rotate(d_sensor, mount_rotation(spec.mount)), turn)
+    m_body = _rotate_about(np.broadcast_to(np.asarray(spec.mount.xyz_m, np.float64), d_sensor.shape), turn)
+    origin = np.asarray(agent.position_m, np.float64) + v * t_offset_s[:, None] + rotate(m_body, rb)
+    return origin, rotate(d_body, rb)
+
+
+def _cast_binned(scene: TickScene, rays: np.ndarray, t_offset_s: np.ndarray, exclude: int | None,
+                 with_static: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Cast with the actors moved to the time of each firing (in :data:`ACTOR_TIME_BINS` slices)."""
+    if not scene.actors_move or not np.any(t_offset_s):
+        return scene.cast(rays, exclude, MIN_RANGE_M, with_static=with_static)
+    if with_static:
+        t, gid = scene.cast(rays, exclude, MIN_RANGE_M, with_actors=False)
+    else:
+        t = np.full(len(rays), np.inf, np.float32)
+        gid = np.full(len(rays), scene.miss, np.int32)
+    lo = float(t_offset_s.min())
+    width = (0.0 - lo) / ACTOR_TIME_BINS or 1.0
+    # only rays that meet an actor's swept box (before the static world, unless they start inside a
+    # box, where the first box hit is its far side) can meet the actor at its own time
+    boxes, b_lo, b_hi = scene.swept_boxes(exclude, lo)
+    t_box, _ = cast(boxes, rays)
+    o_lo, o_hi = rays[:, :3].min(0), rays[:, :3].max(0)
+    inside = bool(np.any(np.all((o_hi >= b_lo) & (o_lo <= b_hi), axis=1)))
+    near = np.nonzero(np.isfinite(t_box) if inside else t_box < t)[0]
+    bins = np.minimum(((t_offset_s[near] - lo) / width).astype(np.int64), ACTOR_TIME_BINS - 1)
+    for b in np.unique(bins):
+        idx = near[bins == b]
+        ta, ga = _cast_actors_without(scene, rays[idx], exclude, lo + (b + 0.5) * width)
+        nearer = ta < t[idx]
+        t[idx[nearer]] = ta[nearer]
+        gid[idx[nearer]] = ga[nearer]
+    return t, gid
+
+
+def _cast_actors_without(scene: TickScene, rays: np.ndarray, exclude: int | None,
+                         dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Actors alone at ``dt_s`` from the tick, ignoring ``exclude``'s own shape: one scene of all actors
+    per time (shared by every sensor); rays that meet the own shape go on from just past each of its
+    faces (its parts, body, cabin and wheels, are closed boxes and cylinders: a few faces each)."""
+    t, gid = scene.cast(rays, None, MIN_RANGE_M, with_static=False, dt_s=dt_s)
+    if exclude is None:
+        return t, gid
+    track = np.concatenate([scene.actor_track, [-1]])
+    for _ in range(OWN_FACES_MAX):
+        own = np.nonzero(np.take(track, np.clip(gid - scene.n_static, 0, len(track) - 1)) == exclude)[0]
+        own = own[gid[own] < scene.miss]
+        if not len(own):
+            break
+        past = t[own] + np.float32(1e-3)
+        again = rays[own].copy()
+        again[:, :3] += again[:, 3:] * past[:, None]
+        t2, g2 = scene.cast(again, None, 0.0, with_static=False, dt_s=dt_s)
+        t[own] = past + t2
+        gid[own] = g2
+    else:
+        left = np.take(track, np.clip(gid - scene.n_static, 0, len(track) - 1)) == exclude
+        t[left], gid[left] = np.inf, scene.miss
+    return t, gid
+
+
 def render_lidar(
     agent_id: str,
     spec: LidarSpec,
@@ -71,37 +299,41 @@ def render_lidar(
     exclude_track: int | None = None,
     noise: bool = True,
     fixed: StaticHits | None = None,
+    agent: AgentState | None = None,
+    t_ns: int = 0,
 ) -> LidarFrame:
-    """Cast one sweep from ``pose`` (map <- sensor) and apply the sensor and weather models.
+    """Cast one sweep ending at ``t_ns`` from ``pose`` (map <- sensor at the tick) and apply the sensor
+    and weather models. ``agent`` (its velocity and body rates) moves the sensor within the sweep when
+    ``spec.motion_distortion`` is on.
 
-    Random draws (in this order, always the full ray count so the stream does not depend on the
+    Random draws (in this order, always the full firing count so the stream does not depend on the
     scene): range noise, dropout, weather thinning, spurious returns. ``noise=False`` turns every
     random effect off (exact ranges, for tests). ``fixed``: the sensor's :class:`StaticHits` when
     it does not move between ticks (same result, the static world cast once).
     """
-    d_sensor, ring = beam_pattern(spec)
+    beams = scan_pattern(spec.pattern)(spec, t_ns)
+    d_sensor, ring = beams.directions, beams.ring
     n = d_sensor.shape[0]
-    d_map = rotate(d_sensor, pose.rotation)
+    t_off_ns = beams.t_offset_ns if spec.motion_distortion else np.zeros(n, np.int64)
+    t_off_s = t_off_ns * 1e-9
+    origin, d_map = firing_rays(d_sensor, t_off_s, pose, agent if spec.motion_distortion else None, spec)
     rays = np.empty((n, 6), np.float32)
-    rays[:, :3] = pose.position_m
+    rays[:, :3] = origin
     rays[:, 3:] = d_map
-    if fixed is None:
-        t, gid = scene.cast(rays, exclude_track, MIN_RANGE_M)
+    if fixed is not None and beams.repeats and origin.strides[0] == 0:  # a standing sensor, the same firings
+        key = pose.rotation.tobytes() + pose.position_m.tobytes() + spec.pattern.encode()
+        t, gid = fixed.cast(scene, key, rays, exclude_track, MIN_RANGE_M,
+                            lambda r: _cast_binned(scene, r, t_off_s, exclude_track, with_static=False))
     else:
-        key = pose.rotation.tobytes() + pose.position_m.tobytes()
-        t, gid = fixed.cast(scene, key, rays, exclude_track, MIN_RANGE_M)
+        t, gid = _cast_binned(scene, rays, t_off_s, exclude_track)
     hit = t <= spec.range_m
     r = np.where(hit, t, 0.0).astype(np.float64)
 
-    lab = scene.labels
-    normals = np.take(lab["normal"], gid, axis=0)
-    cos_inc = np.abs((normals * rays[:, 3:]).sum(axis=1))
-    intensity = np.take(lab["reflectivity"], gid) * cos_inc
-    if atm.beta > 0:
-        intensity = intensity * np.exp(-2.0 * atm.beta * r)
-    cls = np.take(lab["semantic"], gid)
-    inst = np.take(lab["instance"], gid)
+    intensity, cls, inst = _surface_intensity(scene, atm, gid, rays[:, 3:], r)
 
+    spur = np.zeros(n, bool)
+    spur_r = spur_i = np.zeros(n)
+    sigma = 0.0
     if noise:
         u_noise = rng.standard_normal(n)
         u_drop = rng.random(n)
@@ -124,23 +356,97 @@ def render_lidar(
         elif rain > 0:
             spur = u_spur < min(0.05, 0.0008 * rain)
             spur_r = 0.5 + u_spur_r * 9.5
-        else:
-            spur = np.zeros(n, bool)
-            spur_r = np.zeros(n)
         spur &= ~hit | (spur_r < r)
-        r = np.where(spur, spur_r, r)
-        intensity = np.where(spur, 0.02 + 0.05 * u_spur_r, intensity)
-        cls = np.where(spur, 0, cls)
-        inst = np.where(spur, 0, inst)
-        hit |= spur
-
+        spur_i = 0.02 + 0.05 * u_spur_r
+    # dual returns: the near return of a pair is RETURN_STRONGEST, the far one RETURN_LAST
+    behind = spur & hit if spec.dual_returns else np.zeros(n, bool)  # a drop in front of a surface
+    surf = (r, intensity, cls, inst)
+    r = np.where(spur, spur_r, r)
+    intensity = np.where(spur, spur_i, intensity)
+    cls = np.where(spur, 0, cls)
+    inst = np.where(spur, 0, inst)
+    hit |= spur
+    kind = np.where(behind, RETURN_STRONGEST, RETURN_SINGLE).astype(np.uint8)
     idx = np.nonzero(hit)[0]
-    pts = (d_sensor[idx] * r[idx, None]).astype(np.float32)
+    parts = [(d_sensor[idx] * r[idx, None], intensity[idx], ring[idx], cls[idx], inst[idx], t_off_ns[idx],
+              kind[idx])]
+    if behind.any():
+        j = np.nonzero(behind)[0]
+        parts.append((d_sensor[j] * surf[0][j, None], surf[1][j], ring[j], surf[2][j], surf[3][j], t_off_ns[j],
+                      np.full(len(j), RETURN_LAST, np.uint8)))
+    if spec.dual_returns:
+        parts += _edge_returns(scene, spec, atm, rays, d_sensor, ring, t_off_ns, exclude_track,
+                               np.where(hit & ~spur, r, np.inf), hit, parts, rng if noise else None, sigma)
+    cat = [np.concatenate([p[k] for p in parts]) for k in range(7)]
     return LidarFrame(
         agent_id,
-        pts,
-        np.clip(intensity[idx], 0.0, 1.0).astype(np.float32),
-        ring[idx],
-        cls[idx].astype(np.uint8),
-        inst[idx].astype(np.uint32),
+        cat[0].astype(np.float32),
+        np.clip(cat[1], 0.0, 1.0).astype(np.float32),
+        cat[2].astype(np.uint16),
+        cat[3].astype(np.uint8),
+        cat[4].astype(np.uint32),
+        cat[5].astype(np.int32),
+        cat[6].astype(np.uint8),
     )
+
+
+def _surface_intensity(scene: TickScene, atm: Atmosphere, gid: np.ndarray, d_map: np.ndarray,
+                       r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Intensity, class and instance of hits ``gid`` seen along ``d_map`` (N, 3) at ranges ``r``."""
+    lab = scene.labels
+    normals = np.take(lab["normal"], gid, axis=0)
+    cos_inc = np.abs((normals * d_map).sum(axis=1))
+    cls = np.take(lab["semantic"], gid)
+    rho = np.take(lab["reflectivity"], gid).astype(np.float64)
+    retro = _RETRO_BY_CLASS[cls].astype(np.float64)
+    retro = np.where((gid >= scene.n_static) & (np.take(lab["emissive"], gid) > 0), LAMP_RETRO, retro)
+    if atm.rain_rate_mm_h > 0:
+        wet = np.where(normals[:, 2] > 0.5, wet_factor(atm.rain_rate_mm_h), 1.0)
+        rho, retro = rho * wet, retro * wet
+    return intensity_model(rho, retro, cos_inc, r, atm.beta), cls, np.take(lab["instance"], gid)
+
+
+def _edge_returns(scene: TickScene, spec: LidarSpec, atm: Atmosphere, rays: np.ndarray, d_sensor: np.ndarray,
+                  ring: np.ndarray, t_off_ns: np.ndarray, exclude: int | None, r_first: np.ndarray,
+                  hit: np.ndarray, parts: list, rng: np.random.Generator | None, sigma: float) -> list:
+    """Last returns of beams whose footprint straddles a near object's edge (a pole, a crown, a car).
+
+    A beam is at an edge when the next or previous firing of its ring reached more than
+    :data:`DUAL_MIN_SEPARATION_M` farther (or nothing); the half of its footprint towards that
+    neighbour is cast (the ray midway between the two) and, when it meets a surface that much farther,
+    the beam reports it as its last return, the near one as its strongest. Each return carries the
+    intensity of the half footprint it comes from. Changes ``parts[0]`` (the kind and intensity of the
+    near returns; its rows are the beams of ``hit`` in order) and gives the far returns.
+    """
+    n = len(r_first)
+    first = np.isfinite(r_first)
+    partner = np.full(n, -1)
+    for step in (1, -1):
+        nb = np.clip(np.arange(n) + step, 0, n - 1)
+        jump = first & (ring[nb] == ring) & (nb != np.arange(n)) & ~(r_first[nb] <= r_first + DUAL_MIN_SEPARATION_M)
+        partner = np.where(jump & (partner < 0), nb, partner)
+    idx = np.nonzero(partner >= 0)[0]
+    if not len(idx):
+        return []
+    mid = rays[idx, 3:].astype(np.float64) + rays[partner[idx], 3:]
+    mid /= np.linalg.norm(mid, axis=1, keepdims=True)
+    mrays = np.concatenate([rays[idx, :3], mid], axis=1).astype(np.float32)
+    t2, g2 = _cast_binned(scene, mrays, t_off_ns[idx] * 1e-9, exclude)
+    far = (t2 <= spec.range_m) & (t2 > r_first[idx] + DUAL_MIN_SEPARATION_M)
+    idx, t2, g2, mid = idx[far], t2[far].astype(np.float64), g2[far], mid[far]
+    if not len(idx):
+        return []
+    if rng is not None:
+        t2 = t2 + sigma * rng.standard_normal(len(idx))
+    i2, c2, n2 = _surface_intensity(scene, atm, g2, mid, t2)
+    # the near returns of these beams: parts[0] holds the returns of beams with a first hit, in beam order
+    pts, inten, rng_, cls, inst, toff, kind = parts[0]
+    order = np.cumsum(hit) - 1  # row of each beam's return in parts[0]
+    rows = order[idx]
+    inten = inten.copy()
+    kind = kind.copy()
+    inten[rows] *= 0.5
+    kind[rows] = RETURN_STRONGEST
+    parts[0] = (pts, inten, rng_, cls, inst, toff, kind)
+    return [(d_sensor[idx] * t2[:, None], 0.5 * i2, ring[idx], c2, n2, t_off_ns[idx],
+             np.full(len(idx), RETURN_LAST, np.uint8))]

@@ -240,15 +240,17 @@ def prism_geometry(footprint: np.ndarray, z0: float, z1: float, bottom: bool = F
 
 # --------------------------------------------------------------------------------- materials
 
-#: Diffuse albedo (linear RGB 0..1) and LiDAR reflectivity per semantic class.
+#: Diffuse albedo (linear RGB 0..1) and diffuse LiDAR reflectivity at 905 nm per semantic class (asphalt
+#: dark, concrete and buildings middling, vegetation moderate in the near infrared; lane markings also
+#: carry a retro-reflective term, see cosim.sensors.lidar).
 _MATERIAL: dict[str, tuple[tuple[float, float, float], float]] = {
     "unlabelled": ((0.5, 0.5, 0.5), 0.3),
-    "road": ((0.16, 0.16, 0.17), 0.12),
-    "lane_marking": ((0.85, 0.85, 0.80), 0.75),
+    "road": ((0.16, 0.16, 0.17), 0.10),
+    "lane_marking": ((0.85, 0.85, 0.80), 0.45),
     "sidewalk": ((0.50, 0.48, 0.45), 0.30),
     "building": ((0.55, 0.50, 0.45), 0.35),
-    "vegetation": ((0.15, 0.35, 0.10), 0.45),
-    "terrain": ((0.32, 0.42, 0.18), 0.35),
+    "vegetation": ((0.15, 0.35, 0.10), 0.30),
+    "terrain": ((0.32, 0.42, 0.18), 0.25),
     "pole": ((0.45, 0.45, 0.47), 0.50),
     "street_light": ((0.40, 0.40, 0.42), 0.50),
     "rsu": ((0.70, 0.70, 0.20), 0.55),
@@ -288,9 +290,43 @@ def is_lamp(prism: Prism) -> bool:
     return prism.cls == "street_light" and prism.z0_m >= LAMP_ARM_MIN_Z_M
 
 
+#: [m] how far the flat terrain continues beyond the map's edge (:func:`far_ground`): farther than any
+#: LiDAR reaches (``range_m`` <= 500 m), and far enough that a camera 10 m up sees ground up to 0.06 deg
+#: below the horizon.
+FAR_GROUND_M = 10_000.0
+
+
 def static_mesh(layout: StaticLayout) -> TriMesh:
-    """Mesh of every prism of ``layout`` (map frame), in prism order."""
-    return concat([_prism_mesh(p) for p in layout.prisms])
+    """Mesh of every prism of ``layout`` (map frame), in prism order, then :func:`far_ground`."""
+    return concat([*(_prism_mesh(p) for p in layout.prisms), far_ground(layout)])
+
+
+def far_ground(layout: StaticLayout, reach_m: float = FAR_GROUND_M) -> TriMesh:
+    """Flat terrain around the map: four trapezoids (8 triangles, normals up) from the edge of the
+    terrain prisms (all prisms if there is none) out to ``reach_m`` beyond it, at the terrain's top.
+
+    The layout ends a few tens of metres past the outer roads; without this, cameras looking outward
+    saw sky (class 0, no depth) below the horizon and downward LiDAR beams found nothing. The ring is
+    renderer-only (not a prism of the layout), so the BEV raster and the light map keep the map's size.
+    """
+    terrain = [p for p in layout.prisms if p.cls == "terrain"] or list(layout.prisms)
+    if not terrain:
+        return empty_mesh()
+    pts = np.array([q for p in terrain for q in p.footprint], np.float64)
+    x0, y0 = pts.min(0)
+    x1, y1 = pts.max(0)
+    z = max(p.z1_m for p in terrain) if terrain[0].cls == "terrain" else layout.ground_z_m
+    X0, Y0, X1, Y1 = x0 - reach_m, y0 - reach_m, x1 + reach_m, y1 + reach_m
+    quads = [
+        [(X0, Y0), (X1, Y0), (x1, y0), (x0, y0)],  # south
+        [(X1, Y0), (X1, Y1), (x1, y1), (x1, y0)],  # east
+        [(X1, Y1), (X0, Y1), (x0, y1), (x1, y1)],  # north
+        [(X0, Y1), (X0, Y0), (x0, y0), (x0, y1)],  # west
+    ]
+    v = np.array([(x, y, z) for q in quads for x, y in q], np.float64)
+    t = np.array([[4 * k, 4 * k + 1, 4 * k + 2, 4 * k, 4 * k + 2, 4 * k + 3] for k in range(4)]).reshape(-1, 3)
+    alb, refl = material_of("terrain", 0)
+    return _labelled(v, t, "terrain", 0, alb, refl, group=np.repeat(np.arange(4), 2))
 
 
 def _prism_mesh(prism: Prism) -> TriMesh:
@@ -523,6 +559,9 @@ def actor_material(cls: str, track_id: int, part: np.ndarray) -> tuple[np.ndarra
         paint = np.array((0.95, 0.35, 0.02), np.float32)  # safety orange
     table = np.array([paint, (0.05, 0.07, 0.09), (0.03, 0.03, 0.03), (0.95, 0.95, 0.9), (0.7, 0.05, 0.05),
                       (0.12, 0.12, 0.13)], np.float32)
-    refl_t = np.array([0.8, 0.15, 0.05, 0.9, 0.9, 0.2], np.float32)
+    # diffuse LiDAR reflectivity: paint by its brightness (dark paint low), glass and tyres low, lamp
+    # units middling (their reflectors add a retro-reflective term, see cosim.sensors.lidar)
+    paint_refl = 0.05 + 0.7 * float(paint @ np.array([0.2126, 0.7152, 0.0722], np.float32))
+    refl_t = np.array([paint_refl, 0.05, 0.03, 0.3, 0.3, 0.08], np.float32)
     emis_t = np.array([0.0, 0.0, 0.0, 1.0, 0.6, 0.0], np.float32)
     return table[part], refl_t[part], emis_t[part]

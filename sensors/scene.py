@@ -107,6 +107,8 @@ class TickScene:
     static: StaticScene
     actors: TriMesh
     actor_track: np.ndarray  # (Ta,) int64 track id per actor triangle
+    actor_velocity: np.ndarray | None = None  # (Va,) x 3 float64 [m/s] map velocity of each actor vertex
+    actor_spheres: np.ndarray | None = None  # (A, 8): centre (3), radius, velocity (3), track id per actor
     timer: CastTimer = field(default_factory=CastTimer)
     _cache: dict = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
@@ -114,7 +116,42 @@ class TickScene:
     @classmethod
     def build(cls, static: StaticScene, actors) -> TickScene:
         mesh, track = place_actors(actors)
-        return cls(static, mesh, track)
+        vel = [np.broadcast_to(np.asarray(a.velocity_mps, np.float64), (len(template_for(a.cls).vertices), 3))
+               for a in actors]
+        spheres = np.array([[*a.center_m, 0.5 * float(np.linalg.norm(a.size_m)), *a.velocity_mps, a.track_id]
+                            for a in actors], np.float64).reshape(-1, 8)
+        return cls(static, mesh, track, np.concatenate(vel) if vel else np.zeros((0, 3)), spheres)
+
+    def swept_boxes(self, exclude_track: int | None, dt_min_s: float):
+        """Open3D scene of one axis-aligned box per actor (without ``exclude_track``) holding it over
+        [``dt_min_s``, 0] from the tick, and the boxes' corners ``lo``, ``hi`` (B, 3): a ray that misses
+        every box misses the actors at every time."""
+        key = ("swept", -1 if exclude_track is None else int(exclude_track), float(dt_min_s))
+        with self._lock:
+            if key in self._cache:
+                return self._cache[key]
+            sp = self.actor_spheres if self.actor_spheres is not None else np.zeros((0, 8))
+            if exclude_track is not None:
+                sp = sp[sp[:, 7] != exclude_track]
+            c0, c1 = sp[:, :3], sp[:, :3] + sp[:, 4:7] * dt_min_s
+            pad = sp[:, 3:4] + 0.05
+            lo, hi = np.minimum(c0, c1) - pad, np.maximum(c0, c1) + pad
+            parts = [_box_mesh(a, b) for a, b in zip(lo, hi, strict=True)]
+            if parts:
+                v = np.concatenate([p[0] for p in parts]).astype(np.float32)
+                t = np.concatenate([p[1] + 8 * k for k, p in enumerate(parts)]).astype(np.uint32)
+                scene = o3d.t.geometry.RaycastingScene()
+                scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(t))
+                _warm(scene)
+            else:
+                scene = None
+            self._cache[key] = (scene, lo, hi)
+            return self._cache[key]
+
+    @property
+    def actors_move(self) -> bool:
+        """True when some actor has a velocity (then casts at other times see it elsewhere)."""
+        return self.actor_velocity is not None and bool(np.any(self.actor_velocity))
 
     @property
     def n_static(self) -> int:
@@ -130,17 +167,23 @@ class TickScene:
         miss = np.asarray(miss_value, static_values.dtype).reshape((1, *static_values.shape[1:]))
         return np.concatenate([static_values, actor_values.astype(static_values.dtype), miss])
 
-    def _actor_scene(self, exclude_track: int | None):
-        key = -1 if exclude_track is None else int(exclude_track)
+    def _actor_scene(self, exclude_track: int | None, dt_s: float = 0.0):
+        """Open3D scene of the actors (without ``exclude_track``) moved by their velocity x ``dt_s``."""
+        key = (-1 if exclude_track is None else int(exclude_track), float(dt_s) if self.actors_move else 0.0)
         with self._lock:
             if key in self._cache:
                 return self._cache[key]
+            verts = self.actors.vertices
+            if dt_s and self.actors_move:
+                verts = (verts + self.actor_velocity * dt_s).astype(np.float32)
             if exclude_track is None or not np.any(self.actor_track == exclude_track):
                 keep = np.arange(self.actors.n_triangles, dtype=np.int32)
-                sub = self.actors
+                sub = self.actors if verts is self.actors.vertices else TriMesh(
+                    verts, *(getattr(self.actors, f) for f in ("triangles", "semantic", "instance", "albedo",
+                                                                "reflectivity", "emissive", "group")))
             else:
                 keep = np.nonzero(self.actor_track != exclude_track)[0].astype(np.int32)
-                sub = TriMesh(self.actors.vertices, self.actors.triangles[keep], self.actors.semantic[keep],
+                sub = TriMesh(verts, self.actors.triangles[keep], self.actors.semantic[keep],
                               self.actors.instance[keep], self.actors.albedo[keep],
                               self.actors.reflectivity[keep], self.actors.emissive[keep], self.actors.group[keep])
             entry = (_o3d_scene(sub), keep)
@@ -165,12 +208,13 @@ class TickScene:
         }
 
     def cast(self, rays: np.ndarray, exclude_track: int | None = None, near_m: float = 0.0,
-             with_static: bool = True, with_actors: bool = True) -> tuple[np.ndarray, np.ndarray]:
+             with_static: bool = True, with_actors: bool = True, dt_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """Nearest hit over static + actors (minus ``exclude_track``'s own shape).
 
         ``rays`` (N, 6) float32. Surfaces closer than ``near_m`` (in units of each ray's direction
         length) are skipped (sensor housings, the RSU's own pole top); ``with_static`` and
-        ``with_actors`` choose the scenes. Returns ``t`` (N,) float32
+        ``with_actors`` choose the scenes; ``dt_s`` casts at that time from the tick (actors moved by
+        their velocity; a cached scene per value). Returns ``t`` (N,) float32
         (inf on a miss) and the global triangle index (N,) int32 (``miss`` on a miss).
         """
         t0 = time.perf_counter()
@@ -183,7 +227,7 @@ class TickScene:
         else:
             t = np.full(rays.shape[0], np.inf, np.float32)
             gid = np.full(rays.shape[0], self.miss, np.int32)
-        scene, keep = self._actor_scene(exclude_track) if with_actors else (None, None)
+        scene, keep = self._actor_scene(exclude_track, dt_s) if with_actors else (None, None)
         if scene is not None and rays.shape[0]:
             ta, pa = cast(scene, rays)
             nearer = np.nonzero(ta < t)[0]
@@ -195,6 +239,16 @@ class TickScene:
             self.timer.seconds += time.perf_counter() - t0
             self.timer.rays += rays.shape[0]
         return t, gid
+
+
+def _box_mesh(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (8, 3) and triangles (12, 3) of the axis-aligned box [lo, hi]."""
+    (x0, y0, z0), (x1, y1, z1) = lo, hi
+    v = np.array([[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0], [x0, y0, z1], [x1, y0, z1], [x1, y1, z1],
+                  [x0, y1, z1]])
+    t = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5], [2, 3, 7],
+                  [2, 7, 6], [3, 0, 4], [3, 4, 7]])
+    return v, t
 
 
 class StaticHits:
@@ -211,13 +265,17 @@ class StaticHits:
         self.gid = np.zeros(0, np.int32)  # static triangle index, -1 for a miss
 
     def cast(self, scene: TickScene, key: bytes, rays: np.ndarray, exclude_track: int | None,
-             near_m: float) -> tuple[np.ndarray, np.ndarray]:
+             near_m: float, actor_cast=None) -> tuple[np.ndarray, np.ndarray]:
+        """``actor_cast(rays)``: how to cast against the actors alone (default: at the tick time)."""
         if key != self.key or len(self.t) != len(rays):
             t, gid = scene.cast(rays, exclude_track, near_m, with_actors=False)
             self.key, self.t, self.gid = key, t, np.where(gid == scene.miss, np.int32(-1), gid)
         t = self.t.copy()
         gid = np.where(self.gid < 0, np.int32(scene.miss), self.gid)
-        ta, ga = scene.cast(rays, exclude_track, near_m, with_static=False)
+        if actor_cast is None:
+            ta, ga = scene.cast(rays, exclude_track, near_m, with_static=False)
+        else:
+            ta, ga = actor_cast(rays)
         nearer = np.nonzero(ta < t)[0]
         t[nearer] = ta[nearer]
         gid[nearer] = ga[nearer]

@@ -13,7 +13,8 @@ import logging
 import math
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,6 +39,7 @@ from .visibility import VisibilityFrame, render_visibility
 log = logging.getLogger(__name__)
 
 VEHICLE_CLASSES = ("car", "van", "truck", "bus", "motorcycle")
+CHECK_PERIOD_S = 0.05  # [s] how often render() calls its check while it waits for the sensors
 
 
 @dataclass(frozen=True)
@@ -62,6 +64,13 @@ class SensorFrameSet:
     t_ns: int
     agents: dict[str, AgentFrames]
     timing_s: dict[str, float] = field(default_factory=dict, compare=False)
+
+    def cancel_encodes(self) -> None:
+        """Drop the image encodes not started yet (the frames are abandoned, e.g. the episode failed)."""
+        for agent in self.agents.values():
+            for cam in agent.cameras.values():
+                if cam.encoded is not None:
+                    cam.encoded[1].cancel()
 
 
 def _shaded(albedo: np.ndarray, normals: np.ndarray, atm: Atmosphere) -> np.ndarray:
@@ -175,14 +184,16 @@ class SensorSuite:
         self._static_points = np.unique(verts, axis=0) if len(verts) else np.zeros((0, 3))
         self._light: LightMap | None = None
         if self.atm.artificial > 0:
-            if len(verts):
-                lo, hi = verts[:, :2].min(0) - 50, verts[:, :2].max(0) + 50
+            # over the layout only (the far ground around it is unlit: lookups beyond clamp to the edge)
+            foot = np.array([q for p in world.layout.prisms for q in p.footprint], np.float64).reshape(-1, 2)
+            if len(foot):
+                lo, hi = foot.min(0) - 50, foot.max(0) + 50
             else:
                 lo, hi = np.array([-100.0, -100.0]), np.array([100.0, 100.0])
             res = max(0.5, float(max(hi - lo)) / 4000)
             self._light = _street_light_map(world, np.array([*lo, *hi]), res)
         s = scenario.sensors
-        self._bev_raster = static_raster(world.layout, s.bev_cell_m)
+        self._bev_raster = static_raster(world.layout, s.bev_cell_m) if s.bev else None
         self._biases: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._fixed: dict[tuple[str, str], StaticImage] = {}
         self._fixed_lidar: dict[str, StaticHits] = {}
@@ -196,9 +207,10 @@ class SensorSuite:
     def rig(self, agent: AgentState) -> RigSpec:
         return self.scenario.rig_for(agent.agent_id)
 
-    def close(self) -> None:
-        """Stop the render threads (idle threads also end with the interpreter)."""
-        self._pool.shutdown(wait=True)
+    def close(self, wait: bool = True) -> None:
+        """Stop the render threads (idle threads also end with the interpreter). ``wait=False``: do not wait for
+        sensors still rendering an abandoned frame (queued ones are cancelled either way)."""
+        self._pool.shutdown(wait=wait, cancel_futures=True)
 
     def __enter__(self) -> SensorSuite:
         return self
@@ -207,7 +219,7 @@ class SensorSuite:
         self.close()
 
     def _render_agent_base(self, agent: AgentState, rig: RigSpec, own: int | None, scene: TickScene,
-                           rng: np.random.Generator, actors: tuple[Actor, ...]):
+                           rng: np.random.Generator, actors: tuple[Actor, ...], t_ns: int):
         """LiDAR, GNSS, IMU and BEV of one agent (draws from ``rng`` in that order)."""
         t0 = time.perf_counter()
         lidar = None
@@ -217,7 +229,8 @@ class SensorSuite:
             if agent.kind == "rsu":  # RSUs stand still: the static world is cast once for their LiDAR
                 with self._fixed_lock:
                     fixed = self._fixed_lidar.setdefault(agent.agent_id, StaticHits())
-            lidar = render_lidar(agent.agent_id, rig.lidar, pose, scene, self.atm, rng, own, self.noise, fixed)
+            lidar = render_lidar(agent.agent_id, rig.lidar, pose, scene, self.atm, rng, own, self.noise, fixed,
+                                 agent, t_ns)
         t1 = time.perf_counter()
         gnss = None
         if rig.gnss is not None:
@@ -228,7 +241,7 @@ class SensorSuite:
             biases = self._biases.get(agent.agent_id, (np.zeros(3), np.zeros(3)))
             imu = render_imu(agent, rig.imu, biases, rng, self.noise)
         s = self.scenario.sensors
-        bev = render_bev(agent, self._bev_raster, actors, s.bev_cell_m, s.bev_range_m)
+        bev = render_bev(agent, self._bev_raster, actors, s.bev_cell_m, s.bev_range_m) if s.bev else None
         return (lidar, gnss, imu, bev), {"lidar": t1 - t0, "labels": time.perf_counter() - t1}
 
     def _render_camera(self, agent: AgentState, cam, own: int | None, scene: TickScene, occ: Occluders,
@@ -258,8 +271,14 @@ class SensorSuite:
         )
         return frame, {"camera_cast": t1 - t0, "shading": t2 - t1, "labels": time.perf_counter() - t2}
 
-    def render(self, snapshot: WorldSnapshot, rng: np.random.Generator) -> SensorFrameSet:
-        """Every agent's sensors at ``snapshot.t_ns`` (see the module docstring)."""
+    def render(self, snapshot: WorldSnapshot, rng: np.random.Generator,
+               check: Callable[[], None] | None = None) -> SensorFrameSet:
+        """Every agent's sensors at ``snapshot.t_ns`` (see the module docstring).
+
+        ``check`` is called every ``CHECK_PERIOD_S`` while the frame renders; whatever it raises abandons the
+        frame (sensors not started yet are cancelled) and propagates, so a caller can stop a long frame at
+        once, e.g. when a simulation worker has died.
+        """
         t_start = time.perf_counter()
         timing = {"scene": 0.0, "lidar": 0.0, "camera_cast": 0.0, "shading": 0.0, "labels": 0.0}
         scene = TickScene.build(self.static, snapshot.actors)
@@ -287,11 +306,24 @@ class SensorSuite:
             own = agent.track_id if agent.track_id is not None else own_track.get(agent.agent_id)
             occ = Occluders(self._thin, self._static_points, a_corners[a_tracks != own])
             srngs = arng.spawn(1 + len(rig.cameras))
-            base = self._pool.submit(self._render_agent_base, agent, rig, own, scene, srngs[0], actors)
+            base = self._pool.submit(self._render_agent_base, agent, rig, own, scene, srngs[0], actors, snapshot.t_ns)
             cams = [self._pool.submit(self._render_camera, agent, cam, own, scene, occ, tables, light, lut, r)
                     for cam, r in zip(rig.cameras, srngs[1:], strict=True)]
             jobs.append((agent, base, cams))
         out: dict[str, AgentFrames] = {}
+        try:
+            for _, base_f, cam_fs in jobs:
+                _wait(base_f, check)
+                for f in cam_fs:
+                    _wait(f, check)
+        except BaseException:
+            for _, base_f, cam_fs in jobs:
+                for f in (base_f, *cam_fs):
+                    if not f.cancel() and f.done() and f.exception() is None and f is not base_f:
+                        encoded = f.result()[0].encoded
+                        if encoded is not None:
+                            encoded[1].cancel()
+            raise
         for agent, base_f, cam_fs in jobs:
             rig = self.rig(agent)
             (lidar, gnss, imu, bev), t_base = base_f.result()
@@ -313,6 +345,15 @@ class SensorSuite:
         timing["rays"] = float(scene.timer.rays)
         timing["total"] = time.perf_counter() - t_start
         return SensorFrameSet(snapshot.tick, snapshot.t_ns, out, timing)
+
+
+def _wait(future: Future, check: Callable[[], None] | None) -> None:
+    """Wait until ``future`` is done, calling ``check()`` every ``CHECK_PERIOD_S`` meanwhile."""
+    if check is None:
+        wait([future])
+        return
+    while not wait([future], timeout=CHECK_PERIOD_S).done:
+        check()
 
 
 def rig_cam_outputs(rig: RigSpec, name: str) -> tuple[str, ...]:

@@ -136,9 +136,10 @@ def synthetic_snapshot(n_vehicles: int = 5, n_rsus: int = 5, n_drones: int = 5, 
 
 
 def world_snapshot(world: World, n_vehicles: int, n_drones: int, n_background: int, seed: int = 0,
-                   tick: int = 0) -> WorldSnapshot:
+                   tick: int = 0, speed_mps: float = 0.0) -> WorldSnapshot:
     """Actors and agents placed on a built world (benchmarks, pictures): vehicles on road polygons
-    along their long axis, RSUs at ``world.rsus``, drones 40-80 m above junctions."""
+    along their long axis, RSUs at ``world.rsus``, drones 40-80 m above junctions. Road users and
+    drones move forward at ``speed_mps`` (drones at half of it)."""
     import numpy as np
     from matplotlib.path import Path as MplPath
 
@@ -170,9 +171,11 @@ def world_snapshot(world: World, n_vehicles: int, n_drones: int, n_background: i
         cls = "car" if connected else classes[int(rng.integers(0, len(classes)))]
         aid = f"vehicle_{len(actors)}" if connected else None
         a = actor(track, cls, float(pos[0]), float(pos[1]), yaw, z_ground=road.z1_m, agent_id=aid)
+        v = (speed_mps * math.cos(math.radians(yaw)), speed_mps * math.sin(math.radians(yaw)), 0.0)
+        a = Actor(a.track_id, a.cls, a.center_m, a.size_m, a.rotation, v, a.agent_id)
         actors.append(a)
         if connected:
-            agents.append(AgentState(aid, "vehicle", (a.center_m[0], a.center_m[1], road.z1_m), a.rotation,
+            agents.append(AgentState(aid, "vehicle", (a.center_m[0], a.center_m[1], road.z1_m), a.rotation, v,
                                      track_id=track, specific_force_mps2=(0.2, 0.0, 9.81)))
         track += 1
     for r in world.rsus:
@@ -183,8 +186,9 @@ def world_snapshot(world: World, n_vehicles: int, n_drones: int, n_background: i
         z = 40.0 + 10.0 * (i % 5)
         yaw = rng.uniform(-math.pi, math.pi)
         q = quat_from_rpy(0.0, 0.0, yaw)
-        actors.append(Actor(track, "drone", (x, y, z), SIZES["drone"], q, (0.0, 0.0, 0.0), f"drone_{i}"))
-        agents.append(AgentState(f"drone_{i}", "drone", (x, y, z), q, track_id=track, gimbal_rotation=q))
+        v = (0.5 * speed_mps * math.cos(yaw), 0.5 * speed_mps * math.sin(yaw), 0.0)
+        actors.append(Actor(track, "drone", (x, y, z), SIZES["drone"], q, v, f"drone_{i}"))
+        agents.append(AgentState(f"drone_{i}", "drone", (x, y, z), q, v, track_id=track, gimbal_rotation=q))
         track += 1
     return WorldSnapshot(tick, tick * 200_000_000, tuple(actors), tuple(agents))
 

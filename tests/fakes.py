@@ -14,6 +14,7 @@ from typing import Any
 
 from cosim import protocol
 from cosim.errors import CosimError
+from cosim.workers import die_with_conductor
 from cosim.workers.base import serve
 
 
@@ -52,5 +53,6 @@ class FakeEngine:
 
 
 def fake_worker_main(role: str, connect: str, prefix: str, log_level: int) -> None:
+    die_with_conductor(role)
     logging.basicConfig(level=log_level)
     raise SystemExit(serve(role, connect, prefix, FakeEngine(role), spawned=True))

@@ -10,7 +10,7 @@ import pytest
 import yaml
 from cosim.exporters.labels import label_messages
 from cosim.exporters.mcap_writer import EpisodeWriter
-from cosim.exporters.sensor_messages import depth_mm, frame_messages
+from cosim.exporters.sensor_messages import depth_image, frame_messages
 from cosim.sensors import SensorSuite
 from cosim.sensors.rig import sensor_transforms
 from cosim.sensors.synthetic import synthetic_snapshot, synthetic_world
@@ -21,6 +21,7 @@ from cosim.io.validate import validate_episode
 from cosim.scenario.model import (
     AgentsSpec,
     CameraSpec,
+    CommSpec,
     HoverDrone,
     LidarSpec,
     RigSpec,
@@ -54,6 +55,7 @@ def rendered(tmp_path_factory):
             drone=_small(default_drone_rig()),
             bev_cell_m=1.0,
         ),
+        comm=CommSpec(enabled=False),  # sensors only: no link model writes /comm/links here
     )
     world = synthetic_world()
     suite = SensorSuite(sc, world)
@@ -91,13 +93,14 @@ def test_reader_returns_the_rendered_arrays(rendered):
             for agent_id, af in fs.agents.items():
                 if af.lidar is not None:
                     pc = tick.points(agent_id)
-                    assert np.array_equal(pc.xyz.astype(np.float32), af.lidar.points)
+                    assert np.max(np.abs(pc.xyz - af.lidar.points)) <= 2.0**-9 + 1e-6  # half a 1/256 m count
+                    assert pc.points["x"].dtype == np.float32 and pc.stored["x"].dtype == np.int16
                     assert np.array_equal(pc.points["instance_id"], af.lidar.instance_id)
                     assert np.array_equal(pc.points["class_id"], af.lidar.class_id)
                     assert np.array_equal(pc.points["ring"], af.lidar.ring)
                 for name, cam in af.cameras.items():
                     assert np.array_equal(tick.image(agent_id, name).array, cam.rgb)
-                    assert np.array_equal(tick.depth(agent_id, name).array, depth_mm(cam.depth))
+                    assert np.array_equal(tick.depth(agent_id, name).array, depth_image(cam.depth), equal_nan=True)
                     assert np.array_equal(tick.semantic(agent_id, name).array, cam.semantic)
                     assert np.array_equal(tick.instance(agent_id, name).array, cam.instance.astype(np.int32))
                     cal = tick.calibration(agent_id, name)

@@ -7,6 +7,7 @@ import json
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -70,21 +71,31 @@ def test_same_seed_same_labels_other_seed_different(tmp_path):
 
 
 def _start(tmp_path: Path) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "cosim.cli", "run", "scenarios/default.yaml", "--duration", "120", "--out",
+    """``cosim -v run`` of a long episode; its stderr goes to ``proc.err`` (a file), read with :func:`_stderr`."""
+    err = tempfile.TemporaryFile("w+")  # noqa: SIM115 (lives as long as the process; read by _stderr)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cosim.cli", "-v", "run", "scenarios/default.yaml", "--duration", "120", "--out",
          str(tmp_path), *FAST],
-        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        cwd=REPO, stdout=subprocess.DEVNULL, stderr=err, text=True,
     )
+    proc.err = err  # type: ignore[attr-defined]
+    return proc
 
 
-def _workers(proc: subprocess.Popen, timeout_s: float = 60) -> dict[str, psutil.Process]:
+def _stderr(proc: subprocess.Popen) -> str:
+    proc.err.seek(0)  # type: ignore[attr-defined]
+    return proc.err.read()  # type: ignore[attr-defined]
+
+
+def _workers(proc: subprocess.Popen, timeout_s: float = 120) -> dict[str, psutil.Process]:
+    """The two worker processes, once the episode's tick loop is running."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         found = {p.name(): p for p in psutil.Process(proc.pid).children(recursive=True)
                  if p.name() in ("cosim-traffic", "cosim-drones")}
-        if len(found) == 2:
+        if len(found) == 2 and "workers ready; stepping" in _stderr(proc):
             return found
-        assert proc.poll() is None, proc.communicate()
+        assert proc.poll() is None, _stderr(proc)
         time.sleep(0.05)
     raise AssertionError("workers did not start")
 
@@ -94,12 +105,13 @@ def test_sigkill_of_a_worker_stops_the_run_within_3_s_naming_it_and_the_tick(tmp
     proc = _start(tmp_path)
     try:
         workers = _workers(proc)
-        time.sleep(3.0)  # let the episode get going
+        time.sleep(1.0)  # a few ticks
         assert proc.poll() is None
         workers[f"cosim-{role}"].kill()
         t0 = time.monotonic()
-        _, err = proc.communicate(timeout=10)
+        proc.wait(timeout=10)
         elapsed = time.monotonic() - t0
+        err = _stderr(proc)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -118,9 +130,10 @@ def test_ctrl_c_stops_cleanly(tmp_path):
     proc = _start(tmp_path)
     try:
         workers = _workers(proc)
-        time.sleep(2.0)
+        time.sleep(1.0)
         proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=10)
+        proc.wait(timeout=10)
+        err = _stderr(proc)
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -472,7 +472,9 @@ def test_rsu_sensors_keep_the_static_world_and_cast_only_what_moves():
 
 
 def test_frame_messages_topics_and_round_trips():
-    from cosim.exporters.sensor_messages import POINT_DTYPE, frame_messages
+    from cosim.exporters.sensor_messages import frame_messages
+
+    from cosim.io.decode import decode_point_cloud, decode_raw_image
 
     cams = [CameraSpec(name="front", width=96, height=64, mount=Mount(xyz_m=(0, 0, 1.6)))]
     sc = _scenario(RigSpec(lidar=LidarSpec(horizontal_resolution_deg=2.0), cameras=cams, gnss=GnssSpec(),
@@ -491,17 +493,22 @@ def test_frame_messages_topics_and_round_trips():
     assert img.frame_id == "vehicle_0/front/optical"
     assert np.array_equal(np.asarray(Image.open(io.BytesIO(img.data))), cf.rgb)
     depth = msgs["/vehicle_0/front/depth"]
-    mm = np.frombuffer(depth.data, "<u2").reshape(depth.height, depth.width)
-    fin = np.isfinite(cf.depth) & (cf.depth < 65)
-    assert np.max(np.abs(mm[fin] / 1000.0 - cf.depth[fin])) <= 0.0005 + 1e-6
+    assert depth.encoding == "32FC1"
+    depth_m = decode_raw_image(depth).depth_m
+    fin = np.isfinite(cf.depth)
+    assert np.array_equal(np.isnan(depth_m), ~fin)
+    assert np.max(np.abs(depth_m[fin] - cf.depth[fin])) <= 2.0**-11
     inst = msgs["/vehicle_0/front/instance"]
     assert inst.encoding == "32SC1"
     assert np.array_equal(np.frombuffer(inst.data, "<i4").reshape(64, 96), cf.instance.astype(np.int32))
     pc = msgs["/vehicle_0/lidar"]
-    assert pc.frame_id == "vehicle_0/lidar" and [fl.name for fl in pc.fields][-1] == "instance_id"
-    rec = np.frombuffer(pc.data, POINT_DTYPE)
+    assert pc.frame_id == "vehicle_0/lidar"
+    assert [fl.name for fl in pc.fields][-3:] == ["instance_id", "t_offset_ns", "return"]
+    rec = decode_point_cloud(pc).points
     assert np.array_equal(rec["instance_id"], af.lidar.instance_id)
-    assert np.allclose(rec["x"], af.lidar.points[:, 0])
+    for k, name in enumerate("xyz"):
+        assert np.max(np.abs(rec[name] - af.lidar.points[:, k])) <= 2.0**-9 + 1e-6  # half a 1/256 m count
+    assert np.max(np.abs(rec["intensity"] - af.lidar.intensity)) <= 0.5 / 255 + 1e-6
     cal = msgs["/vehicle_0/front/calibration"]
     assert list(cal.K) == list(cf.K.ravel()) and len(cal.P) == 12
     schema_name, _schema, payload = msgs["/vehicle_0/imu"]

@@ -58,7 +58,7 @@ def test_truncated_file_is_reported_not_crashed(good, tmp_path, keep_fraction, c
     assert any("truncated" in p.message for p in found)
     assert main(["validate", str(cut)]) == 1
     assert "truncated" in capsys.readouterr().out
-    assert main(["info", str(cut)]) == 1  # runtime failure with a message, no traceback
+    assert main(["info", str(cut)]) == 2  # bad input (the file is not a readable episode): a message, no traceback
     assert "truncated or corrupt" in capsys.readouterr().err
 
 
@@ -183,7 +183,7 @@ def test_an_unknown_format_version_is_named(tmp_path, capsys):
     path = write_synthetic_episode(tmp_path / "v9.mcap", ticks=2, sensors=False, metadata={"format_version": "9.1"})
     found = _only(validate_episode(path), "metadata")
     assert "9.1 is not supported" in found[0].message
-    assert main(["info", str(path)]) == 1
+    assert main(["info", str(path)]) == 2  # a file this cosim cannot read is bad input
     assert "9.1" in capsys.readouterr().err
 
 

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from cosim.batch.sweep import Choice, Level, Sweep, SweepError, find_sweep, load_sweep
+from cosim.batch.sweep import MAX_EPISODES, Choice, Level, Sweep, SweepError, find_sweep, load_sweep
 from cosim.errors import ScenarioError
 from cosim.scenario.loader import YamlDoc, apply_override, find_scenario, load_with_extends, validate_doc
 
@@ -231,6 +231,9 @@ def episode_total(sweep: Sweep, nominal_duration_s: float, *, count: int | None 
         total = hours * 3600.0 * scale / nominal_duration_s
     else:
         total = math.prod(len(levels) for levels in sweep.all_axes().values()) * len(sweep.split) * scale
+    if not total <= MAX_EPISODES:  # also NaN and infinity
+        raise ValueError(f"{total:.6g} episodes cannot be planned: at most {MAX_EPISODES} per plan (split a larger "
+                         "data set into several sweeps)")
     return max(1, round(total))
 
 
@@ -246,12 +249,18 @@ def plan_sweep(
     cli_set: Sequence[str] = (),
 ) -> Plan:
     """Expand a sweep into its episodes (validating every episode's scenario)."""
-    if scale <= 0:
-        raise SweepError(f"scale must be > 0, got {scale}", source="--scale")
+    if not 0 < scale < math.inf:
+        raise SweepError(f"scale must be a finite number > 0, got {scale}", source="--scale")
     builder = _Builder(sweep_doc, source, Path(sweep_dir))
     common = _common_overrides(sweep, cli_set)
     _, nominal_s, _ = builder.build(sweep.default_base, ("base",), common, "the base scenario")
-    total = episode_total(sweep, nominal_s, count=count, hours=hours, scale=scale)
+    try:
+        total = episode_total(sweep, nominal_s, count=count, hours=hours, scale=scale)
+    except ValueError as exc:
+        if count is not None or hours is not None:
+            raise SweepError(str(exc), source="--count" if count is not None else "--hours") from None
+        what = "count" if sweep.count is not None else "hours" if sweep.hours is not None else "axes"
+        raise builder._error(str(exc), (what,)) from None
 
     axes = sweep.all_axes()
     names = list(axes)

@@ -13,6 +13,7 @@ from cosim.io.decode import (
     TransformTree,
     decode,
 )
+from cosim.io.deskew import deskew, deskew_tick
 from cosim.io.reader import Episode, RawMessage, Tick, TopicInfo, check_format_version, open_episode
 
 __all__ = [
@@ -32,5 +33,7 @@ __all__ = [
     "TransformTree",
     "check_format_version",
     "decode",
+    "deskew",
+    "deskew_tick",
     "open_episode",
 ]

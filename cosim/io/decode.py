@@ -26,14 +26,17 @@ from google.protobuf.message import Message as ProtoMessage
 
 from cosim.comm.message import decode_links
 from cosim.errors import FormatError
+from cosim.io.points import float_view
 
 # ----------------------------------------------------------------------------------- types
 
 
 @dataclass(frozen=True)
 class PointCloud:
-    """``foxglove.PointCloud``: ``points`` is a structured array (N,) with the message's fields
-    (``x``, ``y``, ``z`` [m] in ``frame_id``; ``intensity``, ``ring``, ``class_id``, ``instance_id``...).
+    """``foxglove.PointCloud``: ``points`` is a structured array (N,) with the message's fields, ``x``,
+    ``y``, ``z`` as float32 metres in ``frame_id`` and ``intensity`` as float32 in [0, 1] whatever the
+    stored types (:func:`cosim.io.points.float_view`); ``ring``, ``class_id``, ``instance_id``... as
+    stored. ``stored`` is the record array exactly as in the message.
     """
 
     t_ns: int
@@ -41,6 +44,7 @@ class PointCloud:
     points: np.ndarray
     pose_translation_m: np.ndarray  # (3,) float64, pose of the points in frame_id (normally zero)
     pose_rotation: np.ndarray  # (4,) float64 (x, y, z, w)
+    stored: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def xyz(self) -> np.ndarray:
@@ -60,8 +64,8 @@ class Image:
     """A raw or compressed image decoded to ``array``: (H, W) for one channel, (H, W, C) otherwise.
 
     ``encoding`` is the RawImage encoding (``rgb8``, ``mono16``, ``16UC1``, ``32FC1``...) or the
-    CompressedImage format (``png``, ``jpeg``); depth images are uint16 millimetres (16UC1) or float32
-    metres (32FC1) as written by the sensor exporter.
+    CompressedImage format (``png``, ``jpeg``); depth images are float32 metres (``32FC1``, NaN = no
+    hit) as written since format 1.1, uint16 millimetres (``16UC1``) in 1.0 files: use ``depth_m``.
     """
 
     t_ns: int
@@ -385,13 +389,14 @@ def decode_point_cloud(msg: Any) -> PointCloud:
     dtype = packed_dtype(msg.fields, msg.point_stride, what)
     if msg.point_stride == 0 or len(msg.data) % msg.point_stride:
         raise FormatError(f"{what}: {len(msg.data)} data bytes is not a multiple of point_stride {msg.point_stride}")
-    points = np.frombuffer(msg.data, dtype=dtype)
+    stored = np.frombuffer(msg.data, dtype=dtype)
     return PointCloud(
         _ns(msg.timestamp),
         msg.frame_id,
-        points,
+        float_view(stored),
         _vec(msg.pose.position),
         _quat(msg.pose.orientation) if msg.HasField("pose") else np.array([0.0, 0, 0, 1]),
+        stored,
     )
 
 

@@ -48,7 +48,7 @@ TOPICS: tuple[TopicSpec, ...] = (
         "/<agent>/lidar",
         ("foxglove.PointCloud",),
         "<agent>/lidar",
-        "x, y, z [m], intensity, ring, class_id, instance_id",
+        "x, y, z (1/256 m counts or float32 m), intensity, ring, class_id, instance_id, t_offset_ns, return",
     ),
     TopicSpec(
         "/<agent>/<cam>/image",
@@ -143,7 +143,9 @@ def expected_topics(scenario: Any, agents: list[str]) -> set[str]:
             out.add(f"/{agent}/gnss")
         if rig.imu is not None:
             out.add(f"/{agent}/imu")
-        out.update({f"/{agent}/bev", f"/{agent}/visibility"})
+        out.add(f"/{agent}/visibility")
+        if scenario.sensors.bev:
+            out.add(f"/{agent}/bev")
     return out
 
 

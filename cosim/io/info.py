@@ -6,7 +6,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from cosim.io.reader import open_episode
+from cosim.io.format import topic_spec
+from cosim.io.reader import Episode, open_episode
+
+#: Topic pattern (docs/episode_format.md section 3) -> family shown by ``cosim info``.
+FAMILIES: dict[str, str] = {
+    "/tf": "tf", "/labels/objects": "labels", "/labels/boxes": "labels", "/<agent>/lidar": "lidar",
+    "/<agent>/<cam>/image": "camera rgb", "/<agent>/<cam>/depth": "camera depth",
+    "/<agent>/<cam>/semantic": "camera semantic", "/<agent>/<cam>/instance": "camera instance",
+    "/<agent>/<cam>/calibration": "camera calibration", "/<agent>/gnss": "gnss", "/<agent>/imu": "imu",
+    "/<agent>/bev": "bev", "/<agent>/visibility": "visibility",
+}
+BLOCK_BYTES = 4 * 1024 * 1024  # [bytes] the writer's chunk size: families are compressed in blocks of it
 
 
 @dataclass(frozen=True)
@@ -15,6 +26,19 @@ class TopicLine:
     schema_name: str
     messages: int
     rate_hz: float
+
+
+@dataclass(frozen=True)
+class FamilyBytes:
+    """Bytes of one topic family: ``raw_bytes`` is the message payloads; ``stored_bytes`` the same payloads
+    compressed as the file's chunks are (its compression, 4 MiB blocks) but without the other families,
+    an estimate of the family's share of the file. ``per_agent_frame`` = stored bytes / (agents x ticks)."""
+
+    family: str
+    messages: int
+    raw_bytes: int
+    stored_bytes: int
+    per_agent_frame: float
 
 
 @dataclass(frozen=True)
@@ -38,16 +62,67 @@ class EpisodeInfo:
     topics: list[TopicLine]
     attachments: list[str]
     geo_origin: list[float]
+    families: list[FamilyBytes]
 
     def as_dict(self) -> dict[str, Any]:
         d = dict(self.__dict__)
         d["path"] = str(self.path)
         d["topics"] = [t.__dict__ for t in self.topics]
+        d["families"] = [f.__dict__ for f in self.families]
         return d
 
 
-def episode_info(path: str | Path) -> EpisodeInfo:
-    """Summary of one episode; raises InputError / FormatError like :func:`open_episode`."""
+def topic_family(topic: str) -> str:
+    found = topic_spec(topic)
+    return FAMILIES.get(found[0].pattern, "other") if found else "other"
+
+
+def _compressor(name: str):
+    if name == "zstd":
+        import zstandard
+
+        return zstandard.compress
+    if name == "lz4":
+        import lz4.frame
+
+        return lz4.frame.compress
+    return bytes
+
+
+def family_bytes(ep: Episode) -> list[FamilyBytes]:
+    """Bytes per topic family (see :class:`FamilyBytes`), largest first; reads every message once."""
+    compress = _compressor(ep.chunk_compression)
+    raw: dict[str, int] = {}
+    count: dict[str, int] = {}
+    stored: dict[str, int] = {}
+    pending: dict[str, list[bytes]] = {}
+    pending_n: dict[str, int] = {}
+    family_of: dict[str, str] = {t: topic_family(t) for t in ep.topics}
+
+    def flush(fam: str) -> None:
+        if pending.get(fam):
+            stored[fam] = stored.get(fam, 0) + len(compress(b"".join(pending[fam])))
+        pending[fam], pending_n[fam] = [], 0
+
+    for m in ep.messages():
+        fam = family_of[m.topic]
+        n = len(m.data)
+        raw[fam] = raw.get(fam, 0) + n
+        count[fam] = count.get(fam, 0) + 1
+        pending.setdefault(fam, []).append(m.data)
+        pending_n[fam] = pending_n.get(fam, 0) + n
+        if pending_n[fam] >= BLOCK_BYTES:
+            flush(fam)
+    for fam in list(pending):
+        flush(fam)
+    frames = max(1, len(ep.agents)) * max(1, ep.n_ticks)
+    out = [FamilyBytes(f, count[f], raw[f], stored.get(f, 0), stored.get(f, 0) / frames) for f in raw]
+    return sorted(out, key=lambda f: (-f.stored_bytes, f.family))
+
+
+def episode_info(path: str | Path, *, bytes_per_family: bool = True) -> EpisodeInfo:
+    """Summary of one episode; raises InputError / FormatError like :func:`open_episode`.
+    ``bytes_per_family`` reads every message to count :class:`FamilyBytes` (off: summary only)."""
     path = Path(path)
     with open_episode(path) as ep:
         m = ep.metadata
@@ -76,6 +151,7 @@ def episode_info(path: str | Path) -> EpisodeInfo:
             topics=topics,
             attachments=ep.attachments,
             geo_origin=list(m.get("geo_origin") or []),
+            families=family_bytes(ep) if bytes_per_family else [],
         )
 
 
@@ -111,4 +187,13 @@ def format_info(info: EpisodeInfo) -> str:
     schema_w = max((len(t.schema_name) for t in info.topics), default=10)
     for t in info.topics:
         lines.append(f"  {t.topic:<{width}}  {t.schema_name:<{schema_w}}  {t.messages:>6} msgs  {t.rate_hz:6.2f} Hz")
+    if info.families:
+        total = sum(f.stored_bytes for f in info.families) or 1
+        lines.append("bytes by topic family (payloads; stored = compressed alone as the file's chunks are)")
+        lines.append(f"  {'family':<18}  {'messages':>8}  {'payload':>10}  {'stored':>10}  {'share':>6}  "
+                     f"{'per agent-frame':>15}")
+        for f in info.families:
+            lines.append(f"  {f.family:<18}  {f.messages:>8}  {human_size(f.raw_bytes):>10}  "
+                         f"{human_size(f.stored_bytes):>10}  {100 * f.stored_bytes / total:5.1f}%  "
+                         f"{human_size(f.per_agent_frame):>15}")
     return "\n".join(lines)

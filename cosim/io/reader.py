@@ -278,6 +278,12 @@ class Episode:
         return st.message_end_time if st and st.message_count else 0
 
     @property
+    def chunk_compression(self) -> str:
+        """Compression of the file's chunks (``zstd``, ``lz4`` or ``""``), from the chunk index."""
+        chunks = self._summary.chunk_indexes
+        return chunks[0].compression if chunks else ""
+
+    @property
     def message_count(self) -> int:
         st = self._summary.statistics
         return st.message_count if st else 0

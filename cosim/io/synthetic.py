@@ -13,6 +13,7 @@ import json
 import math
 from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -110,37 +111,15 @@ def _rig(agent: str, kind: str) -> list[tuple[str, str, tuple[float, ...], tuple
 
 
 def _points(tick: int, n: int, live: list[int]) -> PointCloud:
+    """A 10 m ring of ``n`` points 1.9 m below the sensor, stored as the sensor exporter stores sweeps."""
+    from cosim.exporters.sensor_messages import lidar_message
+
     a = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    dt = np.dtype(
-        [
-            ("x", "<f4"),
-            ("y", "<f4"),
-            ("z", "<f4"),
-            ("intensity", "<f4"),
-            ("ring", "<u2"),
-            ("class_id", "<u1"),
-            ("pad", "<u1"),
-            ("instance_id", "<u4"),
-        ]
-    )
-    pts = np.zeros(n, dt)
-    pts["x"], pts["y"], pts["z"] = 10 * np.cos(a), 10 * np.sin(a), -1.9
-    pts["intensity"] = np.linspace(0, 1, n)
-    pts["ring"] = np.arange(n) % 16
-    pts["class_id"] = 1
-    pts["instance_id"] = np.where(np.arange(n) < n // 4, live[tick % len(live)], 0)
-    types = {"<f4": 7, "<u2": 3, "|u1": 1, "<u4": 5}
-    fields = [
-        PackedElementField(name=name, offset=dt.fields[name][1], type=types[dt.fields[name][0].str])
-        for name in dt.names
-        if name != "pad"
-    ]
-    return PointCloud(
-        pose=Pose(position=Vector3(), orientation=Quaternion(w=1.0)),
-        point_stride=dt.itemsize,
-        fields=fields,
-        data=pts.tobytes(),
-    )
+    xyz = np.stack([10 * np.cos(a), 10 * np.sin(a), np.full(n, -1.9)], axis=1)
+    frame = SimpleNamespace(points=xyz, intensity=np.linspace(0, 1, n), ring=np.arange(n) % 16,
+                            class_id=np.ones(n, np.uint8),
+                            instance_id=np.where(np.arange(n) < n // 4, live[tick % len(live)], 0))
+    return lidar_message("", frame, 0)  # the caller sets frame_id and timestamp
 
 
 def _png(arr: np.ndarray) -> bytes:
@@ -172,7 +151,7 @@ def sensor_messages(snapshot: WorldSnapshot, width: int, height: int) -> list[tu
                     CompressedImage(timestamp=ts, frame_id=frame, format="png", data=_png(np.ascontiguousarray(rgb))),
                 )
             )
-            depth = np.full((height, width), 12_345, np.uint16)
+            depth = np.full((height, width), 12.345, np.float32)
             out.append(
                 (
                     f"/{a}/{cam}/depth",
@@ -181,8 +160,8 @@ def sensor_messages(snapshot: WorldSnapshot, width: int, height: int) -> list[tu
                         frame_id=frame,
                         width=width,
                         height=height,
-                        encoding="16UC1",
-                        step=2 * width,
+                        encoding="32FC1",
+                        step=4 * width,
                         data=depth.tobytes(),
                     ),
                 )

@@ -17,14 +17,18 @@ file yields a problem report, never an exception. Checks:
 - transforms: ``/tf`` forms one tree rooted at ``map`` (one parent per frame, no cycle), every
   agent has ``<agent>/base_link`` and every message's frame id is in the tree;
 - calibration: every image has a calibration on the same tick, same frame, same size;
+- sensors: LiDAR point records have the fields and types of section 3.4, depth images the encoding
+  of section 3.5 (and, with pixels, only NaN or finite distances >= 0);
 - comm: ``/comm/links`` decodes (columns of one length, known link types and LOS states, finite
   numbers, PER and delivery in [0, 1]) and names only the metadata's agents.
 """
+
 
 from __future__ import annotations
 
 import json
 import logging
+import math
 import struct
 import zlib
 from collections import defaultdict
@@ -38,6 +42,7 @@ from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
 from mcap.opcode import Opcode
 from mcap.records import (
     Attachment,
+    AttachmentIndex,
     Channel,
     Chunk,
     ChunkIndex,
@@ -47,6 +52,7 @@ from mcap.records import (
     Message,
     MessageIndex,
     Metadata,
+    MetadataIndex,
     Schema,
     Statistics,
 )
@@ -65,11 +71,15 @@ from cosim.io.format import (
     expected_topics,
     topic_spec,
 )
+from cosim.io.points import layout_problems
 from cosim.io.reader import JSON_METADATA, check_format_version, parse_metadata
 
 log = logging.getLogger(__name__)
 
 MAGIC_BYTES = 8  # the MCAP magic before the first record
+#: Depth encodings by format version (None: any other 1.x).
+DEPTH_ENCODINGS: dict[str | None, tuple[str, ...]] = {"1.0": ("16UC1",), None: ("32FC1",)}
+
 #: Problems kept per (check, topic); the rest are counted.
 MAX_PER_KIND = 8
 
@@ -176,6 +186,7 @@ class _Validator:
         self.chunk_indexes: list[ChunkIndex] = []
         self.chunk_channels: dict[int, set[int]] = {}  # chunk offset -> channels with messages in it
         self.message_indexes: dict[int, int] = {}  # file offset of a message index -> its channel
+        self.records_at: dict[int, tuple[str, str, int]] = {}  # attachments, metadata: offset -> kind, name, length
 
     # -- reporting --------------------------------------------------------------------------------
 
@@ -224,7 +235,13 @@ class _Validator:
                     elif isinstance(record, Attachment):
                         last_chunk = None
                         self.check_attachment_crc(raw, start, offset_hint, record.name)
+                        self.records_at[start] = ("attachment", record.name, offset_hint - start)
                         self.on_record(record)
+                    elif isinstance(record, Metadata):
+                        self.records_at[start] = ("metadata", record.name, offset_hint - start)
+                        self.on_record(record)
+                    elif isinstance(record, AttachmentIndex | MetadataIndex):
+                        self.check_record_index(record)
                     else:
                         last_chunk = None
                         self.on_record(record)
@@ -273,6 +290,15 @@ class _Validator:
                 f"({len(index.records)} entries, {len(actual)} messages)",
                 topic=ch.topic if ch else f"channel {index.channel_id}",
             )
+
+    def check_record_index(self, index: AttachmentIndex | MetadataIndex) -> None:
+        """A summary's attachment or metadata index must point at that record in the data section
+        (readers fetch attachments and metadata through it)."""
+        kind = "attachment" if isinstance(index, AttachmentIndex) else "metadata"
+        found = self.records_at.get(index.offset)
+        if found != (kind, index.name, index.length):
+            self.problem("structure", f"{kind} index for {index.name!r} points at byte {index.offset} "
+                                      f"(length {index.length}), where no such record is (corrupt)")
 
     def check_attachment_crc(self, raw: Any, start: int, end: int, name: str) -> None:
         """MCAP attachments carry a CRC over their fields that readers do not check; check it here."""
@@ -523,6 +549,9 @@ class _Validator:
         parents: dict[str, list[str]] = defaultdict(list)
         for t in tree.transforms:
             parents[t.child].append(t.parent)
+            if not (np.isfinite(t.translation_m).all() and np.isfinite(t.rotation).all()):
+                self.problem("transforms", f"transform {t.parent} -> {t.child} is not finite: translation "
+                                           f"{t.translation_m.tolist()}, rotation {t.rotation.tolist()}", tick, "/tf")
         for child, ps in parents.items():
             if len(ps) > 1:
                 self.problem("transforms", f"frame {child!r} has {len(ps)} parents: {', '.join(ps)}", tick, "/tf")
@@ -577,6 +606,8 @@ class _Validator:
         except (KeyError, TypeError, ValueError) as exc:
             self.problem("labels", f"object without a usable track_id/class ({exc})", tick, "/labels/objects")
             return None
+        for where, value in _non_finite(objs, "")[:3]:
+            self.problem("labels", f"{where[1:]} is not finite ({value})", tick, "/labels/objects")
         live = set(ids)
         if len(live) != len(ids):
             dupes = sorted({i for i in ids if ids.count(i) > 1})
@@ -642,6 +673,8 @@ class _Validator:
             return
         pattern = found[0].pattern
         refs: set[int] = set()
+        if pattern == "/<agent>/<cam>/depth":
+            self.check_depth(tick, topic, value)
         if pattern == "/<agent>/lidar":
             refs = self.point_tracks(tick, topic, value)
         elif pattern == "/<agent>/<cam>/instance" and self.pixels:
@@ -683,10 +716,36 @@ class _Validator:
         except FormatError as exc:
             self.problem("structure", str(exc), tick, topic)
             return set()
+        for p in layout_problems(pc.stored.dtype):
+            self.problem("sensors", f"point record: {p} (section 3.4)", tick, topic)
         if "instance_id" not in pc.fields:
             return set()
         ids = np.unique(pc.points["instance_id"])
         return {int(i) for i in ids if 0 < i < STATIC_INSTANCE_MIN}
+
+    def check_depth(self, tick: int | None, topic: str, msg: Any) -> None:
+        """Depth is ``32FC1`` metres (``16UC1`` millimetres in format 1.0 files): with pixels, every value
+        is NaN (no hit) or a finite distance >= 0."""
+        encoding = getattr(msg, "encoding", None)
+        allowed = DEPTH_ENCODINGS.get(self.format_minor(), DEPTH_ENCODINGS[None])
+        if encoding not in allowed:
+            self.problem("sensors", f"depth encoding {encoding!r}, expected {' or '.join(allowed)} (section 3.5)",
+                         tick, topic)
+            return
+        if not self.pixels or encoding != "32FC1":
+            return
+        try:
+            a = PROTO_DECODERS["foxglove.RawImage"](msg).array
+        except FormatError as exc:
+            self.problem("structure", str(exc), tick, topic)
+            return
+        bad = int(np.count_nonzero(~(np.isnan(a) | (np.isfinite(a) & (a >= 0)))))
+        if bad:
+            self.problem("sensors", f"{bad} depth pixels are infinite or negative (no hit is NaN)", tick, topic)
+
+    def format_minor(self) -> str | None:
+        version = str((self.meta or {}).get("format_version", ""))
+        return version if version in DEPTH_ENCODINGS else None
 
     def pixel_tracks(self, tick: int | None, topic: str, msg: Any) -> set[int]:
         name = msg.DESCRIPTOR.full_name
@@ -831,6 +890,17 @@ class _Validator:
                     topic=topic,
                 )
         r.ticks = len(seen_ticks)
+
+
+def _non_finite(value: Any, path: str) -> list[tuple[str, float]]:
+    """(dotted path, value) of every NaN or infinity in decoded JSON (JSON parsers accept NaN and Infinity)."""
+    if isinstance(value, float):
+        return [] if math.isfinite(value) else [(path, value)]
+    if isinstance(value, dict):
+        return [hit for k, v in value.items() for hit in _non_finite(v, f"{path}.{k}")]
+    if isinstance(value, list):
+        return [hit for i, v in enumerate(value) for hit in _non_finite(v, f"{path}.{i}")]
+    return []
 
 
 def _chunk_records(chunk: Chunk) -> list[tuple[int, Any]]:

@@ -7,6 +7,7 @@ The result is one frozen :class:`~cosim.scenario.model.Scenario`. Every problem 
 from __future__ import annotations
 
 import copy
+import datetime
 import difflib
 import json
 import os
@@ -19,7 +20,7 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from cosim.errors import ScenarioError
-from cosim.scenario.model import EnvironmentSpec, MapSpec, RuleError, Scenario
+from cosim.scenario.model import EnvironmentSpec, MapSpec, RuleError, Scenario, complete_rigs, merge_fields
 
 Key = tuple[str | int, ...]
 
@@ -90,46 +91,123 @@ def _construct(node: yaml.Node, source: str, path: Key, marks: dict[Key, tuple[s
         return out
     if isinstance(node, yaml.SequenceNode):
         return [_construct(v, source, (*path, i), marks) for i, v in enumerate(node.value)]
-    return yaml.SafeLoader(" ").construct_object(node, deep=True)
+    line = node.start_mark.line + 1
+    try:
+        value = yaml.SafeLoader(" ").construct_object(node, deep=True)
+    except yaml.MarkedYAMLError as exc:
+        raise ScenarioError(f"invalid value: {exc.problem}", path=dotted(path), line=line, source=source) from None
+    except (ValueError, TypeError, OverflowError) as exc:  # e.g. a tagged value such as !!float abc, a 13th month
+        raise ScenarioError(f"invalid value {node.value!r}: {exc}", path=dotted(path), line=line,
+                            source=source) from None
+    if isinstance(value, datetime.date):  # YAML reads 2024-01-02 as a date: keep the text, no field is a date
+        return node.value
+    if not isinstance(value, str | int | float | bool | None):
+        raise ScenarioError(f"unsupported value of type {type(value).__name__} (tag {node.tag})", path=dotted(path),
+                            line=line, source=source)
+    return value
 
 
 def dotted(path: Iterable[str | int]) -> str:
     return ".".join(str(p) for p in path)
 
 
+#: Larger YAML files are refused unread (a scenario or sweep is a few kB; this catches a wrong file).
+MAX_YAML_BYTES = 4 * 1024 * 1024
+
+
+#: Deepest ``[``/``{`` nesting read (PyYAML's scanner takes time quadratic in it; scenarios need 5).
+MAX_FLOW_DEPTH = 100
+MAX_INDENT = 400  # [columns] of leading spaces, the same bound for block nesting
+
+
+def _deeper_than(text: str, limit: int) -> int | None:
+    """The 1-based line where flow brackets nest deeper than ``limit``, else None (quotes and comments skipped)."""
+    depth, line, quote = 0, 1, ""
+    prev = "\n"
+    i, n = 0, len(text)
+    while i < n:
+        c = text[i]
+        if c == "\n":
+            line += 1
+        if quote:
+            if c == "\\" and quote == '"':
+                i += 1
+            elif c == quote:
+                quote = ""
+        elif c in "'\"" and (prev in " \t\n[{,:" or depth):
+            quote = c
+        elif c == "#" and prev in " \t\n":
+            j = text.find("\n", i)
+            i = n if j < 0 else j
+            continue
+        elif c in "[{":
+            depth += 1
+            if depth > limit:
+                return line
+        elif c in "]}" and depth:
+            depth -= 1
+        prev = c
+        i += 1
+    return None
+
+
 def parse_yaml(path: Path) -> YamlDoc:
+    """Parse a YAML mapping keeping line marks; every problem (unreadable, binary, control characters,
+    invalid YAML, too deep) is one :class:`ScenarioError` naming the file and, where known, the line."""
     source = str(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        if path.stat().st_size > MAX_YAML_BYTES:
+            raise ScenarioError(f"file is larger than {MAX_YAML_BYTES // (1024 * 1024)} MiB: not a scenario",
+                                source=source)
+        raw = path.read_bytes()
     except FileNotFoundError:
         raise ScenarioError(f"file not found: {path}", source=source) from None
     except OSError as exc:
         raise ScenarioError(f"cannot read {path}: {exc.strerror}", source=source) from None
     try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise ScenarioError(f"not a text file: byte {exc.start} is not UTF-8 (0x{raw[exc.start]:02x})", line=line,
+                            source=source) from None
+    too_deep = _deeper_than(text, MAX_FLOW_DEPTH)
+    if too_deep is not None:
+        raise ScenarioError(f"invalid YAML: brackets nested more than {MAX_FLOW_DEPTH} levels deep", line=too_deep,
+                            source=source)
+    for number, row in enumerate(text.splitlines(), 1):
+        if len(row) - len(row.lstrip(" ")) > MAX_INDENT:
+            raise ScenarioError(f"invalid YAML: indented more than {MAX_INDENT} columns (nested too deeply)",
+                                line=number, source=source)
+    try:
         node = yaml.compose(text, Loader=_LineLoader)
+        if node is None:
+            raise ScenarioError("the file is empty", source=source)
+        if not isinstance(node, yaml.MappingNode):
+            raise ScenarioError("a scenario must be a YAML mapping", line=node.start_mark.line + 1, source=source)
+        marks: dict[Key, tuple[str, int]] = {}
+        data = _construct(node, source, (), marks)
+    except yaml.reader.ReaderError as exc:  # a NUL or another control character
+        line = text[: exc.position].count("\n") + 1
+        raise ScenarioError(f"invalid YAML: control character U+{int(exc.character):04X} is not allowed in "
+                            "a YAML file", line=line, source=source) from None
     except yaml.MarkedYAMLError as exc:
         line = exc.problem_mark.line + 1 if exc.problem_mark else None
         raise ScenarioError(f"invalid YAML: {exc.problem}", line=line, source=source) from None
-    if node is None:
-        raise ScenarioError("the file is empty", source=source)
-    if not isinstance(node, yaml.MappingNode):
-        raise ScenarioError("a scenario must be a YAML mapping", line=node.start_mark.line + 1, source=source)
-    marks: dict[Key, tuple[str, int]] = {}
-    data = _construct(node, source, (), marks)
+    except yaml.YAMLError as exc:
+        raise ScenarioError(f"invalid YAML: {exc}", source=source) from None
+    except RecursionError:
+        raise ScenarioError("invalid YAML: nested too deeply", source=source) from None
     return YamlDoc(data, marks)
 
 
-def _merge(base: Any, over: Any) -> Any:
-    """Deep-merge mappings; anything else in ``over`` replaces ``base``."""
-    if isinstance(base, dict) and isinstance(over, dict):
-        out = dict(base)
-        for k, v in over.items():
-            out[k] = _merge(base[k], v) if k in base else v
-        return out
-    return over
+def load_with_extends(path: Path) -> YamlDoc:
+    """Parse a scenario file with its ``extends:`` chain merged in, rigs completed (:func:`complete_rigs`)."""
+    doc = _load_with_extends(path, ())
+    doc.data["sensors"] = complete_rigs(doc.data.get("sensors", {}))
+    return doc
 
 
-def load_with_extends(path: Path, seen: tuple[Path, ...] = ()) -> YamlDoc:
+def _load_with_extends(path: Path, seen: tuple[Path, ...]) -> YamlDoc:
     path = path.resolve()
     if path in seen:
         chain = " -> ".join(str(p) for p in (*seen, path))
@@ -141,27 +219,44 @@ def load_with_extends(path: Path, seen: tuple[Path, ...] = ()) -> YamlDoc:
     if not isinstance(parent, str):
         src, line = doc.marks[("extends",)]
         raise ScenarioError("extends must be a path to a scenario file", path="extends", line=line, source=src)
-    base_path = (path.parent / parent).resolve()
-    if not base_path.is_file():
-        src, line = doc.marks[("extends",)]
+    src, line = doc.marks[("extends",)]
+    try:
+        base_path = (path.parent / parent).resolve()
+        found = base_path.is_file()
+    except (OSError, ValueError) as exc:  # a name too long for the file system, a NUL in it
+        shown = parent if len(parent) <= 80 else f"{parent[:60]}... ({len(parent)} characters)"
+        raise ScenarioError(f"cannot open the base scenario {shown!r}: {getattr(exc, 'strerror', None) or exc}",
+                            path="extends", line=line, source=src) from None
+    if not found:
         raise ScenarioError(f"base scenario not found: {base_path}", path="extends", line=line, source=src)
-    base = load_with_extends(base_path, (*seen, path))
+    base = _load_with_extends(base_path, (*seen, path))
     marks = dict(base.marks)
     marks.update(doc.marks)
-    return YamlDoc(_merge(base.data, doc.data), marks)
+    return YamlDoc(merge_fields(base.data, doc.data), marks)
 
 
 def apply_override(doc: YamlDoc, assignment: str) -> None:
     """Apply one ``a.b.0.c=value`` override; the value is parsed as YAML (``3``, ``true``, ``[1, 2]``)."""
     key, sep, raw = assignment.partition("=")
-    source = f"--set {assignment}"
+    source = f"--set {_printable(assignment)}"
     if not sep or not key.strip():
         raise ScenarioError("expected KEY=VALUE, for example --set environment.weather=foggy", source=source)
-    try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
-    except yaml.YAMLError as exc:
-        raise ScenarioError(f"value is not valid YAML: {exc}", path=key, source=source) from None
     parts: list[str | int] = [int(p) if p.isdigit() else p for p in key.strip().split(".")]
+    if _deeper_than(raw, MAX_FLOW_DEPTH) is not None:
+        raise ScenarioError(f"value is not valid YAML: brackets nested more than {MAX_FLOW_DEPTH} levels deep",
+                            path=_printable(key), source=source)
+    try:
+        node = yaml.compose(raw, Loader=_LineLoader) if raw.strip() else None
+        value = _construct(node, source, tuple(parts), {}) if node is not None else None if raw.strip() else ""
+    except yaml.reader.ReaderError as exc:
+        raise ScenarioError(f"value is not valid YAML: control character U+{int(exc.character):04X} is not allowed",
+                            path=_printable(key), source=source) from None
+    except yaml.MarkedYAMLError as exc:
+        raise ScenarioError(f"value is not valid YAML: {exc.problem}", path=_printable(key), source=source) from None
+    except yaml.YAMLError as exc:
+        raise ScenarioError(f"value is not valid YAML: {exc}", path=_printable(key), source=source) from None
+    except RecursionError:
+        raise ScenarioError("value is nested too deeply", path=_printable(key), source=source) from None
     if doc.before_overrides is None:
         doc.before_overrides = copy.deepcopy(doc.data)
     node: Any = doc.data
@@ -187,6 +282,12 @@ def apply_override(doc: YamlDoc, assignment: str) -> None:
     for k in [k for k in doc.marks if k[: len(parts)] == tuple(parts)]:
         del doc.marks[k]
     doc.marks[tuple(parts)] = (source, None)  # type: ignore[assignment]
+
+
+def _printable(text: str, limit: int = 120) -> str:
+    """``text`` for an error message: control characters escaped, long text shortened."""
+    shown = text if text.isprintable() else text.encode("unicode_escape").decode("ascii")
+    return shown if len(shown) <= limit else f"{shown[: limit - 20]}... ({len(text)} characters)"
 
 
 _UNION_TAGS = ("hover", "patrol", "escort", "breakdown", "accident", "lane_closure", "construction_zone", "road_block")
@@ -304,12 +405,12 @@ def located_error(
 def find_yaml(name_or_path: str | Path, dirs: Iterable[Path]) -> Path | None:
     """A file path as given, else ``NAME`` or ``NAME.yaml`` in the first of ``dirs`` that has it."""
     p = Path(name_or_path)
-    if p.is_file():
-        return p
-    for d in dirs:
-        for cand in (d / p, d / f"{p}.yaml"):
+    for cand in (p, *(c for d in dirs for c in (d / p, d / f"{p}.yaml"))):
+        try:
             if cand.is_file():
                 return cand
+        except (OSError, ValueError):  # a name too long for the file system, a NUL in it: not a file
+            continue
     return None
 
 

@@ -6,12 +6,15 @@ Defaults reproduce the AirV2X-Perception setting (paper Table 2, docs/convention
 
 from __future__ import annotations
 
+import re
 from fractions import Fraction
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 TICK_NS_PER_S = 1_000_000_000
+#: What ``output.name`` may be: a file stem that cannot leave the output folder or hide the file.
+FILE_STEM_PATTERN = r"[A-Za-z0-9][A-Za-z0-9_.+=-]{0,199}"
 
 ObjectClass = Literal["car", "van", "truck", "bus", "motorcycle", "bicycle"]
 Weather = Literal["clear", "cloudy", "foggy", "rainy"]
@@ -29,9 +32,10 @@ class RuleError(ValueError):
 
 
 class Model(BaseModel):
-    """Base: immutable, no unknown keys, validated on assignment-free construction only."""
+    """Base: immutable, no unknown keys, no NaN or infinity in any number, validated on assignment-free
+    construction only."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid", validate_default=True)
+    model_config = ConfigDict(frozen=True, extra="forbid", validate_default=True, allow_inf_nan=False)
 
 
 def _unique(names: list[str], rule: str) -> None:
@@ -201,11 +205,12 @@ class AgentsSpec(Model):
             if isinstance(d, EscortDrone):
                 n = int(d.target.split("_")[1])
                 if n >= self.vehicles.count:
-                    raise RuleError(
-                        f"drones.{i}.target",
-                        f"escort target {d.target!r} does not exist: the scenario has "
-                        f"{self.vehicles.count} connected vehicles (vehicle_0..vehicle_{self.vehicles.count - 1})"
-                    )
+                    have = (f"{self.vehicles.count} connected vehicles (vehicle_0..vehicle_{self.vehicles.count - 1})"
+                            if self.vehicles.count > 1 else
+                            "1 connected vehicle (vehicle_0)" if self.vehicles.count == 1 else
+                            "no connected vehicles (agents.vehicles.count is 0)")
+                    raise RuleError(f"drones.{i}.target", f"escort target {d.target!r} does not exist: the scenario "
+                                                          f"has {have}")
         return self
 
 
@@ -220,14 +225,25 @@ class Mount(Model):
 
 
 class LidarSpec(Model):
+    """A LiDAR (docs/episode_format.md 3.4). ``pattern`` names a scan pattern of the registry in
+    ``cosim.sensors.lidar``: ``spinning`` (``channels`` rings from ``lower_fov_deg`` to ``upper_fov_deg``,
+    ``horizontal_resolution_deg`` apart, one sweep per 1/``rotation_hz``) or ``rosette`` (a Livox-style
+    non-repetitive pattern: ``point_rate_hz`` points per second over a circular ``rosette_fov_deg`` about
+    the sensor's +x; one frame per 1/``rotation_hz``)."""
+
+    pattern: Literal["spinning", "rosette"] = "spinning"
     channels: int = Field(64, ge=1, le=256)
     upper_fov_deg: float = 10.0
     lower_fov_deg: float = -38.0
     horizontal_resolution_deg: float = Field(0.35, gt=0.01, le=10)
-    rotation_hz: float = Field(20.0, gt=0)
+    rotation_hz: float = Field(20.0, gt=0)  # sweeps (spinning) or frames (rosette) per second
+    point_rate_hz: float = Field(100_000.0, gt=0, le=5_000_000)  # rosette: points per second
+    rosette_fov_deg: float = Field(70.4, gt=1, lt=180)  # rosette: circular field of view (full angle)
     range_m: float = Field(120.0, gt=1, le=500)
     range_noise_m: float = Field(0.02, ge=0)
     dropout: float = Field(0.0, ge=0, lt=1)
+    motion_distortion: bool = True  # each firing at its own time within the sweep (false: one snapshot)
+    dual_returns: bool = False  # strongest and last return where a beam partly hits a near object
     mount: Mount = Mount(xyz_m=(0.0, 0.0, 1.9))
 
     @model_validator(mode="after")
@@ -303,16 +319,52 @@ def default_drone_rig() -> RigSpec:
     return RigSpec(lidar=lidar, cameras=[down], gnss=GnssSpec(), imu=ImuSpec())
 
 
+DEFAULT_RIGS = {"vehicle": default_vehicle_rig, "rsu": default_rsu_rig, "drone": default_drone_rig}
+
+
+def merge_fields(base: Any, over: Any) -> Any:
+    """Deep-merge mappings field by field; anything else in ``over`` (a value, a list) replaces ``base``."""
+    if isinstance(base, dict) and isinstance(over, dict):
+        return {**base, **{k: merge_fields(base[k], v) if k in base else v for k, v in over.items()}}
+    return over
+
+
+def complete_rigs(sensors: Any) -> Any:
+    """``sensors`` data with every partly given rig completed from its agent kind's default rig, field by field.
+
+    A rig's defaults depend on the agent kind (a drone's LiDAR looks down, an RSU has no IMU), so a partial
+    ``sensors.drone: {lidar: {range_noise_m: 0}}`` must keep the drone's cameras, IMU and LiDAR field of view
+    and mount rather than fall back to a generic rig. Lists (``cameras``) are replaced as a whole.
+    """
+    if not isinstance(sensors, dict):
+        return sensors
+    out = dict(sensors)
+    for kind, default in DEFAULT_RIGS.items():
+        given = out.get(kind, {})
+        if isinstance(given, dict):
+            out[kind] = merge_fields(default().model_dump(mode="json"), given)
+    return out
+
+
 class SensorsSpec(Model):
-    """Per agent type rigs. ``enabled: false`` turns all sensor rendering off (labels only)."""
+    """Per agent type rigs. ``enabled: false`` turns all sensor rendering off (labels only). A partly given rig
+    is completed from its kind's default rig field by field (:func:`complete_rigs`)."""
 
     enabled: bool = True
     vehicle: RigSpec = Field(default_factory=default_vehicle_rig)
     rsu: RigSpec = Field(default_factory=default_rsu_rig)
     drone: RigSpec = Field(default_factory=default_drone_rig)
     image_scale: float = Field(1.0, gt=0.0, le=1.0)  # scales every camera's width and height (previews, tests)
+    bev: bool = True  # write /<agent>/bev grids (the paper's BEV segmentation labels); false saves their bytes
     bev_cell_m: float = Field(0.25, gt=0.01, le=5)
     bev_range_m: tuple[float, float] = (64.0, 40.0)  # [m] half extents x, y (paper section 4.2)
+    # LiDAR x, y, z as stored (docs/episode_format.md 3.4): integer 1/256 m counts, or float32 metres
+    lidar_positions: Literal["quantized", "float32"] = "quantized"
+
+    @model_validator(mode="before")
+    @classmethod
+    def _complete_rigs(cls, data: Any) -> Any:
+        return complete_rigs(data)
 
 
 
@@ -390,10 +442,18 @@ EventSpec = Annotated[
 
 class OutputSpec(Model):
     dir: str = "out"
-    name: str | None = None  # file stem; None = "<scenario name>_s<seed>"
+    name: str | None = None  # file stem inside the output folder; None = "<scenario name>_s<seed>"
     compression: Literal["zstd", "lz4", "none"] = "zstd"
     image_format: Literal["png", "jpeg"] = "png"
     jpeg_quality: int = Field(90, ge=10, le=100)
+
+    @field_validator("name")
+    @classmethod
+    def _stays_in_the_folder(cls, name: str | None) -> str | None:
+        if name is not None and not re.fullmatch(FILE_STEM_PATTERN, name):
+            raise ValueError(f"output.name must be a plain file name inside the output folder (1-200 letters, "
+                             f"digits and _ . + = -, not starting with . or -; no / or ..), got {name!r}")
+        return name
 
 
 class RuntimeSpec(Model):

@@ -13,7 +13,6 @@ import logging
 import os
 import queue
 import signal
-import sys
 import time
 import traceback
 from typing import Any, Protocol
@@ -23,6 +22,7 @@ import zenoh
 from cosim import protocol
 from cosim.errors import CosimError
 from cosim.transport import open_client
+from cosim.workers import set_process
 
 log = logging.getLogger(__name__)
 
@@ -39,27 +39,9 @@ class Engine(Protocol):
     def close(self) -> None: ...
 
 
-def _set_process(role: str, *, die_with_parent: bool) -> None:
-    """Name the process ``cosim-<role>`` (as ``ps`` and ``top`` show it) and, for spawned workers, ask
-    Linux to SIGKILL it when its parent dies."""
-    if not sys.platform.startswith("linux"):
-        return
-    import ctypes
-
-    try:
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-    except OSError:
-        log.debug("libc unavailable; relying on liveliness to notice a dead conductor")
-        return
-    pr_set_pdeathsig, pr_set_name = 1, 15
-    libc.prctl(pr_set_name, ctypes.c_char_p(f"cosim-{role}".encode()[:15]), 0, 0, 0)
-    if die_with_parent:
-        libc.prctl(pr_set_pdeathsig, signal.SIGKILL, 0, 0, 0)
-
-
 def serve(role: str, connect: str, prefix: str, engine: Engine, *, spawned: bool = False) -> int:
     """Serve one episode for ``role`` and return the process exit status."""
-    _set_process(role, die_with_parent=spawned)
+    set_process(role, die_with_parent=spawned)
     if spawned:
         # Ctrl-C reaches the whole process group; the conductor shuts us down in order instead.
         signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -109,7 +91,8 @@ def _loop(role: str, inbox: queue.Queue[Any], engine: Engine) -> int:
                 reply = engine.step(step)
                 reply["compute_ns"] = time.perf_counter_ns() - started
                 last_tick = step.tick
-            elif verb == "close":
+            elif verb == "close":  # release the engine first: once acknowledged, this process may be killed
+                engine.close()
                 query.reply(query.key_expr, protocol.encode({"closed": True}))
                 return 0
             else:

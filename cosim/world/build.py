@@ -46,7 +46,7 @@ def build_world(loaded: LoadedScenario, workdir: Path) -> World:
     result = generate_network(
         MapRequest(spec.kind, spec.size_m, spec.lanes, file, workdir), stage_rng(sc.seed, STAGE_NET)
     )
-    net = read_network(result.net_xml)
+    net = read_network(result.net_xml, f"map.file {file}" if file is not None else f"the generated {spec.kind} network")
     margin = MARGIN_M.get(spec.kind, 20.0)
     xmin, ymin, xmax, ymax = net.bounds_m
     if spec.kind not in ("net", "osm"):  # the generated square, even where no road reaches its edge

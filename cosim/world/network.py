@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import re
 import tempfile
+import xml.sax
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -120,15 +121,35 @@ def geo_origin_of(net_xml: bytes) -> tuple[float, float] | None:
     return (lat, lon)
 
 
-def read_network(net_xml: bytes) -> RoadNetwork:
-    """Parse a SUMO .net.xml; raises InputError when it is not a usable network."""
+def _problem(exc: Exception) -> str:
+    """What is wrong with a network file, from the exception sumolib raised reading it."""
+    if isinstance(exc, xml.sax.SAXParseException):
+        return f"not well-formed XML at line {exc.getLineNumber()}: {exc.getMessage()}"
+    if isinstance(exc, KeyError):
+        return f"an element lacks the required attribute {exc.args[0]!r}"
+    return f"{type(exc).__name__}: {exc}"
+
+
+def read_network(net_xml: bytes, source: str = "the SUMO network") -> RoadNetwork:
+    """Parse a SUMO .net.xml; raises InputError naming ``source`` and the problem when it is not a usable network."""
+    head = net_xml[:20000]
+    m = _LOCATION.search(head)
+    if b"<net" in head and (m is None or b"convBoundary" not in m.group(1)):
+        raise InputError(f"{source}: not a usable SUMO network: no <location convBoundary=...> element near its "
+                         "start (netconvert writes one into every network)")
+    try:
+        return _read_network(net_xml)
+    except InputError as exc:
+        raise InputError(f"{source}: {exc}") from None
+    except Exception as exc:  # sumolib raises plain exceptions (KeyError, IndexError, SAX errors) on bad files
+        raise InputError(f"{source}: not a usable SUMO network: {_problem(exc)}") from None
+
+
+def _read_network(net_xml: bytes) -> RoadNetwork:
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "map.net.xml"
         path.write_bytes(net_xml)
-        try:
-            net = sumolib.net.readNet(str(path), withInternal=True, withPedestrianConnections=False)
-        except Exception as exc:  # sumolib raises plain exceptions on malformed XML
-            raise InputError(f"cannot read the SUMO network: {exc}") from exc
+        net = sumolib.net.readNet(str(path), withInternal=True, withPedestrianConnections=False)
     edges: dict[str, Edge] = {}
     for e in net.getEdges(withInternal=True):
         eid = e.getID()
@@ -163,5 +184,5 @@ def read_network(net_xml: bytes) -> RoadNetwork:
     origin = geo_origin_of(net_xml)
     road_net = RoadNetwork(edges, junctions, (float(xmin), float(ymin), float(xmax), float(ymax)), origin)
     if not road_net.road_edges():
-        raise InputError("the SUMO network has no edge that vehicles may use")
+        raise InputError("no edge that vehicles may use")
     return road_net
