@@ -219,6 +219,7 @@ def test_lidar_points_of_obstacles_and_parked_vehicles_lie_in_their_boxes(tmp_pa
 
     from cosim.geometry import rotation_matrix
     from cosim.io import open_episode
+    from cosim.io.deskew import deskew_tick
     from tests.conftest import run_cli
 
     r = run_cli("run", "scenarios/event_lane_closure.yaml", "--duration", "0.4", "--out", str(tmp_path),
@@ -234,7 +235,8 @@ def test_lidar_points_of_obstacles_and_parked_vehicles_lie_in_their_boxes(tmp_pa
                     continue
                 cloud = tick[topic]
                 to_map = tick.transforms.to_root(cloud.frame_id)
-                xyz = cloud.xyz @ to_map[:3, :3].T + to_map[:3, 3]
+                # each firing at its own time: back into the sweep-end sensor frame first (cosim.io.deskew)
+                xyz = deskew_tick(tick, topic.split("/")[1]) @ to_map[:3, :3].T + to_map[:3, 3]
                 for tid in np.unique(cloud.points["instance_id"]):
                     o = objects.get(int(tid))
                     if o is None or not (o["class"] == "static_obstacle" or o.get("parked")):
