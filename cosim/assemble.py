@@ -25,6 +25,10 @@ class TrackRegistry:
     def __len__(self) -> int:
         return len(self._ids)
 
+    def get(self, source: str, source_id: str) -> int | None:
+        """The track id of an actor already seen, or None (hands out nothing)."""
+        return self._ids.get((source, source_id))
+
     def __call__(self, source: str, source_id: str) -> int:
         key = (source, source_id)
         track = self._ids.get(key)
@@ -112,6 +116,10 @@ def build_snapshot(
         actors.append(vehicle_actor(v, tid))
         if v.agent_id:
             agents.append(vehicle_agent(v, tid))
+    for p in world.parked:
+        actors.append(Actor(track_id=tracks("parked", p.parked_id), cls=p.cls, center_m=p.center_m, size_m=p.size_m,
+                            rotation=quat_from_rpy(0.0, 0.0, p.yaw_rad), velocity_mps=(0.0, 0.0, 0.0),
+                            source_id=p.parked_id, parked=True))
     for r in world.rsus:
         agents.append(AgentState(agent_id=r.agent_id, kind="rsu", position_m=tuple(r.position_m),
                                  rotation=quat_from_rpy(0.0, 0.0, r.yaw_rad), specific_force_mps2=(0.0, 0.0, 0.0),

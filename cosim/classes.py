@@ -6,8 +6,11 @@ from __future__ import annotations
 
 from typing import Final
 
-#: The paper's six road-user classes plus aerial agents. Order defines the ids below.
-OBJECT_CLASSES: Final[tuple[str, ...]] = ("car", "van", "truck", "bus", "motorcycle", "bicycle", "drone")
+#: The paper's six road-user classes, aerial agents, pedestrians and static obstacles (cones, barriers,
+#: signs of incidents). Order defines the ids; new classes are appended so existing ids stay stable.
+OBJECT_CLASSES: Final[tuple[str, ...]] = (
+    "car", "van", "truck", "bus", "motorcycle", "bicycle", "drone", "pedestrian", "static_obstacle",
+)
 
 #: Semantic classes for pixels and LiDAR points. 0 is "unlabelled" (sky, no return).
 SEMANTIC_CLASSES: Final[tuple[str, ...]] = (
@@ -28,6 +31,8 @@ SEMANTIC_CLASSES: Final[tuple[str, ...]] = (
     "motorcycle",
     "bicycle",
     "drone",
+    "pedestrian",
+    "static_obstacle",
 )
 
 SEMANTIC_ID: Final[dict[str, int]] = {name: i for i, name in enumerate(SEMANTIC_CLASSES)}
@@ -51,6 +56,8 @@ SEMANTIC_COLOURS: Final[dict[str, tuple[int, int, int]]] = {
     "motorcycle": (0, 0, 230),
     "bicycle": (119, 11, 32),
     "drone": (255, 0, 0),
+    "pedestrian": (220, 20, 60),
+    "static_obstacle": (255, 120, 0),
 }
 
 

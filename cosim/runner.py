@@ -123,6 +123,7 @@ def episode_metadata(loaded: LoadedScenario, world: World) -> dict[str, str]:
         "geo_origin": json.dumps(list(world.geo_origin)),
         "map_bounds_m": json.dumps(list(world.bounds_m)),
         "class_table": json.dumps(class_table()),
+        "events": json.dumps([e.model_dump(mode="json") for e in s.events]),
         "versions": json.dumps(dependency_versions()),
     }
 
@@ -142,6 +143,7 @@ def run_episode(
     ``progress(done_ticks, total_ticks)`` is called after every tick. Raises a
     :class:`~cosim.errors.CosimError` on failure; no file is left at the output path then.
     """
+    from cosim.exporters.events import EVENTS_SCHEMA, events_payload
     from cosim.exporters.labels import label_messages
     from cosim.exporters.mcap_writer import BackgroundWriter, EpisodeWriter
     from cosim.world import build_world
@@ -199,6 +201,10 @@ def run_episode(
                 compute.setdefault(role, []).append(reply.get("compute_ns", 0) / 1e9)
             rig_tf = suite.transforms(snapshot) if suite is not None else []
             labels = label_messages(snapshot, rig_tf)
+            if s.events:
+                payload = events_payload(tick, t_ns, replies["traffic"].get("events", []),
+                                         lambda sid: tracks.get("sumo", sid))
+                labels.append(("/events", ("cosim.Events", EVENTS_SCHEMA, payload)))
             if loop is not None:
                 labels.append(loop.record(tick, t_ns, replies))
             if links is not None:

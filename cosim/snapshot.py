@@ -32,6 +32,7 @@ class Actor:
     velocity_mps: Vec3
     agent_id: str | None = None
     source_id: str = ""  # the engine's own id (SUMO vehicle id, drone id)
+    parked: bool = False  # a parked vehicle (never moves; not in SUMO)
 
 
 @dataclass(frozen=True, slots=True)

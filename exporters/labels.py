@@ -58,6 +58,7 @@ OBJECT_ARRAY_SCHEMA: dict[str, Any] = {
                     "rotation": {**_QUAT, "description": "map <- body quaternion (x, y, z, w)"},
                     "velocity_mps": {**_VEC3, "description": "velocity in map [m/s]"},
                     "agent_id": {"type": ["string", "null"], "description": "set for connected agents"},
+                    "parked": {"type": "boolean", "description": "true for parked vehicles; absent otherwise"},
                 },
             },
         },
@@ -119,6 +120,7 @@ def objects_payload(snapshot: WorldSnapshot) -> dict[str, Any]:
                 "rotation": list(a.rotation),
                 "velocity_mps": list(a.velocity_mps),
                 "agent_id": a.agent_id,
+                **({"parked": True} if a.parked else {}),
             }
             for a in snapshot.actors
         ],

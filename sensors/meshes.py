@@ -504,6 +504,30 @@ def _drone() -> ActorTemplate:
     return _assemble(parts)
 
 
+def _pedestrian() -> ActorTemplate:
+    """A walker in the unit box (x forward): legs in a mid stride, torso, arms, head."""
+    parts = [
+        (_box((0.05, -0.32, -0.5), (0.35, -0.06, -0.02)), _PART_DARK),  # front leg
+        (_box((-0.35, 0.06, -0.5), (-0.05, 0.32, -0.02)), _PART_DARK),  # back leg
+        (_box((-0.25, -0.38, -0.02), (0.25, 0.38, 0.3)), _PART_BODY),  # torso
+        (_box((-0.12, -0.5, -0.05), (0.12, -0.38, 0.28)), _PART_BODY),  # arms
+        (_box((-0.12, 0.38, -0.05), (0.12, 0.5, 0.28)), _PART_BODY),
+        (_box((-0.2, -0.22, 0.3), (0.2, 0.22, 0.5)), _PART_GLASS),  # head
+    ]
+    return _assemble(parts)
+
+
+def _static_obstacle() -> ActorTemplate:
+    """A traffic cone / barrier post in the unit box: a base plate and a tapering body in two bands."""
+    parts = [
+        (_box((-0.5, -0.5, -0.5), (0.5, 0.5, -0.42)), _PART_DARK),  # base plate
+        (_box((-0.32, -0.32, -0.42), (0.32, 0.32, -0.05)), _PART_BODY),
+        (_box((-0.22, -0.22, -0.05), (0.22, 0.22, 0.2)), _PART_LAMP_FRONT),  # reflective band
+        (_box((-0.12, -0.12, 0.2), (0.12, 0.12, 0.5)), _PART_BODY),
+    ]
+    return _assemble(parts)
+
+
 ACTOR_TEMPLATES: dict[str, ActorTemplate] = {
     "car": _car(),
     "van": _van(),
@@ -512,6 +536,8 @@ ACTOR_TEMPLATES: dict[str, ActorTemplate] = {
     "motorcycle": _two_wheeler(True),
     "bicycle": _two_wheeler(False),
     "drone": _drone(),
+    "pedestrian": _pedestrian(),
+    "static_obstacle": _static_obstacle(),
 }
 
 
@@ -529,6 +555,8 @@ def actor_material(cls: str, track_id: int, part: np.ndarray) -> tuple[np.ndarra
         paint = np.array((0.85, 0.65, 0.10), np.float32) if _hash01(track_id, 3) > 0.5 else paint
     if cls == "drone":
         paint = np.array((0.9, 0.9, 0.92), np.float32)
+    if cls == "static_obstacle":
+        paint = np.array((0.95, 0.35, 0.02), np.float32)  # safety orange
     table = np.array([paint, (0.05, 0.07, 0.09), (0.03, 0.03, 0.03), (0.95, 0.95, 0.9), (0.7, 0.05, 0.05),
                       (0.12, 0.12, 0.13)], np.float32)
     # diffuse LiDAR reflectivity: paint by its brightness (dark paint low), glass and tyres low, lamp

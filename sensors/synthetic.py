@@ -84,6 +84,7 @@ def _octagon(cx: float, cy: float, radius: float) -> tuple[tuple[float, float], 
 SIZES = {
     "car": (4.5, 1.9, 1.5), "van": (5.2, 2.0, 2.2), "truck": (8.5, 2.5, 3.4), "bus": (12.0, 2.6, 3.2),
     "motorcycle": (2.1, 0.8, 1.5), "bicycle": (1.8, 0.6, 1.7), "drone": (1.0, 1.0, 0.35),
+    "pedestrian": (0.5, 0.6, 1.75), "static_obstacle": (0.4, 0.4, 0.7),
 }
 
 

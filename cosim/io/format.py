@@ -43,6 +43,7 @@ TOPICS: tuple[TopicSpec, ...] = (
     ),
     TopicSpec("/labels/objects", ("cosim.ObjectArray",), "map", "every actor's 3D box; every agent's pose"),
     TopicSpec("/labels/boxes", ("foxglove.SceneUpdate",), "map", "the same boxes for viewers; entity id = track id"),
+    TopicSpec("/events", ("cosim.Events",), "map", "the scenario timeline's incidents: state, place, track ids"),
     TopicSpec(
         "/<agent>/lidar",
         ("foxglove.PointCloud",),
@@ -122,6 +123,8 @@ CAMERA_TOPICS: dict[str, str] = {"rgb": "image", "depth": "depth", "semantic": "
 def expected_topics(scenario: Any, agents: list[str]) -> set[str]:
     """Every topic an episode of ``scenario`` (a :class:`cosim.scenario.model.Scenario`) must hold."""
     out = set(LABEL_TOPICS)
+    if getattr(scenario, "events", None):
+        out.add("/events")
     if scenario.clients:
         out.add("/actions")
     comm = getattr(scenario, "comm", None)

@@ -49,6 +49,7 @@ JSON_METADATA = (
     "geo_origin",
     "map_bounds_m",
     "class_table",
+    "events",
     "versions",
     "tick_hz",
     "tick_ns",

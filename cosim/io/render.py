@@ -43,6 +43,8 @@ BOX_COLOURS: dict[str, tuple[int, int, int]] = {
     "motorcycle": (0, 255, 0),
     "bicycle": (255, 48, 48),
     "drone": (255, 255, 255),
+    "pedestrian": (255, 0, 128),
+    "static_obstacle": (255, 160, 64),
 }
 #: Corner order of a box: bit 0 = +x (front), bit 1 = +y (left), bit 2 = +z (top), in the box's body frame.
 _CORNER_SIGNS = np.array([[(i & 1) * 2 - 1, (i >> 1 & 1) * 2 - 1, (i >> 2 & 1) * 2 - 1] for i in range(8)], float)

@@ -290,7 +290,7 @@ def _printable(text: str, limit: int = 120) -> str:
     return shown if len(shown) <= limit else f"{shown[: limit - 20]}... ({len(text)} characters)"
 
 
-_UNION_TAGS = ("hover", "patrol", "escort")
+_UNION_TAGS = ("hover", "patrol", "escort", "breakdown", "accident", "lane_closure", "construction_zone", "road_block")
 
 
 def _is_pydantic_artefact(part: str | int) -> bool:
@@ -363,7 +363,8 @@ def error_message(err: dict[str, Any], path: list[str | int], data: Any) -> str:
     if kind in ("literal_error", "enum"):
         return f"{err['msg']}, got {json.dumps(err.get('input'))}"
     if kind == "union_tag_invalid":
-        return f"unknown strategy {err['ctx']['tag']!r}; expected one of {err['ctx']['expected_tags']}"
+        key = str(err["ctx"].get("discriminator", "'strategy'")).strip("'")
+        return f"unknown {key} {err['ctx']['tag']!r}; expected one of {err['ctx']['expected_tags']}"
     msg = err["msg"]
     if msg.startswith("Value error, "):
         msg = msg[len("Value error, "):]

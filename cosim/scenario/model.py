@@ -367,6 +367,76 @@ class SensorsSpec(Model):
         return complete_rigs(data)
 
 
+
+class ParkedSpec(Model):
+    """Parked vehicles beside the kerbs (cosim/world/parking.py): classes drawn by ``traffic.mix``."""
+
+    density_veh_per_km: float = Field(0.0, ge=0.0, le=150.0)  # per km of road edge, as many as fit
+
+
+# -------------------------------------------------------------------------------------- events
+
+
+class EventBase(Model):
+    """One incident of the timeline (docs/events.md): when, and where, either a map point or ahead of a
+    connected vehicle along its route (resolved at ``at_s``)."""
+
+    at_s: float = Field(0.0, ge=0.0)  # [s] episode time the event starts; a whole number of ticks
+    position_m: tuple[float, float] | None = None  # [m] map x, y: the nearest lane
+    ahead_of: str | None = None  # connected vehicle id: its lane, ``ahead_m`` in front of it
+    ahead_m: float = Field(40.0, ge=5.0, le=1000.0)
+
+    @field_validator("ahead_of")
+    @classmethod
+    def _vehicle_id(cls, agent: str | None) -> str | None:
+        if agent is not None:
+            prefix, _, index = agent.partition("_")
+            if prefix != "vehicle" or not index.isdigit():
+                raise ValueError(f"ahead_of must be a connected vehicle id like 'vehicle_0', got {agent!r}")
+        return agent
+
+    @model_validator(mode="after")
+    def _one_place(self) -> EventBase:
+        if (self.position_m is None) == (self.ahead_of is None):
+            raise RuleError("position_m", "an event needs exactly one of position_m (map x, y) and ahead_of "
+                                          "(a connected vehicle id)")
+        return self
+
+
+class BreakdownEvent(EventBase):
+    """A car stops in its lane and stays; hazard lights on (None: on at dusk and night)."""
+
+    kind: Literal["breakdown"] = "breakdown"
+    hazard_lights: bool | None = None
+
+
+class AccidentEvent(EventBase):
+    """Two cars stopped in the lane, the second turned by ``angle_deg`` with its front corner touching the
+    first one's rear."""
+
+    kind: Literal["accident"] = "accident"
+    angle_deg: float = Field(25.0, ge=5.0, le=60.0)  # [deg] yaw of the rear car relative to the lane
+
+
+class LaneClosureEvent(EventBase):
+    """One lane closed over ``length_m`` from the placement on: a barrier, cones along the open side and a
+    sign (``static_obstacle``); traffic merges into the other lanes or waits."""
+
+    kind: Literal["lane_closure", "construction_zone"] = "lane_closure"
+    length_m: float = Field(40.0, ge=10.0, le=300.0)
+    cone_spacing_m: float = Field(5.0, ge=1.0, le=50.0)
+
+
+class RoadBlockEvent(EventBase):
+    """The edge at the placement closed to all traffic (barriers across it); routes through it are rerouted."""
+
+    kind: Literal["road_block"] = "road_block"
+
+
+EventSpec = Annotated[
+    BreakdownEvent | AccidentEvent | LaneClosureEvent | RoadBlockEvent, Field(discriminator="kind")
+]
+
 # -------------------------------------------------------------------------------------- output
 
 
@@ -450,6 +520,8 @@ class Scenario(Model):
     sensors: SensorsSpec = SensorsSpec()
     output: OutputSpec = OutputSpec()
     runtime: RuntimeSpec = RuntimeSpec()
+    events: list[EventSpec] = Field(default_factory=list)
+    parked: ParkedSpec = ParkedSpec()
     comm: CommSpec = CommSpec()
     clients: list[ClientSpec] = Field(default_factory=list)
 
@@ -472,7 +544,23 @@ class Scenario(Model):
                 "duration_s",
                 f"duration_s = {self.duration_s:g} is not a whole number of ticks at {self.tick_hz:g} Hz"
             )
+        self._check_events()
         return self
+
+    def _check_events(self) -> None:
+        for i, e in enumerate(self.events):
+            ticks = e.at_s * self.tick_hz
+            if abs(ticks - round(ticks)) > 1e-6:  # after the end is allowed: it stays pending (--duration)
+                raise RuleError(
+                    f"events.{i}.at_s",
+                    f"event at_s = {e.at_s:g} is not a whole number of ticks at {self.tick_hz:g} Hz"
+                )
+            if e.ahead_of is not None and int(e.ahead_of.split("_")[1]) >= self.agents.vehicles.count:
+                raise RuleError(
+                    f"events.{i}.ahead_of",
+                    f"event ahead_of {e.ahead_of!r} does not exist: the scenario has "
+                    f"{self.agents.vehicles.count} connected vehicles"
+                )
 
     @property
     def tick_ns(self) -> int:

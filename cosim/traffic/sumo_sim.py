@@ -29,6 +29,7 @@ from cosim.errors import WorkerError
 from cosim.geometry import sumo_front_to_center, wrap_angle
 from cosim.protocol import VehicleState
 from cosim.scenario.model import Scenario
+from cosim.traffic.events import Timeline
 from cosim.traffic.vtypes import SUMO_VCLASS, VARIANTS, class_of_type
 from cosim.world.netgen import sumo_binary
 from cosim.world.routes import read_sumolib, sources_and_sinks, strong_core
@@ -121,6 +122,7 @@ class TrafficSim:
         self.entered = 0  # background vehicles that entered after SUMO time 0 (replacements)
         self.left = 0  # background vehicles that reached their sink and left the map
         self._closed = False
+        self.timeline = Timeline(scenario, self._destinations, np.random.default_rng([scenario.seed, 11]))
         self._advance_to(self._warmup_steps)
         present = set(libsumo.vehicle.getIDList())
         missing = [f"vehicle_{i}" for i in range(scenario.agents.vehicles.count) if f"vehicle_{i}" not in present]
@@ -137,13 +139,16 @@ class TrafficSim:
                     v: math.radians(90.0 - self._heading_deg(v, libsumo.vehicle.getLength(v)))
                     for v in libsumo.vehicle.getIDList()
                 }
+            t_after_ns = round((self._step + 1 - self._warmup_steps) / self.step_hz * 1_000_000_000)
+            self.timeline.before_step(t_after_ns)
             libsumo.simulationStep()
             self._step += 1
+            self.timeline.after_step(t_after_ns)
             self.teleports += libsumo.simulation.getStartingTeleportNumber()
             self.collisions += libsumo.simulation.getCollidingVehiclesNumber()
             for vid in libsumo.simulation.getDepartedIDList():
                 libsumo.vehicle.subscribe(vid, SUBSCRIBED)
-                if not vid.startswith("vehicle_"):
+                if not vid.startswith(("vehicle_", "ev")):
                     self._class[vid] = class_of_type(libsumo.vehicle.getTypeID(vid))
                     self.entered += vid >= f"bg_{self._first_new:04d}"
             for vid in sorted(libsumo.simulation.getArrivedIDList()):
@@ -180,6 +185,13 @@ class TrafficSim:
             self._next_bg += 1
             return
         log.info("no route from a source to a sink for a %s; the map keeps one fewer", cls)
+
+    def _destinations(self, vid: str) -> list[str]:
+        """Where a vehicle may be sent: anywhere in its class's core for connected vehicles, sinks otherwise."""
+        vclass = libsumo.vehicle.getVehicleClass(vid)
+        if vid.startswith("vehicle_"):
+            return list(self._targets.get(vclass, []))
+        return list(self._gates.get(vclass, ([], []))[1])
 
     def _extend_routes(self, res: dict[str, dict[int, object]]) -> None:
         """Give every connected vehicle on one of its last route edges a new random destination (sorted
@@ -218,7 +230,13 @@ class TrafficSim:
         if target < self._step:
             raise WorkerError("traffic", f"cannot step back to t_ns = {t_ns}")
         self._advance_to(target)
-        return [self._read(v) for v in sorted(libsumo.vehicle.getIDList())]
+        hidden = self.timeline.hidden()
+        vehicles = [self._read(v) for v in sorted(libsumo.vehicle.getIDList()) if v not in hidden]
+        return vehicles + self.timeline.obstacles()
+
+    def events(self) -> list[dict[str, object]]:
+        """The scenario's events as they stand (records of the ``/events`` topic, SUMO ids)."""
+        return self.timeline.records()
 
     def _record_trails(self, res: dict[str, dict[int, object]]) -> None:
         """Append every vehicle's (odometer, road, lane position, lane index) to its trail."""
@@ -272,11 +290,13 @@ class TrafficSim:
         length, width, height = v.getLength(vid), v.getWidth(vid), v.getHeight(vid)
         fx, fy, fz = v.getPosition3D(vid)
         cx, cy, yaw = sumo_front_to_center(fx, fy, self._heading_deg(vid, length), length)
+        if vid in self.timeline.pinned:  # an incident's pose (e.g. an accident's turned car)
+            cx, cy, yaw = self.timeline.pinned[vid]
         slope = math.radians(v.getSlope(vid))
         pitch = -slope  # FLU: a positive pitch is nose down
         cz = fz - 0.5 * length * math.sin(slope) + 0.5 * height
         speed = v.getSpeed(vid)
-        prev = self._prev_yaw.get(vid)
+        prev = None if vid in self.timeline.pinned else self._prev_yaw.get(vid)
         yaw_rate = 0.0 if prev is None else wrap_angle(yaw - prev) / self._dt
         vel = (
             speed * math.cos(slope) * math.cos(yaw),

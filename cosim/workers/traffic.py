@@ -35,7 +35,8 @@ class TrafficEngine:
             raise CosimError("step before init")
         failed = [{"action": a, "error": err} for a in request.actions if (err := self._sim.command(a))]
         vehicles = self._sim.step_to(request.t_ns)
-        return {"tick": request.tick, "t_ns": request.t_ns, "vehicles": vehicles, "failed": failed}
+        return {"tick": request.tick, "t_ns": request.t_ns, "vehicles": vehicles, "failed": failed,
+                "events": self._sim.events()}
 
     def close(self) -> None:
         if self._sim is not None:

@@ -17,13 +17,14 @@ from cosim.world import geom
 from cosim.world.layout import GROUND_Z, build_layout, prism
 from cosim.world.netgen import MapRequest, generate_network
 from cosim.world.network import read_network
+from cosim.world.parking import place_parked
 from cosim.world.routes import plan_vehicles, read_sumolib, routes_xml
 from cosim.world.rsu import place_rsus
 from cosim.world.types import Junction, StaticLayout, World
 
 log = logging.getLogger(__name__)
 
-STAGE_NET, STAGE_LAYOUT, STAGE_RSU, STAGE_ROUTES = 1, 2, 3, 4
+STAGE_NET, STAGE_LAYOUT, STAGE_RSU, STAGE_ROUTES, STAGE_PARKED = 1, 2, 3, 4, 5
 MARGIN_M = {"urban": 30.0, "suburban": 30.0}  # [m] scenery beyond the outermost road; others 20
 RSU_POLE_M = 0.35  # [m] side of an RSU pole
 
@@ -72,6 +73,7 @@ def build_world(loaded: LoadedScenario, workdir: Path) -> World:
         foot = geom.rect(r.position_m[0], r.position_m[1], RSU_POLE_M, RSU_POLE_M, r.yaw_rad)
         prisms.append(prism("rsu", foot, GROUND_Z, r.height_m, next_id + k))
 
+    parked = place_parked(net, prisms, bounds, sc.parked, sc.traffic.mix, stage_rng(sc.seed, STAGE_PARKED))
     planned = plan_vehicles(read_sumolib(result.net_xml), sc, net.road_length_km(), stage_rng(sc.seed, STAGE_ROUTES))
     geo = (sc.geo_origin.lat_deg, sc.geo_origin.lon_deg, sc.geo_origin.alt_m)
     if spec.kind in ("net", "osm") and net.geo_origin is not None:
@@ -96,4 +98,5 @@ def build_world(loaded: LoadedScenario, workdir: Path) -> World:
         rsus=tuple(rsus),
         layout=StaticLayout(tuple(prisms), 0.0),
         geo_origin=geo,
+        parked=tuple(parked),
     )

@@ -48,6 +48,18 @@ class RsuSite:
 
 
 @dataclass(frozen=True, slots=True)
+class ParkedVehicle:
+    """A parked vehicle: a standing box of one of the six vehicle classes (labelled with ``parked``)."""
+
+    parked_id: str  # parked_<nnnn>
+    cls: str
+    type_id: str  # the variant (cosim.traffic.vtypes), for its look
+    center_m: tuple[float, float, float]
+    size_m: tuple[float, float, float]
+    yaw_rad: float
+
+
+@dataclass(frozen=True, slots=True)
 class StaticLayout:
     prisms: tuple[Prism, ...]
     ground_z_m: float = 0.0
@@ -75,6 +87,7 @@ class World:
     rsus: tuple[RsuSite, ...]
     layout: StaticLayout
     geo_origin: tuple[float, float, float]  # lat [deg], lon [deg], alt [m] of map (0, 0, 0)
+    parked: tuple[ParkedVehicle, ...] = ()
 
     def to_wire(self) -> dict[str, Any]:
         return {
@@ -88,6 +101,8 @@ class World:
                        for p in self.layout.prisms],
             "ground_z_m": self.layout.ground_z_m,
             "geo_origin": list(self.geo_origin),
+            "parked": [[p.parked_id, p.cls, p.type_id, list(p.center_m), list(p.size_m), p.yaw_rad]
+                       for p in self.parked],
         }
 
     @classmethod
@@ -104,4 +119,5 @@ class World:
                 d["ground_z_m"],
             ),
             geo_origin=tuple(d["geo_origin"]),
+            parked=tuple(ParkedVehicle(p[0], p[1], p[2], tuple(p[3]), tuple(p[4]), p[5]) for p in d.get("parked", [])),
         )

@@ -1,0 +1,342 @@
+"""The scenario timeline on SUMO: breakdowns, accidents, lane closures and road blocks (docs/events.md).
+
+:class:`Timeline` lives in the traffic worker's :class:`cosim.traffic.TrafficSim`. At each event's
+``at_s`` it resolves the place (the lane nearest a map point, or ``ahead_m`` along a connected
+vehicle's route) and acts through libsumo:
+
+- ``breakdown``: a car inserted standing in the lane, speed held at 0, hazard lights on at dusk/night.
+- ``accident``: two cars standing in the lane; the rear one's box is turned by ``angle_deg`` so its
+  front corner touches the front car's rear (label poses are pinned to that geometry).
+- ``lane_closure`` / ``construction_zone``: a hidden standing SUMO vehicle as long as the span holds
+  the lane (so traffic merges or waits, and nothing enters the span), plus a barrier, a sign and
+  cones along the open side as ``static_obstacle`` boxes.
+- ``road_block``: every lane of the edge disallowed to all classes, barriers across it, and every
+  vehicle whose remaining route uses the edge rerouted.
+
+Each event has one record per tick for the ``/events`` topic (:meth:`Timeline.records`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import libsumo
+import numpy as np
+
+from cosim.protocol import VehicleState
+from cosim.scenario.model import AccidentEvent, BreakdownEvent, EventSpec, LaneClosureEvent, RoadBlockEvent, Scenario
+
+log = logging.getLogger(__name__)
+
+SIGNAL_HAZARD = 8  # TraCI VEH_SIGNAL_BLINKER_EMERGENCY
+INCIDENT_TYPE = "car_incident"  # a car of variant 0 with a short min gap (cars standing bumper to bumper)
+CONTACT_OVERLAP_M = 0.01  # [m] the rear car's corner reaches this far into the front car's box (touching)
+CONE_SIZE_M = (0.4, 0.4, 0.7)
+BARRIER_DEPTH_M, BARRIER_HEIGHT_M = 0.3, 1.0
+SIGN_SIZE_M = (0.15, 1.0, 1.8)
+EDGE_MARGIN_M = 1.0  # [m] kept from the ends of an edge when placing
+
+
+@dataclass(frozen=True, slots=True)
+class LanePoint:
+    """A place on a lane: edge id, lane index, position along it [m]."""
+
+    edge: str
+    lane: int
+    pos_m: float
+
+    @property
+    def lane_id(self) -> str:
+        return f"{self.edge}_{self.lane}"
+
+
+@dataclass
+class _Active:
+    """What one event put into the simulation."""
+
+    index: int
+    spec: EventSpec
+    place: LanePoint | None = None
+    active_from_ns: int | None = None
+    vehicles: list[str] = field(default_factory=list)  # SUMO ids shown in labels
+    hidden: list[str] = field(default_factory=list)  # SUMO ids not shown (closure blockers)
+    obstacles: list[VehicleState] = field(default_factory=list)
+    zone_m: list[tuple[float, float]] = field(default_factory=list)  # closed area (map polygon)
+    note: str = ""
+
+
+def lane_pose(edge: str, lane: int, pos_m: float) -> tuple[float, float, float]:
+    """Map x, y and ENU heading [rad] of a lane's centre line at ``pos_m``."""
+    length = libsumo.lane.getLength(f"{edge}_{lane}")
+    p = min(max(pos_m, 0.0), length)
+    a = libsumo.simulation.convert2D(edge, max(0.0, p - 0.5), lane)
+    b = libsumo.simulation.convert2D(edge, min(length, p + 0.5), lane)
+    x, y = libsumo.simulation.convert2D(edge, p, lane)
+    return x, y, math.atan2(b[1] - a[1], b[0] - a[0])
+
+
+def offset(x: float, y: float, yaw: float, ahead_m: float, left_m: float) -> tuple[float, float]:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return x + ahead_m * c - left_m * s, y + ahead_m * s + left_m * c
+
+
+def rect(cx: float, cy: float, yaw: float, length_m: float, width_m: float) -> list[tuple[float, float]]:
+    """Corners (counter-clockwise) of a rectangle centred at cx, cy, turned by yaw."""
+    return [offset(cx, cy, yaw, sx * length_m / 2, sy * width_m / 2) for sx, sy in ((1, -1), (1, 1), (-1, 1), (-1, -1))]
+
+
+def static_box(sid: str, x: float, y: float, z_ground: float, yaw: float, size_m: tuple[float, float, float]
+               ) -> VehicleState:
+    return VehicleState(sumo_id=sid, cls="static_obstacle", center_m=(x, y, z_ground + size_m[2] / 2), size_m=size_m,
+                        yaw_rad=yaw, pitch_rad=0.0, speed_mps=0.0, velocity_mps=(0.0, 0.0, 0.0), accel_mps2=0.0,
+                        yaw_rate_radps=0.0)
+
+
+class Timeline:
+    """Applies a scenario's events to the running SUMO simulation (one per TrafficSim)."""
+
+    def __init__(self, scenario: Scenario, destinations: Callable[[str], list[str]], rng: np.random.Generator
+                 ) -> None:
+        """``destinations(vid)``: edges a vehicle may be sent to instead when its destination is blocked."""
+        self.scenario = scenario
+        self._destinations = destinations
+        self._rng = rng
+        self._pending = sorted(enumerate(scenario.events), key=lambda ie: (ie[1].at_s, ie[0]))
+        self._active: list[_Active] = []
+        self.hazard_lights = scenario.environment.lighting in ("dusk", "night")
+        self.pinned: dict[str, tuple[float, float, float]] = {}  # SUMO id -> label centre x, y and yaw
+        if scenario.events:
+            libsumo.vehicletype.copy("car_0", INCIDENT_TYPE)
+            libsumo.vehicletype.setMinGap(INCIDENT_TYPE, 0.1)
+
+    # ------------------------------------------------------------------------------ stepping
+    def before_step(self, t_ns: int) -> None:
+        """Start every event due at episode time ``t_ns`` (called before the SUMO step to ``t_ns``)."""
+        while self._pending and round(self._pending[0][1].at_s * 1e9) <= t_ns:
+            index, spec = self._pending.pop(0)
+            event = _Active(index, spec)
+            self._active.append(event)
+            try:
+                event.place = self._resolve(spec)
+                if event.place is not None:
+                    {BreakdownEvent: self._breakdown, AccidentEvent: self._accident, LaneClosureEvent: self._closure,
+                     RoadBlockEvent: self._block}[type(spec)](event)
+            except libsumo.TraCIException as exc:
+                event.place, event.note = None, f"not placed: {exc}"
+            if event.place is None:
+                event.note = event.note or "not placed: no lane for cars at the given place"
+                log.warning("event %d (%s) %s", index, spec.kind, event.note)
+
+    def after_step(self, t_ns: int) -> None:
+        """Hold stopped vehicles; mark events active once SUMO has inserted their vehicles."""
+        present = set(libsumo.vehicle.getIDList())
+        for e in self._active:
+            if e.place is None:
+                continue
+            for vid in e.vehicles + e.hidden:
+                if vid in present:
+                    libsumo.vehicle.setSpeed(vid, 0.0)
+            if e.active_from_ns is None and all(v in present for v in e.vehicles + e.hidden):
+                e.active_from_ns = t_ns
+
+    def hidden(self) -> set[str]:
+        return {v for e in self._active for v in e.hidden}
+
+    def event_vehicles(self) -> set[str]:
+        return {v for e in self._active for v in e.vehicles + e.hidden}
+
+    def obstacles(self) -> list[VehicleState]:
+        """Static obstacles of the events that are active."""
+        return [o for e in self._active if e.active_from_ns is not None for o in e.obstacles]
+
+    def records(self) -> list[dict[str, object]]:
+        """Every event of the scenario as it stands (one entry each, in scenario order)."""
+        out: dict[int, dict[str, object]] = {}
+        for index, spec in self._pending:
+            out[index] = {"id": f"event_{index}", "kind": spec.kind, "at_ns": round(spec.at_s * 1e9),
+                          "state": "pending"}
+        for e in self._active:
+            rec: dict[str, object] = {
+                "id": f"event_{e.index}",
+                "kind": e.spec.kind,
+                "at_ns": round(e.spec.at_s * 1e9),
+                "state": "failed" if e.place is None else ("active" if e.active_from_ns is not None else "starting"),
+                "active_from_ns": e.active_from_ns,
+                "vehicles": list(e.vehicles),
+                "obstacles": [o.sumo_id for o in e.obstacles],
+                "zone_m": [list(p) for p in e.zone_m],
+            }
+            if e.place is not None:
+                rec.update(edge=e.place.edge, lane=e.place.lane, lane_pos_m=round(e.place.pos_m, 3))
+            if isinstance(e.spec, BreakdownEvent):
+                rec["hazard_lights"] = self._hazard(e.spec)
+            if e.note:
+                rec["note"] = e.note
+            out[e.index] = rec
+        return [out[i] for i in sorted(out)]
+
+    # ------------------------------------------------------------------------------- placing
+    def _resolve(self, spec: EventSpec) -> LanePoint | None:
+        if spec.position_m is not None:
+            edge, pos, lane = libsumo.simulation.convertRoad(spec.position_m[0], spec.position_m[1], False,
+                                                             "passenger")
+            if not edge or edge.startswith(":"):
+                return None
+            return self._car_lane(LanePoint(edge, int(lane), float(pos)))
+        vid = spec.ahead_of
+        assert vid is not None
+        v = libsumo.vehicle
+        route = list(v.getRoute(vid))
+        idx, lane = v.getRouteIndex(vid), v.getLaneIndex(vid)
+        road = v.getRoadID(vid)
+        pos = v.getLanePosition(vid) + spec.ahead_m
+        if road.startswith(":"):  # in a junction: the route index still names the edge it came from
+            idx, pos = idx + 1, spec.ahead_m
+            links = libsumo.lane.getLinks(v.getLaneID(vid))
+            if links:  # the lane the junction lane leads onto
+                lane = int(str(links[0][0]).rsplit("_", 1)[1])
+        for edge in route[max(idx, 0):]:
+            length = libsumo.lane.getLength(f"{edge}_0")
+            if pos <= length - EDGE_MARGIN_M:
+                return self._car_lane(LanePoint(edge, lane, max(pos, EDGE_MARGIN_M)))
+            pos -= length
+        return None
+
+    @staticmethod
+    def _car_lane(place: LanePoint) -> LanePoint | None:
+        """The place on the lane nearest ``place.lane`` that cars may use, or None."""
+        n = libsumo.edge.getLaneNumber(place.edge)
+        for lane in sorted(range(n), key=lambda i: (abs(i - place.lane), i)):
+            allowed = libsumo.lane.getAllowed(f"{place.edge}_{lane}")
+            if (not allowed or "passenger" in allowed) and "passenger" not in libsumo.lane.getDisallowed(
+                    f"{place.edge}_{lane}"):
+                return LanePoint(place.edge, lane, place.pos_m)
+        return None
+
+    def _fit(self, place: LanePoint, length_m: float) -> LanePoint:
+        """The place moved back along its lane so that ``length_m`` behind it fits on the edge."""
+        lane_len = libsumo.lane.getLength(place.lane_id)
+        pos = min(max(place.pos_m, length_m + EDGE_MARGIN_M), lane_len - EDGE_MARGIN_M)
+        return LanePoint(place.edge, place.lane, pos)
+
+    def _insert(self, vid: str, place: LanePoint, type_id: str) -> None:
+        """A standing vehicle whose front is at ``place`` (SUMO inserts it as soon as there is room)."""
+        libsumo.route.add(f"route_{vid}", [place.edge])
+        libsumo.vehicle.add(vid, f"route_{vid}", typeID=type_id, depart="now", departLane=str(place.lane),
+                            departPos=f"{place.pos_m:.3f}", departSpeed="0")
+        libsumo.vehicle.setSpeedMode(vid, 0)
+        libsumo.vehicle.setLaneChangeMode(vid, 0)
+
+    def _hazard(self, spec: BreakdownEvent) -> bool:
+        return self.hazard_lights if spec.hazard_lights is None else spec.hazard_lights
+
+    # ------------------------------------------------------------------------------ the kinds
+    def _breakdown(self, e: _Active) -> None:
+        assert isinstance(e.spec, BreakdownEvent) and e.place is not None
+        length = libsumo.vehicletype.getLength(INCIDENT_TYPE)
+        e.place = self._fit(e.place, length)
+        vid = f"ev{e.index}_0"
+        self._insert(vid, e.place, INCIDENT_TYPE)
+        if self._hazard(e.spec):
+            libsumo.vehicle.setSignals(vid, SIGNAL_HAZARD)
+        e.vehicles.append(vid)
+
+    def _accident(self, e: _Active) -> None:
+        assert isinstance(e.spec, AccidentEvent) and e.place is not None
+        length = libsumo.vehicletype.getLength(INCIDENT_TYPE)
+        width = libsumo.vehicletype.getWidth(INCIDENT_TYPE)
+        e.place = self._fit(e.place, 2 * length + 1.0)
+        front, rear = f"ev{e.index}_0", f"ev{e.index}_1"
+        self._insert(front, e.place, INCIDENT_TYPE)
+        rear_place = LanePoint(e.place.edge, e.place.lane, e.place.pos_m - length - 0.2)
+        self._insert(rear, rear_place, INCIDENT_TYPE)
+        e.vehicles += [front, rear]
+        # the front car along the lane; the rear one turned by theta, its foremost corner just inside
+        # the middle of the front car's rear face
+        fx, fy, fyaw = lane_pose(e.place.edge, e.place.lane, e.place.pos_m - length / 2)
+        self.pinned[front] = (fx, fy, fyaw)
+        theta = math.radians(e.spec.angle_deg)
+        corner_ahead = length / 2 * math.cos(theta) + width / 2 * math.sin(theta)
+        corner_left = length / 2 * math.sin(theta) - width / 2 * math.cos(theta)
+        contact = offset(fx, fy, fyaw, -length / 2 + CONTACT_OVERLAP_M, 0.0)
+        rx, ry = offset(contact[0], contact[1], fyaw, -corner_ahead, -corner_left)
+        self.pinned[rear] = (rx, ry, fyaw + theta)
+
+    def _closure(self, e: _Active) -> None:
+        assert isinstance(e.spec, LaneClosureEvent) and e.place is not None
+        spec = e.spec
+        start = self._fit(LanePoint(e.place.edge, e.place.lane, e.place.pos_m + spec.length_m), spec.length_m)
+        e.place = LanePoint(start.edge, start.lane, start.pos_m - spec.length_m)
+        lane_w = libsumo.lane.getWidth(start.lane_id)
+        blk = f"ev{e.index}_blk"
+        type_id = f"closure_{e.index}"
+        libsumo.vehicletype.copy("car_0", type_id)
+        libsumo.vehicletype.setLength(type_id, spec.length_m)
+        libsumo.vehicletype.setWidth(type_id, max(0.5, lane_w - 0.4))
+        libsumo.vehicletype.setMinGap(type_id, 0.1)
+        self._insert(blk, start, type_id)
+        e.hidden.append(blk)
+        z = libsumo.simulation.convert3D(start.edge, start.pos_m, start.lane)[2]
+        n_lanes = libsumo.edge.getLaneNumber(start.edge)
+        sides = [s for s, open_lane in ((1.0, start.lane + 1), (-1.0, start.lane - 1)) if 0 <= open_lane < n_lanes]
+        x0, y0, yaw0 = lane_pose(start.edge, start.lane, e.place.pos_m + BARRIER_DEPTH_M / 2)
+        e.obstacles.append(static_box(f"ev{e.index}_barrier", x0, y0, z, yaw0,
+                                      (BARRIER_DEPTH_M, lane_w - 0.4, BARRIER_HEIGHT_M)))
+        sx, sy, syaw = lane_pose(start.edge, start.lane, e.place.pos_m + 1.5)
+        e.obstacles.append(static_box(f"ev{e.index}_sign", sx, sy, z, syaw, SIGN_SIZE_M))
+        n_cones = int(spec.length_m // spec.cone_spacing_m)
+        for side in sides:
+            for k in range(1, n_cones + 1):
+                cx, cy, cyaw = lane_pose(start.edge, start.lane, e.place.pos_m + k * spec.cone_spacing_m - 0.5)
+                px, py = offset(cx, cy, cyaw, 0.0, side * (lane_w / 2 - CONE_SIZE_M[1] / 2 - 0.05))
+                e.obstacles.append(static_box(f"ev{e.index}_cone_{'l' if side > 0 else 'r'}{k}", px, py, z, cyaw,
+                                              CONE_SIZE_M))
+        mx, my, myaw = lane_pose(start.edge, start.lane, e.place.pos_m + spec.length_m / 2)
+        e.zone_m = rect(mx, my, myaw, spec.length_m, lane_w)
+
+    def _reroute_around(self, vid: str, edge: str) -> None:
+        """A new route avoiding ``edge``; a new destination when ``edge`` was the destination."""
+        v = libsumo.vehicle
+        with contextlib.suppress(libsumo.TraCIException):  # no route at all: handled below
+            v.rerouteTraveltime(vid)
+        if edge not in v.getRoute(vid)[v.getRouteIndex(vid) + 1:]:
+            return
+        candidates = [d for d in self._destinations(vid) if d != edge]
+        for k in self._rng.permutation(len(candidates))[:20]:
+            try:
+                v.changeTarget(vid, candidates[int(k)])
+            except libsumo.TraCIException:
+                continue
+            if edge not in v.getRoute(vid)[v.getRouteIndex(vid) + 1:]:
+                return
+        log.info("road block: no way around %s for %s; it waits before the block", edge, vid)
+
+    def _block(self, e: _Active) -> None:
+        assert e.place is not None
+        edge = e.place.edge
+        n_lanes = libsumo.edge.getLaneNumber(edge)
+        for i in range(n_lanes):
+            libsumo.lane.setDisallowed(f"{edge}_{i}", ["all"])
+        for vid in libsumo.vehicle.getIDList():
+            route = libsumo.vehicle.getRoute(vid)
+            if edge in route[libsumo.vehicle.getRouteIndex(vid) + 1:]:
+                self._reroute_around(vid, edge)
+        z = libsumo.simulation.convert3D(edge, 1.0, 0)[2]
+        for i in range(n_lanes):
+            w = libsumo.lane.getWidth(f"{edge}_{i}")
+            x, y, yaw = lane_pose(edge, i, 1.0)
+            e.obstacles.append(static_box(f"ev{e.index}_barrier_{i}", x, y, z, yaw, (BARRIER_DEPTH_M, w - 0.2,
+                                                                                      BARRIER_HEIGHT_M)))
+        length = libsumo.lane.getLength(f"{edge}_0")
+        e.place = LanePoint(edge, 0, 0.0)
+        poly: list[tuple[float, float]] = []
+        for lane, pos, left in ((0, 0.0, -0.5), (0, length, -0.5), (n_lanes - 1, length, 0.5), (n_lanes - 1, 0.0, 0.5)):
+            x, y, yaw = lane_pose(edge, lane, pos)
+            poly.append(offset(x, y, yaw, 0.0, left * libsumo.lane.getWidth(f"{edge}_{lane}")))
+        e.zone_m = poly
+
+
