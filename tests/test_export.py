@@ -133,6 +133,9 @@ def episode(tmp_path_factory) -> Path:
     doc = sc.model_dump(mode="json")
     for kind in ("vehicle", "rsu", "drone"):
         doc["sensors"][kind]["lidar"]["range_noise_m"] = 0.0
+        # A sweep's points smear over its period when agents move (motion distortion); these geometric checks
+        # compare points with boxes at the tick time, so they use instantaneous sweeps.
+        doc["sensors"][kind]["lidar"]["motion_distortion"] = False
     doc["sensors"]["vehicle"]["lidar"]["mount"]["xyz_m"] = [1.0, 0.4, 1.9]
     doc["sensors"]["rsu"]["lidar"]["mount"]["xyz_m"] = [0.6, -0.5, 0.3]
     (d / "scenario.yaml").write_text(yaml.safe_dump(doc))
