@@ -186,10 +186,18 @@ def test_baseline_predictions_are_deterministic_and_splits_are_checked(batch, tm
 
 
 def test_release_compat_mode_skips_frames_without_detections(batch, oracle_run, tmp_path, capsys):
-    preds = oracle_run[0] / "predictions" / "oracle-noise.jsonl"
-    assert main(["eval", "--gt", str(batch), "--pred", str(preds), "--compat", "airv2x", "--out", str(tmp_path)]) == 0
-    md = (tmp_path / "eval.md").read_text()
-    empty = sum(1 for line in preds.read_text().splitlines() if json.loads(line)["boxes"] == [])
+    # The oracle's predictions with every third frame's detections removed, so some frames have none.
+    oracle = (oracle_run[0] / "predictions" / "oracle-noise.jsonl").read_text()
+    records = [json.loads(line) for line in oracle.splitlines()]
+    for i, rec in enumerate(records):
+        if i % 3 == 0:
+            rec["boxes"] = []
+    preds = tmp_path / "preds.jsonl"
+    preds.write_text("".join(json.dumps(rec) + "\n" for rec in records))
+    out = tmp_path / "out"
+    assert main(["eval", "--gt", str(batch), "--pred", str(preds), "--compat", "airv2x", "--out", str(out)]) == 0
+    md = (out / "eval.md").read_text()
+    empty = sum(1 for rec in records if rec["boxes"] == [])
     assert empty > 0
     assert f"{empty} frames without detections skipped (release behaviour)" in md
     assert "mode: airv2x" in md
