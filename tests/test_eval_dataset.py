@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -192,7 +193,8 @@ def test_release_compat_mode_skips_frames_without_detections(batch, oracle_run, 
     for i, rec in enumerate(records):
         if i % 3 == 0:
             rec["boxes"] = []
-    preds = tmp_path / "preds.jsonl"
+    folder = shutil.copytree(oracle_run[0] / "predictions", tmp_path / "predictions")  # BEV files by relative path
+    preds = folder / "oracle-noise.jsonl"
     preds.write_text("".join(json.dumps(rec) + "\n" for rec in records))
     out = tmp_path / "out"
     assert main(["eval", "--gt", str(batch), "--pred", str(preds), "--compat", "airv2x", "--out", str(out)]) == 0
