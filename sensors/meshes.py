@@ -507,8 +507,8 @@ def _drone() -> ActorTemplate:
 def _pedestrian() -> ActorTemplate:
     """A walker in the unit box (x forward): legs in a mid stride, torso, arms, head."""
     parts = [
-        (_box((0.05, -0.32, -0.5), (0.35, -0.06, -0.02)), _PART_DARK),  # front leg
-        (_box((-0.35, 0.06, -0.5), (-0.05, 0.32, -0.02)), _PART_DARK),  # back leg
+        (_box((0.12, -0.32, -0.5), (0.5, -0.06, -0.02)), _PART_DARK),  # front leg
+        (_box((-0.5, 0.06, -0.5), (-0.12, 0.32, -0.02)), _PART_DARK),  # back leg
         (_box((-0.25, -0.38, -0.02), (0.25, 0.38, 0.3)), _PART_BODY),  # torso
         (_box((-0.12, -0.5, -0.05), (0.12, -0.38, 0.28)), _PART_BODY),  # arms
         (_box((-0.12, 0.38, -0.05), (0.12, 0.5, 0.28)), _PART_BODY),
