@@ -43,6 +43,7 @@ from cosim.sensors.camera import _rays
 from cosim.sensors.lidar import beam_pattern
 from cosim.sensors.rig import camera_pose, intrinsics, rotate, sensor_pose
 from cosim.sensors.scene import cast, place_actors, static_bare_mesh
+from cosim.sensors.suite import render_processes
 from cosim.sensors.synthetic import world_snapshot
 
 from cosim.scenario.loader import load_scenario, load_scenario_data
@@ -96,6 +97,13 @@ def bare_cast_seconds(suite: SensorSuite, snap) -> tuple[float, int]:
             total += time.perf_counter() - t0
             n_rays += len(rays)
     return total, n_rays
+
+
+def _data_kind(topic: str) -> str:
+    """The data kind of a sensor topic: RGB, depth, semantic, instance, LiDAR, labels (everything else)."""
+    last = topic.rsplit("/", 1)[-1]
+    return {"image": "RGB", "depth": "depth", "semantic": "semantic", "instance": "instance",
+            "lidar": "LiDAR"}.get(last, "labels")
 
 
 def pybullet_seconds(suite: SensorSuite, snap) -> tuple[float, float, float]:
@@ -169,7 +177,8 @@ def run(args) -> None:
         world = build_world(loaded, Path(tmp))
         t_world = time.perf_counter() - t0
         t0 = time.perf_counter()
-        suite = SensorSuite(sc, world, block_px=args.block_px)
+        processes = render_processes(sc) if args.processes is None else args.processes
+        suite = SensorSuite(sc, world, block_px=args.block_px, processes=processes)
         t_static = time.perf_counter() - t0
         print(f"world: {len(world.layout.prisms)} prisms, static mesh {suite.static.n_triangles} triangles; "
               f"world {t_world:.2f} s, static scene {t_static:.2f} s (once per episode)")
@@ -177,12 +186,30 @@ def run(args) -> None:
         print(f"rig: {len(sc.agent_ids())} agents, {n_cams} cameras at 1280x720, 15 LiDARs; "
               f"{sc.environment.weather} {sc.environment.lighting}; "
               f"image format {sc.output.image_format}, MCAP chunk compression {sc.output.compression}; "
-              f"block_px {args.block_px}; {args.frames} snapshots, pipelined episodes of {args.episode_frames} frames")
+              f"block_px {args.block_px}; {processes} render processes; {args.frames} snapshots, pipelined episodes "
+              f"of {args.episode_frames} frames")
         snaps = [world_snapshot(world, 5, 5, args.background, seed=k, tick=k, speed_mps=args.speed)
                  for k in range(args.frames)]
 
         def messages(frames):
             return frame_messages(frames, frames.t_ns, image_format=sc.output.image_format)
+
+        kinds: dict[str, list[int]] = {}  # data kind -> [serialized bytes, zstd bytes] over the first pass
+        n_agent_frames = [0]
+
+        def tally(frames, msgs) -> None:
+            import zstandard
+
+            if n_agent_frames[0] >= len(snaps) * len(frames.agents):
+                return
+            n_agent_frames[0] += len(frames.agents)
+            z = zstandard.ZstdCompressor()
+            for topic, msg in msgs:
+                kind = _data_kind(topic)
+                raw = msg.SerializeToString() if hasattr(msg, "SerializeToString") else json.dumps(msg[2]).encode()
+                k = kinds.setdefault(kind, [0, 0])
+                k[0] += len(raw)
+                k[1] += len(z.compress(raw))
 
         def sequential(name: str) -> list[dict]:
             """Each frame rendered, encoded and written before the next starts (the breakdown)."""
@@ -195,6 +222,7 @@ def run(args) -> None:
                     t1 = time.perf_counter()
                     msgs = messages(frames)
                     t2 = time.perf_counter()
+                    tally(frames, msgs)
                     for topic, msg in msgs:
                         w.write(topic, msg, snap.t_ns)
                     t3 = time.perf_counter()
@@ -261,6 +289,9 @@ def run(args) -> None:
         pipe = 0.5 * (pipe_a + pipe_b)
         bare = float(np.mean([r[0] for r in refs]))
         print(f"episode file: {seq_a[-1]['bytes'] / 1e6 / len(snaps):.0f} MB per frame")
+        n = max(1, n_agent_frames[0])
+        print("bytes per agent-frame by data kind (message bytes; zstd of each message, as in MCAP chunks): "
+              + ", ".join(f"{k} {v[0] / n / 1e6:.2f} MB ({v[1] / n / 1e6:.2f} MB)" for k, v in sorted(kinds.items())))
         print(f"per frame: sequential {seq:.2f} s (mean over {len(snaps)} snapshots: render, then encode, then "
               f"write); pipelined {pipe:.2f} s (runs {pipe_a:.2f}, {pipe_b:.2f}; episodes of {len(episode)} frames, "
               f"writing overlaps the next render, as in cosim run); bare casting {bare:.2f} s")
@@ -315,6 +346,8 @@ def main() -> None:
     ap.add_argument("--background", type=int, default=40, help="background road users")
     ap.add_argument("--block-px", type=int, default=8, help="adaptive casting block (1 = a ray per pixel)")
     ap.add_argument("--no-pybullet", action="store_true")
+    ap.add_argument("--processes", type=int, help="render processes (default: sensors.render_processes' automatic "
+                    "choice)")
     ap.add_argument("--compression", choices=("zstd", "lz4", "none"), help="MCAP chunk compression "
                     "(default: the scenario's)")
     ap.add_argument("--weather", choices=("clear", "cloudy", "foggy", "rainy"), help="default: the scenario's")

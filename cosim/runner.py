@@ -295,9 +295,10 @@ class _SensorAdapter:
         from cosim.exporters.sensor_messages import frame_messages
         from cosim.sensors import SensorSuite
         from cosim.sensors.rig import sensor_transforms
+        from cosim.sensors.suite import render_processes
 
         self._scenario = loaded.scenario
-        self._suite = SensorSuite(loaded.scenario, world)
+        self._suite = SensorSuite(loaded.scenario, world, processes=render_processes(loaded.scenario))
         self._frame_messages = frame_messages
         self._sensor_transforms = sensor_transforms
 

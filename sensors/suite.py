@@ -9,8 +9,10 @@ the draws do not depend on the order in which the worker threads run.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -164,10 +166,14 @@ class SensorSuite:
     is shaded, so encoding overlaps with the rest of the tick. ``workers``: threads rendering
     cameras and agents side by side (Open3D holds the GIL while casting, but the numpy work around
     it releases it, so a few threads keep two cores busy); results do not depend on it.
+    ``processes``: render processes (:mod:`cosim.sensors.procs`; 0 renders in this process). Each
+    holds its own copy of the static scene, built once, and renders a fixed share of the agents
+    from the snapshot; the images come back through shared memory. The output bytes do not depend
+    on the number of processes.
     """
 
     def __init__(self, scenario: Scenario, world: World, *, block_px: int = 8, noise: bool = True,
-                 encode_images: bool = True, workers: int = 3):
+                 encode_images: bool = True, workers: int = 3, processes: int = 0):
         self.scenario = scenario
         self.encode_images = encode_images
         self._pool = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="cosim-render")
@@ -203,6 +209,12 @@ class SensorSuite:
             if rig.imu is not None:
                 self._biases[agent_id] = imu_biases(rig.imu, np.random.default_rng([scenario.seed, 0x1B, i]))
         log.info("static scene: %d triangles, built in %.2f s", m.n_triangles, time.perf_counter() - t0)
+        self._procs = None
+        if processes > 0:
+            from .procs import RenderProcesses
+
+            self._procs = RenderProcesses(scenario, world, processes,
+                                          {"block_px": block_px, "noise": noise, "workers": 1})
 
     def rig(self, agent: AgentState) -> RigSpec:
         return self.scenario.rig_for(agent.agent_id)
@@ -211,6 +223,9 @@ class SensorSuite:
         """Stop the render threads (idle threads also end with the interpreter). ``wait=False``: do not wait for
         sensors still rendering an abandoned frame (queued ones are cancelled either way)."""
         self._pool.shutdown(wait=wait, cancel_futures=True)
+        if self._procs is not None:
+            self._procs.close()
+            self._procs = None
 
     def __enter__(self) -> SensorSuite:
         return self
@@ -271,16 +286,8 @@ class SensorSuite:
         )
         return frame, {"camera_cast": t1 - t0, "shading": t2 - t1, "labels": time.perf_counter() - t2}
 
-    def render(self, snapshot: WorldSnapshot, rng: np.random.Generator,
-               check: Callable[[], None] | None = None) -> SensorFrameSet:
-        """Every agent's sensors at ``snapshot.t_ns`` (see the module docstring).
-
-        ``check`` is called every ``CHECK_PERIOD_S`` while the frame renders; whatever it raises abandons the
-        frame (sensors not started yet are cancelled) and propagates, so a caller can stop a long frame at
-        once, e.g. when a simulation worker has died.
-        """
-        t_start = time.perf_counter()
-        timing = {"scene": 0.0, "lidar": 0.0, "camera_cast": 0.0, "shading": 0.0, "labels": 0.0}
+    def _prepare(self, snapshot: WorldSnapshot) -> _Tick:
+        """What every agent's sensors share at one tick: the tick scene, shading tables, light, actor boxes."""
         scene = TickScene.build(self.static, snapshot.actors)
         lut = scene.labels
         n_act = lut["normal"][scene.n_static:scene.miss]
@@ -294,20 +301,48 @@ class SensorSuite:
             a_tracks = np.array([a.track_id for a in actors])
         else:
             a_corners, a_tracks = np.zeros((0, 8, 3)), np.zeros(0, np.int64)
-        timing["scene"] += time.perf_counter() - t_start
-
         own_track = {a.agent_id: a.track_id for a in actors if a.agent_id is not None}
+        return _Tick(scene, lut, tables, light, a_corners, a_tracks, own_track)
+
+    def render(self, snapshot: WorldSnapshot, rng: np.random.Generator,
+               check: Callable[[], None] | None = None) -> SensorFrameSet:
+        """Every agent's sensors at ``snapshot.t_ns`` (see the module docstring).
+
+        ``check`` is called every ``CHECK_PERIOD_S`` while the frame renders; whatever it raises abandons the
+        frame (sensors not started yet are cancelled) and propagates, so a caller can stop a long frame at
+        once, e.g. when a simulation worker has died.
+        """
+        t_start = time.perf_counter()
         agents = snapshot.agents
         # one child generator per agent, then per sensor: the draws do not depend on thread timing
         agent_rngs = rng.spawn(len(agents)) if agents else []
+        if self._procs is not None:
+            out, timing = self._procs.render(snapshot, list(zip(agents, agent_rngs, strict=True)), check)
+            if self.encode_images:
+                fmt = self.scenario.output
+                out = {aid: _with_encodes(af, fmt.image_format, fmt.jpeg_quality) for aid, af in out.items()}
+        else:
+            out, timing = self.render_agents(snapshot, list(zip(agents, agent_rngs, strict=True)), check)
+        timing["total"] = time.perf_counter() - t_start
+        return SensorFrameSet(snapshot.tick, snapshot.t_ns, out, timing)
+
+    def render_agents(self, snapshot: WorldSnapshot, items: list[tuple[AgentState, np.random.Generator]],
+                      check: Callable[[], None] | None = None) -> tuple[dict[str, AgentFrames], dict[str, float]]:
+        """The frames of the agents in ``items`` (each with its own generator) and the timings."""
+        t_start = time.perf_counter()
+        timing = {"scene": 0.0, "lidar": 0.0, "camera_cast": 0.0, "shading": 0.0, "labels": 0.0}
+        tick = self._prepare(snapshot)
+        scene, actors = tick.scene, snapshot.actors
+        timing["scene"] += time.perf_counter() - t_start
         jobs: list[tuple[AgentState, object, list]] = []
-        for agent, arng in zip(agents, agent_rngs, strict=True):
+        for agent, arng in items:
             rig = self.rig(agent)
-            own = agent.track_id if agent.track_id is not None else own_track.get(agent.agent_id)
-            occ = Occluders(self._thin, self._static_points, a_corners[a_tracks != own])
+            own = agent.track_id if agent.track_id is not None else tick.own_track.get(agent.agent_id)
+            occ = Occluders(self._thin, self._static_points, tick.a_corners[tick.a_tracks != own])
             srngs = arng.spawn(1 + len(rig.cameras))
             base = self._pool.submit(self._render_agent_base, agent, rig, own, scene, srngs[0], actors, snapshot.t_ns)
-            cams = [self._pool.submit(self._render_camera, agent, cam, own, scene, occ, tables, light, lut, r)
+            cams = [self._pool.submit(self._render_camera, agent, cam, own, scene, occ, tick.tables, tick.light,
+                                      tick.lut, r)
                     for cam, r in zip(rig.cameras, srngs[1:], strict=True)]
             jobs.append((agent, base, cams))
         out: dict[str, AgentFrames] = {}
@@ -343,8 +378,17 @@ class SensorSuite:
             out[agent.agent_id] = AgentFrames(agent.agent_id, agent.kind, lidar, cams, gnss, imu, bev, vis)
         timing["cast_rays"] = scene.timer.seconds
         timing["rays"] = float(scene.timer.rays)
-        timing["total"] = time.perf_counter() - t_start
-        return SensorFrameSet(snapshot.tick, snapshot.t_ns, out, timing)
+        return out, timing
+
+
+def render_processes(scenario: Scenario) -> int:
+    """``scenario.sensors.render_processes``, or when null one per core (at most 2) for rigs of at least
+    2 Mpx of cameras per frame (smaller ones render fastest in one process)."""
+    s = scenario.sensors
+    if s.render_processes is not None:
+        return s.render_processes
+    px = sum(c.width * c.height for a in scenario.agent_ids() for c in scenario.rig_for(a).cameras)
+    return min(2, os.cpu_count() or 1) if px >= 2_000_000 and (os.cpu_count() or 1) > 1 else 0
 
 
 def _wait(future: Future, check: Callable[[], None] | None) -> None:
@@ -364,5 +408,22 @@ def rig_cam_outputs(rig: RigSpec, name: str) -> tuple[str, ...]:
 
 
 def _drop_instance(c: CameraFrame) -> CameraFrame:
-    return CameraFrame(c.agent_id, c.name, c.width, c.height, c.K, c.P, c.pose, c.rgb, c.depth, c.semantic, None,
-                       c.encoded)
+    return dataclasses.replace(c, instance=None)
+
+
+def _with_encodes(af: AgentFrames, image_format: str, jpeg_quality: int) -> AgentFrames:
+    """``af`` with an encode started for each RGB image (frames from render processes come without)."""
+    cams = {n: c if c.rgb is None else dataclasses.replace(
+        c, encoded=(image_format, submit_encode(c.rgb, image_format, jpeg_quality))) for n, c in af.cameras.items()}
+    return dataclasses.replace(af, cameras=cams)
+
+
+@dataclass(frozen=True)
+class _Tick:
+    scene: TickScene
+    lut: dict[str, np.ndarray]
+    tables: object
+    light: LightMap | None
+    a_corners: np.ndarray
+    a_tracks: np.ndarray
+    own_track: dict[str, int]

@@ -360,6 +360,9 @@ class SensorsSpec(Model):
     bev_range_m: tuple[float, float] = (64.0, 40.0)  # [m] half extents x, y (paper section 4.2)
     # LiDAR x, y, z as stored (docs/episode_format.md 3.4): integer 1/256 m counts, or float32 metres
     lidar_positions: Literal["quantized", "float32"] = "quantized"
+    # render processes (docs/architecture.md, "Sensors"): null = automatic (one per core, at most 2, for rigs of
+    # at least 2 Mpx of cameras), 0 = render in the runner's process; the output does not depend on it
+    render_processes: int | None = Field(None, ge=0, le=16)
 
     @model_validator(mode="before")
     @classmethod
