@@ -125,12 +125,61 @@ def _rays(pose: Pose, xs: np.ndarray, ys: np.ndarray, near: float = 0.0) -> np.n
 @dataclass(frozen=True)
 class Occluders:
     """What adaptive casting must not interpolate across, in map: centre lines of thin static
-    things (S, 2, 3) (poles, lamp arms, lane markings, trunks), static mesh vertices (V, 3), and the
-    tick's actor boxes (A, 8, 3)."""
+    things (S, 2, 3) (poles, lamp arms, lane markings, trunks, and with a sun their shadows on the
+    ground), static mesh vertices (V, 3), and the tick's actor boxes (A, 8, 3).
+
+    ``sun_dir`` (3,): unit vector towards the sun when the cameras trace sun shadows (else None);
+    ``shadow_boxes`` (A, 8, 3): the volumes the actors' shadows may fall in (:func:`shadow_boxes`),
+    refined like the actors themselves."""
 
     segments: np.ndarray
     points: np.ndarray
     actor_boxes: np.ndarray
+    sun_dir: np.ndarray | None = None
+    shadow_boxes: np.ndarray | None = None
+
+
+#: [m] shadow rays start this far off the surface, along its normal (no self-shadowing)
+SHADOW_BIAS_M = 0.02
+
+
+def ground_shadow(points: np.ndarray, sun_dir: np.ndarray, ground_z_m: float = 0.0) -> np.ndarray:
+    """Where the sun throws points (..., 3) onto the plane z = ``ground_z_m``."""
+    k = (points[..., 2:3] - ground_z_m) / sun_dir[2]
+    out = points - k * sun_dir
+    out[..., 2] = ground_z_m
+    return out
+
+
+def shadow_boxes(corners: np.ndarray, sun_dir: np.ndarray) -> np.ndarray:
+    """(A, 8, 3) sheared boxes from each box's top face (corners 4..7 of (A, 8, 3)) down to its
+    shadow on the ground: every point of the box's shadow on the ground lies in it (walls in between
+    too, up to the top face)."""
+    top = corners[:, 4:8]
+    return np.concatenate([ground_shadow(top, sun_dir, float(corners[..., 2].min(initial=0.0))), top], axis=1)
+
+
+def sun_lit(scene: TickScene, rays: np.ndarray, t: np.ndarray, gid: np.ndarray, sun_dir: np.ndarray,
+            with_static: bool = True, with_actors: bool = True) -> np.ndarray:
+    """(N,) bool: whether the sun reaches the hit of each ray (``t`` inf: a miss, lit). Hits on
+    surfaces turned away from the sun count as lit (the sun adds nothing to them either way)."""
+    lit = np.ones(len(t), bool)
+    idx = np.nonzero(np.isfinite(t))[0]
+    if len(idx) == 0:
+        return lit
+    n = np.take(scene.labels["normal"], gid[idx], axis=0).astype(np.float32)
+    d = rays[idx, 3:]
+    n[(n * d).sum(axis=1) > 0] *= -1  # the side the ray sees
+    sun = sun_dir.astype(np.float32)
+    facing = np.nonzero(n @ sun > 0)[0]
+    if len(facing) == 0:
+        return lit
+    k = idx[facing]
+    sh = np.empty((len(k), 6), np.float32)
+    sh[:, :3] = rays[k, :3] + t[k, None] * rays[k, 3:] + np.float32(SHADOW_BIAS_M) * n[facing]
+    sh[:, 3:] = sun
+    lit[k] = ~scene.occluded(sh, with_static, with_actors)
+    return lit
 
 
 _MAX_SEGMENT_SAMPLES = 4096
@@ -202,6 +251,7 @@ class StaticImage:
         self.key: bytes | None = None
         self.gid = np.zeros((0, 0), np.int32)
         self.depth = np.zeros((0, 0), np.float32)
+        self.lit: np.ndarray | None = None
 
 
 def cast_image(
@@ -213,8 +263,9 @@ def cast_image(
     exclude_track: int | None,
     block_px: int,
     fixed: StaticImage | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel global triangle index (H, W) int32 and planar depth (H, W) float32 (inf on a miss).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Per-pixel global triangle index (H, W) int32, planar depth (H, W) float32 (inf on a miss) and,
+    when ``occ.sun_dir`` is set, whether the sun reaches the pixel's surface (H, W) bool (else None).
 
     With ``block_px`` > 1 the image is refined as a quadtree from blocks of ``block_px`` (a power of
     two dividing H and W, else the largest that does) down to single pixels (module docstring).
@@ -222,17 +273,22 @@ def cast_image(
 
     ``fixed``: the camera's :class:`StaticImage` when it does not move between ticks. Its static
     image is made once; every tick then casts one ray per pixel inside the actors' projected boxes
-    against the actors alone and keeps the nearer hit, so the work follows what moves.
+    against the actors alone and keeps the nearer hit, so the work follows what moves; with a sun,
+    the pixels inside the actors' shadow volumes that the static world leaves lit test their shadow
+    rays against the actors.
     """
     if fixed is None:
         return _cast_adaptive(cam, K, pose, scene, occ, exclude_track, block_px)
     h, w = cam.height, cam.width
     key = pose.rotation.tobytes() + pose.position_m.tobytes() + K.tobytes()
     if key != fixed.key or fixed.gid.shape != (h, w):
-        g, d = _cast_adaptive(cam, K, pose, scene, occ, exclude_track, block_px, with_actors=False)
+        g, d, lit = _cast_adaptive(cam, K, pose, scene, occ, exclude_track, block_px, with_actors=False)
         fixed.key, fixed.gid, fixed.depth = key, np.where(g == scene.miss, np.int32(-1), g), d
+        fixed.lit = lit
     gid = np.where(fixed.gid < 0, np.int32(scene.miss), fixed.gid)
     depth = fixed.depth.copy()
+    lit = None if fixed.lit is None else fixed.lit.copy()
+    xs, ys = _pixel_dirs(cam, K)
     rects, valid = project_boxes(occ.actor_boxes, pose, K)
     under = np.zeros((h, w), bool)
     for i0, i1, j0, j1 in _clip_rects(rects[valid], h - 1, w - 1):
@@ -240,13 +296,26 @@ def cast_image(
     idx = np.flatnonzero(under)
     if len(idx):
         rr, cc = np.divmod(idx, w)
-        xs, ys = _pixel_dirs(cam, K)
-        ta, ga = scene.cast(_rays(pose, xs[cc], ys[rr], NEAR_CLIP_M), exclude_track, with_static=False)
-        ta += np.float32(NEAR_CLIP_M)
-        nearer = ta < depth.ravel()[idx]
-        depth.ravel()[idx[nearer]] = ta[nearer]
+        rays = _rays(pose, xs[cc], ys[rr], NEAR_CLIP_M)
+        ta, ga = scene.cast(rays, exclude_track, with_static=False)
+        nearer = np.nonzero(ta + np.float32(NEAR_CLIP_M) < depth.ravel()[idx])[0]
+        depth.ravel()[idx[nearer]] = ta[nearer] + np.float32(NEAR_CLIP_M)
         gid.ravel()[idx[nearer]] = ga[nearer]
-    return gid, depth
+        if lit is not None and len(nearer):
+            lit.ravel()[idx[nearer]] = sun_lit(scene, rays[nearer], ta[nearer], ga[nearer], occ.sun_dir)
+    if lit is not None and occ.shadow_boxes is not None and len(occ.shadow_boxes):
+        rects, valid = project_boxes(occ.shadow_boxes, pose, K)
+        shade_px = np.zeros((h, w), bool)
+        for i0, i1, j0, j1 in _clip_rects(rects[valid], h - 1, w - 1):
+            shade_px[i0:i1 + 1, j0:j1 + 1] = True
+        shade_px &= lit & np.isfinite(depth) & ((gid < scene.n_static) | (gid == scene.miss))
+        idx = np.flatnonzero(shade_px)
+        if len(idx):
+            rr, cc = np.divmod(idx, w)
+            rays = _rays(pose, xs[cc], ys[rr], NEAR_CLIP_M)
+            t = depth.ravel()[idx] - np.float32(NEAR_CLIP_M)
+            lit.ravel()[idx] = sun_lit(scene, rays, t, gid.ravel()[idx], occ.sun_dir, with_static=False)
+    return gid, depth, lit
 
 
 def _cast_adaptive(
@@ -258,16 +327,20 @@ def _cast_adaptive(
     exclude_track: int | None,
     block_px: int,
     with_actors: bool = True,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """:func:`cast_image` for a camera without a kept static image (``with_actors=False``: the static
-    world alone, ignoring ``occ.actor_boxes``)."""
+    world alone, ignoring ``occ.actor_boxes``). With a sun, a block is coherent only when its corners
+    agree on the sun's reaching them too, so shadow edges are refined down to single pixels."""
     h, w = cam.height, cam.width
     xs, ys = _pixel_dirs(cam, K)
     top = _largest_block(h, w, block_px)
+    sun = occ.sun_dir
     if top == 1:
         gx, gy = np.meshgrid(xs, ys)
-        t, gid = scene.cast(_rays(pose, gx.ravel(), gy.ravel()), exclude_track, NEAR_CLIP_M, with_actors=with_actors)
-        return gid.reshape(h, w), t.reshape(h, w)
+        rays = _rays(pose, gx.ravel(), gy.ravel(), NEAR_CLIP_M)
+        t, gid = scene.cast(rays, exclude_track, with_actors=with_actors)
+        lit = None if sun is None else sun_lit(scene, rays, t, gid, sun, with_actors=with_actors).reshape(h, w)
+        return gid.reshape(h, w), (t + np.float32(NEAR_CLIP_M)).reshape(h, w), lit
 
     # samples live on the (h + 1) x (w + 1) grid of pixel centres (the last row/column just outside)
     gw = w + 1
@@ -275,6 +348,10 @@ def _cast_adaptive(
     ys_ext = (np.arange(h + 1) + 0.5 - K[1, 2]) / K[1, 1]
     a_rects, a_valid = project_boxes(occ.actor_boxes, pose, K)
     a_rects = _clip_rects(a_rects[a_valid], h, w) if with_actors else []
+    f_rects = list(a_rects)  # refined like actors: actors and their shadows
+    if with_actors and sun is not None and occ.shadow_boxes is not None and len(occ.shadow_boxes):
+        s_rects, s_valid = project_boxes(occ.shadow_boxes, pose, K)
+        f_rects += _clip_rects(s_rects[s_valid], h, w)
     actor_px = np.zeros((h + 1, w + 1), bool)
     for i0, i1, j0, j1 in a_rects:
         actor_px[i0:i1 + 1, j0:j1 + 1] = True
@@ -289,6 +366,7 @@ def _cast_adaptive(
 
     G = np.full((h + 1) * gw, -2, np.int32)
     T = np.full((h + 1) * gw, np.inf, np.float32)
+    S = np.ones((h + 1) * gw, bool)  # the sun reaches the sample
 
     def rays_at(idx: np.ndarray) -> np.ndarray:
         rr, cc = np.divmod(idx, gw)
@@ -306,6 +384,8 @@ def _cast_adaptive(
                 g[sel[nearer]] = ga[nearer]
         G[idx] = g
         T[idx] = t + np.float32(NEAR_CLIP_M)
+        if sun is not None:
+            S[idx] = sun_lit(scene, rays, t, g, sun, with_actors=with_actors)
 
     sample((np.arange(0, h + 1, top)[:, None] * gw + np.arange(0, w + 1, top)[None, :]).ravel())
 
@@ -327,13 +407,14 @@ def _cast_adaptive(
         if s == 2:
             return forced[2]
         f = forced[s].copy()
-        for i0, i1, j0, j1 in a_rects:
+        for i0, i1, j0, j1 in f_rects:
             f[i0 // s:min(i1, h - 1) // s + 1, j0 // s:min(j1, w - 1) // s + 1] = True
         return f
 
     gid = np.empty((h, w), np.int32)
     depth = np.empty((h, w), np.float32)
-    Gv, Tv = G.reshape(h + 1, gw), T.reshape(h + 1, gw)
+    lit = np.empty((h, w), bool) if sun is not None else None
+    Gv, Tv, Sv = G.reshape(h + 1, gw), T.reshape(h + 1, gw), S.reshape(h + 1, gw)
     # top level: dense fill of the whole image (pixels of mixed blocks are overwritten below)
     s = top
     hb, wb = h // s, w // s
@@ -341,6 +422,8 @@ def _cast_adaptive(
     with np.errstate(divide="ignore"):
         inv = np.where(np.isfinite(Tv[::s, ::s]), 1.0 / Tv[::s, ::s], 0.0).astype(np.float32)
     gid.reshape(hb, s, w)[:] = np.repeat(gs[:-1, :-1], s, axis=1)[:, None, :]
+    if lit is not None:
+        lit.reshape(hb, s, w)[:] = np.repeat(Sv[::s, ::s][:-1, :-1], s, axis=1)[:, None, :]
     wgt = np.arange(s, dtype=np.float32) / s
     rows = (inv[:-1, None, :] * (1 - wgt)[None, :, None] + inv[1:, None, :] * wgt[None, :, None]).reshape(h, wb + 1)
     # column k of every block; one pass per k keeps numpy's inner loops long
@@ -360,9 +443,17 @@ def _cast_adaptive(
         fs = np.take(face, Gv[::s, ::s], mode="clip")
         c00 = fs[:-1, :-1]
         same = (c00 == fs[:-1, 1:]) & (c00 == fs[1:, :-1]) & (c00 == fs[1:, 1:])
+        if lit is not None:
+            ss = Sv[::s, ::s]
+            l00 = ss[:-1, :-1]
+            same &= (l00 == ss[:-1, 1:]) & (l00 == ss[1:, :-1]) & (l00 == ss[1:, 1:])
         coherent = active & same & ~forced_at(s)
         if s != top:
-            _fill_blocks(gid, depth, np.nonzero(coherent), s, Gv, Tv)
+            blocks = np.nonzero(coherent)
+            _fill_blocks(gid, depth, blocks, s, Gv, Tv)
+            if lit is not None and len(blocks[0]):
+                lit.reshape(h // s, s, w // s, s)[blocks[0], :, blocks[1], :] = \
+                    Sv[blocks[0] * s, blocks[1] * s][:, None, None]
         mixed = active & ~coherent
         bi, bj = np.nonzero(mixed)
         half = s // 2
@@ -388,7 +479,9 @@ def _cast_adaptive(
     where = np.repeat(np.repeat(mixed, 2, axis=0), 2, axis=1)
     np.copyto(gid, Gv[:h, :w], where=where)
     np.copyto(depth, Tv[:h, :w], where=where)
-    return gid, depth
+    if lit is not None:
+        np.copyto(lit, Sv[:h, :w], where=where)
+    return gid, depth, lit
 
 
 def _fill_blocks(gid: np.ndarray, depth: np.ndarray, blocks, s: int, Gv: np.ndarray, Tv: np.ndarray) -> None:
@@ -439,7 +532,7 @@ class LightMap:
 
 LAMP_RGB = np.array([1.0, 0.82, 0.55], np.float32)  # sodium-ish street light colour
 _GAMMA_LUT = (np.linspace(0.0, 1.0, 4096) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
-SKY_LEVELS = 64
+SKY_LEVELS = 1024
 
 
 def to_srgb(linear: np.ndarray, exposure: float = 1.0) -> np.ndarray:
@@ -481,11 +574,12 @@ def _with_sky(gid: np.ndarray, sky: np.ndarray, first_level: int, cam: CameraSpe
 
 @dataclass(frozen=True)
 class ShadingTables:
-    """Per global triangle index (rows 0..miss-1), then ``miss`` (unused), then the sky levels.
+    """Per global triangle index (rows 0..miss-1), then ``miss`` (unused), then the sky levels: R
+    rows lit by the sun, then the same R rows in the sun's shadow (row + ``rows``).
 
-    ``linear`` (R, 3) float32 colour under sun and sky, plus the lamps' own glow when artificial
-    light is on; ``srgb`` (R, 3) uint8 the same after exposure and gamma; ``albedo`` (R, 3) float32;
-    ``albedo_lamp`` (R, 3) float32 albedo times the street lights' colour.
+    ``linear`` (2 R, 3) float32 colour under sun and sky, plus the lamps' own glow when artificial
+    light is on; ``srgb`` (2 R, 3) uint8 the same after exposure and gamma; ``albedo`` (2 R, 3)
+    float32; ``albedo_lamp`` (2 R, 3) float32 albedo times the street lights' colour.
     """
 
     linear: np.ndarray
@@ -493,23 +587,27 @@ class ShadingTables:
     albedo: np.ndarray
     albedo_lamp: np.ndarray
     miss: int
+    rows: int
 
 
 def shading_tables(lut_rgb: np.ndarray, lut_albedo: np.ndarray, lut_emissive: np.ndarray, miss: int,
-                   atm: Atmosphere) -> ShadingTables:
-    """Tables for :func:`shade` from per-global-index colour (miss + 1, 3), albedo and emissive rows."""
+                   atm: Atmosphere, lut_rgb_shadow: np.ndarray | None = None) -> ShadingTables:
+    """Tables for :func:`shade` from per-global-index colour (miss + 1, 3) in the sun and in its
+    shadow (``lut_rgb_shadow``; default: the same), albedo and emissive rows."""
     sky = sky_table(atm)
-    linear = np.concatenate([lut_rgb.astype(np.float32), sky])
-    albedo = np.concatenate([lut_albedo.astype(np.float32), np.zeros_like(sky)])
+    shadow = lut_rgb if lut_rgb_shadow is None else lut_rgb_shadow
+    linear = np.concatenate([lut_rgb.astype(np.float32), sky, shadow.astype(np.float32), sky])
+    albedo = np.concatenate([lut_albedo.astype(np.float32), np.zeros_like(sky)] * 2)
     if atm.artificial > 0:  # lamps glow in their own colour: a constant per triangle
-        glow = np.concatenate([lut_emissive.astype(np.float32), np.zeros(len(sky), np.float32)])
+        glow = np.concatenate([lut_emissive.astype(np.float32), np.zeros(len(sky), np.float32)] * 2)
         linear += albedo * (glow * np.float32(2.0 * atm.artificial))[:, None]
-    return ShadingTables(linear, to_srgb(linear, atm.exposure), albedo, albedo * LAMP_RGB, miss)
+    return ShadingTables(linear, to_srgb(linear, atm.exposure), albedo, albedo * LAMP_RGB, miss, len(linear) // 2)
 
 
 def shade(
     gid: np.ndarray,
     depth: np.ndarray,
+    lit: np.ndarray | None,
     cam: CameraSpec,
     K: np.ndarray,
     pose: Pose,
@@ -519,8 +617,9 @@ def shade(
     rng: np.random.Generator,
     block_px: int = 4,
 ) -> np.ndarray:
-    """sRGB image (H, W, 3) uint8 from per-pixel global triangle index ``gid`` (H, W) int32 and
-    planar ``depth`` (H, W) float32 [m].
+    """sRGB image (H, W, 3) uint8 from per-pixel global triangle index ``gid`` (H, W) int32,
+    planar ``depth`` (H, W) float32 [m] and whether the sun reaches each pixel (``lit`` (H, W) bool,
+    None: everywhere).
 
     Sun and sky light come baked per triangle; adds the sky gradient, artificial light (street
     lights and headlights from ``light``, lamps' own glow), extinction by distance towards the fog
@@ -529,6 +628,8 @@ def shade(
     h, w = gid.shape
     sky = gid == tables.miss
     g = _with_sky(gid, sky, tables.miss + 1, cam, K, pose, block_px)
+    if lit is not None:
+        g = np.where(lit, g, g + np.int32(tables.rows))
     linear_needed = atm.artificial > 0 or atm.beta > 0 or atm.rain_rate_mm_h > 0
     if not linear_needed:
         return np.take(tables.srgb, g, axis=0)
@@ -563,8 +664,8 @@ def shade(
 
 def _street_light(light: LightMap, depth: np.ndarray, K: np.ndarray, pose: Pose) -> np.ndarray:
     """(H, W) float32 artificial irradiance at each pixel's surface point (``depth`` 0 for the sky):
-    the light map at its ground position, fading over the lowest 8 m (pools light the ground and
-    the lower few metres of walls)."""
+    the light map at its ground position, interpolated bilinearly between cell centres (no steps),
+    fading smoothly over the lowest 8 m (pools light the ground and the lower few metres of walls)."""
     h, w = depth.shape
     xs = ((np.arange(w) + 0.5 - K[0, 2]) / K[0, 0]).astype(np.float32)
     ys = ((np.arange(h) + 0.5 - K[1, 2]) / K[1, 1]).astype(np.float32)
@@ -572,24 +673,36 @@ def _street_light(light: LightMap, depth: np.ndarray, K: np.ndarray, pose: Pose)
     o = pose.position_m.astype(np.float32)  # float32 throughout (a float64 scalar would promote)
     ny, nx = light.values.shape
     inv = np.float32(1.0 / light.res_m)
-    # light-map column and row: (o + depth * ray - map origin) / cell, one multiply-add per pixel
-    cells = []
+    # light-map column and row of the point, in cells from the first cell's centre
+    cells, fracs = [], []
     for k, (origin, n) in enumerate(((light.x0, nx), (light.y0, ny))):
         f = depth * ((r[k, 0] * inv) * xs[None, :] + ((r[k, 1] * inv) * ys[:, None] + r[k, 2] * inv))
-        f += np.float32((o[k] - origin) * inv)
-        np.clip(f, 0, n - 1, out=f)
-        cells.append(f.astype(np.int32))
-    j, i = cells
+        f += np.float32((o[k] - origin) * inv - 0.5)
+        np.clip(f, 0, n - 1.001, out=f)
+        c = f.astype(np.int32)
+        f -= c
+        cells.append(c)
+        fracs.append(f)
+    (j, i), (fx, fy) = cells, fracs
     i *= np.int32(nx)
     i += j
-    e = np.take(light.values, i)
+    v = light.values
+    e0 = np.take(v, i)
+    e0 += fx * (np.take(v, i + 1) - e0)
+    i += np.int32(nx)
+    e1 = np.take(v, i)
+    e1 += fx * (np.take(v, i + 1) - e1)
+    e1 -= e0
+    e1 *= fy
+    e0 += e1
     pz = depth * (r[2, 0] * xs[None, :] + (r[2, 1] * ys[:, None] + r[2, 2]))
     pz += o[2]
-    pz *= np.float32(-1 / 8)
-    pz += np.float32(1.0)
+    pz *= np.float32(1 / 8)
     np.clip(pz, 0, 1, out=pz)
-    e *= pz
-    return e
+    # 1 - smoothstep: no kink where the fade ends
+    fade = pz * pz * (np.float32(3.0) - np.float32(2.0) * pz)
+    e0 *= np.float32(1.0) - fade
+    return e0
 
 
 @lru_cache(maxsize=16)

@@ -39,6 +39,11 @@ class Atmosphere:
     exposure: float  # camera gain
 
     @property
+    def casts_shadows(self) -> bool:
+        """Whether the sun is strong and high enough for the cameras to trace its shadows."""
+        return float(np.max(self.sun_rgb)) >= 0.05 and float(self.sun_dir[2]) > 0.02
+
+    @property
     def beta_fog(self) -> float:
         """Fog extinction [1/m]."""
         return 3.0 / self.visibility_m if self.visibility_m < CLEAR_VISIBILITY_M else 0.0
@@ -59,17 +64,28 @@ def _sun(elev_deg: float, azim_deg: float) -> np.ndarray:
     return np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
 
 
-def atmosphere(env: EnvironmentSpec) -> Atmosphere:
-    """The sensor-side view of ``env``."""
+def sun_azimuth_deg(seed: int | None, lighting: str) -> float:
+    """The sun's azimuth [deg] (ENU, counter-clockwise from east): drawn per episode from ``seed``
+    (uniform over the circle), or the fixed default of ``lighting`` when ``seed`` is None."""
+    if seed is None:
+        return {"day": 210.0, "dusk": 260.0}.get(lighting, 120.0)
+    return float(np.random.default_rng([seed, 0x5A11]).uniform(0.0, 360.0))
+
+
+def atmosphere(env: EnvironmentSpec, seed: int | None = None) -> Atmosphere:
+    """The sensor-side view of ``env``; ``seed`` (the scenario's) draws the sun's azimuth
+    (:func:`sun_azimuth_deg`)."""
     v = np.asarray
+    az = sun_azimuth_deg(seed, env.lighting)
     if env.lighting == "day":
-        sun_dir, sun, amb = _sun(50, 210), v([1.0, 0.97, 0.92]), v([0.38, 0.40, 0.45])
+        sun_dir, sun, amb = _sun(50, az), v([1.0, 0.97, 0.92]), v([0.38, 0.40, 0.45])
         zen, hor, art, expo = v([0.25, 0.45, 0.85]), v([0.70, 0.80, 0.92]), 0.0, 1.0
     elif env.lighting == "dusk":
-        sun_dir, sun, amb = _sun(6, 260), v([0.85, 0.50, 0.28]), v([0.16, 0.14, 0.18])
+        # a low sun (15 deg up): long shadows
+        sun_dir, sun, amb = _sun(15, az), v([0.85, 0.50, 0.28]), v([0.16, 0.14, 0.18])
         zen, hor, art, expo = v([0.18, 0.20, 0.40]), v([0.85, 0.50, 0.30]), 0.5, 1.1
     else:
-        sun_dir, sun, amb = _sun(30, 120), v([0.006, 0.007, 0.010]), v([0.006, 0.007, 0.011])
+        sun_dir, sun, amb = _sun(30, az), v([0.006, 0.007, 0.010]), v([0.006, 0.007, 0.011])
         zen, hor, art, expo = v([0.002, 0.002, 0.008]), v([0.012, 0.012, 0.02]), 1.0, 1.0
     fog = np.clip(0.55 * hor + 0.45 * np.mean(hor), 0, 1)
     visibility = CLEAR_VISIBILITY_M

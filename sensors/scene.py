@@ -207,6 +207,25 @@ class TickScene:
             "face": self.table(self.static.faces, a.faces() + (int(self.static.faces.max(initial=-1)) + 1), -1),
         }
 
+    def occluded(self, rays: np.ndarray, with_static: bool = True, with_actors: bool = True) -> np.ndarray:
+        """(N,) bool: whether each ray (N, 6) float32 meets anything at all (static or any actor; shadow rays)."""
+        t0 = time.perf_counter()
+        out = np.zeros(rays.shape[0], bool)
+        if rays.shape[0]:
+            if with_static and self.static.scene is not None:
+                out |= self.static.scene.test_occlusions(o3d.core.Tensor.from_numpy(
+                    np.ascontiguousarray(rays, np.float32))).numpy()
+            scene = self._actor_scene(None)[0] if with_actors else None
+            if scene is not None:
+                rest = np.nonzero(~out)[0]
+                if len(rest):
+                    out[rest] = scene.test_occlusions(o3d.core.Tensor.from_numpy(
+                        np.ascontiguousarray(rays[rest], np.float32))).numpy()
+        with self._lock:
+            self.timer.seconds += time.perf_counter() - t0
+            self.timer.rays += rays.shape[0]
+        return out
+
     def cast(self, rays: np.ndarray, exclude_track: int | None = None, near_m: float = 0.0,
              with_static: bool = True, with_actors: bool = True, dt_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """Nearest hit over static + actors (minus ``exclude_track``'s own shape).

@@ -27,7 +27,18 @@ from cosim.snapshot import Actor, AgentState, WorldSnapshot
 from cosim.world.types import World
 
 from .bev import BevFrame, render_bev, static_raster
-from .camera import CameraFrame, LightMap, Occluders, StaticImage, box_corners, cast_image, shade, shading_tables
+from .camera import (
+    CameraFrame,
+    LightMap,
+    Occluders,
+    StaticImage,
+    box_corners,
+    cast_image,
+    ground_shadow,
+    shade,
+    shading_tables,
+    shadow_boxes,
+)
 from .encoding import submit_encode
 from .environment import Atmosphere, atmosphere
 from .gnss import GnssFrame, render_gnss
@@ -75,9 +86,10 @@ class SensorFrameSet:
                     cam.encoded[1].cancel()
 
 
-def _shaded(albedo: np.ndarray, normals: np.ndarray, atm: Atmosphere) -> np.ndarray:
-    """Linear colour (T, 3) float32 of triangles lit by the sun (Lambert, no shadows) and the sky."""
-    lam = np.clip((normals * atm.sun_dir).sum(axis=1), 0.0, None)[:, None]
+def _shaded(albedo: np.ndarray, normals: np.ndarray, atm: Atmosphere, sun: bool = True) -> np.ndarray:
+    """Linear colour (T, 3) float32 of triangles lit by the sun (Lambert; ``sun=False``: in its
+    shadow) and the sky."""
+    lam = np.clip((normals * atm.sun_dir).sum(axis=1), 0.0, None)[:, None] if sun else 0.0
     sky = (0.75 + 0.25 * normals[:, 2:3])  # surfaces facing up see more sky
     return (albedo * (atm.ambient_rgb * sky + atm.sun_rgb * lam)).astype(np.float32)
 
@@ -152,8 +164,10 @@ def _add_headlights(light: LightMap, actors: tuple[Actor, ...]) -> LightMap:
         across = -fy * px[None, :] + fx * py[:, None]
         d = np.sqrt(along**2 + across**2)
         ang = np.arctan2(np.abs(across), np.maximum(along, 1e-6))
-        e = 1.2 * np.exp(-((ang / 0.35) ** 2)) * (6.0 / np.maximum(d, 6.0)) ** 2
-        values[i0:i1, j0:j1] += np.where((along > 0) & (d < reach), e, 0.0).astype(np.float32)
+        # smooth throughout: the cone's edge fades with the angle, its reach over its last 10 m
+        fade = np.clip((reach - d) / 10.0, 0.0, 1.0)
+        e = 1.2 * np.exp(-((ang / 0.35) ** 2)) * (6.0 / np.maximum(d, 6.0)) ** 2 * fade * fade * (3 - 2 * fade)
+        values[i0:i1, j0:j1] += np.where(along > 0, e, 0.0).astype(np.float32)
     return LightMap(values, light.x0, light.y0, res)
 
 
@@ -180,12 +194,16 @@ class SensorSuite:
         self.world = world
         self.block_px = block_px
         self.noise = noise
-        self.atm = atmosphere(scenario.environment)
+        self.atm = atmosphere(scenario.environment, scenario.seed)
         t0 = time.perf_counter()
         self.static = StaticScene(static_mesh(world.layout))
         m = self.static.mesh
         self._static_rgb = _shaded(m.albedo, self.static.normals, self.atm)
+        self._static_rgb_shadow = _shaded(m.albedo, self.static.normals, self.atm, sun=False)
+        self._sun = self.atm.sun_dir.astype(np.float64) if self.atm.casts_shadows else None
         self._thin = _thin_segments(world)
+        if self._sun is not None:  # thin things' shadows on the ground are refined like the things
+            self._thin = np.concatenate([self._thin, ground_shadow(self._thin, self._sun, world.layout.ground_z_m)])
         verts = m.vertices.astype(np.float64)
         self._static_points = np.unique(verts, axis=0) if len(verts) else np.zeros((0, 3))
         self._light: LightMap | None = None
@@ -269,11 +287,11 @@ class SensorSuite:
         if agent.kind == "rsu":  # RSUs stand still: their cameras keep their static image
             with self._fixed_lock:
                 fixed = self._fixed.setdefault((agent.agent_id, cam.name), StaticImage())
-        gid, depth = cast_image(cam, K, pose, scene, occ, own, self.block_px, fixed)
+        gid, depth, lit = cast_image(cam, K, pose, scene, occ, own, self.block_px, fixed)
         t1 = time.perf_counter()
         rgb = encoded = None
         if "rgb" in cam.outputs:
-            rgb = shade(gid, depth, cam, K, pose, tables, self.atm, light, rng, self.block_px)
+            rgb = shade(gid, depth, lit, cam, K, pose, tables, self.atm, light, rng, 1)
             if self.encode_images:
                 out_spec = self.scenario.output
                 encoded = (out_spec.image_format, submit_encode(rgb, out_spec.image_format, out_spec.jpeg_quality))
@@ -292,7 +310,9 @@ class SensorSuite:
         lut = scene.labels
         n_act = lut["normal"][scene.n_static:scene.miss]
         rgb = scene.table(self._static_rgb, _shaded(scene.actors.albedo, n_act, self.atm), (0.0, 0.0, 0.0))
-        tables = shading_tables(rgb, lut["albedo"], lut["emissive"], scene.miss, self.atm)
+        rgb_shadow = scene.table(self._static_rgb_shadow, _shaded(scene.actors.albedo, n_act, self.atm, sun=False),
+                                 (0.0, 0.0, 0.0))
+        tables = shading_tables(rgb, lut["albedo"], lut["emissive"], scene.miss, self.atm, rgb_shadow)
         light = _add_headlights(self._light, snapshot.actors) if self._light is not None else None
         actors = snapshot.actors
         if actors:
@@ -302,7 +322,9 @@ class SensorSuite:
         else:
             a_corners, a_tracks = np.zeros((0, 8, 3)), np.zeros(0, np.int64)
         own_track = {a.agent_id: a.track_id for a in actors if a.agent_id is not None}
-        return _Tick(scene, lut, tables, light, a_corners, a_tracks, own_track)
+        # every actor's shadow (the own one too: a camera sees its vehicle's shadow)
+        sboxes = shadow_boxes(a_corners, self._sun) if self._sun is not None else None
+        return _Tick(scene, lut, tables, light, a_corners, a_tracks, own_track, sboxes)
 
     def render(self, snapshot: WorldSnapshot, rng: np.random.Generator,
                check: Callable[[], None] | None = None) -> SensorFrameSet:
@@ -338,7 +360,9 @@ class SensorSuite:
         for agent, arng in items:
             rig = self.rig(agent)
             own = agent.track_id if agent.track_id is not None else tick.own_track.get(agent.agent_id)
-            occ = Occluders(self._thin, self._static_points, tick.a_corners[tick.a_tracks != own])
+            boxes = tick.a_corners[tick.a_tracks != own]
+            occ = Occluders(self._thin, self._static_points, boxes, self._sun,
+                            None if self._sun is None else tick.shadow_boxes)
             srngs = arng.spawn(1 + len(rig.cameras))
             base = self._pool.submit(self._render_agent_base, agent, rig, own, scene, srngs[0], actors, snapshot.t_ns)
             cams = [self._pool.submit(self._render_camera, agent, cam, own, scene, occ, tick.tables, tick.light,
@@ -427,3 +451,4 @@ class _Tick:
     a_corners: np.ndarray
     a_tracks: np.ndarray
     own_track: dict[str, int]
+    shadow_boxes: np.ndarray | None

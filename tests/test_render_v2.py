@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from cosim.sensors import SensorSuite
 from cosim.sensors.synthetic import synthetic_snapshot, synthetic_world
 
@@ -51,3 +52,98 @@ def test_render_processes_give_the_same_bytes_as_one_process():
     assert [len(x) for x in out[0]] == [len(x) for x in out[1]]
     assert out[0] == out[1]
     assert any(t.endswith("/image") for t, _ in out[0][0])
+
+
+# ------------------------------------------------------------------------------------- shadows
+
+def _pillar_world(sun_dir: np.ndarray):
+    """Flat terrain with a 4 x 4 m pillar 8 m from the origin towards the sun, tall enough to shade the origin."""
+    from cosim.world.types import Prism, StaticLayout, World
+
+    u = sun_dir[:2] / np.linalg.norm(sun_dir[:2])
+    c = 8.0 * u
+    height = 8.0 * sun_dir[2] / np.linalg.norm(sun_dir[:2]) + 10.0
+    foot = tuple((float(c[0] + dx), float(c[1] + dy)) for dx, dy in ((-2, -2), (2, -2), (2, 2), (-2, 2)))
+    prisms = (Prism("terrain", ((-300, -300), (300, -300), (300, 300), (-300, 300)), -1.0, 0.0),
+              Prism("building", foot, 0.0, height, 1_000_001))
+    return World("synthetic", b"", b"", (-300, -300, 300, 300), (), (), StaticLayout(prisms), (37.0, -122.0, 10.0))
+
+
+def _down_camera_scenario(lighting: str, seed: int = 3, **cam) -> Scenario:
+    from cosim.scenario.model import Mount
+
+    cam = {"width": 128, "height": 96, **cam}
+    down = CameraSpec(name="down", fov_deg=90.0, mount=Mount(xyz_m=(0.0, 0.0, 20.0), rpy_deg=(0.0, 90.0, 0.0)), **cam)
+    return Scenario(name="t", seed=seed, environment={"lighting": lighting},
+                    agents=AgentsSpec(vehicles=VehicleAgents(count=1), rsus=RsuAgents(count=0), drones=[]),
+                    sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=[down], gnss=None, imu=None)))
+
+
+def _ego_snapshot():
+    from cosim.snapshot import AgentState, WorldSnapshot
+
+    ego = AgentState("vehicle_0", "vehicle", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
+    return WorldSnapshot(0, 0, (), (ego,))
+
+
+def _pixel_of(frame, point) -> tuple[int, int]:
+    from cosim.sensors.camera import project_points
+
+    uv, front = project_points(np.asarray([point], float), frame.pose, frame.K)
+    assert front[0]
+    return int(uv[0, 1]), int(uv[0, 0])
+
+
+@pytest.mark.parametrize("lighting", ["day", "dusk"])
+def test_sun_shadow_darkens_by_the_suns_share_and_is_as_sharp_as_one_ray_per_pixel(lighting):
+    from cosim.sensors.camera import to_srgb
+    from cosim.sensors.meshes import material_of
+
+    sc = _down_camera_scenario(lighting)
+    probe = SensorSuite(sc, _pillar_world(np.array([1.0, 0.0, 1.0])), noise=False, encode_images=False)
+    sun_dir, atm = probe.atm.sun_dir, probe.atm
+    probe.close()
+    world = _pillar_world(sun_dir)
+    snap = _ego_snapshot()
+    with SensorSuite(sc, world, noise=False, encode_images=False) as suite:
+        f = suite.render(snap, np.random.default_rng(0)).agents["vehicle_0"].cameras["down"]
+    with SensorSuite(sc, world, noise=False, encode_images=False, block_px=1) as exact_suite:
+        exact = exact_suite.render(snap, np.random.default_rng(0)).agents["vehicle_0"].cameras["down"]
+    albedo = np.asarray(material_of("terrain", 0)[0], np.float64)
+    ambient = albedo * atm.ambient_rgb  # up-facing: sees the whole sky
+    sunlit = ambient + albedo * atm.sun_rgb * sun_dir[2]
+    u = sun_dir[:2] / np.linalg.norm(sun_dir[:2])
+    in_shadow = _pixel_of(f, (0.0, 0.0, 0.0))
+    in_sun = _pixel_of(f, (-6.0 * u[1], 6.0 * u[0], 0.0))  # beside the shadow (the pillar is 4 m wide)
+    got_shadow = f.rgb[in_shadow].astype(int)
+    got_sun = f.rgb[in_sun].astype(int)
+    assert np.abs(got_shadow - to_srgb(ambient, atm.exposure).astype(int)).max() <= 1, (got_shadow, ambient)
+    assert np.abs(got_sun - to_srgb(sunlit, atm.exposure).astype(int)).max() <= 1, (got_sun, sunlit)
+    assert (got_sun - got_shadow).min() > 5
+    # adaptive casting refines shadow edges down to pixels: the image equals one ray per pixel
+    assert np.mean(np.any(f.rgb != exact.rgb, axis=2)) < 0.002
+
+
+def test_night_street_light_falls_off_without_steps():
+    """A street light over a flat road at night: neighbouring road pixels differ by at most 2 sRGB levels."""
+    from cosim.sensors.meshes import LAMP_ARM_MIN_Z_M
+    from cosim.world.types import Prism, StaticLayout, World
+
+    top = LAMP_ARM_MIN_Z_M + 7.0  # a 9 m street light
+    prisms = (Prism("terrain", ((-300, -300), (300, -300), (300, 300), (-300, 300)), -1.0, 0.0),
+              Prism("road", ((-200, -10), (200, -10), (200, 10), (-200, 10)), 0.0, 0.02),
+              Prism("street_light", ((11.9, -0.1), (12.1, -0.1), (12.1, 0.1), (11.9, 0.1)), 0.02, top, 1_000_002),
+              Prism("street_light", ((10.0, -0.2), (12.0, -0.2), (12.0, 0.2), (10.0, 0.2)), top - 0.3, top,
+                    1_000_003))
+    world = World("synthetic", b"", b"", (-300, -300, 300, 300), (), (), StaticLayout(prisms), (37.0, -122.0, 10.0))
+    with SensorSuite(_down_camera_scenario("night", width=256, height=192), world, noise=False,
+                     encode_images=False) as suite:
+        f = suite.render(_ego_snapshot(), np.random.default_rng(0)).agents["vehicle_0"].cameras["down"]
+    road = f.semantic == f.semantic[_pixel_of(f, (0.0, 0.0, 0.02))]
+    rgb = f.rgb.astype(int)
+    lit = rgb.max(axis=2) > 20
+    dx = np.abs(np.diff(rgb, axis=1)).max(axis=2)[road[:, 1:] & road[:, :-1] & lit[:, 1:]]
+    dy = np.abs(np.diff(rgb, axis=0)).max(axis=2)[road[1:] & road[:-1] & lit[1:]]
+    assert len(dx) > 1000 and len(dy) > 1000  # a lit road fills much of the view
+    assert max(dx.max(), dy.max()) <= 2
+    assert rgb[road].max() - rgb[road & lit].min() > 30  # the pool of light does fall off
