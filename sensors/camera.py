@@ -616,6 +616,7 @@ def shade(
     light: LightMap | None,
     rng: np.random.Generator,
     block_px: int = 4,
+    noise: bool = True,
 ) -> np.ndarray:
     """sRGB image (H, W, 3) uint8 from per-pixel global triangle index ``gid`` (H, W) int32,
     planar ``depth`` (H, W) float32 [m] and whether the sun reaches each pixel (``lit`` (H, W) bool,
@@ -623,14 +624,16 @@ def shade(
 
     Sun and sky light come baked per triangle; adds the sky gradient, artificial light (street
     lights and headlights from ``light``, lamps' own glow), extinction by distance towards the fog
-    colour, and rain (darkening and streaks drawn from ``rng``).
+    colour, rain (darkening and streaks drawn from ``rng``), then the camera model
+    (:func:`sensor_codes`; its noise from ``rng`` unless ``noise`` is False).
     """
     h, w = gid.shape
     sky = gid == tables.miss
     g = _with_sky(gid, sky, tables.miss + 1, cam, K, pose, block_px)
     if lit is not None:
         g = np.where(lit, g, g + np.int32(tables.rows))
-    linear_needed = atm.artificial > 0 or atm.beta > 0 or atm.rain_rate_mm_h > 0
+    linear_needed = (atm.artificial > 0 or atm.beta > 0 or atm.rain_rate_mm_h > 0 or cam.vignetting > 0
+                     or (noise and (cam.read_noise > 0 or cam.shot_noise > 0)))
     if not linear_needed:
         return np.take(tables.srgb, g, axis=0)
     rgb = np.take(tables.linear, g, axis=0)
@@ -657,9 +660,62 @@ def shade(
     if atm.rain_rate_mm_h > 0:
         rgb *= np.float32(0.8)
         _rain_streaks(rgb, atm.rain_rate_mm_h, rng)
-    rgb *= np.float32(atm.exposure * 4095.0)  # to_srgb, in place
-    np.clip(rgb, 0, 4095, out=rgb)
+    sensor_codes(rgb, cam, K, atm.exposure, rng if noise else None)
     return np.take(_GAMMA_LUT, rgb.astype(np.int16))
+
+
+#: codes of the sensor's linear output (12 bit)
+FULL_SCALE = 4095.0
+#: side of the seeded noise field a camera's noise is cut from (at a per-frame random offset)
+_NOISE_PAD = 97
+
+
+@lru_cache(maxsize=8)
+def _noise_field(h: int, w: int) -> np.ndarray:
+    """(H + pad, W + pad, 3) float32 standard normal, the same in every process (fixed seed); read-only."""
+    out = np.random.default_rng([0x15E, h, w]).standard_normal((h + _NOISE_PAD, w + _NOISE_PAD, 3), np.float32)
+    out.flags.writeable = False
+    return out
+
+
+@lru_cache(maxsize=16)
+def _vignette(w: int, h: int, cx: float, cy: float, strength: float) -> np.ndarray:
+    """(H, W) float32 relative illumination 1 - strength (r / r_corner)^2 about the principal point."""
+    xs = (np.arange(w) + 0.5 - cx).astype(np.float32)
+    ys = (np.arange(h) + 0.5 - cy).astype(np.float32)
+    r2 = xs[None, :] ** 2 + ys[:, None] ** 2
+    out = (1.0 - strength * r2 / r2.max()).astype(np.float32)
+    out.flags.writeable = False
+    return out
+
+
+@lru_cache(maxsize=16)
+def _noise_std_lut(read: float, shot: float) -> np.ndarray:
+    """Noise std [codes] per 12-bit code: sqrt(shot x signal + read^2), in full-scale units x FULL_SCALE."""
+    v = np.arange(4096, dtype=np.float64) / FULL_SCALE
+    return (np.sqrt(shot * v + read * read) * FULL_SCALE).astype(np.float32)
+
+
+def sensor_codes(rgb: np.ndarray, cam: CameraSpec, K: np.ndarray, exposure: float,
+                 rng: np.random.Generator | None) -> np.ndarray:
+    """The camera model, in place on linear colour ``rgb`` (H, W, 3) float32: exposure, vignetting
+    (``cam.vignetting``), then with ``rng`` shot and read noise (``cam.shot_noise``, ``cam.read_noise``:
+    std sqrt(shot x signal + read^2) in full-scale units), clipped to the sensor's 12-bit codes
+    [0, FULL_SCALE]. The noise is a seeded standard normal field cut at an offset drawn from ``rng``."""
+    h, w = rgb.shape[:2]
+    rgb *= np.float32(exposure * FULL_SCALE)
+    if cam.vignetting > 0:
+        vig = _vignette(w, h, float(K[0, 2]), float(K[1, 2]), float(cam.vignetting))
+        for c in range(3):
+            rgb[..., c] *= vig
+    np.clip(rgb, 0, FULL_SCALE, out=rgb)
+    if rng is not None and (cam.read_noise > 0 or cam.shot_noise > 0):
+        oy, ox = (int(x) for x in rng.integers(0, _NOISE_PAD, 2))
+        std = np.take(_noise_std_lut(float(cam.read_noise), float(cam.shot_noise)), rgb.astype(np.int16))
+        std *= _noise_field(h, w)[oy:oy + h, ox:ox + w]
+        rgb += std
+        np.clip(rgb, 0, FULL_SCALE, out=rgb)
+    return rgb
 
 
 def _street_light(light: LightMap, depth: np.ndarray, K: np.ndarray, pose: Pose) -> np.ndarray:

@@ -291,7 +291,7 @@ class SensorSuite:
         t1 = time.perf_counter()
         rgb = encoded = None
         if "rgb" in cam.outputs:
-            rgb = shade(gid, depth, lit, cam, K, pose, tables, self.atm, light, rng, 1)
+            rgb = shade(gid, depth, lit, cam, K, pose, tables, self.atm, light, rng, 1, self.noise)
             if self.encode_images:
                 out_spec = self.scenario.output
                 encoded = (out_spec.image_format, submit_encode(rgb, out_spec.image_format, out_spec.jpeg_quality))

@@ -99,7 +99,7 @@ def test_sun_shadow_darkens_by_the_suns_share_and_is_as_sharp_as_one_ray_per_pix
     from cosim.sensors.camera import to_srgb
     from cosim.sensors.meshes import material_of
 
-    sc = _down_camera_scenario(lighting)
+    sc = _down_camera_scenario(lighting, vignetting=0.0)
     probe = SensorSuite(sc, _pillar_world(np.array([1.0, 0.0, 1.0])), noise=False, encode_images=False)
     sun_dir, atm = probe.atm.sun_dir, probe.atm
     probe.close()
@@ -136,7 +136,7 @@ def test_night_street_light_falls_off_without_steps():
               Prism("street_light", ((10.0, -0.2), (12.0, -0.2), (12.0, 0.2), (10.0, 0.2)), top - 0.3, top,
                     1_000_003))
     world = World("synthetic", b"", b"", (-300, -300, 300, 300), (), (), StaticLayout(prisms), (37.0, -122.0, 10.0))
-    with SensorSuite(_down_camera_scenario("night", width=256, height=192), world, noise=False,
+    with SensorSuite(_down_camera_scenario("night", width=256, height=192, vignetting=0.0), world, noise=False,
                      encode_images=False) as suite:
         f = suite.render(_ego_snapshot(), np.random.default_rng(0)).agents["vehicle_0"].cameras["down"]
     road = f.semantic == f.semantic[_pixel_of(f, (0.0, 0.0, 0.02))]
@@ -147,3 +147,48 @@ def test_night_street_light_falls_off_without_steps():
     assert len(dx) > 1000 and len(dy) > 1000  # a lit road fills much of the view
     assert max(dx.max(), dy.max()) <= 2
     assert rgb[road].max() - rgb[road & lit].min() > 30  # the pool of light does fall off
+
+
+# -------------------------------------------------------------------------------- camera model
+
+@pytest.mark.parametrize(("read", "shot", "level"), [(0.004, 0.0, 0.3), (0.002, 0.0004, 0.25), (0.0, 0.001, 0.6)])
+def test_sensor_noise_has_the_configured_standard_deviation(read, shot, level):
+    from cosim.sensors.camera import FULL_SCALE, sensor_codes
+
+    cam = CameraSpec(name="c", width=320, height=240, read_noise=read, shot_noise=shot, vignetting=0.0)
+    K = np.array([[160.0, 0, 160], [0, 160.0, 120], [0, 0, 1]])
+    flat = np.full((240, 320, 3), level, np.float32)
+    clean = sensor_codes(flat.copy(), cam, K, 1.0, None)
+    noisy = sensor_codes(flat.copy(), cam, K, 1.0, np.random.default_rng(1))
+    again = sensor_codes(flat.copy(), cam, K, 1.0, np.random.default_rng(1))
+    other = sensor_codes(flat.copy(), cam, K, 1.0, np.random.default_rng(2))
+    expect = np.sqrt(shot * level + read**2) * FULL_SCALE
+    assert np.all(clean == level * FULL_SCALE)
+    assert abs((noisy - clean).std() / expect - 1) < 0.02
+    assert abs((noisy - clean).mean()) < 0.02 * expect
+    assert np.array_equal(noisy, again) and not np.array_equal(noisy, other)  # seeded
+
+
+def test_vignetting_darkens_the_corners_by_the_configured_fraction():
+    from cosim.sensors.camera import sensor_codes
+
+    cam = CameraSpec(name="c", width=64, height=48, vignetting=0.3)
+    K = np.array([[32.0, 0, 32], [0, 32.0, 24], [0, 0, 1]])
+    out = sensor_codes(np.full((48, 64, 3), 0.5, np.float32), cam, K, 1.0, None)
+    centre, corner = out[23:25, 31:33].mean(), out[0, 0, 0]
+    assert abs(corner / centre - 0.7) < 0.01
+
+
+def test_rendered_noise_is_seeded_and_off_without_noise():
+    sc = _down_camera_scenario("day", read_noise=0.01)
+    world = _pillar_world(np.array([1.0, 0.0, 1.0]))
+    snap = _ego_snapshot()
+    with SensorSuite(sc, world, encode_images=False) as suite:
+        a = suite.render(snap, np.random.default_rng(4)).agents["vehicle_0"].cameras["down"]
+        b = suite.render(snap, np.random.default_rng(4)).agents["vehicle_0"].cameras["down"]
+        c = suite.render(snap, np.random.default_rng(5)).agents["vehicle_0"].cameras["down"]
+    with SensorSuite(sc, world, noise=False, encode_images=False) as quiet:
+        q = quiet.render(snap, np.random.default_rng(4)).agents["vehicle_0"].cameras["down"]
+    assert np.array_equal(a.rgb, b.rgb) and not np.array_equal(a.rgb, c.rgb)
+    d = a.rgb.astype(int) - q.rgb.astype(int)
+    assert d.std() > 1.0 and abs(d.mean()) < 1.0
