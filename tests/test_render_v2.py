@@ -127,6 +127,7 @@ def test_sun_shadow_darkens_by_the_suns_share_and_is_as_sharp_as_one_ray_per_pix
 def test_night_street_light_falls_off_without_steps():
     """A street light over a flat road at night: neighbouring road pixels differ by at most 2 sRGB levels."""
     from cosim.sensors.meshes import LAMP_ARM_MIN_Z_M
+
     from cosim.world.types import Prism, StaticLayout, World
 
     top = LAMP_ARM_MIN_Z_M + 7.0  # a 9 m street light
