@@ -124,7 +124,7 @@ def _raw(frame_id: str, t_ns: int, img: np.ndarray, encoding: str) -> RawImage:
 def calibration_message(frame_id: str, cam, t_ns: int) -> CameraCalibration:
     msg = CameraCalibration(frame_id=frame_id, width=cam.width, height=cam.height, distortion_model="plumb_bob")
     _stamp(msg, t_ns)
-    msg.D.extend([0.0] * 5)
+    msg.D.extend(float(v) for v in getattr(cam, "D", (0.0,) * 5))
     msg.K.extend(float(v) for v in cam.K.ravel())
     msg.R.extend([1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
     msg.P.extend(float(v) for v in cam.P.ravel())

@@ -60,6 +60,7 @@ class CameraFrame:
     semantic: np.ndarray | None
     instance: np.ndarray | None
     encoded: tuple[str, Future] | None = field(default=None, compare=False, repr=False)
+    D: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)  # Brown-Conrady k1, k2, p1, p2, k3 (plumb_bob)
 
 
 def box_corners(center: np.ndarray, size: np.ndarray, rotation: np.ndarray) -> np.ndarray:
@@ -95,13 +96,58 @@ def project_boxes(corners_map: np.ndarray, pose: Pose, K: np.ndarray) -> tuple[n
     return rects, ok.any(axis=1)
 
 
-def project_points(points_map: np.ndarray, pose: Pose, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel coordinates (N, 2) of map points and whether each lies in front of the camera (N,)."""
+def project_points(points_map: np.ndarray, pose: Pose, K: np.ndarray,
+                   D: tuple[float, ...] | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (N, 2) of map points and whether each lies in front of the camera (N,);
+    ``D``: Brown-Conrady coefficients (k1, k2, p1, p2, k3) of a distorting lens (:func:`distort`)."""
     p = pose.to_frame(points_map)
     front = p[:, 2] > _NEAR_M
     z = np.where(front, p[:, 2], 1.0)
-    uv = np.stack([K[0, 0] * p[:, 0] / z + K[0, 2], K[1, 1] * p[:, 1] / z + K[1, 2]], axis=1)
+    xy = p[:, :2] / z[:, None]
+    if D is not None and np.any(np.asarray(D)):
+        xy = distort(xy, D)
+    uv = np.stack([K[0, 0] * xy[:, 0] + K[0, 2], K[1, 1] * xy[:, 1] + K[1, 2]], axis=1)
     return uv, front
+
+
+def distort(xy: np.ndarray, D) -> np.ndarray:
+    """Brown-Conrady distortion of normalised image points (N, 2) (x / z, y / z), ``D`` = (k1, k2, p1,
+    p2, k3) as OpenCV and ROS ``plumb_bob`` define it."""
+    k1, k2, p1, p2, k3 = (float(v) for v in D)
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    return np.stack([x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+                     y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y], axis=1)
+
+
+def undistort(xy_d: np.ndarray, D, iterations: int = 30) -> np.ndarray:
+    """The normalised points (N, 2) that :func:`distort` takes to ``xy_d`` (fixed-point iteration)."""
+    xy = xy_d.copy()
+    for _ in range(iterations):
+        xy = xy + (xy_d - distort(xy, D))
+    return xy
+
+
+@lru_cache(maxsize=16)
+def _distorted_grid(w: int, h: int, fx: float, fy: float, cx: float, cy: float,
+                    D: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W) optical-frame x and y (z = 1) of the rays through the pixel centres of a distorted image."""
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    xy = undistort(np.stack([(u.ravel() - cx) / fx, (v.ravel() - cy) / fy], axis=1), D)
+    x, y = xy[:, 0].reshape(h, w), xy[:, 1].reshape(h, w)
+    x.flags.writeable = y.flags.writeable = False
+    return x, y
+
+
+def pixel_grid(cam: CameraSpec, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Optical-frame x and y (z = 1) of every pixel-centre ray, broadcastable to (H, W): (1, W) and
+    (H, 1) for a pinhole, (H, W) each with ``cam.distortion``."""
+    if cam.distortion is not None and any(cam.distortion):
+        return _distorted_grid(cam.width, cam.height, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]),
+                               float(K[1, 2]), tuple(float(v) for v in cam.distortion))
+    xs, ys = _pixel_dirs(cam, K)
+    return xs[None, :], ys[:, None]
 
 
 def _pixel_dirs(cam: CameraSpec, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -277,6 +323,8 @@ def cast_image(
     the pixels inside the actors' shadow volumes that the static world leaves lit test their shadow
     rays against the actors.
     """
+    if cam.distortion is not None and any(cam.distortion):
+        return _cast_distorted(cam, K, pose, scene, occ, exclude_track)
     if fixed is None:
         return _cast_adaptive(cam, K, pose, scene, occ, exclude_track, block_px)
     h, w = cam.height, cam.width
@@ -316,6 +364,18 @@ def cast_image(
             t = depth.ravel()[idx] - np.float32(NEAR_CLIP_M)
             lit.ravel()[idx] = sun_lit(scene, rays, t, gid.ravel()[idx], occ.sun_dir, with_static=False)
     return gid, depth, lit
+
+
+def _cast_distorted(cam: CameraSpec, K: np.ndarray, pose: Pose, scene: TickScene, occ: Occluders,
+                    exclude_track: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """:func:`cast_image` through a distorting lens: one ray per pixel along its undistorted direction
+    (the depth stays planar: along the optical axis)."""
+    h, w = cam.height, cam.width
+    x, y = pixel_grid(cam, K)
+    rays = _rays(pose, x.ravel(), y.ravel(), NEAR_CLIP_M)
+    t, gid = scene.cast(rays, exclude_track)
+    lit = None if occ.sun_dir is None else sun_lit(scene, rays, t, gid, occ.sun_dir).reshape(h, w)
+    return gid.reshape(h, w), (t + np.float32(NEAR_CLIP_M)).reshape(h, w), lit
 
 
 def _cast_adaptive(
@@ -552,10 +612,13 @@ def _sky_level(cam: CameraSpec, K: np.ndarray, pose: Pose, s: int) -> tuple[np.n
     ``s`` px, and the block size used (``s``, or 1 when it does not divide the image)."""
     h, w = cam.height, cam.width
     s = s if s > 1 and h % s == 0 and w % s == 0 else 1
-    xs = (np.arange(0, w, s) + 0.5 * s - K[0, 2]) / K[0, 0]
-    ys = (np.arange(0, h, s) + 0.5 * s - K[1, 2]) / K[1, 1]
+    if s == 1:
+        xg, yg = pixel_grid(cam, K)
+    else:
+        xg = ((np.arange(0, w, s) + 0.5 * s - K[0, 2]) / K[0, 0])[None, :]
+        yg = ((np.arange(0, h, s) + 0.5 * s - K[1, 2]) / K[1, 1])[:, None]
     r = pose.rotation
-    dz = (r[2, 0] * xs[None, :] + r[2, 1] * ys[:, None] + r[2, 2]) / np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1)
+    dz = (r[2, 0] * xg + r[2, 1] * yg + r[2, 2]) / np.sqrt(xg**2 + yg**2 + 1)
     return np.clip(dz * (SKY_LEVELS - 1) + 0.5, 0, SKY_LEVELS - 1).astype(np.int32), s
 
 
@@ -641,14 +704,18 @@ def shade(
     # channel at a time, per-channel constants to (H, 3 W) rows
     wide = rgb.reshape(h, w * 3)
     if atm.artificial > 0 and light is not None:
-        e = _street_light(light, np.where(sky, np.float32(0), depth), K, pose)
+        e = _street_light(light, np.where(sky, np.float32(0), depth), pixel_grid(cam, K), pose)
         e *= np.float32(atm.artificial)
         lit = np.take(tables.albedo_lamp, g, axis=0)
         for c in range(3):
             lit[..., c] *= e
         rgb += lit
     if atm.beta > 0:  # rgb <- fog + transmittance * (rgb - fog); the sky (depth inf) is all fog
-        trans = _ray_lengths(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])) * depth
+        if cam.distortion is not None and any(cam.distortion):
+            xg, yg = pixel_grid(cam, K)
+            trans = np.sqrt(xg * xg + yg * yg + 1).astype(np.float32) * depth
+        else:
+            trans = _ray_lengths(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])) * depth
         trans *= np.float32(-atm.beta)
         with np.errstate(over="ignore", invalid="ignore"):
             np.exp(trans, out=trans)
@@ -718,13 +785,12 @@ def sensor_codes(rgb: np.ndarray, cam: CameraSpec, K: np.ndarray, exposure: floa
     return rgb
 
 
-def _street_light(light: LightMap, depth: np.ndarray, K: np.ndarray, pose: Pose) -> np.ndarray:
+def _street_light(light: LightMap, depth: np.ndarray, grid: tuple[np.ndarray, np.ndarray], pose: Pose) -> np.ndarray:
     """(H, W) float32 artificial irradiance at each pixel's surface point (``depth`` 0 for the sky):
     the light map at its ground position, interpolated bilinearly between cell centres (no steps),
     fading smoothly over the lowest 8 m (pools light the ground and the lower few metres of walls)."""
-    h, w = depth.shape
-    xs = ((np.arange(w) + 0.5 - K[0, 2]) / K[0, 0]).astype(np.float32)
-    ys = ((np.arange(h) + 0.5 - K[1, 2]) / K[1, 1]).astype(np.float32)
+    xg, yg = grid
+    xg, yg = xg.astype(np.float32), yg.astype(np.float32)
     r = pose.rotation.astype(np.float32)
     o = pose.position_m.astype(np.float32)  # float32 throughout (a float64 scalar would promote)
     ny, nx = light.values.shape
@@ -732,7 +798,7 @@ def _street_light(light: LightMap, depth: np.ndarray, K: np.ndarray, pose: Pose)
     # light-map column and row of the point, in cells from the first cell's centre
     cells, fracs = [], []
     for k, (origin, n) in enumerate(((light.x0, nx), (light.y0, ny))):
-        f = depth * ((r[k, 0] * inv) * xs[None, :] + ((r[k, 1] * inv) * ys[:, None] + r[k, 2] * inv))
+        f = depth * ((r[k, 0] * inv) * xg + ((r[k, 1] * inv) * yg + r[k, 2] * inv))
         f += np.float32((o[k] - origin) * inv - 0.5)
         np.clip(f, 0, n - 1.001, out=f)
         c = f.astype(np.int32)
@@ -751,7 +817,7 @@ def _street_light(light: LightMap, depth: np.ndarray, K: np.ndarray, pose: Pose)
     e1 -= e0
     e1 *= fy
     e0 += e1
-    pz = depth * (r[2, 0] * xs[None, :] + (r[2, 1] * ys[:, None] + r[2, 2]))
+    pz = depth * (r[2, 0] * xg + (r[2, 1] * yg + r[2, 2]))
     pz += o[2]
     pz *= np.float32(1 / 8)
     np.clip(pz, 0, 1, out=pz)

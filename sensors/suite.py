@@ -300,7 +300,7 @@ class SensorSuite:
             agent.agent_id, cam.name, cam.width, cam.height, K, projection(cam), pose, rgb,
             depth if "depth" in cam.outputs else None,
             np.take(lut["semantic"], gid) if "semantic" in cam.outputs else None,
-            np.take(lut["instance"], gid), encoded,
+            np.take(lut["instance"], gid), encoded, tuple(float(v) for v in cam.distortion or (0.0,) * 5),
         )
         return frame, {"camera_cast": t1 - t0, "shading": t2 - t1, "labels": time.perf_counter() - t2}
 

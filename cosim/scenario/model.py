@@ -273,6 +273,8 @@ class CameraSpec(Model):
     read_noise: float = Field(0.002, ge=0, le=0.5)
     shot_noise: float = Field(0.0002, ge=0, le=0.5)
     vignetting: float = Field(0.25, ge=0, lt=1)
+    # Brown-Conrady lens distortion (k1, k2, p1, p2, k3), OpenCV / ROS plumb_bob convention; null: a pinhole
+    distortion: tuple[float, float, float, float, float] | None = None
 
 
 class GnssSpec(Model):
