@@ -199,6 +199,7 @@ def test_distorted_calibration_projects_a_point_where_the_renderer_put_it():
     """A small block seen near the corner of a barrel-distorted camera: the centroid of its instance
     pixels is where the calibration (K, D) projects its centre, within 0.5 px; D is in the calibration."""
     from cosim.exporters.sensor_messages import calibration_message
+
     from cosim.scenario.model import Mount
     from cosim.snapshot import AgentState, WorldSnapshot
     from cosim.world.types import Prism, StaticLayout, World
