@@ -726,7 +726,9 @@ def shade(
         wide += fog
     if atm.rain_rate_mm_h > 0:
         rgb *= np.float32(0.8)
-        _rain_streaks(rgb, atm.rain_rate_mm_h, rng)
+        vv, uu, dd = rain_streaks(depth, atm.rain_rate_mm_h, float(K[0, 0]), rng)
+        # nearer drops are brighter (they cover more of the pixel)
+        rgb[vv, uu] = rgb[vv, uu] * np.float32(0.7) + (np.float32(0.6) / np.maximum(dd, 2.0))[:, None]
     sensor_codes(rgb, cam, K, atm.exposure, rng if noise else None)
     return np.take(_GAMMA_LUT, rgb.astype(np.int16))
 
@@ -836,16 +838,31 @@ def _ray_lengths(w: int, h: int, fx: float, fy: float, cx: float, cy: float) -> 
     out.flags.writeable = False
     return out
 
-def _rain_streaks(rgb: np.ndarray, rate_mm_h: float, rng: np.random.Generator) -> None:
-    """Brighten thin slanted streaks in place (count and length grow with the rain rate)."""
-    h, w = rgb.shape[:2]
+#: [m] nearest and farthest rain streak the cameras draw
+RAIN_NEAR_M, RAIN_FAR_M = 1.0, 25.0
+
+
+def rain_streaks(depth: np.ndarray, rate_mm_h: float, fx: float,
+                 rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Falling drops as slanted streaks placed in depth: (rows, cols, streak depth [m]) of every streak
+    pixel that is in front of the scene there (``depth`` (H, W) planar [m]); a drop behind nearer
+    geometry is hidden by it. Drops lie uniformly in volume between RAIN_NEAR_M and RAIN_FAR_M; a
+    streak's length on the image is its fall during the exposure (1/100 s at 6 m/s) over its depth."""
+    h, w = depth.shape
     n = int(min(4000, 60 * rate_mm_h * (h * w) / (1280 * 720)))
-    length = max(4, int(0.03 * h))
     u0 = rng.random(n) * w
     v0 = rng.random(n) * h
     slope = 0.15 + 0.1 * rng.random(n)
-    k = np.arange(length)
-    uu = (u0[:, None] + slope[:, None] * k).astype(np.int64).ravel()
-    vv = (v0[:, None] + k).astype(np.int64).ravel()
-    m = (uu < w) & (vv < h)
-    rgb[vv[m], uu[m]] = rgb[vv[m], uu[m]] * 0.7 + 0.12
+    # uniform in volume: depth^3 uniform between the limits
+    d = np.cbrt(RAIN_NEAR_M**3 + rng.random(n) * (RAIN_FAR_M**3 - RAIN_NEAR_M**3))
+    length = np.clip(0.06 * fx / d, 2, 0.06 * h).astype(np.int64)
+    k = np.arange(int(length.max(initial=2)))
+    uu = (u0[:, None] + slope[:, None] * k).astype(np.int64)
+    vv = (v0[:, None] + k).astype(np.int64)
+    dd = np.broadcast_to(d[:, None], uu.shape)
+    m = (k[None, :] < length[:, None]) & (uu < w) & (vv < h)
+    uu, vv, dd = uu[m], vv[m], dd[m]
+    front = dd < depth[vv, uu]
+    return vv[front], uu[front], dd[front].astype(np.float32)
+
+

@@ -237,3 +237,15 @@ def test_distorted_calibration_projects_a_point_where_the_renderer_put_it():
     assert front[0]
     assert np.linalg.norm(got["lens"] - uv[0]) <= 0.5, (got, uv)
     assert np.linalg.norm(got["lens"] - got["pinhole"]) > 10  # the lens did move it
+
+
+def test_rain_streaks_never_appear_in_front_of_nearer_geometry():
+    from cosim.sensors.camera import RAIN_FAR_M, rain_streaks
+
+    depth = np.full((360, 480), np.inf, np.float32)
+    depth[:, :240] = 8.0  # a wall 8 m away on the left half
+    vv, uu, dd = rain_streaks(depth, 100.0, 240.0, np.random.default_rng(0))
+    assert np.all(dd < depth[vv, uu])
+    on_wall = uu < 240
+    assert on_wall.sum() > 20 and (~on_wall).sum() > 5 * on_wall.sum()  # only the nearest drops cover the wall
+    assert dd[~on_wall].max() > 0.5 * RAIN_FAR_M
