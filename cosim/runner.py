@@ -27,6 +27,7 @@ from cosim.assemble import TrackRegistry, build_snapshot, escort_targets_of
 from cosim.classes import class_table
 from cosim.conductor import Conductor
 from cosim.errors import InputError
+from cosim.io.format import FORMAT_VERSION
 from cosim.protocol import drone_from_dict, vehicle_from_dict
 from cosim.scenario import LoadedScenario
 from cosim.scenario.model import EscortDrone
@@ -35,7 +36,6 @@ from cosim.world.types import World
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = "1.1"
 #: Independent random streams derived from the scenario seed.
 SENSOR_STREAM = 0x5E5
 
