@@ -176,7 +176,7 @@ class Occluders:
 
     ``sun_dir`` (3,): unit vector towards the sun when the cameras trace sun shadows (else None);
     ``shadow_boxes`` (A, 8, 3): the volumes the actors' shadows may fall in (:func:`shadow_boxes`),
-    refined like the actors themselves."""
+    where a standing camera tests its kept static pixels against the actors."""
 
     segments: np.ndarray
     points: np.ndarray
@@ -408,10 +408,6 @@ def _cast_adaptive(
     ys_ext = (np.arange(h + 1) + 0.5 - K[1, 2]) / K[1, 1]
     a_rects, a_valid = project_boxes(occ.actor_boxes, pose, K)
     a_rects = _clip_rects(a_rects[a_valid], h, w) if with_actors else []
-    f_rects = list(a_rects)  # refined like actors: actors and their shadows
-    if with_actors and sun is not None and occ.shadow_boxes is not None and len(occ.shadow_boxes):
-        s_rects, s_valid = project_boxes(occ.shadow_boxes, pose, K)
-        f_rects += _clip_rects(s_rects[s_valid], h, w)
     actor_px = np.zeros((h + 1, w + 1), bool)
     for i0, i1, j0, j1 in a_rects:
         actor_px[i0:i1 + 1, j0:j1 + 1] = True
@@ -467,7 +463,7 @@ def _cast_adaptive(
         if s == 2:
             return forced[2]
         f = forced[s].copy()
-        for i0, i1, j0, j1 in f_rects:
+        for i0, i1, j0, j1 in a_rects:
             f[i0 // s:min(i1, h - 1) // s + 1, j0 // s:min(j1, w - 1) // s + 1] = True
         return f
 

@@ -143,9 +143,20 @@ def _discard(path: str | None) -> None:
             os.unlink(path)
 
 
+def _die_with_parent() -> None:
+    """Ask Linux to end this process when its parent ends (elsewhere: the closed socket ends it)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
 def _main(conn: Connection) -> None:
     """A render process: build the suite, then render the agents of each request until told to stop."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops us
+    _die_with_parent()
     from .suite import SensorSuite
 
     try:
@@ -167,9 +178,14 @@ def _main(conn: Connection) -> None:
             try:
                 frames, timing = suite.render_agents(snapshot, items)
                 meta, path = _write_shared(frames, str(seq))
-                conn.send(("ok", seq, (meta, path, timing)))
+                reply = ("ok", seq, (meta, path, timing))
             except BaseException:
-                conn.send(("error", seq, traceback.format_exc()))
+                reply, path = ("error", seq, traceback.format_exc()), None
+            try:
+                conn.send(reply)
+            except OSError:  # the parent is gone
+                _discard(path)
+                return
 
 
 class RenderProcesses:
