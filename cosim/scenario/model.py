@@ -269,11 +269,11 @@ class CameraSpec(Model):
     gimbal: bool = False  # True: orientation held in the map frame (nadir), yaw follows the body
     outputs: tuple[CameraOutput, ...] = ("rgb", "depth", "semantic", "instance")
     # camera model (docs/architecture.md, "Sensors"): noise std in full-scale units (read) and variance per unit
-    # signal (shot), seeded, off by default (noise makes lossless PNG 50x larger); vignetting: light lost at the
-    # image corners (fraction)
+    # signal (shot), seeded; vignetting: light lost at the image corners (fraction, e.g. 0.25). Off by default:
+    # noise makes lossless PNG ~50x larger, and either takes the per-pixel floating-point colour path by day
     read_noise: float = Field(0.0, ge=0, le=0.5)
     shot_noise: float = Field(0.0, ge=0, le=0.5)
-    vignetting: float = Field(0.25, ge=0, lt=1)
+    vignetting: float = Field(0.0, ge=0, lt=1)
     # Brown-Conrady lens distortion (k1, k2, p1, p2, k3), OpenCV / ROS plumb_bob convention; null: a pinhole
     distortion: tuple[float, float, float, float, float] | None = None
 
