@@ -843,7 +843,7 @@ def rain_streaks(depth: np.ndarray, rate_mm_h: float, fx: float,
     """Falling drops as slanted streaks placed in depth: (rows, cols, streak depth [m]) of every streak
     pixel that is in front of the scene there (``depth`` (H, W) planar [m]); a drop behind nearer
     geometry is hidden by it. Drops lie uniformly in volume between RAIN_NEAR_M and RAIN_FAR_M; a
-    streak's length on the image is its fall during the exposure (1/100 s at 6 m/s) over its depth."""
+    streak's length on the image is its fall during the exposure (1/30 s at 6 m/s) over its depth."""
     h, w = depth.shape
     n = int(min(4000, 60 * rate_mm_h * (h * w) / (1280 * 720)))
     u0 = rng.random(n) * w
@@ -851,7 +851,7 @@ def rain_streaks(depth: np.ndarray, rate_mm_h: float, fx: float,
     slope = 0.15 + 0.1 * rng.random(n)
     # uniform in volume: depth^3 uniform between the limits
     d = np.cbrt(RAIN_NEAR_M**3 + rng.random(n) * (RAIN_FAR_M**3 - RAIN_NEAR_M**3))
-    length = np.clip(0.06 * fx / d, 2, 0.06 * h).astype(np.int64)
+    length = np.clip(0.2 * fx / d, 3, 0.1 * h).astype(np.int64)
     k = np.arange(int(length.max(initial=2)))
     uu = (u0[:, None] + slope[:, None] * k).astype(np.int64)
     vv = (v0[:, None] + k).astype(np.int64)
