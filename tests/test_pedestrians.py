@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from pathlib import Path
@@ -62,7 +63,7 @@ def run(tmp_path_factory):
 
 def _dist_to_polyline(p, shape) -> float:
     best = math.inf
-    for a, b in zip(shape[:-1], shape[1:], strict=True):
+    for a, b in itertools.pairwise(shape):
         a, b = np.asarray(a), np.asarray(b)
         d = b - a
         f = float(np.clip(np.dot(p - a, d) / max(float(np.dot(d, d)), 1e-12), 0.0, 1.0))
@@ -142,7 +143,7 @@ def test_pedestrians_walk_with_gait_phase_and_class_size(run):
     from cosim.traffic.pedestrians import SIZE_M
     from sensors.synthetic import SIZES
 
-    assert SIZE_M == SIZES["pedestrian"]
+    assert SIZES["pedestrian"] == SIZE_M
     first = {s.sumo_id: s for s in run["ticks"][0][0] if s.cls == "pedestrian"}
     last = {s.sumo_id: s for s in run["ticks"][-1][0] if s.cls == "pedestrian"}
     assert len(first) >= 20 and set(first) <= set(last)  # everyone stays for the whole episode, same id
