@@ -206,8 +206,9 @@ def test_incidents_sweep_has_an_events_axis():
 
     plan = plan_file(Path(__file__).resolve().parents[1] / "sweeps" / "incidents.yaml")
     kinds = {tuple(e["kind"] for e in ep.scenario["events"]) for ep in plan.episodes}
-    assert kinds == {(), ("breakdown",), ("accident",), ("construction_zone",), ("road_block",)}
-    assert plan.combinations == 15 and len(plan.episodes) == 30
+    assert kinds == {(), ("breakdown",), ("accident",), ("construction_zone",), ("road_block",), ("jaywalk",),
+                     ("cut_in",)}
+    assert plan.combinations == 21 and len(plan.episodes) == 42
     assert all(ep.scenario["parked"]["density_veh_per_km"] == 20 for ep in plan.episodes)
 
 

@@ -238,17 +238,18 @@ def test_jaywalk_episode_escorted_vehicle_sees_the_pedestrian(tmp_path: Path):
     from cosim.io.deskew import deskew_tick
     from tests.conftest import run_cli
 
-    r = run_cli("run", "scenarios/event_jaywalk.yaml", "--duration", "2.2", "--out", str(tmp_path),
+    r = run_cli("run", "scenarios/event_jaywalk.yaml", "--duration", "3.4", "--out", str(tmp_path),
                 "--set", "sensors.image_scale=0.1", "--set", "agents.rsus.count=0", "--set", "map.size_m=300",
-                "--set", "pedestrians.density_per_km=10")
+                "--set", "agents.vehicles.count=1", "--set", "pedestrians.density_per_km=10",
+                "--set", "agents.drones=[{strategy: escort, target: vehicle_0, altitude_m: 40, offset_m: [-8, 0]}]",
+                "--set", "events=[{kind: jaywalk, at_s: 1, ahead_of: vehicle_0, ahead_m: 15}]")
     assert r.returncode == 0, r.stderr
     path = tmp_path / "event_jaywalk_s0.mcap"
     v = run_cli("validate", str(path))
     assert v.returncode == 0, v.stdout + v.stderr
     in_area = seen_by_drone = lidar_hits = 0
     with open_episode(path) as ep:
-        escort = next(d["agent_id"] for d in ep.metadata["agents"] if d.get("strategy") == "escort") \
-            if isinstance(ep.metadata.get("agents"), list) else "drone_2"
+        escort = "drone_0"  # the one drone, escorting vehicle_0
         for tick in ep.ticks():
             objects = {o["track_id"]: o for o in json.loads(tick.raw("/labels/objects").data)["objects"]}
             events = json.loads(tick.raw("/events").data)["events"]
