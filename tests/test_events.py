@@ -248,3 +248,24 @@ def test_lidar_points_of_obstacles_and_parked_vehicles_lie_in_their_boxes(tmp_pa
                     assert excess.max() <= 0.1, (topic, o["class"], int(tid), float(excess.max()))
                     hit["parked" if o.get("parked") else "static_obstacle"] += 1
     assert hit["static_obstacle"] > 0 and hit["parked"] > 0, hit
+
+
+@pytest.mark.integration
+def test_broken_down_car_blinks_its_hazard_lamps(run):
+    """At night the broken-down car's hazard lamps blink at 1.5 Hz (lit half of each period) from activation;
+    the renderer paints its lamp units amber and glowing while lit."""
+    from cosim.traffic.events import HAZARD_PERIOD_NS
+    from sensors.meshes import HAZARD_AMBER, actor_material, template_for
+
+    active = _active(run, "event_0")
+    t0 = active[0][2]["active_from_ns"]
+    lit = [(t, s.hazard_lamps_on) for t, states, _, _ in active for s in states if s.sumo_id == "ev0_0"]
+    assert {on for _, on in lit} == {True, False}
+    assert all(on == ((t - t0) % HAZARD_PERIOD_NS < HAZARD_PERIOD_NS // 2) for t, on in lit)
+    assert not any(s.hazard_lamps_on for _, states, _, _ in run for s in states if s.sumo_id != "ev0_0")
+    part = template_for("car").part
+    alb_on, _, emis_on = actor_material("car", 7, part, hazard_lamps_on=True)
+    alb_off, _, emis_off = actor_material("car", 7, part)
+    lamps = np.isin(part, [3, 4])  # front and rear lamp units
+    assert np.allclose(alb_on[lamps], HAZARD_AMBER) and np.all(emis_on[lamps] == 1.0)
+    assert not np.allclose(alb_off[lamps], HAZARD_AMBER) and np.array_equal(alb_on[~lamps], alb_off[~lamps])
