@@ -27,6 +27,7 @@ from cosim.assemble import TrackRegistry, build_snapshot, escort_targets_of
 from cosim.classes import class_table
 from cosim.conductor import Conductor
 from cosim.errors import InputError
+from cosim.io.format import FORMAT_VERSION
 from cosim.protocol import drone_from_dict, vehicle_from_dict
 from cosim.scenario import LoadedScenario
 from cosim.scenario.model import EscortDrone
@@ -35,7 +36,6 @@ from cosim.world.types import World
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = "1.1"
 #: Independent random streams derived from the scenario seed.
 SENSOR_STREAM = 0x5E5
 
@@ -210,25 +210,27 @@ def run_episode(
             if links is not None:
                 labels.append(links.message(snapshot))
             if suite is None:
-                background.submit(t_ns, lambda labels=labels: labels)
                 messages = labels
+                write = lambda labels=labels: labels  # noqa: E731
             elif loop is not None and loop.wants_sensor_topics():  # the clients get them before tick k+1
                 frames = suite.render(snapshot, np.random.default_rng([s.seed, tick, SENSOR_STREAM]), conductor.poll)
                 messages = [*labels, *suite.messages(frames)]
-                background.submit(t_ns, lambda messages=messages: messages)
+                write = lambda messages=messages: messages  # noqa: E731
             else:
                 # rendered here; encoded, serialised and written while the next tick renders
                 # conductor.poll: a worker that dies or hangs meanwhile stops the frame, not just the next tick
                 frames = suite.render(snapshot, np.random.default_rng([s.seed, tick, SENSOR_STREAM]), conductor.poll)
-                background.submit(t_ns, lambda labels=labels, frames=frames: [*labels, *suite.messages(frames)])
+                write = lambda labels=labels, frames=frames: [*labels, *suite.messages(frames)]  # noqa: E731
                 rendered[:] = [frames]
                 messages = labels
             if loop is not None:  # closed loop: tick k+1 is stepped with the clients' actions on tick k
+                # published before the writer thread takes the tick, so it does not compete for the GIL
                 loop.publish(tick, t_ns, vehicles, messages, last=tick + 1 == s.n_ticks)
-                if tick + 1 < s.n_ticks:
-                    actions = loop.collect(tick)
-                    pending = conductor.send_step(tick + 1, t_ns + s.tick_ns, escort_targets_of(vehicles, escorts),
-                                                  actions=actions)
+            background.submit(t_ns, write)
+            if loop is not None and tick + 1 < s.n_ticks:
+                actions = loop.collect(tick)
+                pending = conductor.send_step(tick + 1, t_ns + s.tick_ns, escort_targets_of(vehicles, escorts),
+                                              actions=actions)
             if progress is not None:
                 progress(tick + 1, s.n_ticks)
         background.flush()

@@ -88,7 +88,7 @@ class Client:
     def _query(self, verb: str, payload: dict[str, Any], timeout_s: float) -> tuple[bool, dict[str, Any]] | None:
         """The conductor's reply (ok, data), or None when no conductor answered."""
         replies = self._session.get(wire.client_key(self.prefix, self.name, verb), payload=json.dumps(payload),
-                                    timeout=timeout_s)
+                                    timeout=timeout_s, express=True)
         for reply in replies:
             if reply.ok is not None:
                 return True, json.loads(reply.ok.payload.to_bytes())

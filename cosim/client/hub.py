@@ -141,7 +141,7 @@ class ClientHub:
                 parts.append((topic, enc, schema))
             header = {"tick": tick, "t_ns": t_ns, "last": last, "failed": list(failed)}
             self._session.put(wire.client_key(self._prefix, name, "obs"), wire.pack_observation(header, parts),
-                              congestion_control=zenoh.CongestionControl.BLOCK)
+                              congestion_control=zenoh.CongestionControl.BLOCK, express=True)
 
     def collect(self, tick: int) -> list[ClientAction]:
         """Wait for every client's answer to ``tick``; the accepted actions in client order."""
