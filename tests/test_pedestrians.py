@@ -172,6 +172,18 @@ def test_jaywalk_event_crosses_the_road_in_front_of_the_vehicle(run):
     # of a 3-lane avenue is up to about 12 m from a lane)
     states0 = {s.sumo_id: s for s in run["ticks"][track[0][0]][0]}
     assert math.dist(states0["vehicle_0"].center_m[:2], track[0][1].center_m[:2]) < 30.0 + 12.0 + 15.0
+    # cars see it (a hidden standing vehicle in its place on each lane) and stop: vehicle_0, 30 m away when it
+    # stepped off, never touches it (a car right there when it steps onto a lane may: it cannot stop)
+    from cosim.traffic.metrics import bev_corners, convex_overlap_area
+
+    hits = [(k, s.sumo_id) for k, (states, *_) in enumerate(run["ticks"]) for ped in states if ped.sumo_id == "ev0_ped"
+            for s in states if s.cls not in ("pedestrian", "static_obstacle")
+            and convex_overlap_area(bev_corners(s), bev_corners(ped)) > 0.0]
+    assert hits_by(hits, "vehicle_0") == [], hits
+
+
+def hits_by(hits, vid):
+    return [h for h in hits if h[1] == vid]
 
 
 @pytest.mark.integration

@@ -11,8 +11,10 @@ average), walking mid-block on a sidewalk, one steps off the kerb and crosses st
 sidewalk of the opposite edge, outside any crossing. A crossing (also the ``jaywalk`` event's, see
 :mod:`cosim.traffic.events`) is a straight walk at a steady speed that SUMO does not model (its
 persons only walk where pedestrians are allowed): the person leaves SUMO for it, and is put back,
-under the same id, on the far sidewalk with a new walk when it is over. SUMO's cars do not see a
-pedestrian outside a crossing, so they do not brake for one.
+under the same id, on the far sidewalk with a new walk when it is over. So that cars see it, a
+hidden standing SUMO vehicle (``evped_<id>``, never in the labels) as long and wide as the person
+stands where it is on a car lane, moved from lane to lane as it crosses: cars brake for it by their
+car-following, or run into it when it steps out right in front of them.
 
 Each pedestrian is read as a :class:`cosim.protocol.VehicleState` of class ``pedestrian`` (the class
 size of the sensors' synthetic table, standing on the sidewalk top on sidewalks and on the road
@@ -40,6 +42,7 @@ SIZE_M = (0.5, 0.6, 1.75)  # length, width, height: the pedestrian class size (s
 STRIDE_M = 1.5  # [m] walked per gait cycle (two steps)
 KERB_MARGIN_M = 6.0  # [m] a jaywalker leaves the sidewalk at least this far from either end of the edge
 ROUTE_TRIES = 8
+BLOCKER_TYPE = "pedestrian_blocker"  # the hidden vehicle cars see in a crossing pedestrian's place
 _JUNCTION_LANE = re.compile(r"^:.+_([cw])\d+_\d+$")  # netconvert's crossing / walking area lane ids
 
 
@@ -110,6 +113,9 @@ class Pedestrians:
         self.crossings: dict[str, Crossing] = {}
         self._odo: dict[str, float] = {}
         self._last_xy: dict[str, tuple[float, float]] = {}
+        self._blockers: dict[str, str] = {}  # crossing person -> lane id its blocker was put on
+        self._blocker_type = False
+        self._n_routes = 0
 
     def reverse(self, edge: str) -> str | None:
         """The edge the other way between the same junctions (the far side of the road), or None."""
@@ -166,6 +172,54 @@ class Pedestrians:
         self.walkers.append(pid)
         self.crossings[pid] = crossing
 
+    def blockers(self) -> set[str]:
+        """SUMO ids of the hidden vehicles that stand in crossing pedestrians' places."""
+        return {f"evped_{pid}" for pid in self._blockers}
+
+    def _block(self, pid: str, x: float, y: float, vehicles: set[str]) -> None:
+        """Keep a hidden standing vehicle where the crossing person is on a car lane; none elsewhere."""
+        v = libsumo.vehicle
+        bid = f"evped_{pid}"
+        edge, pos, lane = libsumo.simulation.convertRoad(x, y, False, "passenger")
+        on_lane = bool(edge) and not edge.startswith(":")
+        if on_lane:
+            lane_id = f"{edge}_{lane}"
+            cx, cy = libsumo.simulation.convert2D(edge, pos, lane)
+            on_lane = math.dist((cx, cy), (x, y)) <= libsumo.lane.getWidth(lane_id) / 2 + SIZE_M[1] / 2
+        present = bid in vehicles
+        if not on_lane:
+            if pid in self._blockers:
+                if present:
+                    v.unsubscribe(bid)  # the traffic sim subscribed it when it departed
+                v.remove(bid)  # also when SUMO has not put it in yet
+                del self._blockers[pid]
+            return
+        front = min(pos + SIZE_M[0] / 2, libsumo.lane.getLength(lane_id))
+        if present:
+            if self._blockers[pid] != lane_id:  # onto the lane (and edge: a new route) the person is on now
+                fx, fy = libsumo.simulation.convert2D(edge, front, lane)
+                v.moveToXY(bid, edge, lane, fx, fy, libsumo.lane.getAngle(lane_id, front), 0)
+        elif pid not in self._blockers:
+            if not self._blocker_type:
+                libsumo.vehicletype.copy("car_0", BLOCKER_TYPE)
+                libsumo.vehicletype.setLength(BLOCKER_TYPE, SIZE_M[0])
+                libsumo.vehicletype.setWidth(BLOCKER_TYPE, SIZE_M[1])
+                libsumo.vehicletype.setMinGap(BLOCKER_TYPE, 0.1)
+                self._blocker_type = True
+            route = f"route_{bid}_{self._n_routes}"
+            self._n_routes += 1
+            libsumo.route.add(route, [edge])
+            v.add(bid, route, typeID=BLOCKER_TYPE, depart="now", departLane=str(lane),
+                  departPos=f"{front:.3f}", departSpeed="0")
+            v.setSpeedMode(bid, 0)
+            v.setLaneChangeMode(bid, 0)
+            v.setSpeed(bid, 0.0)
+        else:  # added, not in yet (SUMO waits for room): it goes in there when there is room
+            return
+        self._blockers[pid] = lane_id
+        if present:
+            v.setSpeed(bid, 0.0)
+
     def present(self) -> set[str]:
         """Ids of every pedestrian on the map now (in SUMO or crossing a road)."""
         return set(libsumo.person.getIDList()) | set(self.crossings)
@@ -176,6 +230,7 @@ class Pedestrians:
         a new walk, start jaywalks; keep every pedestrian's walked distance."""
         P = libsumo.person
         in_sumo = set(P.getIDList())
+        vehicles = set(libsumo.vehicle.getIDList()) if self.crossings else set()
         for pid in self.walkers:
             cr = self.crossings.get(pid)
             if cr is not None and cr.back_in_sumo and pid in in_sumo:
@@ -188,6 +243,7 @@ class Pedestrians:
             self._odo[pid] = self._odo.get(pid, 0.0) + (math.dist(prev, (x, y)) if prev else 0.0)
             self._last_xy[pid] = (x, y)
             if cr is not None:
+                self._block(pid, x, y, vehicles)
                 if cr.at(t_ns)[2] and not cr.back_in_sumo:
                     P.add(pid, cr.far_edge, cr.far_pos_m, depart=libsumo.simulation.getTime())
                     if not self._walk_on(pid, cr.far_edge):

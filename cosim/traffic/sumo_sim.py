@@ -235,7 +235,7 @@ class TrafficSim:
         if target < self._step:
             raise WorkerError("traffic", f"cannot step back to t_ns = {t_ns}")
         self._advance_to(target)
-        hidden = self.timeline.hidden()
+        hidden = self.timeline.hidden() | self.pedestrians.blockers()
         vehicles = [self._read(v, t_ns) for v in sorted(libsumo.vehicle.getIDList()) if v not in hidden]
         return vehicles + self.timeline.obstacles() + self.pedestrians.states(t_ns)
 
