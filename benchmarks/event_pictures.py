@@ -3,9 +3,10 @@ view around the event and the image of the connected vehicle's camera that sees 
 
     PYTHONPATH=. nice .venv/bin/python benchmarks/event_pictures.py --out docs/img
 
-Runs each ``scenarios/event_<kind>.yaml`` for a few seconds after its event (real SUMO, drones, sensors at
-``--image-scale``) into ``--work``, picks the first tick ``--after-s`` after the event became active, and
-writes ``event_<kind>_bev.png`` and ``event_<kind>_camera.png``.
+Runs each ``scenarios/event_<kind>.yaml`` for a few seconds (real SUMO, drones, sensors at ``--image-scale``)
+into ``--work``, picks the tick and camera (any agent's) that see most of the event's actors (instance
+pixels, not cut by the image's edge) while it is active (for a breakdown: while its hazard lamps are lit), and writes
+``event_<kind>_camera.png`` (boxes drawn) and ``event_<kind>_bev.png`` (60 m square around the event).
 """
 
 from __future__ import annotations
@@ -25,64 +26,67 @@ from PIL import Image
 from cosim.io import open_episode
 from cosim.io.render import bev_plot, camera_with_boxes, layout_polygons
 
-KINDS = {  # kind: (episode duration [s], seconds after activation to picture)
-    "breakdown": (4.0, 1.6),
-    "accident": (2.0, 1.0),
-    "lane_closure": (3.0, 2.0),
-    "road_block": (4.0, 1.0),
-    "jaywalk": (4.0, 2.4),
-    "cut_in": (4.0, 1.6),
-}
+KINDS = {"breakdown": 7.0, "accident": 6.0, "lane_closure": 6.0, "road_block": 5.0, "jaywalk": 5.0, "cut_in": 5.0}
+HAZARD_PERIOD_NS = 666_666_667  # cosim.traffic.events
+MIN_PIXELS = 100  # a camera picture only when some camera saw at least this many pixels of the event
 
 
 def _focus(event: dict, objects: dict[int, dict]) -> np.ndarray:
-    """Map x, y the pictures centre on: the event's zone, else its actors."""
-    if event.get("zone_m"):
-        return np.mean(np.array(event["zone_m"], float), axis=0)
-    ids = event.get("vehicle_track_ids", []) + event.get("pedestrian_track_ids", [])
-    return np.mean([objects[i]["center_m"][:2] for i in ids if i in objects], axis=0)
+    """Map x, y the pictures centre on: the event's actors and obstacles, else its zone."""
+    ids = event.get("vehicle_track_ids", []) + event.get("pedestrian_track_ids", []) + event.get(
+        "obstacle_track_ids", [])
+    points = [objects[i]["center_m"][:2] for i in ids if i in objects]
+    return np.mean(points, axis=0) if points else np.mean(np.array(event["zone_m"], float), axis=0)
+
+
+def _event_pixels(tick, wanted: set[int]) -> tuple[int, tuple[str, str]]:
+    best, best_px = ("vehicle_0", "front"), -1
+    for topic in tick.topics:
+        if topic.endswith("/instance"):
+            mask = np.isin(tick[topic].array, list(wanted))
+            cols = np.flatnonzero(mask.any(axis=0))
+            if len(cols) and (cols[0] == 0 or cols[-1] == mask.shape[1] - 1):
+                continue  # cut by the image's edge: another camera (or tick) shows it whole
+            px = int(mask.sum())
+            if px > best_px:
+                _, agent, cam, _ = topic.split("/")
+                best, best_px = (agent, cam), px
+    return best_px, best
 
 
 def picture(kind: str, work: Path, out: Path, image_scale: float) -> None:
-    duration, after_s = KINDS[kind]
     ep_dir = work / kind
     if not any(ep_dir.glob("*.mcap")):
-        cmd = [sys.executable, "-m", "cosim.cli", "run", f"scenarios/event_{kind}.yaml", "--duration", str(duration),
+        cmd = [sys.executable, "-m", "cosim.cli", "run", f"scenarios/event_{kind}.yaml", "--duration", str(KINDS[kind]),
                "--out", str(ep_dir), "--set", f"sensors.image_scale={image_scale}", "--set", "agents.rsus.count=0",
                "-q"]
         subprocess.run(cmd, check=True)
     path = next(ep_dir.glob("*.mcap"))
     with open_episode(path) as ep:
         layout = layout_polygons(ep)
-        chosen = None
+        best = (-1, 0, ("vehicle_0", "front"))
         for tick in ep.ticks():
             (event,) = json.loads(tick.raw("/events").data)["events"]
             start = event.get("active_from_ns")
-            if start is not None and tick.t_ns >= start + after_s * 1e9:
-                chosen = tick.index
-                break
-        if chosen is None:
-            chosen = ep.n_ticks - 1
-        tick = ep.tick(chosen)
+            if event["state"] != "active" or (event.get("hazard_lights") and (tick.t_ns - start) % HAZARD_PERIOD_NS
+                                                >= HAZARD_PERIOD_NS // 2):
+                continue
+            wanted = set(event.get("vehicle_track_ids", []) + event.get("pedestrian_track_ids", [])
+                         + event.get("obstacle_track_ids", []))
+            px, cam = _event_pixels(tick, wanted)
+            if px > best[0]:
+                best = (px, tick.index, cam)
+        px, index, cam = best
+        tick = ep.tick(index)
         (event,) = json.loads(tick.raw("/events").data)["events"]
         objects = {o["track_id"]: o for o in json.loads(tick.raw("/labels/objects").data)["objects"]}
         focus = _focus(event, objects)
         bev_plot(ep, tick, out / f"event_{kind}_bev.png", dpi=70, layout=layout,
                  window_m=(float(focus[0]), float(focus[1]), 30.0))
-        wanted = set(event.get("vehicle_track_ids", []) + event.get("pedestrian_track_ids", [])
-                     + event.get("obstacle_track_ids", []))
-        best, best_px = ("vehicle_0", "front"), -1
-        for agent in ep.agents:
-            for cam in ep.cameras(agent):
-                topic = f"/{agent}/{cam}/instance"
-                if topic not in tick:
-                    continue
-                px = int(np.isin(tick[topic].array, list(wanted)).sum())
-                if px > best_px:
-                    best, best_px = (agent, cam), px
-        rgb = camera_with_boxes(ep, tick, *best)
-        Image.fromarray(rgb).save(out / f"event_{kind}_camera.png", optimize=True)
-        print(f"{kind}: tick {chosen}, state {event['state']}, camera {best[0]}/{best[1]} ({best_px} px of the event)")
+        if px >= MIN_PIXELS:
+            Image.fromarray(camera_with_boxes(ep, tick, *cam)).save(out / f"event_{kind}_camera.png", optimize=True)
+        print(f"{kind}: tick {index}, camera {cam[0]}/{cam[1]} ({px} px of the event)"
+              + ("" if px >= MIN_PIXELS else ": no camera picture, no camera saw the event whole"))
 
 
 def main() -> None:
