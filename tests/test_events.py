@@ -267,5 +267,5 @@ def test_broken_down_car_blinks_its_hazard_lamps(run):
     alb_on, _, emis_on = actor_material("car", 7, part, hazard_lamps_on=True)
     alb_off, _, _ = actor_material("car", 7, part)
     lamps = np.isin(part, [3, 4])  # front and rear lamp units
-    assert np.allclose(alb_on[lamps], HAZARD_AMBER) and np.all(emis_on[lamps] == 1.0)
+    assert np.allclose(alb_on[lamps], HAZARD_AMBER) and np.all(emis_on[lamps] > 0.0)
     assert not np.allclose(alb_off[lamps], HAZARD_AMBER) and np.array_equal(alb_on[~lamps], alb_off[~lamps])

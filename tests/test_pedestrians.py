@@ -292,3 +292,57 @@ def test_jaywalk_episode_escorted_vehicle_sees_the_pedestrian(tmp_path: Path):
                     assert excess.max() <= 0.1, (topic, int(pid), float(excess.max()))
                     lidar_hits += 1
     assert in_area > 0 and seen_by_drone > 0 and lidar_hits > 0, (in_area, seen_by_drone, lidar_hits)
+
+
+def test_hazard_lamps_glow_amber_in_a_night_camera():
+    """Real ray casting at night: a car 8 m ahead, seen from behind, with its hazard lamps lit and dark. The
+    pixels that differ are its two rear lamp units: amber when lit, the red tail lights when dark."""
+    from cosim.sensors import SensorSuite
+    from cosim.sensors.synthetic import actor
+
+    from cosim.scenario.model import (
+        AgentsSpec,
+        CameraSpec,
+        Mount,
+        RigSpec,
+        RsuAgents,
+        Scenario,
+        SensorsSpec,
+        VehicleAgents,
+    )
+    from cosim.snapshot import AgentState, WorldSnapshot
+    from tests.test_sensors import _wall_world
+
+    rig = RigSpec(lidar=None, cameras=[CameraSpec(name="front", width=160, height=120, fov_deg=40.0,
+                                                  mount=Mount(xyz_m=(0.0, 0.0, 1.0)))], gnss=None, imu=None)
+    sc = Scenario(name="t", environment={"lighting": "night"},
+                  agents=AgentsSpec(vehicles=VehicleAgents(count=1), rsus=RsuAgents(count=0), drones=[]),
+                  sensors=SensorsSpec(vehicle=rig, bev=False))
+    suite = SensorSuite(sc, _wall_world(), noise=False)
+    ego = AgentState("vehicle_0", "vehicle", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    cams = {}
+    for lit in (True, False):
+        car = actor(2, "car", 8.0, 0.0, z_ground=0.0)
+        car = type(car)(**{**{f: getattr(car, f) for f in car.__dataclass_fields__}, "hazard_lamps_on": lit})
+        frame = suite.render(WorldSnapshot(0, 0, (car,), (ego,)), np.random.default_rng(0))
+        cams[lit] = frame.agents["vehicle_0"].cameras["front"]
+    diff = np.any(cams[True].rgb != cams[False].rgb, axis=2)
+    assert diff.sum() >= 20 and np.all(cams[True].instance[diff] == 2)
+    on, off = cams[True].rgb[diff].astype(int), cams[False].rgb[diff].astype(int)
+    assert np.all((on[:, 0] > 200) & (on[:, 1] > 0.5 * on[:, 0]) & (on[:, 1] < 0.9 * on[:, 0]) & (on[:, 2] < 40))
+    assert np.all((off[:, 0] > 150) & (off[:, 1] < 0.5 * off[:, 0]))  # the tail lights: red
+    cols = np.flatnonzero(diff.any(axis=0))
+    assert np.any(np.diff(cols) > 5)  # two separate lamp units, left and right
+
+
+def test_walker_legs_swing_with_the_gait_phase():
+    from sensors.meshes import PEDESTRIAN_POSES, template_for
+
+    xs = []
+    for phase in np.linspace(0.0, 1.0, 8, endpoint=False):
+        tpl = template_for("pedestrian", float(phase))
+        right_leg = tpl.vertices[:8]  # the first part: the right leg's box
+        xs.append(float(right_leg[:, 0].mean()))
+    assert len({id(template_for("pedestrian", p)) for p in np.linspace(0, 0.99, 8)}) == len(PEDESTRIAN_POSES)
+    assert max(xs) > 0.25 and min(xs) < -0.25  # forward in one half of the cycle, back in the other
+    assert xs[0] == pytest.approx(-xs[4])
