@@ -245,10 +245,9 @@ def test_jaywalk_episode_escorted_vehicle_sees_the_pedestrian(tmp_path: Path):
     vehicle's evaluation area and in the escort drone's visibility annotations, and every LiDAR return with
     a pedestrian's instance id lies inside that pedestrian's box grown by 0.1 m."""
     from cosim.eval.dataset import AREA_HALF_M
-    from cosim.geometry import rotation_matrix
     from cosim.io import open_episode
-    from cosim.io.deskew import deskew_tick
     from tests.conftest import run_cli
+    from tests.test_events import lidar_box_excess
 
     r = run_cli("run", "scenarios/event_jaywalk.yaml", "--duration", "3.4", "--out", str(tmp_path),
                 "--set", "sensors.image_scale=0.1", "--set", "agents.rsus.count=0", "--set", "map.size_m=300",
@@ -276,21 +275,9 @@ def test_jaywalk_episode_escorted_vehicle_sees_the_pedestrian(tmp_path: Path):
             in_area += abs(c[0]) <= AREA_HALF_M[0] and abs(c[1]) <= AREA_HALF_M[1]
             vis = json.loads(tick.raw(f"/{escort}/visibility").data)
             seen_by_drone += any(x["track_id"] == tid for x in vis["objects"])
-            for topic in tick.topics:
-                if not topic.endswith("/lidar"):
-                    continue
-                cloud = tick[topic]
-                to_map = tick.transforms.to_root(cloud.frame_id)
-                xyz = deskew_tick(tick, topic.split("/")[1]) @ to_map[:3, :3].T + to_map[:3, 3]
-                for pid in np.unique(cloud.points["instance_id"]):
-                    p = objects.get(int(pid))
-                    if p is None or p["class"] != "pedestrian":
-                        continue
-                    rot = rotation_matrix(tuple(p["rotation"]))
-                    local = (xyz[cloud.points["instance_id"] == pid] - np.array(p["center_m"])) @ rot
-                    excess = np.abs(local) - np.array(p["size_m"]) / 2
-                    assert excess.max() <= 0.1, (topic, int(pid), float(excess.max()))
-                    lidar_hits += 1
+            for topic, p, excess in lidar_box_excess(tick, objects, lambda o: o["class"] == "pedestrian"):
+                assert excess <= 0.1, (topic, p["track_id"], excess)
+                lidar_hits += 1
     assert in_area > 0 and seen_by_drone > 0 and lidar_hits > 0, (in_area, seen_by_drone, lidar_hits)
 
 
