@@ -48,6 +48,8 @@ def vehicle_actor(v: VehicleState, track_id: int) -> Actor:
         velocity_mps=tuple(v.velocity_mps),
         agent_id=v.agent_id,
         source_id=v.sumo_id,
+        gait_phase=v.gait_phase,
+        hazard_lamps_on=v.hazard_lamps_on,
     )
 
 

@@ -37,6 +37,8 @@ class VehicleState:
     accel_mps2: float
     yaw_rate_radps: float
     agent_id: str | None = None
+    gait_phase: float = 0.0  # pedestrians: walked distance over the stride, 0..1 (the legs' pose)
+    hazard_lamps_on: bool = False  # hazard lights lit at this instant (they blink)
 
 
 @dataclass(frozen=True, slots=True)

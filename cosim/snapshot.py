@@ -33,6 +33,8 @@ class Actor:
     agent_id: str | None = None
     source_id: str = ""  # the engine's own id (SUMO vehicle id, drone id)
     parked: bool = False  # a parked vehicle (never moves; not in SUMO)
+    gait_phase: float = 0.0  # pedestrians: 0..1 through the gait cycle (which leg pose the sensors draw)
+    hazard_lamps_on: bool = False  # the amber hazard lamps are lit at this instant
 
 
 @dataclass(frozen=True, slots=True)

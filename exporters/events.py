@@ -27,12 +27,14 @@ EVENTS_SCHEMA: dict[str, Any] = {
                 "required": ["id", "kind", "at_ns", "state"],
                 "properties": {
                     "id": {"type": "string"},
-                    "kind": {"enum": ["breakdown", "accident", "lane_closure", "construction_zone", "road_block"]},
+                    "kind": {"enum": ["breakdown", "accident", "lane_closure", "construction_zone", "road_block",
+                                      "jaywalk", "cut_in"]},
                     "at_ns": {"type": "integer"},
                     "state": {"enum": ["pending", "starting", "active", "failed"]},
                     "active_from_ns": {"type": ["integer", "null"]},
                     "vehicle_track_ids": _ID_LIST,
                     "obstacle_track_ids": _ID_LIST,
+                    "pedestrian_track_ids": _ID_LIST,
                     "zone_m": {"type": "array", "items": {"type": "array", "items": {"type": "number"},
                                                           "minItems": 2, "maxItems": 2}},
                     "edge": {"type": "string"},
@@ -53,9 +55,11 @@ def events_payload(tick: int, t_ns: int, records: Sequence[dict[str, Any]],
     track id of an actor in this tick's labels (None when it is not on the road yet)."""
     events = []
     for r in records:
-        e = {k: v for k, v in r.items() if k not in ("vehicles", "obstacles")}
+        e = {k: v for k, v in r.items() if k not in ("vehicles", "obstacles", "pedestrians")}
         if "vehicles" in r:
             e["vehicle_track_ids"] = [t for t in map(track_of, r["vehicles"]) if t is not None]
             e["obstacle_track_ids"] = [t for t in map(track_of, r["obstacles"]) if t is not None]
+        if "pedestrians" in r:
+            e["pedestrian_track_ids"] = [t for t in map(track_of, r["pedestrians"]) if t is not None]
         events.append(e)
     return {"timestamp_ns": t_ns, "tick": tick, "frame_id": "map", "events": events}

@@ -410,6 +410,11 @@ def _wheels(xs: Sequence[float], radius: float, width: float) -> list:
     return out
 
 
+#: vehicle bodies stop this far inside the box ends so the lamp units there are the outermost surface (a
+#: lamp face level with the body's would lose the ray-cast tie and never show, nor glow, nor blink)
+_BODY_X = 0.49
+
+
 def _lamps(x_front: float, x_rear: float, z: float, h: float) -> list:
     return [
         (_box((x_front - 0.02, -0.42, z), (x_front, -0.28, z + h)), _PART_LAMP_FRONT),
@@ -423,7 +428,7 @@ def _car() -> ActorTemplate:
     r = 0.16  # wheel radius as a fraction of height
     return _assemble(
         [
-            (_box((-0.5, -0.5, -0.5 + 0.6 * r), (0.5, 0.5, 0.02)), _PART_BODY),
+            (_box((-_BODY_X, -0.5, -0.5 + 0.6 * r), (_BODY_X, 0.5, 0.02)), _PART_BODY),
             (_box((-0.33, -0.44, 0.02), (0.17, 0.44, 0.5)), _PART_GLASS),
             (_box((-0.32, -0.40, 0.46), (0.15, 0.40, 0.5)), _PART_BODY),
             *_wheels((-0.32, 0.32), r * 1.0, 0.16),
@@ -436,8 +441,8 @@ def _van() -> ActorTemplate:
     r = 0.13
     return _assemble(
         [
-            (_box((-0.5, -0.5, -0.5 + 0.6 * r), (0.5, 0.5, -0.1)), _PART_BODY),
-            (_box((-0.5, -0.49, -0.1), (0.22, 0.49, 0.5)), _PART_BODY),
+            (_box((-_BODY_X, -0.5, -0.5 + 0.6 * r), (_BODY_X, 0.5, -0.1)), _PART_BODY),
+            (_box((-_BODY_X, -0.49, -0.1), (0.22, 0.49, 0.5)), _PART_BODY),
             (_box((0.22, -0.47, -0.1), (0.36, 0.47, 0.3)), _PART_GLASS),
             *_wheels((-0.33, 0.33), r, 0.14),
             *_lamps(0.5, -0.5, -0.25, 0.08),
@@ -449,9 +454,9 @@ def _truck() -> ActorTemplate:
     r = 0.12
     return _assemble(
         [
-            (_box((0.22, -0.48, -0.5 + 0.7 * r), (0.5, 0.48, 0.25)), _PART_BODY),
+            (_box((0.22, -0.48, -0.5 + 0.7 * r), (_BODY_X, 0.48, 0.25)), _PART_BODY),
             (_box((0.40, -0.46, 0.0), (0.5, 0.46, 0.22)), _PART_GLASS),
-            (_box((-0.5, -0.5, -0.5 + 0.9 * r), (0.19, 0.5, 0.5)), _PART_DARK),
+            (_box((-_BODY_X, -0.5, -0.5 + 0.9 * r), (0.19, 0.5, 0.5)), _PART_DARK),
             (_box((0.15, -0.2, -0.5 + 0.9 * r), (0.22, 0.2, -0.1)), _PART_TYRE),
             *_wheels((-0.36, -0.22, 0.36), r, 0.14),
             *_lamps(0.5, -0.5, -0.28, 0.06),
@@ -463,7 +468,7 @@ def _bus() -> ActorTemplate:
     r = 0.1
     return _assemble(
         [
-            (_box((-0.5, -0.5, -0.5 + 0.8 * r), (0.5, 0.5, 0.05)), _PART_BODY),
+            (_box((-_BODY_X, -0.5, -0.5 + 0.8 * r), (_BODY_X, 0.5, 0.05)), _PART_BODY),
             (_box((-0.48, -0.5, 0.05), (0.49, 0.5, 0.35)), _PART_GLASS),
             (_box((-0.5, -0.49, 0.05), (0.5, 0.49, 0.5)), _PART_BODY),
             *_wheels((-0.32, 0.36), r, 0.12),
@@ -504,11 +509,13 @@ def _drone() -> ActorTemplate:
     return _assemble(parts)
 
 
-def _pedestrian() -> ActorTemplate:
-    """A walker in the unit box (x forward): legs in a mid stride, torso, arms, head."""
+def _pedestrian(stride: float = 1.0) -> ActorTemplate:
+    """A walker in the unit box (x forward): legs (``stride`` 1: right leg forward in a full stride, 0: side
+    by side, -1: left leg forward), torso, arms, head."""
+    x = 0.31 * stride  # the right leg's centre along x; the left one's is -x
     parts = [
-        (_box((0.12, -0.32, -0.5), (0.5, -0.06, -0.02)), _PART_DARK),  # front leg
-        (_box((-0.5, 0.06, -0.5), (-0.12, 0.32, -0.02)), _PART_DARK),  # back leg
+        (_box((x - 0.19, -0.32, -0.5), (x + 0.19, -0.06, -0.02)), _PART_DARK),  # right leg
+        (_box((-x - 0.19, 0.06, -0.5), (-x + 0.19, 0.32, -0.02)), _PART_DARK),  # left leg
         (_box((-0.25, -0.38, -0.02), (0.25, 0.38, 0.3)), _PART_BODY),  # torso
         (_box((-0.12, -0.5, -0.05), (0.12, -0.38, 0.28)), _PART_BODY),  # arms
         (_box((-0.12, 0.38, -0.05), (0.12, 0.5, 0.28)), _PART_BODY),
@@ -528,6 +535,9 @@ def _static_obstacle() -> ActorTemplate:
     return _assemble(parts)
 
 
+#: the walker through one gait cycle (two steps): pose k for gait phase in [k / n, (k + 1) / n)
+PEDESTRIAN_POSES: tuple[ActorTemplate, ...] = tuple(_pedestrian(math.cos(2 * math.pi * k / 8)) for k in range(8))
+
 ACTOR_TEMPLATES: dict[str, ActorTemplate] = {
     "car": _car(),
     "van": _van(),
@@ -541,15 +551,23 @@ ACTOR_TEMPLATES: dict[str, ActorTemplate] = {
 }
 
 
-def template_for(cls: str) -> ActorTemplate:
+def template_for(cls: str, gait_phase: float = 0.0) -> ActorTemplate:
+    """The class's shape; a pedestrian's legs in the pose of its ``gait_phase`` (0..1)."""
+    if cls == "pedestrian":
+        return PEDESTRIAN_POSES[int(gait_phase * len(PEDESTRIAN_POSES)) % len(PEDESTRIAN_POSES)]
     try:
         return ACTOR_TEMPLATES[cls]
     except KeyError:
         raise CosimError(f"no actor shape for class {cls!r}; known: {', '.join(ACTOR_TEMPLATES)}") from None
 
 
-def actor_material(cls: str, track_id: int, part: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Albedo (T, 3), reflectivity (T,), emissive (T,) of an actor's triangles from their part ids."""
+HAZARD_AMBER = (1.0, 0.5, 0.0)
+
+
+def actor_material(cls: str, track_id: int, part: np.ndarray, hazard_lamps_on: bool = False
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Albedo (T, 3), reflectivity (T,), emissive (T,) of an actor's triangles from their part ids; with
+    ``hazard_lamps_on`` every lamp unit (front and rear) glows amber (a blinking hazard light, lit)."""
     paint = _PAINTS[int(_hash01(track_id, 7) * len(_PAINTS)) % len(_PAINTS)]
     if cls == "bus":
         paint = np.array((0.85, 0.65, 0.10), np.float32) if _hash01(track_id, 3) > 0.5 else paint
@@ -564,4 +582,7 @@ def actor_material(cls: str, track_id: int, part: np.ndarray) -> tuple[np.ndarra
     paint_refl = 0.05 + 0.7 * float(paint @ np.array([0.2126, 0.7152, 0.0722], np.float32))
     refl_t = np.array([paint_refl, 0.05, 0.03, 0.3, 0.3, 0.08], np.float32)
     emis_t = np.array([0.0, 0.0, 0.0, 1.0, 0.6, 0.0], np.float32)
+    if hazard_lamps_on:
+        table[_PART_LAMP_FRONT] = table[_PART_LAMP_REAR] = HAZARD_AMBER
+        emis_t[_PART_LAMP_FRONT] = emis_t[_PART_LAMP_REAR] = 0.6
     return table[part], refl_t[part], emis_t[part]

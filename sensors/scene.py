@@ -70,10 +70,10 @@ def place_actors(actors: tuple[Actor, ...] | list[Actor]) -> tuple[TriMesh, np.n
     parts: list[TriMesh] = []
     tracks: list[np.ndarray] = []
     for a in actors:
-        tpl = template_for(a.cls)
+        tpl = template_for(a.cls, a.gait_phase)
         v = tpl.vertices.astype(np.float64) * np.asarray(a.size_m, np.float64)
         v = rotate(v, rotation_matrix(a.rotation)) + np.asarray(a.center_m, np.float64)
-        alb, refl, emis = actor_material(a.cls, a.track_id, tpl.part)
+        alb, refl, emis = actor_material(a.cls, a.track_id, tpl.part, a.hazard_lamps_on)
         t = len(tpl.triangles)
         parts.append(
             TriMesh(v.astype(np.float32), tpl.triangles, np.full(t, semantic_id(a.cls), np.uint8),

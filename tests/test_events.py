@@ -206,9 +206,32 @@ def test_incidents_sweep_has_an_events_axis():
 
     plan = plan_file(Path(__file__).resolve().parents[1] / "sweeps" / "incidents.yaml")
     kinds = {tuple(e["kind"] for e in ep.scenario["events"]) for ep in plan.episodes}
-    assert kinds == {(), ("breakdown",), ("accident",), ("construction_zone",), ("road_block",)}
-    assert plan.combinations == 15 and len(plan.episodes) == 30
+    assert kinds == {(), ("breakdown",), ("accident",), ("construction_zone",), ("road_block",), ("jaywalk",),
+                     ("cut_in",)}
+    assert plan.combinations == 21 and len(plan.episodes) == 42
     assert all(ep.scenario["parked"]["density_veh_per_km"] == 20 for ep in plan.episodes)
+
+
+def lidar_box_excess(tick, objects: dict, keep):
+    """(topic, object, metres) per LiDAR sweep of ``tick`` and per object ``keep(object)`` selects among its
+    returns' instance ids: how far the returns (deskewed, in the map frame) reach outside the object's box."""
+    from cosim.geometry import rotation_matrix
+    from cosim.io.deskew import deskew_tick
+
+    for topic in tick.topics:
+        if not topic.endswith("/lidar"):
+            continue
+        cloud = tick[topic]
+        to_map = tick.transforms.to_root(cloud.frame_id)
+        # each firing at its own time: back into the sweep-end sensor frame first (cosim.io.deskew)
+        xyz = deskew_tick(tick, topic.split("/")[1]) @ to_map[:3, :3].T + to_map[:3, 3]
+        for tid in np.unique(cloud.points["instance_id"]):
+            o = objects.get(int(tid))
+            if o is None or not keep(o):
+                continue
+            rot = rotation_matrix(tuple(o["rotation"]))
+            local = (xyz[cloud.points["instance_id"] == tid] - np.array(o["center_m"])) @ rot
+            yield topic, o, float((np.abs(local) - np.array(o["size_m"]) / 2).max())
 
 
 @pytest.mark.integration
@@ -217,9 +240,7 @@ def test_lidar_points_of_obstacles_and_parked_vehicles_lie_in_their_boxes(tmp_pa
     static obstacle or a parked vehicle lies inside that box grown by 0.1 m."""
     import json
 
-    from cosim.geometry import rotation_matrix
     from cosim.io import open_episode
-    from cosim.io.deskew import deskew_tick
     from tests.conftest import run_cli
 
     r = run_cli("run", "scenarios/event_lane_closure.yaml", "--duration", "0.4", "--out", str(tmp_path),
@@ -230,20 +251,29 @@ def test_lidar_points_of_obstacles_and_parked_vehicles_lie_in_their_boxes(tmp_pa
     with open_episode(tmp_path / "event_lane_closure_s0.mcap") as ep:
         for tick in ep.ticks():
             objects = {o["track_id"]: o for o in json.loads(tick.raw("/labels/objects").data)["objects"]}
-            for topic in tick.topics:
-                if not topic.endswith("/lidar"):
-                    continue
-                cloud = tick[topic]
-                to_map = tick.transforms.to_root(cloud.frame_id)
-                # each firing at its own time: back into the sweep-end sensor frame first (cosim.io.deskew)
-                xyz = deskew_tick(tick, topic.split("/")[1]) @ to_map[:3, :3].T + to_map[:3, 3]
-                for tid in np.unique(cloud.points["instance_id"]):
-                    o = objects.get(int(tid))
-                    if o is None or not (o["class"] == "static_obstacle" or o.get("parked")):
-                        continue
-                    rot = rotation_matrix(tuple(o["rotation"]))
-                    local = (xyz[cloud.points["instance_id"] == tid] - np.array(o["center_m"])) @ rot
-                    excess = np.abs(local) - np.array(o["size_m"]) / 2
-                    assert excess.max() <= 0.1, (topic, o["class"], int(tid), float(excess.max()))
-                    hit["parked" if o.get("parked") else "static_obstacle"] += 1
+            for topic, o, excess in lidar_box_excess(tick, objects, lambda o: o["class"] == "static_obstacle"
+                                                     or o.get("parked")):
+                assert excess <= 0.1, (topic, o["class"], o["track_id"], excess)
+                hit["parked" if o.get("parked") else "static_obstacle"] += 1
     assert hit["static_obstacle"] > 0 and hit["parked"] > 0, hit
+
+
+@pytest.mark.integration
+def test_broken_down_car_blinks_its_hazard_lamps(run):
+    """At night the broken-down car's hazard lamps blink at 1.5 Hz (lit half of each period) from activation;
+    the renderer paints its lamp units amber and glowing while lit."""
+    from cosim.traffic.events import HAZARD_PERIOD_NS
+    from sensors.meshes import HAZARD_AMBER, actor_material, template_for
+
+    active = _active(run, "event_0")
+    t0 = active[0][2]["active_from_ns"]
+    lit = [(t, s.hazard_lamps_on) for t, states, _, _ in active for s in states if s.sumo_id == "ev0_0"]
+    assert {on for _, on in lit} == {True, False}
+    assert all(on == ((t - t0) % HAZARD_PERIOD_NS < HAZARD_PERIOD_NS // 2) for t, on in lit)
+    assert not any(s.hazard_lamps_on for _, states, _, _ in run for s in states if s.sumo_id != "ev0_0")
+    part = template_for("car").part
+    alb_on, _, emis_on = actor_material("car", 7, part, hazard_lamps_on=True)
+    alb_off, _, _ = actor_material("car", 7, part)
+    lamps = np.isin(part, [3, 4])  # front and rear lamp units
+    assert np.allclose(alb_on[lamps], HAZARD_AMBER) and np.all(emis_on[lamps] > 0.0)
+    assert not np.allclose(alb_off[lamps], HAZARD_AMBER) and np.array_equal(alb_on[~lamps], alb_off[~lamps])

@@ -298,9 +298,11 @@ def layout_polygons(ep: Episode) -> list[tuple[str, np.ndarray]]:
 
 
 def bev_plot(
-    ep: Episode, tick: Tick, path: Path, dpi: int = 80, layout: list[tuple[str, np.ndarray]] | None = None
+    ep: Episode, tick: Tick, path: Path, dpi: int = 80, layout: list[tuple[str, np.ndarray]] | None = None,
+    window_m: tuple[float, float, float] | None = None,
 ) -> Path:
-    """Top view of one tick (see the module docstring); ``layout`` from :func:`layout_polygons`."""
+    """Top view of one tick (see the module docstring); ``layout`` from :func:`layout_polygons`;
+    ``window_m`` (centre x, y, half width [m]) zooms onto a square of the map instead of fitting the data."""
     import matplotlib.pyplot as plt
     from matplotlib.collections import PolyCollection
     from matplotlib.lines import Line2D
@@ -345,7 +347,10 @@ def bev_plot(
             ax.scatter([x], [y], marker=marker, s=60, c=colour, edgecolors="k", zorder=5)
             ax.annotate(a["agent_id"], (x, y), textcoords="offset points", xytext=(5, 5), fontsize=8, zorder=6)
             extent.append(np.array([x, y]))
-    if extent:
+    if window_m is not None:
+        ax.set_xlim(window_m[0] - window_m[2], window_m[0] + window_m[2])
+        ax.set_ylim(window_m[1] - window_m[2], window_m[1] + window_m[2])
+    elif extent:
         e = np.asarray(extent)
         lo, hi = np.percentile(e, 1, axis=0) - 20, np.percentile(e, 99, axis=0) + 20
         centre, half = (lo + hi) / 2, max(hi - lo) / 2

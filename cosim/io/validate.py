@@ -683,7 +683,8 @@ class _Validator:
             refs = set(_track_ids_in(value))
         elif pattern == "/events" and isinstance(value, dict):
             refs = {int(t) for e in value.get("events", []) if isinstance(e, dict)
-                    for key in ("vehicle_track_ids", "obstacle_track_ids") for t in e.get(key, [])}
+                    for key in ("vehicle_track_ids", "obstacle_track_ids", "pedestrian_track_ids")
+                    for t in e.get(key, [])}
         elif pattern == "/comm/links":
             self.check_links(tick, topic, value)
         dangling = sorted(refs - live)

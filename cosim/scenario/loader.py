@@ -290,7 +290,8 @@ def _printable(text: str, limit: int = 120) -> str:
     return shown if len(shown) <= limit else f"{shown[: limit - 20]}... ({len(text)} characters)"
 
 
-_UNION_TAGS = ("hover", "patrol", "escort", "breakdown", "accident", "lane_closure", "construction_zone", "road_block")
+_UNION_TAGS = ("hover", "patrol", "escort", "breakdown", "accident", "lane_closure", "construction_zone", "road_block",
+               "jaywalk", "cut_in")
 
 
 def _is_pydantic_artefact(part: str | int) -> bool:

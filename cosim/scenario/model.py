@@ -385,6 +385,14 @@ class ParkedSpec(Model):
     density_veh_per_km: float = Field(0.0, ge=0.0, le=150.0)  # per km of road edge, as many as fit
 
 
+class PedestrianSpec(Model):
+    """Pedestrians of SUMO's pedestrian model on sidewalks and crossings (cosim/traffic/pedestrians.py)."""
+
+    density_per_km: float = Field(0.0, ge=0.0, le=200.0)  # per km of road edge with a sidewalk
+    jaywalk_share: float = Field(0.0, ge=0.0, le=1.0)  # share that crosses the road outside crossings
+    jaywalk_every_s: float = Field(30.0, gt=0.0, le=3600.0)  # [s] mean time between a jaywalker's crossings
+
+
 # -------------------------------------------------------------------------------------- events
 
 
@@ -444,8 +452,32 @@ class RoadBlockEvent(EventBase):
     kind: Literal["road_block"] = "road_block"
 
 
+class JaywalkEvent(EventBase):
+    """A pedestrian steps off the kerb at the placement and crosses the road outside any crossing."""
+
+    kind: Literal["jaywalk"] = "jaywalk"
+    speed_mps: float = Field(1.4, ge=0.3, le=4.0)  # [m/s] walking (or running) speed across
+    from_side: Literal["right", "left"] = "right"  # the kerb it starts from, seen along the lane
+
+
+class CutInEvent(EventBase):
+    """A car appears in the lane beside ``ahead_of`` and changes into its lane ``gap_m`` ahead of it."""
+
+    kind: Literal["cut_in"] = "cut_in"
+    ahead_m: float = Field(0.0, ge=0.0, le=50.0)  # [m] how far ahead of the connected vehicle it appears
+    gap_m: float = Field(6.0, ge=1.0, le=30.0)  # [m] from the connected vehicle's front to its rear
+    side: Literal["left", "right", "any"] = "any"  # the neighbouring lane it comes from
+
+    @model_validator(mode="after")
+    def _needs_vehicle(self) -> CutInEvent:
+        if self.ahead_of is None:
+            raise RuleError("ahead_of", "a cut_in needs ahead_of: the connected vehicle it cuts in front of")
+        return self
+
+
 EventSpec = Annotated[
-    BreakdownEvent | AccidentEvent | LaneClosureEvent | RoadBlockEvent, Field(discriminator="kind")
+    BreakdownEvent | AccidentEvent | LaneClosureEvent | RoadBlockEvent | JaywalkEvent | CutInEvent,
+    Field(discriminator="kind"),
 ]
 
 # -------------------------------------------------------------------------------------- output
@@ -533,6 +565,7 @@ class Scenario(Model):
     runtime: RuntimeSpec = RuntimeSpec()
     events: list[EventSpec] = Field(default_factory=list)
     parked: ParkedSpec = ParkedSpec()
+    pedestrians: PedestrianSpec = PedestrianSpec()
     comm: CommSpec = CommSpec()
     clients: list[ClientSpec] = Field(default_factory=list)
 

@@ -12,6 +12,10 @@ vehicle's route) and acts through libsumo:
   cones along the open side as ``static_obstacle`` boxes.
 - ``road_block``: every lane of the edge disallowed to all classes, barriers across it, and every
   vehicle whose remaining route uses the edge rerouted.
+- ``jaywalk``: a SUMO person put on the kerb at the place, crossing the road straight to the far
+  kerb outside any crossing (:class:`cosim.traffic.pedestrians.Crossing`), then walking on.
+- ``cut_in``: a car inserted in the lane beside the connected vehicle, at its speed, that changes
+  into the connected vehicle's lane with ``gap_m`` between its rear and the connected vehicle's front.
 
 Each event has one record per tick for the ``/events`` topic (:meth:`Timeline.records`).
 """
@@ -28,7 +32,17 @@ import libsumo
 import numpy as np
 
 from cosim.protocol import VehicleState
-from cosim.scenario.model import AccidentEvent, BreakdownEvent, EventSpec, LaneClosureEvent, RoadBlockEvent, Scenario
+from cosim.scenario.model import (
+    AccidentEvent,
+    BreakdownEvent,
+    CutInEvent,
+    EventSpec,
+    JaywalkEvent,
+    LaneClosureEvent,
+    RoadBlockEvent,
+    Scenario,
+)
+from cosim.traffic.pedestrians import Crossing, Pedestrians, nearest_on, sidewalk_lane
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +53,10 @@ CONE_SIZE_M = (0.4, 0.4, 0.7)
 BARRIER_DEPTH_M, BARRIER_HEIGHT_M = 0.3, 1.0
 SIGN_SIZE_M = (0.15, 1.0, 1.8)
 EDGE_MARGIN_M = 1.0  # [m] kept from the ends of an edge when placing
+HAZARD_PERIOD_NS = 666_666_667  # hazard lamps blink at 1.5 Hz, lit the first half of each period
+CUT_IN_LANE_CHANGE_S = 2.0  # [s] the cut-in's lane change
+CUT_IN_WAIT_S = 15.0  # [s] a cut_in waits this long for room beside the connected vehicle, then fails
+CUT_IN_ROOM_M = 40.0  # [m] of its edge left ahead of the cutting car when it appears (room to change lane)
 
 
 @dataclass(frozen=True, slots=True)
@@ -99,10 +117,14 @@ def static_box(sid: str, x: float, y: float, z_ground: float, yaw: float, size_m
 class Timeline:
     """Applies a scenario's events to the running SUMO simulation (one per TrafficSim)."""
 
-    def __init__(self, scenario: Scenario, destinations: Callable[[str], list[str]], rng: np.random.Generator
-                 ) -> None:
-        """``destinations(vid)``: edges a vehicle may be sent to instead when its destination is blocked."""
+    def __init__(self, scenario: Scenario, destinations: Callable[[str], list[str]], rng: np.random.Generator,
+                 pedestrians: Pedestrians) -> None:
+        """``destinations(vid)``: edges a vehicle may be sent to instead when its destination is blocked;
+        ``pedestrians``: where the ``jaywalk`` event's person walks."""
         self.scenario = scenario
+        self._pedestrians = pedestrians
+        self._cut_ins: dict[str, tuple[str, int]] = {}  # cutting car -> (connected vehicle, t0 ns) until it is in
+        self._cut_in_deadline: dict[int, int] = {}  # cut_in event index -> last time to place it [ns]
         self._destinations = destinations
         self._rng = rng
         self._pending = sorted(enumerate(scenario.events), key=lambda ie: (ie[1].at_s, ie[0]))
@@ -124,7 +146,8 @@ class Timeline:
                 event.place = self._resolve(spec)
                 if event.place is not None:
                     {BreakdownEvent: self._breakdown, AccidentEvent: self._accident, LaneClosureEvent: self._closure,
-                     RoadBlockEvent: self._block}[type(spec)](event)
+                     RoadBlockEvent: self._block, JaywalkEvent: self._jaywalk, CutInEvent: self._cut_in,
+                     }[type(spec)](event, t_ns)
             except libsumo.TraCIException as exc:
                 event.place, event.note = None, f"not placed: {exc}"
             if event.place is None:
@@ -133,15 +156,29 @@ class Timeline:
 
     def after_step(self, t_ns: int) -> None:
         """Hold stopped vehicles; mark events active once SUMO has inserted their vehicles."""
-        present = set(libsumo.vehicle.getIDList())
+        present = set(libsumo.vehicle.getIDList()) | self._pedestrians.present()
         for e in self._active:
             if e.place is None:
                 continue
-            for vid in e.vehicles + e.hidden:
-                if vid in present:
-                    libsumo.vehicle.setSpeed(vid, 0.0)
-            if e.active_from_ns is None and all(v in present for v in e.vehicles + e.hidden):
+            if isinstance(e.spec, CutInEvent):
+                self._cut_in_step(e, present, t_ns)
+                if e.place is None:
+                    continue
+            elif not isinstance(e.spec, JaywalkEvent):
+                for vid in e.vehicles + e.hidden:
+                    if vid in present:
+                        libsumo.vehicle.setSpeed(vid, 0.0)
+            placed = bool(e.vehicles + e.hidden + e.obstacles) or isinstance(e.spec, RoadBlockEvent)
+            if e.active_from_ns is None and placed and all(v in present for v in e.vehicles + e.hidden):
                 e.active_from_ns = t_ns
+
+    def hazard_lamps_on(self, vid: str, t_ns: int) -> bool:
+        """Whether ``vid`` is a broken-down car whose hazard lamps are lit at ``t_ns`` (they blink)."""
+        for e in self._active:
+            if (isinstance(e.spec, BreakdownEvent) and vid in e.vehicles and e.active_from_ns is not None
+                    and self._hazard(e.spec)):
+                return (t_ns - e.active_from_ns) % HAZARD_PERIOD_NS < HAZARD_PERIOD_NS // 2
+        return False
 
     def hidden(self) -> set[str]:
         return {v for e in self._active for v in e.hidden}
@@ -166,7 +203,7 @@ class Timeline:
                 "at_ns": round(e.spec.at_s * 1e9),
                 "state": "failed" if e.place is None else ("active" if e.active_from_ns is not None else "starting"),
                 "active_from_ns": e.active_from_ns,
-                "vehicles": list(e.vehicles),
+                "vehicles": [v for v in e.vehicles if not v.endswith("_ped")],
                 "obstacles": [o.sumo_id for o in e.obstacles],
                 "zone_m": [list(p) for p in e.zone_m],
             }
@@ -174,6 +211,8 @@ class Timeline:
                 rec.update(edge=e.place.edge, lane=e.place.lane, lane_pos_m=round(e.place.pos_m, 3))
             if isinstance(e.spec, BreakdownEvent):
                 rec["hazard_lights"] = self._hazard(e.spec)
+            if isinstance(e.spec, JaywalkEvent):
+                rec["pedestrians"] = [v for v in e.vehicles if v.endswith("_ped")]
             if e.note:
                 rec["note"] = e.note
             out[e.index] = rec
@@ -235,7 +274,7 @@ class Timeline:
         return self.hazard_lights if spec.hazard_lights is None else spec.hazard_lights
 
     # ------------------------------------------------------------------------------ the kinds
-    def _breakdown(self, e: _Active) -> None:
+    def _breakdown(self, e: _Active, t_ns: int) -> None:
         assert isinstance(e.spec, BreakdownEvent) and e.place is not None
         length = libsumo.vehicletype.getLength(INCIDENT_TYPE)
         e.place = self._fit(e.place, length)
@@ -245,7 +284,7 @@ class Timeline:
             libsumo.vehicle.setSignals(vid, SIGNAL_HAZARD)
         e.vehicles.append(vid)
 
-    def _accident(self, e: _Active) -> None:
+    def _accident(self, e: _Active, t_ns: int) -> None:
         assert isinstance(e.spec, AccidentEvent) and e.place is not None
         length = libsumo.vehicletype.getLength(INCIDENT_TYPE)
         width = libsumo.vehicletype.getWidth(INCIDENT_TYPE)
@@ -266,7 +305,7 @@ class Timeline:
         rx, ry = offset(contact[0], contact[1], fyaw, -corner_ahead, -corner_left)
         self.pinned[rear] = (rx, ry, fyaw + theta)
 
-    def _closure(self, e: _Active) -> None:
+    def _closure(self, e: _Active, t_ns: int) -> None:
         assert isinstance(e.spec, LaneClosureEvent) and e.place is not None
         spec = e.spec
         start = self._fit(LanePoint(e.place.edge, e.place.lane, e.place.pos_m + spec.length_m), spec.length_m)
@@ -315,7 +354,7 @@ class Timeline:
                 return
         log.info("road block: no way around %s for %s; it waits before the block", edge, vid)
 
-    def _block(self, e: _Active) -> None:
+    def _block(self, e: _Active, t_ns: int) -> None:
         assert e.place is not None
         edge = e.place.edge
         n_lanes = libsumo.edge.getLaneNumber(edge)
@@ -340,3 +379,95 @@ class Timeline:
         e.zone_m = poly
 
 
+
+    def _jaywalk(self, e: _Active, t_ns: int) -> None:
+        """A person on the ``from_side`` kerb at the place, crossing straight over to the other kerb."""
+        assert isinstance(e.spec, JaywalkEvent) and e.place is not None
+        edge = e.place.edge
+        rev = self._pedestrians.reverse(edge)
+        x, y, yaw = lane_pose(edge, e.place.lane, e.place.pos_m)
+        right = self._kerb_point(edge, x, y, yaw, -1.0)
+        left = self._kerb_point(rev, x, y, yaw, 1.0) if rev is not None else self._kerb_point(None, x, y, yaw, 1.0)
+        (start, start_edge), (end, end_edge) = (right, left) if e.spec.from_side == "right" else (left, right)
+        if start_edge is None or end_edge is None:
+            e.place, e.note = None, f"not placed: no sidewalk on either side of edge {edge!r} to walk from and to"
+            return
+        pid = f"ev{e.index}_ped"
+        far = libsumo.simulation.convertRoad(end[0], end[1], False, "pedestrian")
+        far_pos = far[1] if far[0] == end_edge else libsumo.lane.getLength(f"{end_edge}_0") / 2
+        self._pedestrians.add_crossing(pid, Crossing(start, end, t_ns, e.spec.speed_mps, end_edge, far_pos))
+        e.vehicles.append(pid)
+        mx, my = (start[0] + end[0]) / 2, (start[1] + end[1]) / 2
+        e.zone_m = rect(mx, my, math.atan2(end[1] - start[1], end[0] - start[0]), math.dist(start, end) + 1.0, 2.0)
+
+    def _kerb_point(self, edge: str | None, x: float, y: float, yaw: float, side: float
+                    ) -> tuple[tuple[float, float], str | None]:
+        """The point of ``edge``'s sidewalk centre line nearest the lane point (x, y), and the edge; without
+        a sidewalk, a point beside the road on ``side`` (+1 left, -1 right) and no edge."""
+        lane = sidewalk_lane(edge) if edge is not None else None
+        if lane is None:
+            return offset(x, y, yaw, 0.0, side * 8.0), None
+        return nearest_on(libsumo.lane.getShape(lane), x, y), edge
+
+    def _cut_in(self, e: _Active, t_ns: int) -> None:
+        """Armed at ``at_s``; placed at the first step from then on where it fits (:meth:`_try_cut_in`)."""
+        e.note = ""
+        self._cut_in_deadline[e.index] = t_ns + round(CUT_IN_WAIT_S * 1e9)
+        self._try_cut_in(e, t_ns)
+
+    def _try_cut_in(self, e: _Active, t_ns: int) -> None:
+        """A car beside the connected vehicle, ``ahead_m`` + ``gap_m`` ahead of its front, at its speed; while
+        the connected vehicle is in a junction or too near the end of its edge, the event waits (up to
+        :data:`CUT_IN_WAIT_S`), then fails."""
+        assert isinstance(e.spec, CutInEvent) and e.spec.ahead_of is not None
+        cv = e.spec.ahead_of
+        v = libsumo.vehicle
+        road = v.getRoadID(cv)
+        lane = v.getLaneIndex(cv)
+        length = libsumo.vehicletype.getLength(INCIDENT_TYPE)
+        front = v.getLanePosition(cv) + e.spec.ahead_m + e.spec.gap_m + length
+        lanes: list[int] = []
+        if not road.startswith(":"):
+            n = libsumo.edge.getLaneNumber(road)
+            sides = {"left": [lane + 1], "right": [lane - 1], "any": [lane + 1, lane - 1]}[e.spec.side]
+            lanes = [i for i in sides if 0 <= i < n and self._car_lane(LanePoint(road, i, 0.0)) is not None
+                     and self._car_lane(LanePoint(road, i, 0.0)).lane == i]
+        room = bool(lanes) and front + CUT_IN_ROOM_M < libsumo.lane.getLength(f"{road}_{lane}")
+        if not room:
+            if t_ns >= self._cut_in_deadline[e.index]:
+                e.place, e.note = None, (f"not placed: in {CUT_IN_WAIT_S:g} s {cv} was never on an edge with a lane "
+                                         f"for cars beside it and {front + CUT_IN_ROOM_M:.0f} m ahead")
+                del self._cut_in_deadline[e.index]
+            return
+        del self._cut_in_deadline[e.index]
+        e.place = LanePoint(road, lanes[0], front)
+        vid = f"ev{e.index}_0"
+        route = list(v.getRoute(cv))[v.getRouteIndex(cv):]
+        libsumo.route.add(f"route_{vid}", route)
+        v.add(vid, f"route_{vid}", typeID=INCIDENT_TYPE, depart="now", departLane=str(lanes[0]),
+              departPos=f"{front:.3f}", departSpeed=f"{v.getSpeed(cv):.3f}")
+        v.setLaneChangeMode(vid, 0)  # only the cut-in's change, forced (not waiting for a safe gap)
+        e.vehicles.append(vid)
+        self._cut_ins[vid] = (cv, t_ns)
+
+    def _cut_in_step(self, e: _Active, present: set[str], t_ns: int) -> None:
+        """Until placed: try again; once the car is in, hold it level with the connected vehicle and change
+        into its lane."""
+        if e.index in self._cut_in_deadline:
+            self._try_cut_in(e, t_ns)
+            return
+        vid = e.vehicles[0] if e.vehicles else ""
+        if vid not in self._cut_ins or vid not in present:
+            return
+        cv, _ = self._cut_ins[vid]
+        v = libsumo.vehicle
+        if cv not in present or v.getRoadID(vid) != v.getRoadID(cv):
+            del self._cut_ins[vid]
+            return
+        target = v.getLaneIndex(cv)
+        if v.getLaneIndex(vid) == target:
+            del self._cut_ins[vid]
+            v.setSpeed(vid, -1.0)  # in the lane: it drives on by SUMO's model
+            return
+        v.setSpeed(vid, max(v.getSpeed(cv), 1.0))
+        v.changeLane(vid, target, CUT_IN_LANE_CHANGE_S)

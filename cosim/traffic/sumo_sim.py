@@ -30,6 +30,7 @@ from cosim.geometry import sumo_front_to_center, wrap_angle
 from cosim.protocol import VehicleState
 from cosim.scenario.model import Scenario
 from cosim.traffic.events import Timeline
+from cosim.traffic.pedestrians import Pedestrians
 from cosim.traffic.vtypes import SUMO_VCLASS, VARIANTS, class_of_type
 from cosim.world.netgen import sumo_binary
 from cosim.world.routes import read_sumolib, sources_and_sinks, strong_core
@@ -122,7 +123,10 @@ class TrafficSim:
         self.entered = 0  # background vehicles that entered after SUMO time 0 (replacements)
         self.left = 0  # background vehicles that reached their sink and left the map
         self._closed = False
-        self.timeline = Timeline(scenario, self._destinations, np.random.default_rng([scenario.seed, 11]))
+        self.pedestrians = Pedestrians(scenario.pedestrians, np.random.default_rng([scenario.seed, 12]), float(step_s))
+        self.pedestrians.populate()
+        self.timeline = Timeline(scenario, self._destinations, np.random.default_rng([scenario.seed, 11]),
+                                 self.pedestrians)
         self._advance_to(self._warmup_steps)
         present = set(libsumo.vehicle.getIDList())
         missing = [f"vehicle_{i}" for i in range(scenario.agents.vehicles.count) if f"vehicle_{i}" not in present]
@@ -144,6 +148,7 @@ class TrafficSim:
             libsumo.simulationStep()
             self._step += 1
             self.timeline.after_step(t_after_ns)
+            self.pedestrians.after_step(t_after_ns)
             self.teleports += libsumo.simulation.getStartingTeleportNumber()
             self.collisions += libsumo.simulation.getCollidingVehiclesNumber()
             for vid in libsumo.simulation.getDepartedIDList():
@@ -230,9 +235,9 @@ class TrafficSim:
         if target < self._step:
             raise WorkerError("traffic", f"cannot step back to t_ns = {t_ns}")
         self._advance_to(target)
-        hidden = self.timeline.hidden()
-        vehicles = [self._read(v) for v in sorted(libsumo.vehicle.getIDList()) if v not in hidden]
-        return vehicles + self.timeline.obstacles()
+        hidden = self.timeline.hidden() | self.pedestrians.blockers()
+        vehicles = [self._read(v, t_ns) for v in sorted(libsumo.vehicle.getIDList()) if v not in hidden]
+        return vehicles + self.timeline.obstacles() + self.pedestrians.states(t_ns)
 
     def events(self) -> list[dict[str, object]]:
         """The scenario's events as they stand (records of the ``/events`` topic, SUMO ids)."""
@@ -285,7 +290,7 @@ class TrafficSim:
             return v.getAngle(vid)
         return math.degrees(math.atan2(dx, dy)) % 360.0
 
-    def _read(self, vid: str) -> VehicleState:
+    def _read(self, vid: str, t_ns: int) -> VehicleState:
         v = libsumo.vehicle
         length, width, height = v.getLength(vid), v.getWidth(vid), v.getHeight(vid)
         fx, fy, fz = v.getPosition3D(vid)
@@ -315,6 +320,7 @@ class TrafficSim:
             accel_mps2=v.getAcceleration(vid),
             yaw_rate_radps=yaw_rate,
             agent_id=vid if vid.startswith("vehicle_") else None,
+            hazard_lamps_on=self.timeline.hazard_lamps_on(vid, t_ns),
         )
 
     # --------------------------------------------------------------------- client actions

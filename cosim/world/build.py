@@ -44,7 +44,8 @@ def build_world(loaded: LoadedScenario, workdir: Path) -> World:
             raise InputError(f"map.file {spec.file!r} not found (looked at {file})")
     workdir = Path(workdir) / "map"
     result = generate_network(
-        MapRequest(spec.kind, spec.size_m, spec.lanes, file, workdir), stage_rng(sc.seed, STAGE_NET)
+        MapRequest(spec.kind, spec.size_m, spec.lanes, file, workdir, sc.pedestrians.density_per_km > 0),
+        stage_rng(sc.seed, STAGE_NET),
     )
     net = read_network(result.net_xml, f"map.file {file}" if file is not None else f"the generated {spec.kind} network")
     margin = MARGIN_M.get(spec.kind, 20.0)

@@ -42,6 +42,9 @@ class MapRequest:
     lanes: int | None
     file: Path | None
     workdir: Path
+    #: pedestrian crossings at junctions (netconvert --crossings.guess); only when the scenario has
+    #: pedestrians, so episodes without them keep their network bytes
+    crossings: bool = False
 
 
 Generator = Callable[[MapRequest, np.random.Generator], NetworkResult]
@@ -123,6 +126,7 @@ def _netconvert_plain(nodes: list[dict], edges: list[dict], req: MapRequest, ext
             "5",
             "--xml-validation",
             "never",
+            *(["--crossings.guess", "true"] if req.crossings else []),
             *extra,
         ],
         req.workdir,
@@ -338,6 +342,7 @@ def from_osm(req: MapRequest, rng: np.random.Generator) -> NetworkResult:
             "passenger,bicycle,bus,truck,delivery,motorcycle,pedestrian",
             "--xml-validation",
             "never",
+            *(["--crossings.guess", "true"] if req.crossings else []),
         ],
         req.workdir,
     )
