@@ -11,8 +11,8 @@ that process).
 Each agent is rendered with the generator the parent spawned for it, so the frames do not depend
 on the number of processes. The frames come back pickled, except their large arrays (images,
 depth, labels, LiDAR points), which the process writes into one shared-memory file per tick
-(under ``/dev/shm``); the parent maps that file, unlinks it at once and hands out arrays backed by
-the mapping (freed when the last of them is).
+(under ``/dev/shm``, unlinked as soon as it is made) whose descriptor it passes over the socket;
+the parent maps it and hands out arrays backed by the mapping (freed when the last of them is).
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
+from multiprocessing.reduction import recv_handle, send_handle
 
 import numpy as np
 
@@ -99,8 +100,10 @@ def _import(obj, buf: mmap.mmap):
     return obj
 
 
-def _write_shared(frames, tag: str):
-    """(frames with placeholders, path of the shared file or None)."""
+def _write_shared(frames, tag: str) -> tuple[object, int | None]:
+    """(frames with placeholders, descriptor of the shared file holding their arrays, or None). The file is
+    unlinked as soon as it is made: it lives as long as a descriptor or a mapping of it, so no crash leaves
+    it behind."""
     arrays: list[np.ndarray] = []
     offset = [0]
     meta = _export(frames, arrays, offset)
@@ -108,6 +111,7 @@ def _write_shared(frames, tag: str):
         return meta, None
     path = os.path.join(_shm_dir(), f"cosim-render-{os.getpid()}-{tag}")
     fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_RDWR, 0o600)
+    os.unlink(path)
     try:
         os.ftruncate(fd, offset[0])
         with mmap.mmap(fd, offset[0]) as mm:
@@ -118,29 +122,21 @@ def _write_shared(frames, tag: str):
                 del view
                 at += -(-a.nbytes // _ALIGN) * _ALIGN
     except BaseException:
-        os.unlink(path)
-        raise
-    finally:
         os.close(fd)
-    return meta, path
+        raise
+    return meta, fd
 
 
-def _read_shared(meta, path: str | None):
-    if path is None:
+def _read_shared(meta, conn: Connection, shared: bool):
+    """``meta`` with its placeholders backed by the shared file whose descriptor follows on ``conn``."""
+    if not shared:
         return meta
-    fd = os.open(path, os.O_RDWR)
+    fd = recv_handle(conn)
     try:
-        os.unlink(path)
         buf = mmap.mmap(fd, os.fstat(fd).st_size)
     finally:
         os.close(fd)
     return _import(meta, buf)
-
-
-def _discard(path: str | None) -> None:
-    if path is not None:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(path)
 
 
 def _die_with_parent() -> None:
@@ -175,17 +171,22 @@ def _main(conn: Connection) -> None:
             if msg is None:
                 return
             seq, snapshot, items = msg
+            fd = None
             try:
                 frames, timing = suite.render_agents(snapshot, items)
-                meta, path = _write_shared(frames, str(seq))
-                reply = ("ok", seq, (meta, path, timing))
+                meta, fd = _write_shared(frames, str(seq))
+                reply = ("ok", seq, (meta, fd is not None, timing))
             except BaseException:
-                reply, path = ("error", seq, traceback.format_exc()), None
+                reply = ("error", seq, traceback.format_exc())
             try:
                 conn.send(reply)
+                if fd is not None:
+                    send_handle(conn, fd, os.getppid())
             except OSError:  # the parent is gone
-                _discard(path)
                 return
+            finally:
+                if fd is not None:
+                    os.close(fd)
 
 
 class RenderProcesses:
@@ -239,11 +240,11 @@ class RenderProcesses:
         while self._outstanding[k]:
             self._outstanding[k] -= 1
             try:
-                meta_path = self._reply(k, None)
+                _, shared, _ = self._reply(k, None)
             except RenderProcessError:
                 continue
-            if meta_path is not None:
-                _discard(meta_path[1])
+            if shared:
+                os.close(recv_handle(self._conns[k]))
 
     def _share_of(self, agent: AgentState) -> int:
         k = self._owner.get(agent.agent_id)
@@ -270,9 +271,9 @@ class RenderProcesses:
         frames: dict = {}
         timing: dict[str, float] = {}
         for k in busy:
-            meta, path, t = self._reply(k, check)
+            meta, shared, t = self._reply(k, check)
+            frames.update(_read_shared(meta, self._conns[k], shared))
             self._outstanding[k] -= 1
-            frames.update(_read_shared(meta, path))
             for key, v in t.items():
                 timing[key] = timing.get(key, 0.0) + v
         return {agent.agent_id: frames[agent.agent_id] for agent, _ in items}, timing

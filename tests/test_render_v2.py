@@ -45,8 +45,14 @@ def test_render_processes_give_the_same_bytes_as_one_process():
     world = synthetic_world()
     snaps = [synthetic_snapshot(3, 2, 0), synthetic_snapshot(3, 2, 0, tick=1)]
     out = []
+    def stop():
+        raise RuntimeError("stop")
+
     for processes in (0, 2):
         with SensorSuite(sc, world, processes=processes) as suite:
+            if processes:  # a frame abandoned half-way leaves nothing behind for the next ones
+                with pytest.raises(RuntimeError, match="stop"):
+                    suite.render(snaps[0], np.random.default_rng(99), check=stop)
             rng = np.random.default_rng(7)
             out.append([_frame_bytes(suite.render(s, rng)) for s in snaps])
     assert [len(x) for x in out[0]] == [len(x) for x in out[1]]
