@@ -53,8 +53,10 @@ log = logging.getLogger("bench")
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def paper_rig_scenario(path: Path, compression: str | None = None, lidar: dict | None = None, **env):
+def paper_rig_scenario(path: Path, compression: str | None = None, lidar: dict | None = None,
+                       sun_shadows: bool = True, **env):
     data = json.loads(json.dumps(load_scenario(path).resolved))
+    data["sensors"]["sun_shadows"] = sun_shadows
     if compression:
         data["output"]["compression"] = compression
     for kind in ("vehicle", "rsu", "drone"):
@@ -170,7 +172,7 @@ def run(args) -> None:
     env = {k: v for k, v in (("weather", args.weather), ("lighting", args.lighting)) if v}
     lidar = {"motion_distortion": not args.lidar_snapshot, "dual_returns": args.dual_returns}
     loaded = paper_rig_scenario(ROOT / "scenarios" / "default.yaml", compression=args.compression, lidar=lidar,
-                                **env)
+                                sun_shadows=not args.no_shadows, **env)
     sc = loaded.scenario
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
@@ -346,8 +348,7 @@ def main() -> None:
     ap.add_argument("--background", type=int, default=40, help="background road users")
     ap.add_argument("--block-px", type=int, default=8, help="adaptive casting block (1 = a ray per pixel)")
     ap.add_argument("--no-pybullet", action="store_true")
-    ap.add_argument("--processes", type=int, help="render processes (default: sensors.render_processes' automatic "
-                    "choice)")
+    ap.add_argument("--processes", type=int, help="render processes (default: sensors.render_processes, 0 unless set)")
     ap.add_argument("--compression", choices=("zstd", "lz4", "none"), help="MCAP chunk compression "
                     "(default: the scenario's)")
     ap.add_argument("--weather", choices=("clear", "cloudy", "foggy", "rainy"), help="default: the scenario's")
@@ -357,6 +358,7 @@ def main() -> None:
                     "LiDAR motion distortion works on")
     ap.add_argument("--lidar-snapshot", action="store_true", help="LiDARs without motion distortion")
     ap.add_argument("--dual-returns", action="store_true", help="LiDARs with dual returns")
+    ap.add_argument("--no-shadows", action="store_true", help="cameras without sun shadows (sensors.sun_shadows)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     if args.pictures:

@@ -200,7 +200,8 @@ class SensorSuite:
         m = self.static.mesh
         self._static_rgb = _shaded(m.albedo, self.static.normals, self.atm)
         self._static_rgb_shadow = _shaded(m.albedo, self.static.normals, self.atm, sun=False)
-        self._sun = self.atm.sun_dir.astype(np.float64) if self.atm.casts_shadows else None
+        shadows = self.atm.casts_shadows and scenario.sensors.sun_shadows
+        self._sun = self.atm.sun_dir.astype(np.float64) if shadows else None
         self._thin = _thin_segments(world)
         if self._sun is not None:  # thin things' shadows on the ground are refined like the things
             self._thin = np.concatenate([self._thin, ground_shadow(self._thin, self._sun, world.layout.ground_z_m)])

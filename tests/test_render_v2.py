@@ -128,6 +128,11 @@ def test_sun_shadow_darkens_by_the_suns_share_and_is_as_sharp_as_one_ray_per_pix
     assert (got_sun - got_shadow).min() > 5
     # adaptive casting refines shadow edges down to pixels: the image equals one ray per pixel
     assert np.mean(np.any(f.rgb != exact.rgb, axis=2)) < 0.002
+    # sensors.sun_shadows: false lights the same pixel as if the pillar were not there
+    off = sc.model_copy(update={"sensors": sc.sensors.model_copy(update={"sun_shadows": False})})
+    with SensorSuite(off, world, noise=False, encode_images=False) as flat_suite:
+        flat = flat_suite.render(snap, np.random.default_rng(0)).agents["vehicle_0"].cameras["down"]
+    assert np.abs(flat.rgb[in_shadow].astype(int) - to_srgb(sunlit, atm.exposure).astype(int)).max() <= 1
 
 
 def test_night_street_light_falls_off_without_steps():

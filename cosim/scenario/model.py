@@ -368,9 +368,11 @@ class SensorsSpec(Model):
     bev_range_m: tuple[float, float] = (64.0, 40.0)  # [m] half extents x, y (paper section 4.2)
     # LiDAR x, y, z as stored (docs/episode_format.md 3.4): integer 1/256 m counts, or float32 metres
     lidar_positions: Literal["quantized", "float32"] = "quantized"
-    # render processes (docs/architecture.md, "Sensors"): null = automatic (one per core, at most 2, for rigs of
-    # at least 2 Mpx of cameras), 0 = render in the runner's process; the output does not depend on it
-    render_processes: int | None = Field(None, ge=0, le=16)
+    # render processes (docs/architecture.md, "Sensors"): 0 = render in the runner's process, null = automatic
+    # (one per core, at most 2, for rigs of at least 2 Mpx of cameras); the output does not depend on it
+    render_processes: int | None = Field(0, ge=0, le=16)
+    # cameras trace the sun's shadows by day and dusk (about 1.7x the rays of a frame); false: no sun shadows
+    sun_shadows: bool = True
 
     @model_validator(mode="before")
     @classmethod
