@@ -77,6 +77,8 @@ def _start(tmp_path: Path) -> subprocess.Popen:
         [sys.executable, "-m", "cosim.cli", "-v", "run", "scenarios/default.yaml", "--duration", "120", "--out",
          str(tmp_path), *FAST],
         cwd=REPO, stdout=subprocess.DEVNULL, stderr=err, text=True,
+        # a suite started in the background (`nohup make test &`) ignores SIGINT, and so would its children
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     proc.err = err  # type: ignore[attr-defined]
     return proc
