@@ -224,13 +224,14 @@ def run_episode(
                 rendered[:] = [frames]
                 messages = labels
             if loop is not None:  # closed loop: tick k+1 is stepped with the clients' actions on tick k
-                # published before the writer thread takes the tick, so it does not compete for the GIL
+                # the writer thread takes the tick only after the clients answered (and the workers were sent
+                # tick k+1), so that it does not compete with the round trip for the GIL
                 loop.publish(tick, t_ns, vehicles, messages, last=tick + 1 == s.n_ticks)
+                if tick + 1 < s.n_ticks:
+                    actions = loop.collect(tick)
+                    pending = conductor.send_step(tick + 1, t_ns + s.tick_ns, escort_targets_of(vehicles, escorts),
+                                                  actions=actions)
             background.submit(t_ns, write)
-            if loop is not None and tick + 1 < s.n_ticks:
-                actions = loop.collect(tick)
-                pending = conductor.send_step(tick + 1, t_ns + s.tick_ns, escort_targets_of(vehicles, escorts),
-                                              actions=actions)
             if progress is not None:
                 progress(tick + 1, s.n_ticks)
         background.flush()
