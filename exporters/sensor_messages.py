@@ -4,6 +4,10 @@ Foxglove protobuf messages wherever a schema exists; the IMU and visibility topi
 none, come as ``(topic, (schema_name, json_schema, payload_dict))``. Every timestamp inside a
 message is the simulation time ``t_ns``. PNG/JPEG encoding runs in a thread pool (zlib and
 libjpeg release the GIL), so it overlaps with the rest of the tick's work.
+
+:func:`frame_records` is what the episode writer takes: made lazily, camera after camera, the
+images as :class:`~cosim.exporters.mcap_writer.Serialized` records written around their pixels in
+place; :func:`frame_messages` gives the same as protobuf messages (for code that reads them).
 """
 
 from __future__ import annotations
