@@ -350,3 +350,15 @@ def test_export_of_a_distorted_camera_is_exact_for_its_pinhole_intrinsic(lens_ep
                             raw_misses += 1
                         tested += 1
     assert tested >= 10 and raw_misses >= 2 and pinhole_same >= 4 and opv2v_same >= 3
+
+
+def test_training_reader_gives_each_cameras_lens(lens_episode):
+    from cosim.io.dataset import CooperativeDataset
+
+    far = {"vehicle": 1e6, "rsu": 1e6, "drone": 1e6}
+    sample = CooperativeDataset([lens_episode], cameras=True, comm_range_m=far)[0]
+    assert len(sample["distortions"]) == len(sample["intrinsics"]) == len(sample["agents"]) == 4
+    for agent, lenses, names in zip(sample["agents"], sample["distortions"], sample["camera_names"], strict=True):
+        assert lenses.shape == (len(names), 5) and len(names) > 0
+        expected = np.array(LENS) if agent.startswith("vehicle") else np.zeros(5)
+        assert (lenses == expected).all(), (agent, lenses)
