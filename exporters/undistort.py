@@ -35,6 +35,7 @@ class PinholeRemap:
 
     width: int
     height: int
+    D: tuple[float, ...]  # the lens undone: plumb_bob k1, k2, p1, p2, k3
     nearest: np.ndarray
     corners: np.ndarray
     weights: np.ndarray
@@ -77,7 +78,7 @@ def _remap(width: int, height: int, K: tuple[float, ...], D: tuple[float, ...]) 
     v1i = np.clip(v0 + 1, 0, height - 1).astype(np.int32)
     corners = np.stack([v0i * width + u0i, v0i * width + u1i, v1i * width + u0i, v1i * width + u1i])
     weights = np.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv])
-    return PinholeRemap(width, height, cv * width + cu, corners, weights, inside)
+    return PinholeRemap(width, height, D, cv * width + cu, corners, weights, inside)
 
 
 def pinhole_remap(width: int, height: int, K: np.ndarray, D: np.ndarray | None) -> PinholeRemap | None:

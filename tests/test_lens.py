@@ -39,6 +39,7 @@ from cosim.scenario.model import (
 from cosim.snapshot import AgentState, WorldSnapshot
 from cosim.world.types import Prism, StaticLayout, World
 from tests.conftest import run_cli
+from tests.test_sensors import _convex_hull, _signed_dist_inside
 
 #: A strong barrel lens, monotonic over a 90 deg field (k2 > 0 keeps r (1 + k1 r^2 + k2 r^4) rising):
 #: it moves the corners of a 4:3 image by about 60 px at 480 px width.
@@ -140,27 +141,8 @@ def test_undistorted_images_put_a_known_point_where_the_pinhole_K_projects_it():
 
 
 def _hull(pts: np.ndarray) -> np.ndarray:
-    """Convex hull (CCW) of 2D points (monotone chain)."""
-    pts = sorted(map(tuple, np.unique(np.round(pts, 9), axis=0).tolist()))
-
-    def half(seq):
-        h: list = []
-        for q in seq:
-            while len(h) >= 2 and ((h[-1][0] - h[-2][0]) * (q[1] - h[-2][1])
-                                   - (h[-1][1] - h[-2][1]) * (q[0] - h[-2][0])) <= 0:
-                h.pop()
-            h.append(q)
-        return h
-
-    return np.array(half(pts)[:-1] + half(pts[::-1])[:-1])
-
-
-def _inside_depth_px(hull: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Signed distance [px] of points q (N, 2) inside a CCW convex polygon (negative outside)."""
-    a, b = hull, np.roll(hull, -1, axis=0)
-    e = b - a
-    n = np.stack([-e[:, 1], e[:, 0]], axis=1) / np.linalg.norm(e, axis=1)[:, None]
-    return np.min(np.einsum("nij,ij->ni", q[:, None, :] - a[None], n), axis=1)
+    """Convex hull (CCW) of 2D points, through tests/test_sensors.py's (on Python floats: faster)."""
+    return _convex_hull(np.unique(np.round(pts, 9), axis=0).tolist())
 
 
 def _box_edge_points(actor, n: int = 48) -> np.ndarray:
@@ -207,11 +189,11 @@ def test_instance_pixels_of_a_distorted_camera_lie_in_boxes_projected_through_th
                 if np.any(uv < 0) or np.any(uv[:, 0] > cal.width) or np.any(uv[:, 1] > cal.height):
                     continue  # partly out of the picture: its hull is not the box's outline
                 centres = np.stack([uu + 0.5, vv + 0.5], axis=1)
-                d = _inside_depth_px(_hull(uv), centres)
+                d = _signed_dist_inside(_hull(uv), centres)
                 assert np.all(d >= -1.5), f"{actor.track_id} pixels outside its box in {agent.agent_id}/{name}"
                 checked += 1
                 pin, _ = project_to_image(p, cal.K)
-                if np.mean(_inside_depth_px(_hull(pin), centres) < -1.5) > 0.2:
+                if np.mean(_signed_dist_inside(_hull(pin), centres) < -1.5) > 0.2:
                     pinhole_misses += 1
     assert checked >= 50
     assert pinhole_misses >= 20
@@ -317,6 +299,8 @@ def test_export_of_a_distorted_camera_is_exact_for_its_pinhole_intrinsic(lens_ep
                     cal = tick.calibration(agent, cosim_name)
                     assert np.array_equal(np.asarray(entry["intrinsic"]), cal.K)  # K is written as recorded
                     png = (f / f"{key}.png").read_bytes()
+                    undone = meta["cosim"].get("undistorted", {}).get(cosim_name)
+                    assert undone == (list(LENS) if cal.distorted else None)
                     if not cal.distorted:
                         raw = tick.raw(f"/{agent}/{cosim_name}/image")
                         assert parse_proto(raw.schema_name, raw.data, raw.schema_data).data == png  # unchanged
