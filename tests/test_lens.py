@@ -346,3 +346,18 @@ def test_training_reader_gives_each_cameras_lens(lens_episode):
         assert lenses.shape == (len(names), 5) and len(names) > 0
         expected = np.array(LENS) if agent.startswith("vehicle") else np.zeros(5)
         assert (lenses == expected).all(), (agent, lenses)
+
+
+def test_a_lens_the_renderer_cannot_invert_is_a_scenario_error_naming_the_camera(tmp_path):
+    from cosim.errors import ScenarioError
+    from cosim.scenario import load_scenario
+
+    f = tmp_path / "lens.yaml"
+    f.write_text("name: t\nsensors:\n  vehicle:\n    cameras:\n      - name: front\n        fov_deg: 110\n"
+                 "        distortion: [-0.1, 0, 0, 0, 0]\n")
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(f)
+    assert err.value.path == "sensors.vehicle.cameras" and err.value.line == 4
+    assert "'front'" in str(err.value) and "one to one" in str(err.value)
+    f.write_text(f.read_text().replace("110", "90").replace("-0.1, 0, 0, 0, 0", ", ".join(map(str, LENS))))
+    assert load_scenario(f).scenario.sensors.vehicle.cameras[0].distortion == LENS
