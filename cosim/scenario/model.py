@@ -295,7 +295,7 @@ def _check_lens(cam: CameraSpec) -> None:
                        np.linspace(-cam.height / 2, cam.height / 2, 33) / f)
     xy_d = np.stack([u.ravel(), v.ravel()], axis=1)
     with np.errstate(all="ignore"):
-        xy = undistort(xy_d, cam.distortion, iterations=60)
+        xy = undistort(xy_d, cam.distortion)  # as the renderer does
         residual = np.abs(distort(xy, cam.distortion) - xy_d).max()
     x, y = xy[:, 0].reshape(33, 33), xy[:, 1].reshape(33, 33)
     if not (residual < 1e-6 and (np.diff(x, axis=1) > 0).all() and (np.diff(y, axis=0) > 0).all()):
