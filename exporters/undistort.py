@@ -43,9 +43,9 @@ class PinholeRemap:
 
     def bilinear(self, image: np.ndarray) -> np.ndarray:
         """(H, W[, C]) uint8 recorded image -> the pinhole image, same shape and dtype (rounded)."""
-        flat = image.reshape(self.width * self.height, -1).astype(np.float32)
-        acc = np.zeros(flat.shape, np.float32)
-        for k in range(4):
+        flat = image.reshape(self.width * self.height, -1)
+        acc = self.weights[0][:, None] * flat[self.corners[0]]  # float32
+        for k in range(1, 4):
             acc += self.weights[k][:, None] * flat[self.corners[k]]
         acc[~self.inside] = 0.0
         return np.clip(np.rint(acc), 0, 255).astype(np.uint8).reshape(image.shape)
