@@ -167,7 +167,7 @@ def pybullet_seconds(suite: SensorSuite, snap) -> tuple[float, float, float]:
 
 def run(args) -> None:
     from cosim.exporters.mcap_writer import BackgroundWriter, EpisodeWriter
-    from cosim.exporters.sensor_messages import frame_messages
+    from cosim.exporters.sensor_messages import frame_records
 
     env = {k: v for k, v in (("weather", args.weather), ("lighting", args.lighting)) if v}
     lidar = {"motion_distortion": not args.lidar_snapshot, "dual_returns": args.dual_returns}
@@ -193,8 +193,8 @@ def run(args) -> None:
         snaps = [world_snapshot(world, 5, 5, args.background, seed=k, tick=k, speed_mps=args.speed)
                  for k in range(args.frames)]
 
-        def messages(frames):
-            return frame_messages(frames, frames.t_ns, image_format=sc.output.image_format)
+        def messages(frames, consume=False):
+            return frame_records(frames, frames.t_ns, image_format=sc.output.image_format, consume=consume)
 
         kinds: dict[str, list[int]] = {}  # data kind -> [serialized bytes, zstd bytes] over the first pass
         n_agent_frames = [0]
@@ -208,7 +208,10 @@ def run(args) -> None:
             z = zstandard.ZstdCompressor()
             for topic, msg in msgs:
                 kind = _data_kind(topic)
-                raw = msg.SerializeToString() if hasattr(msg, "SerializeToString") else json.dumps(msg[2]).encode()
+                if hasattr(msg, "SerializeToString"):
+                    raw = msg.SerializeToString()
+                else:
+                    raw = bytes(msg.data) if hasattr(msg, "data") else json.dumps(msg[2]).encode()
                 k = kinds.setdefault(kind, [0, 0])
                 k[0] += len(raw)
                 k[1] += len(z.compress(raw))
@@ -222,7 +225,7 @@ def run(args) -> None:
                     t0 = time.perf_counter()
                     frames = suite.render(snap, rng)
                     t1 = time.perf_counter()
-                    msgs = messages(frames)
+                    msgs = list(messages(frames))
                     t2 = time.perf_counter()
                     tally(frames, msgs)
                     for topic, msg in msgs:
@@ -253,7 +256,7 @@ def run(args) -> None:
                 t0 = time.perf_counter()
                 for snap in episode:
                     frames = suite.render(snap, rng)
-                    bg.submit(snap.t_ns, lambda frames=frames: messages(frames))
+                    bg.submit(snap.t_ns, lambda frames=frames: messages(frames, consume=True))
                 bg.flush()
                 wall = time.perf_counter() - t0
                 w.finish()

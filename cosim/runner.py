@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import contextlib
 import importlib.metadata
+import itertools
 import json
 import logging
 import platform
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -176,7 +177,7 @@ def run_episode(
         rendered: list[Any] = []  # the frames handed to the writer last; on failure their encodes are dropped
         if suite is not None:  # on failure: drop the pending encodes, do not wait for abandoned sensors
             cleanup.push(lambda failed, *_: suite.close(wait=failed is None))
-            cleanup.callback(lambda: rendered and rendered[-1].cancel_encodes())
+            cleanup.callback(lambda: rendered and _cancel_encodes(rendered[-1]))
         writer.add_metadata("episode", episode_metadata(loaded, world))
         loop = _closed_loop(conductor, loaded, world, escorts)
         conductor.start()
@@ -217,10 +218,12 @@ def run_episode(
                 messages = [*labels, *suite.messages(frames)]
                 write = lambda messages=messages: messages  # noqa: E731
             else:
-                # rendered here; encoded, serialised and written while the next tick renders
+                # rendered here; encoded, serialised and written while the next tick renders, one camera
+                # after the other, each camera's arrays freed once its messages are made (the frame set is
+                # consumed), so a frame's arrays and its messages are not all held at once
                 # conductor.poll: a worker that dies or hangs meanwhile stops the frame, not just the next tick
                 frames = suite.render(snapshot, np.random.default_rng([s.seed, tick, SENSOR_STREAM]), conductor.poll)
-                write = lambda labels=labels, frames=frames: [*labels, *suite.messages(frames)]  # noqa: E731
+                write = lambda labels=labels, frames=frames: itertools.chain(labels, suite.records(frames))  # noqa: E731
                 rendered[:] = [frames]
                 messages = labels
             if loop is not None:  # closed loop: tick k+1 is stepped with the clients' actions on tick k
@@ -254,6 +257,15 @@ def run_episode(
         client_waits_s=loop.waits_s if loop is not None else [],
         client_cpu_s=loop.cpu_s if loop is not None else [],
     )
+
+
+def _cancel_encodes(frames: Any) -> None:
+    """Drop the image encodes of abandoned frames not started yet; the writer thread may still be
+    consuming the frames (taking cameras out), so this walks copies of their dicts."""
+    for af in list(frames.agents.values()):
+        for cam in list(af.cameras.values()):
+            if cam.encoded is not None:
+                cam.encoded[1].cancel()
 
 
 def _closed_loop(conductor: Conductor, loaded: LoadedScenario, world: World, escorts: dict[str, str]) -> Any:
@@ -295,7 +307,7 @@ class _SensorAdapter:
     """Couples the sensor suite to the runner: rig transforms for /tf, rendering, sensor messages."""
 
     def __init__(self, loaded: LoadedScenario, world: World):
-        from cosim.exporters.sensor_messages import frame_messages
+        from cosim.exporters.sensor_messages import frame_messages, frame_records
         from cosim.sensors import SensorSuite
         from cosim.sensors.rig import sensor_transforms
         from cosim.sensors.suite import render_processes
@@ -303,6 +315,7 @@ class _SensorAdapter:
         self._scenario = loaded.scenario
         self._suite = SensorSuite(loaded.scenario, world, processes=render_processes(loaded.scenario))
         self._frame_messages = frame_messages
+        self._frame_records = frame_records
         self._sensor_transforms = sensor_transforms
 
     def transforms(self, snapshot: WorldSnapshot) -> list[Any]:
@@ -320,6 +333,13 @@ class _SensorAdapter:
         return self._frame_messages(frames, frames.t_ns, image_format=out.image_format,
                                     jpeg_quality=out.jpeg_quality,
                                     lidar_positions=self._scenario.sensors.lidar_positions)
+
+    def records(self, frames: Any) -> Iterator[tuple[str, Any]]:
+        """The sensor records of rendered frames for the writer, made as they are taken; consumes ``frames``."""
+        out = self._scenario.output
+        return self._frame_records(frames, frames.t_ns, image_format=out.image_format,
+                                   jpeg_quality=out.jpeg_quality,
+                                   lidar_positions=self._scenario.sensors.lidar_positions, consume=True)
 
     @property
     def static(self) -> Any:

@@ -15,6 +15,7 @@ import logging
 import os
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -53,6 +54,21 @@ def proto_file_descriptor_set(message_type: type[ProtoMessage]) -> bytes:
 
     add(message_type.DESCRIPTOR.file)
     return fds.SerializeToString(deterministic=True)
+
+
+@dataclass(frozen=True)
+class Serialized:
+    """A protobuf message already serialized: ``data`` holds exactly the bytes that
+    ``message_type(...).SerializeToString(deterministic=True)`` gives, in any contiguous buffer (bytes,
+    or a uint8 array that an image was written into in place, sparing the copies of building and
+    serialising a message around a large payload). ``message_type`` names the channel's schema."""
+
+    message_type: type[ProtoMessage]
+    data: Any
+
+    def message(self) -> ProtoMessage:
+        """The message itself (parsed back; for readers of messages in memory, not for writing)."""
+        return self.message_type.FromString(bytes(self.data))
 
 
 class EpisodeWriter:
@@ -104,6 +120,15 @@ class EpisodeWriter:
                                        proto_file_descriptor_set(type(message)), "protobuf")
         self._add(channel_id, message.SerializeToString(deterministic=True), t_ns)
 
+    def write_serialized(self, topic: str, record: Serialized, t_ns: int) -> None:
+        """Write a message serialized beforehand (see :class:`Serialized`) at simulation time ``t_ns``."""
+        channel_id = self._channels.get(topic)
+        if channel_id is None:
+            desc = record.message_type.DESCRIPTOR
+            channel_id = self._channel(topic, desc.full_name, "protobuf",
+                                       proto_file_descriptor_set(record.message_type), "protobuf")
+        self._add(channel_id, record.data, t_ns)
+
     def write_json(self, topic: str, schema_name: str, schema: dict[str, Any], payload: Any, t_ns: int) -> None:
         """Write a JSON message described by a JSON Schema (project schemas such as ``cosim.ObjectArray``)."""
         channel_id = self._channels.get(topic)
@@ -113,9 +138,11 @@ class EpisodeWriter:
         self._add(channel_id, json.dumps(payload, separators=(",", ":")).encode(), t_ns)
 
     def write(self, topic: str, message: Any, t_ns: int) -> None:
-        """Write either a protobuf message or a ``(schema_name, json_schema, payload)`` triple."""
+        """Write a protobuf message, a :class:`Serialized` one or a ``(schema_name, json_schema, payload)`` triple."""
         if isinstance(message, ProtoMessage):
             self.write_proto(topic, message, t_ns)
+        elif isinstance(message, Serialized):
+            self.write_serialized(topic, message, t_ns)
         else:
             schema_name, schema, payload = message
             self.write_json(topic, schema_name, schema, payload, t_ns)

@@ -4,16 +4,22 @@ Foxglove protobuf messages wherever a schema exists; the IMU and visibility topi
 none, come as ``(topic, (schema_name, json_schema, payload_dict))``. Every timestamp inside a
 message is the simulation time ``t_ns``. PNG/JPEG encoding runs in a thread pool (zlib and
 libjpeg release the GIL), so it overlaps with the rest of the tick's work.
+
+:func:`frame_records` is what the episode writer takes: made lazily, camera after camera, the
+images as :class:`~cosim.exporters.mcap_writer.Serialized` records written around their pixels in
+place; :func:`frame_messages` gives the same as protobuf messages (for code that reads them).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 
 import numpy as np
+from cosim.exporters.mcap_writer import Serialized
 from cosim.sensors.encoding import encode_jpeg, encode_png, submit, submit_encode
-from cosim.sensors.suite import AgentFrames, SensorFrameSet
+from cosim.sensors.suite import SensorFrameSet
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.Grid_pb2 import Grid
@@ -24,7 +30,8 @@ from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
 from cosim.io.points import encode_points
 
-__all__ = ["depth_image", "encode_jpeg", "encode_png", "frame_messages", "lidar_message"]
+__all__ = ["depth_image", "encode_jpeg", "encode_png", "frame_messages", "frame_records", "lidar_message",
+           "quantize_depth", "raw_image_record"]
 
 _F = PackedElementField.NumericType
 
@@ -101,24 +108,69 @@ def lidar_message(agent_id: str, frame, t_ns: int, positions: str = "quantized")
 DEPTH_QUANTUM_M = 2.0**-10
 
 
-def depth_image(depth_m: np.ndarray) -> np.ndarray:
-    """Planar depth (H, W) float32 [m] (inf on a miss) -> the stored ``32FC1`` image: float32 metres on
-    the :data:`DEPTH_QUANTUM_M` grid (exact below 16 km; float32 steps are coarser beyond), NaN where
-    nothing was hit."""
-    out = np.array(depth_m, "<f4") * np.float32(1.0 / DEPTH_QUANTUM_M)  # powers of two: exact
+def quantize_depth(depth_m: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """Planar depth (H, W) [m] (inf on a miss) -> ``out`` (H, W) float32: metres on the
+    :data:`DEPTH_QUANTUM_M` grid (exact below 16 km; float32 steps are coarser beyond), NaN where
+    nothing was hit. In place, without temporaries of the image's size but one mask."""
+    np.multiply(depth_m, np.float32(1.0 / DEPTH_QUANTUM_M), out=out, dtype=np.float32)  # powers of two: exact
     np.rint(out, out=out)
-    out *= np.float32(DEPTH_QUANTUM_M)
+    np.multiply(out, np.float32(DEPTH_QUANTUM_M), out=out)
     np.copyto(out, np.float32(np.nan), where=~np.isfinite(out))
     return out
 
 
-def _raw(frame_id: str, t_ns: int, img: np.ndarray, encoding: str) -> RawImage:
-    h, w = img.shape[:2]
-    img = np.ascontiguousarray(img)
-    msg = RawImage(frame_id=frame_id, width=w, height=h, encoding=encoding, step=img.strides[0],
-                   data=bytes(img.data))  # the same bytes as tobytes(), about 3x faster for large images
-    _stamp(msg, t_ns)
-    return msg
+def depth_image(depth_m: np.ndarray) -> np.ndarray:
+    """The stored ``32FC1`` image of a planar depth (H, W) float32 [m] (see :func:`quantize_depth`)."""
+    return quantize_depth(depth_m, np.empty(np.shape(depth_m), "<f4"))
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while True:
+        byte, n = n & 0x7F, n >> 7
+        out.append(byte | (0x80 if n else 0))
+        if not n:
+            return bytes(out)
+
+
+#: byte alignment of an image payload inside its serialized message (whole float32/int32 pixels for numpy)
+_PAYLOAD_ALIGN = 64
+
+
+def raw_image_record(frame_id: str, t_ns: int, shape: tuple[int, int], dtype: str, encoding: str,
+                     fill: Callable[[np.ndarray], object]) -> Serialized:
+    """A ``foxglove.RawImage`` serialized around its pixels, which ``fill(view)`` writes in place into a
+    (H, W) view of ``dtype`` inside the message buffer (no image-sized copies besides that one).
+
+    Protobuf writes fields in number order: timestamp (1), width, height, encoding, step (2-5), data
+    (6), frame_id (7), so the bytes are those of the two partial messages around the data field
+    (the same as ``RawImage(...).SerializeToString(deterministic=True)``; tested)."""
+    h, w = shape
+    step = w * np.dtype(dtype).itemsize
+    n = step * h
+    head = RawImage(width=w, height=h, encoding=encoding, step=step)
+    _stamp(head, t_ns)
+    pre = head.SerializeToString(deterministic=True) + (b"\x32" + _varint(n) if n else b"")
+    post = RawImage(frame_id=frame_id).SerializeToString(deterministic=True)
+    total = len(pre) + n + len(post)
+    raw = np.empty(total + _PAYLOAD_ALIGN, np.uint8)
+    start = -(raw.ctypes.data + len(pre)) % _PAYLOAD_ALIGN
+    buf = raw[start:start + total]
+    buf[:len(pre)] = np.frombuffer(pre, np.uint8)
+    fill(buf[len(pre):len(pre) + n].view(dtype).reshape(h, w))
+    buf[len(pre) + n:] = np.frombuffer(post, np.uint8)
+    return Serialized(RawImage, buf)
+
+
+def compressed_image_record(frame_id: str, t_ns: int, image_format: str, data: bytes) -> Serialized:
+    """A ``foxglove.CompressedImage`` serialized around its encoded bytes (fields timestamp (1), data (2),
+    format (3), frame_id (4), in that order; one copy of ``data``)."""
+    head = CompressedImage()
+    _stamp(head, t_ns)
+    tag = b"\x12" + _varint(len(data)) if data else b""
+    tail = CompressedImage(format=image_format, frame_id=frame_id)
+    return Serialized(CompressedImage, b"".join((head.SerializeToString(deterministic=True), tag, data,
+                                                 tail.SerializeToString(deterministic=True))))
 
 
 def calibration_message(frame_id: str, cam, t_ns: int) -> CameraCalibration:
@@ -176,73 +228,97 @@ def visibility_payload(agent_id: str, vis, t_ns: int) -> dict:
     }
 
 
-_GROUP = "<group>"  # placeholder topic: the future gives a list of (topic, message)
-
-
-def _label_images(base: str, fid: str, cam, t_ns: int) -> list[tuple[str, RawImage]]:
-    """Depth (32FC1 m), semantic (mono8) and instance (32SC1) images of one camera."""
+def _label_records(fid: str, base: str, cam, t_ns: int) -> list[tuple[str, Serialized]]:
+    """Depth (32FC1 m), semantic (mono8) and instance (32SC1) images of one camera (runs in the encoder pool)."""
     out = []
     if cam.depth is not None:
-        out.append((f"{base}/depth", _raw(fid, t_ns, depth_image(cam.depth), "32FC1")))
+        out.append((f"{base}/depth", raw_image_record(fid, t_ns, cam.depth.shape, "<f4", "32FC1",
+                                                      lambda v: quantize_depth(cam.depth, v))))
     if cam.semantic is not None:
-        out.append((f"{base}/semantic", _raw(fid, t_ns, cam.semantic, "mono8")))
+        out.append((f"{base}/semantic", raw_image_record(fid, t_ns, cam.semantic.shape, "|u1", "mono8",
+                                                         lambda v: np.copyto(v, cam.semantic))))
     if cam.instance is not None:
-        # the same bytes as a cast to int32 (ids < 2^31), without the copy
-        inst = np.ascontiguousarray(cam.instance, np.uint32).view("<i4")
-        out.append((f"{base}/instance", _raw(fid, t_ns, inst, "32SC1")))
+        # stored as int32: the same bytes as uint32 for ids < 2^31
+        out.append((f"{base}/instance", raw_image_record(fid, t_ns, cam.instance.shape, "<u4", "32SC1",
+                                                         lambda v: np.copyto(v, cam.instance, casting="unsafe"))))
     return out
 
 
-def _agent_messages(af: AgentFrames, t_ns: int, image_format: str, jpeg_quality: int, lidar_positions: str) -> list:
-    a = af.agent_id
-    out: list = []
-    if af.lidar is not None:
-        out.append((f"/{a}/lidar", lidar_message(a, af.lidar, t_ns, lidar_positions)))
-    for name, cam in af.cameras.items():
-        fid = f"{a}/{name}/optical"
-        base = f"/{a}/{name}"
-        if cam.rgb is not None:
-            pre = cam.encoded
-            if pre is not None and pre[0] == image_format:
-                fut = pre[1]
-            else:
-                fut = submit_encode(cam.rgb, image_format, jpeg_quality)
-            out.append((f"{base}/image", (fid, image_format, fut)))
-        out.append((_GROUP, submit(_label_images, base, fid, cam, t_ns)))
-        out.append((f"{base}/calibration", calibration_message(fid, cam, t_ns)))
-    if af.gnss is not None:
-        out.append((f"/{a}/gnss", gnss_message(a, af.gnss, t_ns)))
-    if af.imu is not None:
-        out.append((f"/{a}/imu", ("cosim.Imu", IMU_SCHEMA, imu_payload(a, af.imu, t_ns))))
-    if af.bev is not None:
-        out.append((f"/{a}/bev", bev_message(a, af.bev, t_ns)))
-    if af.visibility is not None:
-        out.append((f"/{a}/visibility", ("cosim.Visibility", VISIBILITY_SCHEMA,
-                                         visibility_payload(a, af.visibility, t_ns))))
-    return out
+#: cameras whose depth/semantic/instance messages are built ahead (in the encoder pool) of the one being
+#: written: enough to keep the pool busy, few enough that a frame's messages never pile up in memory.
+LOOKAHEAD_CAMERAS = 3
+
+
+def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png", jpeg_quality: int = 90,
+                  lidar_positions: str = "quantized", consume: bool = False) -> Iterator[tuple[str, object]]:
+    """Every sensor topic of one tick as ``(topic, record)``, agents in frame order, made as they are
+    taken: a record is a protobuf message, a :class:`~cosim.exporters.mcap_writer.Serialized` one (the
+    images) or a JSON ``(schema_name, json_schema, payload)`` triple, all of which
+    :meth:`EpisodeWriter.write <cosim.exporters.mcap_writer.EpisodeWriter.write>` takes.
+
+    Frames rendered by the suite already carry a started RGB encode (``CameraFrame.encoded``) in the
+    scenario's format; other formats are started here. The label images of the next
+    :data:`LOOKAHEAD_CAMERAS` cameras are built in the encoder pool (numpy and the copies release the
+    GIL) while the current one is taken. ``consume``: drop each camera (and then each agent) from
+    ``frames`` once its messages are made, so that a frame's arrays are freed while it is written
+    rather than after (the frames are empty afterwards). ``lidar_positions``: how point positions are
+    stored (``sensors.lidar_positions``, see :mod:`cosim.io.points`).
+    """
+    order = [(af, name) for af in frames.agents.values() for name in af.cameras]
+    started: dict[int, tuple[Future | None, Future]] = {}
+    n_started = [0]
+
+    def start(upto: int) -> None:
+        for k in range(n_started[0], min(upto, len(order))):
+            n_started[0] = k + 1
+            af, name = order[k]
+            cam = af.cameras[name]
+            rgb = None
+            if cam.rgb is not None:
+                pre = cam.encoded
+                rgb = pre[1] if pre is not None and pre[0] == image_format else \
+                    submit_encode(cam.rgb, image_format, jpeg_quality)
+            fid, base = f"{af.agent_id}/{name}/optical", f"/{af.agent_id}/{name}"
+            started[k] = (rgb, submit(_label_records, fid, base, cam, t_ns))
+
+    k = 0
+    for agent_id, af in list(frames.agents.items()):
+        a = agent_id
+        start(k + LOOKAHEAD_CAMERAS)
+        if af.lidar is not None:
+            yield f"/{a}/lidar", lidar_message(a, af.lidar, t_ns, lidar_positions)
+        for name in list(af.cameras):
+            start(k + 1 + LOOKAHEAD_CAMERAS)
+            cam = af.cameras[name]
+            fid, base = f"{a}/{name}/optical", f"/{a}/{name}"
+            rgb, labels = started.pop(k)
+            k += 1
+            if rgb is not None:
+                yield f"{base}/image", compressed_image_record(fid, t_ns, image_format, rgb.result())
+            yield from labels.result()
+            del rgb, labels
+            yield f"{base}/calibration", calibration_message(fid, cam, t_ns)
+            if consume:
+                del af.cameras[name]
+            del cam
+        if af.gnss is not None:
+            yield f"/{a}/gnss", gnss_message(a, af.gnss, t_ns)
+        if af.imu is not None:
+            yield f"/{a}/imu", ("cosim.Imu", IMU_SCHEMA, imu_payload(a, af.imu, t_ns))
+        if af.bev is not None:
+            yield f"/{a}/bev", bev_message(a, af.bev, t_ns)
+        if af.visibility is not None:
+            yield f"/{a}/visibility", ("cosim.Visibility", VISIBILITY_SCHEMA,
+                                       visibility_payload(a, af.visibility, t_ns))
+        if consume:
+            del frames.agents[agent_id]
 
 
 def frame_messages(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png",
                    jpeg_quality: int = 90, lidar_positions: str = "quantized") -> list[tuple[str, object]]:
-    """Every sensor topic of one tick, agents in frame order (see the module docstring).
-
-    Image encoding runs in a thread pool: frames rendered by the suite already carry a started encode
-    (``CameraFrame.encoded``) in the scenario's format; other formats are submitted here first and
-    collected last, so they run while the other messages are built. ``lidar_positions``: how point
-    positions are stored (``sensors.lidar_positions``, see :mod:`cosim.io.points`).
-    """
-    pending = []
-    for af in frames.agents.values():
-        pending.extend(_agent_messages(af, t_ns, image_format, jpeg_quality, lidar_positions))
-    out: list[tuple[str, object]] = []
-    for topic, msg in pending:
-        if topic == _GROUP:
-            out.extend(msg.result())
-        elif isinstance(msg, tuple) and len(msg) == 3 and isinstance(msg[2], Future):
-            fid, fmt, fut = msg
-            img = CompressedImage(frame_id=fid, format=fmt, data=fut.result())
-            _stamp(img, t_ns)
-            out.append((topic, img))
-        else:
-            out.append((topic, msg))
-    return out
+    """Every sensor topic of one tick as protobuf messages (or JSON triples), agents in frame order: the
+    records of :func:`frame_records` with the serialized ones parsed back (for code that reads the
+    messages in memory, such as closed-loop clients; the episode writer takes the records)."""
+    return [(topic, rec.message() if isinstance(rec, Serialized) else rec)
+            for topic, rec in frame_records(frames, t_ns, image_format=image_format, jpeg_quality=jpeg_quality,
+                                            lidar_positions=lidar_positions)]
