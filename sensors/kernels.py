@@ -13,7 +13,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-_jit = numba.njit(cache=True, nogil=True)
+#: numpy's floating-point semantics (1 / 0 = inf, no zero-division checks in the loops)
+_jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
 
 @_jit
@@ -109,7 +110,7 @@ def fill_top(G, T, S, s, gid, depth, lit, with_lit):
                 right = i01 * (np.float32(1) - wa) + i11 * wa
                 for k in range(s):
                     v = left * (np.float32(1) - wgt[k]) + right * wgt[k]
-                    depth[r0 + a, c0 + k] = np.float32(1) / v if v != 0 else np.float32(np.inf)
+                    depth[r0 + a, c0 + k] = np.float32(1) / v  # 1 / 0 = inf: all corners missed
                     gid[r0 + a, c0 + k] = g
                     if with_lit:
                         lit[r0 + a, c0 + k] = sl
@@ -132,7 +133,7 @@ def _fill_block(G, T, S, r0, c0, s, wgt, gid, depth, lit, with_lit):
             v += i1 * ga * fb
             v += i2 * fa * gb
             v += i3 * fa * fb
-            depth[r0 + a, c0 + b] = np.float32(1.0) / v if v > 0 else np.float32(np.inf)
+            depth[r0 + a, c0 + b] = np.float32(1.0) / v  # v >= 0; 1 / 0 = inf
             gid[r0 + a, c0 + b] = g
             if with_lit:
                 lit[r0 + a, c0 + b] = sl
@@ -250,8 +251,7 @@ def with_sky(gid, sky, first_level, xg, yg, rz, s, levels):
             x = xg[bi if xrow else 0, bj]
             y = yg[bi, bj if ycol else 0]
             dz = (rz[0] * x + rz[1] * y + rz[2]) / np.sqrt(x * x + y * y + 1)
-            v = min(max(dz * top + 0.5, 0.0), top)
-            out[i, j] = np.int32(v) + first_level
+            out[i, j] = np.int32(min(max(dz * top + 0.5, 0.0), top)) + first_level
     return out
 
 
