@@ -25,6 +25,7 @@ import numpy as np
 from cosim.geometry import project_to_image, undistort
 from cosim.scenario.model import CameraSpec
 
+from . import kernels
 from .environment import Atmosphere
 from .rig import Pose
 from .scene import TickScene
@@ -137,12 +138,8 @@ def _pixel_dirs(cam: CameraSpec, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 def _rays(pose: Pose, xs: np.ndarray, ys: np.ndarray, near: float = 0.0) -> np.ndarray:
     """Rays (N, 6) float32 through optical-frame points (xs, ys, 1) (each (N,)), starting ``near``
     (planar depth) in front of the optical centre."""
-    r = pose.rotation
-    rays = np.empty((xs.shape[0], 6), np.float32)
-    for k in range(3):
-        rays[:, 3 + k] = r[k, 0] * xs + r[k, 1] * ys + r[k, 2]
-        rays[:, k] = pose.position_m[k] + near * rays[:, 3 + k] if near else pose.position_m[k]
-    return rays
+    return kernels.rays(np.asarray(xs, np.float64), np.asarray(ys, np.float64), pose.rotation, pose.position_m,
+                        float(near))
 
 
 @dataclass(frozen=True)
@@ -187,21 +184,10 @@ def sun_lit(scene: TickScene, rays: np.ndarray, t: np.ndarray, gid: np.ndarray, 
     """(N,) bool: whether the sun reaches the hit of each ray (``t`` inf: a miss, lit). Hits on
     surfaces turned away from the sun count as lit (the sun adds nothing to them either way)."""
     lit = np.ones(len(t), bool)
-    idx = np.nonzero(np.isfinite(t))[0]
-    if len(idx) == 0:
-        return lit
-    n = np.take(scene.labels["normal"], gid[idx], axis=0).astype(np.float32)
-    d = rays[idx, 3:]
-    n[(n * d).sum(axis=1) > 0] *= -1  # the side the ray sees
-    sun = sun_dir.astype(np.float32)
-    facing = np.nonzero(n @ sun > 0)[0]
-    if len(facing) == 0:
-        return lit
-    k = idx[facing]
-    sh = np.empty((len(k), 6), np.float32)
-    sh[:, :3] = rays[k, :3] + t[k, None] * rays[k, 3:] + np.float32(SHADOW_BIAS_M) * n[facing]
-    sh[:, 3:] = sun
-    lit[k] = ~scene.occluded(sh, with_static, with_actors)
+    sh, k = kernels.shadow_rays(rays, t, gid, scene.labels["normal"], sun_dir.astype(np.float32),
+                                np.float32(SHADOW_BIAS_M))
+    if len(k):
+        lit[k] = ~scene.occluded(sh, with_static, with_actors)
     return lit
 
 
@@ -401,12 +387,8 @@ def _cast_adaptive(
     T = np.full((h + 1) * gw, np.inf, np.float32)
     S = np.ones((h + 1) * gw, bool)  # the sun reaches the sample
 
-    def rays_at(idx: np.ndarray) -> np.ndarray:
-        rr, cc = np.divmod(idx, gw)
-        return _rays(pose, xs_ext[cc], ys_ext[rr], NEAR_CLIP_M)
-
     def sample(idx: np.ndarray) -> None:
-        rays = rays_at(idx)
+        rays = kernels.grid_rays(idx, gw, xs_ext, ys_ext, pose.rotation, pose.position_m, NEAR_CLIP_M)
         t, g = scene.cast(rays, exclude_track, with_actors=False)
         if any_actor:
             sel = np.nonzero(actor_px[idx])[0]
@@ -447,104 +429,24 @@ def _cast_adaptive(
     gid = np.empty((h, w), np.int32)
     depth = np.empty((h, w), np.float32)
     lit = np.empty((h, w), bool) if sun is not None else None
+    lit_k = lit if lit is not None else np.empty((0, 0), bool)
     Gv, Tv, Sv = G.reshape(h + 1, gw), T.reshape(h + 1, gw), S.reshape(h + 1, gw)
     # top level: dense fill of the whole image (pixels of mixed blocks are overwritten below)
-    s = top
-    hb, wb = h // s, w // s
-    gs = Gv[::s, ::s]
-    with np.errstate(divide="ignore"):
-        inv = np.where(np.isfinite(Tv[::s, ::s]), 1.0 / Tv[::s, ::s], 0.0).astype(np.float32)
-    gid.reshape(hb, s, w)[:] = np.repeat(gs[:-1, :-1], s, axis=1)[:, None, :]
-    if lit is not None:
-        lit.reshape(hb, s, w)[:] = np.repeat(Sv[::s, ::s][:-1, :-1], s, axis=1)[:, None, :]
-    wgt = np.arange(s, dtype=np.float32) / s
-    rows = (inv[:-1, None, :] * (1 - wgt)[None, :, None] + inv[1:, None, :] * wgt[None, :, None]).reshape(h, wb + 1)
-    # column k of every block; one pass per k keeps numpy's inner loops long
-    depth3 = depth.reshape(h, wb, s)
-    left, right = rows[:, :-1], rows[:, 1:]
-    tmp = np.empty((h, wb), np.float32)
-    for k in range(s):
-        np.multiply(left, 1 - wgt[k], out=depth3[:, :, k])
-        np.multiply(right, wgt[k], out=tmp)
-        depth3[:, :, k] += tmp
-    with np.errstate(divide="ignore"):
-        np.divide(np.float32(1.0), depth, out=depth)  # 1 / 0 = inf where a corner saw the sky
-
+    kernels.fill_top(Gv, Tv, Sv, top, gid, depth, lit_k, lit is not None)
     face = scene.labels["face"]
-    active = np.ones((hb, wb), bool)
+    s = top
+    mixed = np.ones((1, 1), bool)
     while s >= 2:
-        fs = np.take(face, Gv[::s, ::s], mode="clip")
-        c00 = fs[:-1, :-1]
-        same = (c00 == fs[:-1, 1:]) & (c00 == fs[1:, :-1]) & (c00 == fs[1:, 1:])
-        if lit is not None:
-            ss = Sv[::s, ::s]
-            l00 = ss[:-1, :-1]
-            same &= (l00 == ss[:-1, 1:]) & (l00 == ss[1:, :-1]) & (l00 == ss[1:, 1:])
-        coherent = active & same & ~forced_at(s)
-        if s != top:
-            blocks = np.nonzero(coherent)
-            _fill_blocks(gid, depth, blocks, s, Gv, Tv)
-            if lit is not None and len(blocks[0]):
-                lit.reshape(h // s, s, w // s, s)[blocks[0], :, blocks[1], :] = \
-                    Sv[blocks[0] * s, blocks[1] * s][:, None, None]
-        mixed = active & ~coherent
-        bi, bj = np.nonzero(mixed)
-        half = s // 2
-        if len(bi):
-            # new samples of each mixed block: centre, top and left midpoints, and the bottom/right
-            # midpoints unless the neighbour there is mixed too (it adds them as its top/left)
-            below = np.ones_like(mixed)
-            below[:-1] = ~mixed[1:]
-            right = np.ones_like(mixed)
-            right[:, :-1] = ~mixed[:, 1:]
-            r0, c0 = bi * s, bj * s
-            db, dr = below[bi, bj], right[bi, bj]
-            cand = np.concatenate([
-                (r0 + half) * gw + c0 + half, r0 * gw + c0 + half, (r0 + half) * gw + c0,
-                (r0[db] + s) * gw + c0[db] + half, (r0[dr] + half) * gw + c0[dr] + s,
-            ])
+        # coherent blocks of mixed parents are filled from their corners (exact for planes), the
+        # mixed ones get new samples
+        mixed, cand = kernels.refine_level(Gv, Tv, Sv, face, s, s == top, mixed, forced_at(s), s != top, gid, depth,
+                                           lit_k, lit is not None)
+        if len(cand):
             sample(cand)
-        if half > 1:
-            active = np.repeat(np.repeat(mixed, 2, axis=0), 2, axis=1)
-        s = half
+        s //= 2
     # pixels of mixed 2-px blocks (the last ``mixed``) are samples themselves
-    # (a full-size mask: numpy's copyto is several times slower through a broadcast one)
-    where = np.repeat(np.repeat(mixed, 2, axis=0), 2, axis=1)
-    np.copyto(gid, Gv[:h, :w], where=where)
-    np.copyto(depth, Tv[:h, :w], where=where)
-    if lit is not None:
-        np.copyto(lit, Sv[:h, :w], where=where)
+    kernels.copy_mixed(mixed, Gv, Tv, Sv, gid, depth, lit_k, lit is not None)
     return gid, depth, lit
-
-
-def _fill_blocks(gid: np.ndarray, depth: np.ndarray, blocks, s: int, Gv: np.ndarray, Tv: np.ndarray) -> None:
-    """Fill coherent ``blocks`` (rows, cols) of size ``s`` from their corner samples (exact for planes)."""
-    bi, bj = blocks
-    n = len(bi)
-    if n == 0:
-        return
-    h, w = gid.shape
-    r0, c0 = bi * s, bj * s
-    with np.errstate(divide="ignore"):
-        inv = [np.where(np.isfinite(t), 1.0 / t, 0.0).astype(np.float32)
-               for t in (Tv[r0, c0], Tv[r0, c0 + s], Tv[r0 + s, c0], Tv[r0 + s, c0 + s])]
-    # inverse depth, bilinear over the block, one row per pixel offset (long inner loops)
-    f = np.arange(s, dtype=np.float32) / s
-    val = np.empty((s, s, n), np.float32)
-    term = np.empty(n, np.float32)
-    for a in range(s):
-        for b in range(s):
-            out = val[a, b]
-            np.multiply(inv[0], 1 - f[a], out=out)
-            out *= 1 - f[b]
-            for corner, wy, wx in ((inv[1], 1 - f[a], f[b]), (inv[2], f[a], 1 - f[b]), (inv[3], f[a], f[b])):
-                np.multiply(corner, wy, out=term)
-                term *= wx
-                out += term
-    with np.errstate(divide="ignore"):
-        d = np.where(val > 0, 1.0 / val, np.inf).astype(np.float32)
-    gid.reshape(h // s, s, w // s, s)[bi, :, bj, :] = Gv[r0, c0][:, None, None]
-    depth.reshape(h // s, s, w // s, s)[bi, :, bj, :] = d.transpose(2, 0, 1)
 
 
 # ----------------------------------------------------------------------------------- shading
@@ -580,9 +482,9 @@ def sky_table(atm: Atmosphere) -> np.ndarray:
     return (atm.sky_horizon * (1 - k) + atm.sky_zenith * k).astype(np.float32)
 
 
-def _sky_level(cam: CameraSpec, K: np.ndarray, pose: Pose, s: int) -> tuple[np.ndarray, int]:
-    """Sky level index (H / s, W / s) int32 from the ray elevation at the centre of each block of
-    ``s`` px, and the block size used (``s``, or 1 when it does not divide the image)."""
+def _sky_grid(cam: CameraSpec, K: np.ndarray, s: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Optical x (1 or H / s, W / s) and y (H / s, 1 or W / s) of the ray through the centre of each
+    block of ``s`` px, and the block size used (``s``, or 1 when it does not divide the image)."""
     h, w = cam.height, cam.width
     s = s if s > 1 and h % s == 0 and w % s == 0 else 1
     if s == 1:
@@ -590,22 +492,19 @@ def _sky_level(cam: CameraSpec, K: np.ndarray, pose: Pose, s: int) -> tuple[np.n
     else:
         xg = ((np.arange(0, w, s) + 0.5 * s - K[0, 2]) / K[0, 0])[None, :]
         yg = ((np.arange(0, h, s) + 0.5 * s - K[1, 2]) / K[1, 1])[:, None]
-    r = pose.rotation
-    dz = (r[2, 0] * xg + r[2, 1] * yg + r[2, 2]) / np.sqrt(xg**2 + yg**2 + 1)
-    return np.clip(dz * (SKY_LEVELS - 1) + 0.5, 0, SKY_LEVELS - 1).astype(np.int32), s
+    return xg, yg, s
 
 
 def _with_sky(gid: np.ndarray, sky: np.ndarray, first_level: int, cam: CameraSpec, K: np.ndarray, pose: Pose,
               s: int) -> np.ndarray:
-    """``gid`` (H, W) int32 with the ``sky`` pixels set to ``first_level`` + their sky level
-    (:func:`_sky_level`, broadcast over its blocks): a new array, or ``gid`` itself without sky."""
+    """``gid`` (H, W) int32 with the ``sky`` pixels set to ``first_level`` + their sky level (from the
+    elevation of the ray through the centre of their block of ``s`` px, :func:`_sky_grid`; only at
+    sky pixels): a new array, or ``gid`` itself without sky."""
     if not sky.any():
         return gid
-    lvl, s = _sky_level(cam, K, pose, s)
-    lvl += np.int32(first_level)
-    if s > 1:  # full size first: numpy's where is several times slower through broadcast operands
-        lvl = np.repeat(np.repeat(lvl, s, axis=0), s, axis=1)
-    return np.where(sky, lvl, gid)
+    xg, yg, s = _sky_grid(cam, K, s)
+    return kernels.with_sky(gid, sky, np.int32(first_level), xg, yg, np.ascontiguousarray(pose.rotation[2]), s,
+                            SKY_LEVELS)
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,7 @@ from cosim.scenario.model import RigSpec, Scenario
 from cosim.snapshot import Actor, AgentState, WorldSnapshot
 from cosim.world.types import World
 
+from . import kernels
 from .bev import BevFrame, render_bev, static_raster
 from .camera import (
     CameraFrame,
@@ -297,11 +298,14 @@ class SensorSuite:
                 out_spec = self.scenario.output
                 encoded = (out_spec.image_format, submit_encode(rgb, out_spec.image_format, out_spec.jpeg_quality))
         t2 = time.perf_counter()
+        if "semantic" in cam.outputs:
+            semantic, instance = kernels.gather2(gid, lut["semantic"], lut["instance"])
+        else:
+            semantic, instance = None, kernels.gather(gid, lut["instance"])
         frame = CameraFrame(
             agent.agent_id, cam.name, cam.width, cam.height, K, projection(cam), pose, rgb,
-            depth if "depth" in cam.outputs else None,
-            np.take(lut["semantic"], gid) if "semantic" in cam.outputs else None,
-            np.take(lut["instance"], gid), encoded, tuple(float(v) for v in cam.distortion or (0.0,) * 5),
+            depth if "depth" in cam.outputs else None, semantic, instance, encoded,
+            tuple(float(v) for v in cam.distortion or (0.0,) * 5),
         )
         return frame, {"camera_cast": t1 - t0, "shading": t2 - t1, "labels": time.perf_counter() - t2}
 
