@@ -1,0 +1,96 @@
+"""Shading cost per 1280x720 camera: ``shade()`` alone on frames cast once, per weather x lighting.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/shading.py [--repeats 5] [--save DIR]
+
+Builds the world of scenarios/default.yaml, places the actors of ``world_snapshot`` (seed 3), casts
+the front cameras of vehicle_0 and rsu_0 at 1280x720 once, then times ``shade`` on those hits
+(median of ``--repeats``, after one warm-up call that also compiles any kernels) for clear day,
+clear night, rainy dusk and rainy night. ``--save DIR`` writes the images as PNG and their sha256
+(to compare outputs before and after a change).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from cosim.sensors import SensorSuite
+from cosim.sensors.camera import Occluders, cast_image, shade
+from cosim.sensors.rig import camera_pose, intrinsics
+from cosim.sensors.synthetic import world_snapshot
+
+from cosim.scenario.loader import load_scenario, load_scenario_data
+from cosim.world.build import build_world
+
+ROOT = Path(__file__).resolve().parents[1]
+CASES = (("clear", "day"), ("clear", "night"), ("rainy", "dusk"), ("rainy", "night"))
+
+
+def scenario(weather: str, lighting: str):
+    data = json.loads(json.dumps(load_scenario(ROOT / "scenarios" / "default.yaml").resolved))
+    data["agents"]["vehicles"]["count"] = 5
+    data["agents"]["rsus"]["count"] = 5
+    data["agents"]["drones"] = []
+    data["environment"].update({"weather": weather, "lighting": lighting})
+    for kind in ("vehicle", "rsu"):
+        rig = data["sensors"][kind]
+        rig["lidar"] = None
+        rig["cameras"] = [dict(c, width=1280, height=720) for c in rig["cameras"] if c["name"] == "front"]
+    return load_scenario_data(data)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--save", type=Path)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        world = build_world(scenario("clear", "day"), Path(tmp))
+    snap = world_snapshot(world, 5, 0, 60, seed=3)
+    agents = {a.agent_id: a for a in snap.agents}
+    digests = {}
+    for weather, lighting in CASES:
+        sc = scenario(weather, lighting).scenario
+        with SensorSuite(sc, world, encode_images=False, workers=1) as suite:
+            tick = suite._prepare(snap)
+            times = []
+            for agent_id in ("vehicle_0", "rsu_0"):
+                agent = agents[agent_id]
+                cam = sc.rig_for(agent_id).cameras[0]
+                K, pose = intrinsics(cam), camera_pose(agent, cam)
+                own = tick.own_track.get(agent_id)
+                occ = Occluders(suite._thin, suite._static_points, tick.a_corners[tick.a_tracks != own],
+                                suite._sun, tick.shadow_boxes)
+                gid, depth, lit = cast_image(cam, K, pose, tick.scene, occ, own, suite.block_px)
+
+                def once(gid=gid, depth=depth, lit=lit, cam=cam, K=K, pose=pose, tick=tick):
+                    return shade(gid, depth, lit, cam, K, pose, tick.tables, suite.atm, tick.light,
+                                 np.random.default_rng(0), 1, True)
+
+                rgb = once()
+                t = []
+                for _ in range(args.repeats):
+                    t0 = time.perf_counter()
+                    once()
+                    t.append(time.perf_counter() - t0)
+                times.append(float(np.median(t)))
+                key = f"{weather}_{lighting}_{agent_id}"
+                digests[key] = hashlib.sha256(rgb.tobytes()).hexdigest()
+                if args.save:
+                    from PIL import Image
+
+                    args.save.mkdir(parents=True, exist_ok=True)
+                    Image.fromarray(rgb).save(args.save / f"{key}.png")
+        print(f"{weather:6s} {lighting:6s}: shade {1000 * np.mean(times):6.1f} ms per 1280x720 camera "
+              f"(vehicle front {1000 * times[0]:.1f}, rsu front {1000 * times[1]:.1f})")
+    if args.save:
+        (args.save / "sha256.json").write_text(json.dumps(digests, indent=1))
+
+
+if __name__ == "__main__":
+    main()
