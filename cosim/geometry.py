@@ -111,3 +111,58 @@ def enu_to_ned(v: tuple[float, float, float]) -> tuple[float, float, float]:
 #: Rotation taking FLU body axes to a camera optical frame looking along body +x
 #: (optical x right = body -y, optical y down = body -z, optical z forward = body +x).
 OPTICAL_FROM_FLU = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+
+
+# ------------------------------------------------------------------------------------- camera lens
+# The camera model of docs/episode_format.md 3.6: a point (x, y, z) of a camera's optical frame lands on
+# pixel K [distort(x / z, y / z, D), 1], with pixel (u, v) covering [u, u + 1) x [v, v + 1).
+
+
+def distort(xy: np.ndarray, D) -> np.ndarray:
+    """Brown-Conrady distortion of normalised image points (N, 2) (x / z, y / z), ``D`` = (k1, k2, p1,
+    p2, k3) as OpenCV and ROS ``plumb_bob`` define it."""
+    k1, k2, p1, p2, k3 = (float(v) for v in D)
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    return np.stack([x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+                     y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y], axis=1)
+
+
+def undistort(xy_d: np.ndarray, D, iterations: int = 30) -> np.ndarray:
+    """The normalised points (N, 2) that :func:`distort` takes to ``xy_d`` (fixed-point iteration)."""
+    xy = xy_d.copy()
+    for _ in range(iterations):
+        xy = xy + (xy_d - distort(xy, D))
+    return xy
+
+
+def has_distortion(D) -> bool:
+    """True when ``D`` (None, or Brown-Conrady coefficients of any length) bends rays: a non-zero value."""
+    return D is not None and bool(np.any(np.asarray(D, np.float64)))
+
+
+#: [m] optical z below which a point counts as behind the camera in :func:`project_to_image`.
+NEAR_Z_M = 1e-6
+
+
+def project_to_image(points_optical: np.ndarray, K: np.ndarray, D=None) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (N, 2) [u, v] of points (N, 3) in a camera's optical frame (x right, y down,
+    z forward), through the lens ``D`` (Brown-Conrady k1, k2, p1, p2, k3, the calibration's ``D``; None
+    or zeros: a pinhole), and whether each point lies in front of the camera (N,) bool.
+
+    The one projection of recorded camera data: pixel (col, row) covers u in [col, col + 1), v in
+    [row, row + 1). Points behind the camera get finite but meaningless coordinates.
+    """
+    p = np.asarray(points_optical, np.float64).reshape(-1, 3)
+    front = p[:, 2] > NEAR_Z_M
+    z = np.where(front, p[:, 2], 1.0)
+    xy = p[:, :2] / z[:, None]
+    if has_distortion(D):
+        d = np.asarray(D, np.float64).ravel()
+        if len(d) != 5:
+            raise ValueError(f"D must be the 5 plumb_bob coefficients (k1, k2, p1, p2, k3), got {len(d)}: {d}")
+        xy = distort(xy, d)
+    K = np.asarray(K, np.float64).reshape(3, 3)
+    uv = np.stack([K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2], K[1, 1] * xy[:, 1] + K[1, 2]], axis=1)
+    return uv, front

@@ -128,6 +128,8 @@ class AirV2XFormat(ExportFormat):
                 cosim_meta["cameras"][cam.name] = entry
                 key = base = f"cosim_{cam.name}"
             write_bytes(folder / f"{key}.png", cam.rgb_png())
+            if cam.lens is not None:
+                cosim_meta.setdefault("undistorted", {})[cam.name] = list(cam.lens.D)
             if cam.has("depth"):
                 write_bytes(folder / f"{base}_depth.png", png_bytes(cf.encode_depth_rgb24(cam.depth_m())))
             if self.options.masks and cam.has("semantic"):

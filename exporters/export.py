@@ -34,6 +34,7 @@ from typing import Any, ClassVar
 import numpy as np
 from cosim.exporters import carla_frames as cf
 from cosim.exporters.export_io import is_rgb8_png, json_text, npy_bytes, pcd_ascii, png_bytes, write_bytes
+from cosim.exporters.undistort import PinholeRemap, pinhole_remap
 from pydantic import BaseModel, ConfigDict, Field
 
 import cosim
@@ -262,31 +263,38 @@ class CameraView:
     agent_id: str
     name: str
     map_from_camera: np.ndarray  # (4, 4) map <- camera body (FLU, x along the optical axis)
-    K: np.ndarray  # (3, 3)
+    K: np.ndarray  # (3, 3) pinhole intrinsic of every image this view gives
     width: int
     height: int
+    #: Resampling of a distorting camera's images onto the pinhole ``K`` (docs/exports.md); None: a pinhole.
+    lens: PinholeRemap | None = None
 
     def rgb_png(self) -> bytes:
-        """The RGB image as an 8-bit RGB PNG: the episode's own bytes when they already are one."""
+        """The RGB image as an 8-bit RGB PNG: the episode's own bytes when they already are one (and the
+        camera has no lens distortion to undo)."""
         raw = self.tick.raw(f"/{self.agent_id}/{self.name}/image")
-        if raw.schema_name == "foxglove.CompressedImage":
+        if raw.schema_name == "foxglove.CompressedImage" and self.lens is None:
             msg = parse_proto(raw.schema_name, raw.data, raw.schema_data)
             if msg.format == "png" and is_rgb8_png(msg.data):
                 return bytes(msg.data)
         a = self.tick.image(self.agent_id, self.name).array
-        return png_bytes(np.ascontiguousarray(a[..., :3]) if a.ndim == 3 else np.stack([a] * 3, -1))
+        rgb = np.ascontiguousarray(a[..., :3]) if a.ndim == 3 else np.stack([a] * 3, -1)
+        return png_bytes(rgb if self.lens is None else self.lens.bilinear(rgb))
 
     def has(self, what: str) -> bool:
         return f"/{self.agent_id}/{self.name}/{what}" in self.tick
 
     def depth_m(self) -> np.ndarray:
-        return self.tick.depth(self.agent_id, self.name).depth_m
+        d = self.tick.depth(self.agent_id, self.name).depth_m
+        return d if self.lens is None else self.lens.nearest_of(d, np.nan)
 
     def semantic(self) -> np.ndarray:
-        return self.tick.semantic(self.agent_id, self.name).array
+        s = self.tick.semantic(self.agent_id, self.name).array
+        return s if self.lens is None else self.lens.nearest_of(s, 0)
 
     def instance(self) -> np.ndarray:
-        return self.tick.instance(self.agent_id, self.name).array
+        i = self.tick.instance(self.agent_id, self.name).array
+        return i if self.lens is None else self.lens.nearest_of(i, 0)
 
 
 @dataclass
@@ -330,9 +338,12 @@ class AgentView:
             if f"/{self.agent_id}/{name}/image" not in self.tick:
                 continue
             cal = self.tick.calibration(self.agent_id, name)
+            if cal.distorted and cal.distortion_model != "plumb_bob":
+                raise CosimError(f"{self.agent_id} {name}: lens model {cal.distortion_model!r} (D = {cal.D.tolist()}); "
+                                 "the export undistorts plumb_bob only")
             out.append(CameraView(self.tick, self.agent_id, name,
                                   self.tick.transforms.to_root(f"{self.agent_id}/{name}"),
-                                  cal.K, cal.width, cal.height))
+                                  cal.K, cal.width, cal.height, pinhole_remap(cal.width, cal.height, cal.K, cal.D)))
         return out
 
     def visibility(self) -> dict[int, dict[str, Any]]:

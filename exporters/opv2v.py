@@ -97,7 +97,10 @@ class Opv2vFormat(ExportFormat):
         doc: dict[str, Any] = {}
         extra_cams: dict[str, Any] = {}
         index = CAMERA_INDEX[agent.kind]
+        undistorted: dict[str, list[float]] = {}
         for cam in agent.cameras(view.camera_names[agent.agent_id]):
+            if cam.lens is not None:
+                undistorted[cam.name] = list(cam.lens.D)
             entry = {
                 "cords": cf.carla_pose_of_matrix(cam.map_from_camera),
                 "intrinsic": cam.K.tolist(),
@@ -129,6 +132,8 @@ class Opv2vFormat(ExportFormat):
         doc["vehicles"] = vehicles
         doc["cosim"] = {"agent_id": agent.agent_id, "kind": agent.kind, "track_id": agent.track_id,
                         "cameras": extra_cams, "objects": objects}
+        if undistorted:
+            doc["cosim"]["undistorted"] = undistorted
         write_bytes(folder / f"{stem}.yaml", yaml_text(plain(doc)).encode())
         if lidar_t is not None:
             pcd, lidar_labels = agent.lidar_files()

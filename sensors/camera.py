@@ -22,6 +22,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from cosim.geometry import project_to_image, undistort
 from cosim.scenario.model import CameraSpec
 
 from .environment import Atmosphere
@@ -109,34 +110,10 @@ def project_boxes(corners_map: np.ndarray, pose: Pose, K: np.ndarray) -> tuple[n
 def project_points(points_map: np.ndarray, pose: Pose, K: np.ndarray,
                    D: tuple[float, ...] | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates (N, 2) of map points and whether each lies in front of the camera (N,);
-    ``D``: Brown-Conrady coefficients (k1, k2, p1, p2, k3) of a distorting lens (:func:`distort`)."""
+    ``D``: Brown-Conrady k1, k2, p1, p2, k3 of a distorting lens (``cosim.geometry.project_to_image``)."""
     p = pose.to_frame(points_map)
-    front = p[:, 2] > _NEAR_M
-    z = np.where(front, p[:, 2], 1.0)
-    xy = p[:, :2] / z[:, None]
-    if D is not None and np.any(np.asarray(D)):
-        xy = distort(xy, D)
-    uv = np.stack([K[0, 0] * xy[:, 0] + K[0, 2], K[1, 1] * xy[:, 1] + K[1, 2]], axis=1)
-    return uv, front
-
-
-def distort(xy: np.ndarray, D) -> np.ndarray:
-    """Brown-Conrady distortion of normalised image points (N, 2) (x / z, y / z), ``D`` = (k1, k2, p1,
-    p2, k3) as OpenCV and ROS ``plumb_bob`` define it."""
-    k1, k2, p1, p2, k3 = (float(v) for v in D)
-    x, y = xy[:, 0], xy[:, 1]
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    return np.stack([x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
-                     y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y], axis=1)
-
-
-def undistort(xy_d: np.ndarray, D, iterations: int = 30) -> np.ndarray:
-    """The normalised points (N, 2) that :func:`distort` takes to ``xy_d`` (fixed-point iteration)."""
-    xy = xy_d.copy()
-    for _ in range(iterations):
-        xy = xy + (xy_d - distort(xy, D))
-    return xy
+    uv, _ = project_to_image(p, K, D)
+    return uv, p[:, 2] > _NEAR_M
 
 
 @lru_cache(maxsize=16)

@@ -8,6 +8,10 @@
     sample["lidar"][i]   # (N_i, 4) float32 x, y, z, intensity of agent i, in agent i's LiDAR frame
     sample["lidar_to_ego"][i]                                    # (4, 4) ego LiDAR <- agent i's LiDAR
 
+With ``cameras=True`` also, per agent i: ``images[i]`` (one array per camera), ``intrinsics[i]`` (n, 3, 3),
+``distortions[i]`` (n, 5) Brown-Conrady D (zeros: pinhole; project points with
+``cosim.geometry.project_to_image(points_optical, K, D)``) and ``camera_to_ego[i]`` (n, 4, 4, optical frames).
+
 It is a plain sequence (``__len__``, ``__getitem__``) returning numpy arrays, so
 ``torch.utils.data.DataLoader(ds, batch_size=..., collate_fn=...)`` takes it as it is (samples hold
 lists of different lengths: give a ``collate_fn``, see examples/train_loop.py). Episodes are opened
@@ -163,13 +167,18 @@ class CooperativeDataset:
         }
 
     def _images(self, ep: Episode, tick: Any, agents: list[str], ego_from_map: np.ndarray) -> dict[str, Any]:
-        out: dict[str, Any] = {"camera_names": [], "images": [], "intrinsics": [], "camera_to_ego": []}
+        out: dict[str, Any] = {"camera_names": [], "images": [], "intrinsics": [], "distortions": [],
+                               "camera_to_ego": []}
         for a in agents:
             names = [c for c in ep.cameras(a) if f"/{a}/{c}/image" in tick]
             out["camera_names"].append(names)
             out["images"].append([tick.image(a, c).array for c in names])
-            out["intrinsics"].append(np.stack([tick.calibration(a, c).K for c in names]) if names
-                                     else np.zeros((0, 3, 3)))
+            cals = [tick.calibration(a, c) for c in names]
+            out["intrinsics"].append(np.stack([c.K for c in cals]) if names else np.zeros((0, 3, 3)))
+            # the lens of each camera (plumb_bob k1, k2, p1, p2, k3; zeros: a pinhole), as
+            # cosim.geometry.project_to_image takes it
+            out["distortions"].append(np.array([c.D if c.distorted else np.zeros(5) for c in cals],
+                                               np.float64).reshape(-1, 5))
             poses = [ego_from_map @ tick.transforms.to_root(f"{a}/{c}/optical") for c in names]
             out["camera_to_ego"].append(np.stack(poses) if poses else np.zeros((0, 4, 4)))
         return out

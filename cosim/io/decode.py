@@ -26,6 +26,7 @@ from google.protobuf.message import Message as ProtoMessage
 
 from cosim.comm.message import decode_links
 from cosim.errors import FormatError
+from cosim.geometry import has_distortion, project_to_image
 from cosim.io.points import float_view
 
 # ----------------------------------------------------------------------------------- types
@@ -107,6 +108,20 @@ class Calibration:
     P: np.ndarray
     R: np.ndarray
     D: np.ndarray
+
+    @property
+    def distorted(self) -> bool:
+        """True when the lens bends rays (a non-zero ``D``): straight lines are curves in the image."""
+        return has_distortion(self.D)
+
+    def project(self, points_optical: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates (N, 2) [u, v] of points (N, 3) in this camera's optical frame through ``K``
+        and ``D``, and whether each lies in front of the camera (N,) (``cosim.geometry.project_to_image``;
+        docs/episode_format.md 3.6)."""
+        if self.distorted and self.distortion_model != "plumb_bob":
+            raise FormatError(f"CameraCalibration in {self.frame_id!r}: distortion model {self.distortion_model!r} "
+                              f"with D = {self.D.tolist()}; cosim projects plumb_bob only")
+        return project_to_image(points_optical, self.K, self.D if self.distorted else None)
 
 
 @dataclass(frozen=True)

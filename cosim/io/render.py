@@ -5,8 +5,9 @@
   class's ``BOX_COLOURS``) when its track id appears in the camera's instance image, so what is drawn is what
   the camera sees; without an instance image every box in front of the camera is drawn. The
   agent's own box is never drawn. Projection: ``/tf`` gives map <- optical frame, the camera's
-  ``calibration`` gives K; pixel (col, row) covers u in [col, col + 1), v in [row, row + 1)
-  (docs/episode_format.md).
+  ``calibration`` gives K and the lens D (``cosim.geometry.project_to_image``; through a distorting
+  lens each edge is drawn as a curve of short pieces); pixel (col, row) covers u in [col, col + 1),
+  v in [row, row + 1) (docs/episode_format.md 3.6).
 - ``bev_t<tick>.png``: top view of the map frame: the static layout (roads, buildings... from the
   ``world.json`` attachment), every agent, every labelled box, and every agent's LiDAR points moved
   into ``map`` through ``/tf`` (coloured by semantic class when the cloud has a ``class_id`` field,
@@ -26,6 +27,7 @@ import numpy as np
 
 from cosim.classes import SEMANTIC_CLASSES, SEMANTIC_COLOURS
 from cosim.errors import CosimError
+from cosim.geometry import has_distortion, project_to_image, undistort
 from cosim.io.reader import Episode, Tick
 
 log = logging.getLogger(__name__)
@@ -50,6 +52,8 @@ BOX_COLOURS: dict[str, tuple[int, int, int]] = {
 _CORNER_SIGNS = np.array([[(i & 1) * 2 - 1, (i >> 1 & 1) * 2 - 1, (i >> 2 & 1) * 2 - 1] for i in range(8)], float)
 #: The 12 edges of a box as corner index pairs.
 BOX_EDGES = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]])
+#: Straight pieces each box edge is drawn with through a distorting lens (its image is a curve).
+LENS_EDGE_PIECES = 16
 
 
 def semantic_palette(class_table: dict[str, Any] | None = None) -> np.ndarray:
@@ -90,14 +94,21 @@ def box_corners(centers_m: np.ndarray, sizes_m: np.ndarray, rotations: np.ndarra
     return np.einsum("nij,nkj->nki", rot, local) + np.asarray(centers_m, float)[:, None, :]
 
 
-def project_box_edges(corners_map: np.ndarray, map_from_optical: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Pixel end points (N, 12, 2, 2) [u, v] of every box edge (BOX_EDGES), NaN for edges wholly behind.
+def project_box_edges(corners_map: np.ndarray, map_from_optical: np.ndarray, K: np.ndarray, D: Any = None,
+                      size_px: tuple[int, int] | None = None) -> np.ndarray:
+    """Pixel end points (N, E, 2, 2) [u, v] of the pieces of every box edge (BOX_EDGES), NaN where none.
 
     An edge crossing the plane optical z = NEAR_M is cut there, so boxes around or beside the camera
-    draw only their visible part. ``map_from_optical`` is the 4x4 ``/tf`` chain map <- optical.
+    draw only their visible part. ``map_from_optical`` is the 4x4 ``/tf`` chain map <- optical; points
+    go through the calibration's ``K`` and lens ``D`` (``cosim.geometry.project_to_image``). On a
+    pinhole E = 12, one straight piece per edge; through a distorting lens an edge's image is curved,
+    so each edge is cut into :data:`LENS_EDGE_PIECES` pieces (E = 12 x pieces, edge by edge), and with
+    ``size_px`` = (width, height) pieces outside the field the image sees are NaN (the lens polynomial
+    folds far-off rays back into the picture).
     """
+    pieces = LENS_EDGE_PIECES if has_distortion(D) else 1
     if len(corners_map) == 0:
-        return np.zeros((0, len(BOX_EDGES), 2, 2))
+        return np.zeros((0, len(BOX_EDGES) * pieces, 2, 2))
     inv = np.linalg.inv(map_from_optical)
     p = corners_map @ inv[:3, :3].T + inv[:3, 3]  # (N, 8, 3) optical: x right, y down, z forward
     a, b = p[:, BOX_EDGES[:, 0]], p[:, BOX_EDGES[:, 1]]  # (N, 12, 3)
@@ -107,8 +118,23 @@ def project_box_edges(corners_map: np.ndarray, map_from_optical: np.ndarray, K: 
     cut = a + t * (b - a)  # where the edge meets z = NEAR_M (used only for edges that cross it)
     ends = np.stack([np.where(za < NEAR_M, cut, a), np.where(zb < NEAR_M, cut, b)], axis=2)  # (N, 12, 2, 3)
     ends[(za < NEAR_M)[..., 0] & (zb < NEAR_M)[..., 0]] = np.nan
-    uv = ends[..., :2] / ends[..., 2:3]
-    return uv * np.array([K[0, 0], K[1, 1]]) + np.array([K[0, 2], K[1, 2]])
+    f = np.linspace(0.0, 1.0, pieces + 1)[None, None, :, None]
+    pts = ends[:, :, :1] + f * (ends[:, :, 1:] - ends[:, :, :1])  # (N, 12, pieces + 1, 3)
+    pts[:, :, 0], pts[:, :, -1] = ends[:, :, 0], ends[:, :, 1]
+    uv, _ = project_to_image(pts.reshape(-1, 3), K, D)
+    if pieces > 1 and size_px is not None:
+        r = np.hypot(*(pts[..., :2] / pts[..., 2:3]).reshape(-1, 2).T)
+        uv[~(r <= _lens_field_radius(K, D, *size_px))] = np.nan
+    uv = uv.reshape(*pts.shape[:3], 2)
+    return np.stack([uv[:, :, :-1], uv[:, :, 1:]], axis=3).reshape(len(p), -1, 2, 2)
+
+
+def _lens_field_radius(K: np.ndarray, D: Any, width: int, height: int) -> float:
+    """The largest normalised radius (x / z, y / z) of a ray a distorted image of ``width`` x ``height`` sees,
+    with a margin of 10 % so that edges leaving the picture are still drawn to its border."""
+    corners = np.array([[0.0, 0.0], [width, 0.0], [0.0, height], [width, height]])
+    xy_d = (corners - K[:2, 2]) / np.diag(K)[:2]
+    return 1.1 * float(np.hypot(*undistort(xy_d, np.asarray(D, np.float64)).T).max())
 
 
 def _clip_segment(p0: np.ndarray, p1: np.ndarray, w: int, h: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -178,12 +204,17 @@ def camera_with_boxes(ep: Episode, tick: Tick, agent: str, camera: str) -> np.nd
     except CosimError as exc:
         log.warning("tick %d: %s; no boxes on %s %s", tick.index, exc, agent, camera)
         return rgb
-    K = tick.calibration(agent, camera).K
+    calib = tick.calibration(agent, camera)
+    if calib.distorted and calib.distortion_model != "plumb_bob":
+        log.warning("tick %d: %s %s has lens model %r; no boxes drawn", tick.index, agent, camera,
+                    calib.distortion_model)
+        return rgb
     corners = box_corners(labels.centers_m[keep], labels.sizes_m[keep], labels.rotations[keep])
-    edges = project_box_edges(corners, map_from_optical, K)  # (N, 12, 2, 2)
+    edges = project_box_edges(corners, map_from_optical, calib.K, calib.D if calib.distorted else None,
+                              (rgb.shape[1], rgb.shape[0]))  # (N, E, 2, 2)
     colours = np.array([BOX_COLOURS.get(labels.classes[i], (255, 255, 255)) for i in np.flatnonzero(keep)])
     thickness = max(1, round(rgb.shape[1] / 320))  # about 1 px in the sheet, whatever the camera's width
-    return draw_segments(rgb, edges.reshape(-1, 2, 2), np.repeat(colours, len(BOX_EDGES), axis=0), thickness)
+    return draw_segments(rgb, edges.reshape(-1, 2, 2), np.repeat(colours, edges.shape[1], axis=0), thickness)
 
 
 def _save(fig: Any, path: Path, dpi: int) -> Path:

@@ -278,6 +278,33 @@ class CameraSpec(Model):
     distortion: tuple[float, float, float, float, float] | None = None
 
 
+def _check_lens(cam: CameraSpec) -> None:
+    """A camera's ``distortion`` must map its picture one to one onto rays (the renderer inverts it per pixel,
+    ``cosim.geometry.undistort``): over a grid of the image, undistorting converges and keeps the order of
+    pixels (a lens polynomial that folds over inside the picture is rejected)."""
+    import math
+
+    import numpy as np
+
+    from cosim.geometry import distort, undistort
+
+    if cam.distortion is None or not any(cam.distortion):
+        return
+    f = 0.5 * cam.width / math.tan(math.radians(cam.fov_deg) / 2)
+    u, v = np.meshgrid(np.linspace(-cam.width / 2, cam.width / 2, 33) / f,
+                       np.linspace(-cam.height / 2, cam.height / 2, 33) / f)
+    xy_d = np.stack([u.ravel(), v.ravel()], axis=1)
+    with np.errstate(all="ignore"):
+        xy = undistort(xy_d, cam.distortion)  # as the renderer does
+        residual = np.abs(distort(xy, cam.distortion) - xy_d).max()
+    x, y = xy[:, 0].reshape(33, 33), xy[:, 1].reshape(33, 33)
+    if not (residual < 1e-6 and (np.diff(x, axis=1) > 0).all() and (np.diff(y, axis=0) > 0).all()):
+        raise ValueError(f"camera {cam.name!r}: distortion {list(cam.distortion)} does not map its "
+                         f"{cam.width} x {cam.height} px, {cam.fov_deg:g} deg picture one to one onto rays (the "
+                         "lens polynomial folds over or cannot be inverted there): use smaller coefficients or a "
+                         "narrower fov_deg")
+
+
 class GnssSpec(Model):
     noise_m: float = Field(0.5, ge=0)
 
@@ -299,6 +326,13 @@ class RigSpec(Model):
     @classmethod
     def _unique_names(cls, cams: list[CameraSpec]) -> list[CameraSpec]:
         _unique([c.name for c in cams], "camera names must be unique within a rig")
+        return cams
+
+    @field_validator("cameras")
+    @classmethod
+    def _lenses_invertible(cls, cams: list[CameraSpec]) -> list[CameraSpec]:
+        for cam in cams:
+            _check_lens(cam)
         return cams
 
 
