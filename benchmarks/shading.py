@@ -1,6 +1,7 @@
 """Shading cost per 1280x720 camera: ``shade()`` alone on frames cast once, per weather x lighting.
 
     PYTHONPATH=. .venv/bin/python benchmarks/shading.py [--repeats 5] [--save DIR]
+    PYTHONPATH=. .venv/bin/python benchmarks/shading.py --closeups docs/img
 
 Builds the world of scenarios/default.yaml, places the actors of ``world_snapshot`` (seed 3), casts
 the front cameras of vehicle_0 and rsu_0 at 1280x720 once, then times ``shade`` on those hits
@@ -48,7 +49,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--save", type=Path)
+    ap.add_argument("--closeups", type=Path, help="write the surface detail and wet road close-ups here and exit")
     args = ap.parse_args()
+    if args.closeups:
+        closeups(args.closeups)
+        return
     with tempfile.TemporaryDirectory() as tmp:
         world = build_world(scenario("clear", "day"), Path(tmp))
     snap = world_snapshot(world, 5, 0, 60, seed=3)
@@ -90,6 +95,25 @@ def main() -> None:
               f"(vehicle front {1000 * times[0]:.1f}, rsu front {1000 * times[1]:.1f})")
     if args.save:
         (args.save / "sha256.json").write_text(json.dumps(digests, indent=1))
+
+
+def closeups(out_dir: Path) -> None:
+    """render_surface_detail.png (clear day, vehicle_0's front camera: asphalt, worn markings, paving,
+    facades, foliage, grass) and render_wet_road_night.png (rainy night: lamp and headlight reflections
+    on the wet road, lit windows), 960x540 crops of the default town."""
+    from PIL import Image
+
+    with tempfile.TemporaryDirectory() as tmp:
+        world = build_world(scenario("clear", "day"), Path(tmp))
+    snap = world_snapshot(world, 5, 0, 60, seed=3)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for (weather, lighting), name in ((("clear", "day"), "render_surface_detail.png"),
+                                      (("rainy", "night"), "render_wet_road_night.png")):
+        sc = scenario(weather, lighting).scenario
+        with SensorSuite(sc, world, encode_images=False) as suite:
+            f = suite.render(snap, np.random.default_rng(0)).agents["vehicle_0"].cameras["front"]
+        Image.fromarray(f.rgb[180:, 160:1120]).save(out_dir / name, optimize=True)
+        print(f"wrote {out_dir / name}")
 
 
 if __name__ == "__main__":

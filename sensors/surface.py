@@ -59,8 +59,9 @@ from .meshes import (
 ASPHALT_GRAIN_M = 0.04
 ASPHALT_AGGREGATE_M = 0.3
 ASPHALT_PATCH_M = 4.0
-#: mean share the repaired patches take off the asphalt's albedo (what far, filtered asphalt shows)
-ASPHALT_PATCH_MEAN = 0.03
+#: mean share repaired (darker) patches and worn (lighter) areas take off the asphalt's albedo, what far,
+#: filtered asphalt shows (negative: on average worn areas lighten it a little more)
+ASPHALT_PATCH_MEAN = -0.019
 MARKING_WEAR_M = 0.35
 PAVING_TILE_M = 0.6
 PAVING_GROOVE_M = 0.03
@@ -235,7 +236,7 @@ def _detail(m, px, py, pz, nx, ny, fp, inst, artificial):
         # repaired (darker) patches and lighter worn areas, faded to their mean far away
         n = _noise(px / ASPHALT_PATCH_M, py / ASPHALT_PATCH_M, 13)
         att = min(max(1.5 - fp / ASPHALT_PATCH_M, 0.0), 1.0)
-        patch = 0.25 * _smooth(0.62, 0.7, n) - 0.08 * _smooth(0.2, 0.35, 1.0 - n)
+        patch = 0.12 * _smooth(0.62, 0.7, n) - 0.06 * _smooth(0.2, 0.35, 1.0 - n)
         v -= ASPHALT_PATCH_MEAN + att * (patch - ASPHALT_PATCH_MEAN)
         fr = fg = fb = v
     elif m == MAT_MARKING:
