@@ -5,7 +5,8 @@
 
 Builds the world of scenarios/default.yaml, places the actors of ``world_snapshot`` (seed 3), casts
 the front cameras of vehicle_0 and rsu_0 at 1280x720 once, then times ``shade`` on those hits
-(median of ``--repeats``, after one warm-up call that also compiles any kernels) for clear day,
+(median of ``--repeats``, wall and the thread's CPU time, after one warm-up call that also compiles any
+kernels) for clear day,
 clear night, rainy dusk and rainy night. ``--save DIR`` writes the images as PNG and their sha256
 (to compare outputs before and after a change).
 """
@@ -32,12 +33,14 @@ ROOT = Path(__file__).resolve().parents[1]
 CASES = (("clear", "day"), ("clear", "night"), ("rainy", "dusk"), ("rainy", "night"))
 
 
-def scenario(weather: str, lighting: str):
+def scenario(weather: str, lighting: str, detail: bool = True):
     data = json.loads(json.dumps(load_scenario(ROOT / "scenarios" / "default.yaml").resolved))
     data["agents"]["vehicles"]["count"] = 5
     data["agents"]["rsus"]["count"] = 5
     data["agents"]["drones"] = []
     data["environment"].update({"weather": weather, "lighting": lighting})
+    if not detail:
+        data["sensors"]["surface_detail"] = False
     for kind in ("vehicle", "rsu"):
         rig = data["sensors"][kind]
         rig["lidar"] = None
@@ -49,6 +52,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--save", type=Path)
+    ap.add_argument("--no-detail", action="store_true", help="sensors.surface_detail: false")
     ap.add_argument("--closeups", type=Path, help="write the surface detail and wet road close-ups here and exit")
     args = ap.parse_args()
     if args.closeups:
@@ -60,10 +64,10 @@ def main() -> None:
     agents = {a.agent_id: a for a in snap.agents}
     digests = {}
     for weather, lighting in CASES:
-        sc = scenario(weather, lighting).scenario
+        sc = scenario(weather, lighting, not args.no_detail).scenario
         with SensorSuite(sc, world, encode_images=False, workers=1) as suite:
             tick = suite._prepare(snap)
-            times = []
+            times, cpu = [], []
             for agent_id in ("vehicle_0", "rsu_0"):
                 agent = agents[agent_id]
                 cam = sc.rig_for(agent_id).cameras[0]
@@ -78,12 +82,14 @@ def main() -> None:
                                  np.random.default_rng(0), 1, True)
 
                 rgb = once()
-                t = []
+                t, c = [], []
                 for _ in range(args.repeats):
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.thread_time()
                     once()
                     t.append(time.perf_counter() - t0)
+                    c.append(time.thread_time() - c0)
                 times.append(float(np.median(t)))
+                cpu.append(float(np.median(c)))
                 key = f"{weather}_{lighting}_{agent_id}"
                 digests[key] = hashlib.sha256(rgb.tobytes()).hexdigest()
                 if args.save:
@@ -92,7 +98,8 @@ def main() -> None:
                     args.save.mkdir(parents=True, exist_ok=True)
                     Image.fromarray(rgb).save(args.save / f"{key}.png")
         print(f"{weather:6s} {lighting:6s}: shade {1000 * np.mean(times):6.1f} ms per 1280x720 camera "
-              f"(vehicle front {1000 * times[0]:.1f}, rsu front {1000 * times[1]:.1f})")
+              f"(vehicle front {1000 * times[0]:.1f}, rsu front {1000 * times[1]:.1f}); "
+              f"CPU {1000 * np.mean(cpu):.1f} ms")
     if args.save:
         (args.save / "sha256.json").write_text(json.dumps(digests, indent=1))
 
