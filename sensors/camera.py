@@ -29,6 +29,16 @@ from . import kernels
 from .environment import Atmosphere
 from .rig import Pose
 from .scene import TickScene
+from .surface import (
+    LAMP_PROBE_PX,
+    WET_ALBEDO,
+    WET_FILM,
+    SurfaceInputs,
+    camera_emitters,
+    lamp_rects,
+    sensor_codes_kernel,
+    shade_linear,
+)
 
 #: Box edges (pairs of corner indices into the 8 corners of :func:`box_corners`).
 _EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6],
@@ -514,7 +524,8 @@ class ShadingTables:
 
     ``linear`` (2 R, 3) float32 colour under sun and sky, plus the lamps' own glow when artificial
     light is on; ``srgb`` (2 R, 3) uint8 the same after exposure and gamma; ``albedo`` (2 R, 3)
-    float32; ``albedo_lamp`` (2 R, 3) float32 albedo times the street lights' colour.
+    float32; ``albedo_lamp`` (2 R, 3) float32 albedo times the street lights' colour; ``surface``
+    the material, normal and instance per global index and the tick's point lights.
     """
 
     linear: np.ndarray
@@ -523,12 +534,15 @@ class ShadingTables:
     albedo_lamp: np.ndarray
     miss: int
     rows: int
+    surface: SurfaceInputs
 
 
 def shading_tables(lut_rgb: np.ndarray, lut_albedo: np.ndarray, lut_emissive: np.ndarray, miss: int,
-                   atm: Atmosphere, lut_rgb_shadow: np.ndarray | None = None) -> ShadingTables:
+                   atm: Atmosphere, lut_rgb_shadow: np.ndarray | None = None,
+                   surface: SurfaceInputs | None = None) -> ShadingTables:
     """Tables for :func:`shade` from per-global-index colour (miss + 1, 3) in the sun and in its
-    shadow (``lut_rgb_shadow``; default: the same), albedo and emissive rows."""
+    shadow (``lut_rgb_shadow``; default: the same), albedo and emissive rows, and the surface inputs
+    (:func:`cosim.sensors.surface.surface_inputs`; default: plain, facing up, no detail)."""
     sky = sky_table(atm)
     shadow = lut_rgb if lut_rgb_shadow is None else lut_rgb_shadow
     linear = np.concatenate([lut_rgb.astype(np.float32), sky, shadow.astype(np.float32), sky])
@@ -536,7 +550,12 @@ def shading_tables(lut_rgb: np.ndarray, lut_albedo: np.ndarray, lut_emissive: np
     if atm.artificial > 0:  # lamps glow in their own colour: a constant per triangle
         glow = np.concatenate([lut_emissive.astype(np.float32), np.zeros(len(sky), np.float32)] * 2)
         linear += albedo * (glow * np.float32(2.0 * atm.artificial))[:, None]
-    return ShadingTables(linear, to_srgb(linear, atm.exposure), albedo, albedo * LAMP_RGB, miss, len(linear) // 2)
+    if surface is None:
+        n = miss + 1
+        surface = SurfaceInputs(np.zeros(n, np.uint8), np.tile(np.float32([0, 0, 1]), (n, 1)), np.zeros(n, np.uint32),
+                                np.zeros((0, 7)), detail=False)
+    return ShadingTables(linear, to_srgb(linear, atm.exposure), albedo, albedo * LAMP_RGB, miss, len(linear) // 2,
+                         surface)
 
 
 def shade(
@@ -557,52 +576,58 @@ def shade(
     planar ``depth`` (H, W) float32 [m] and whether the sun reaches each pixel (``lit`` (H, W) bool,
     None: everywhere).
 
-    Sun and sky light come baked per triangle; adds the sky gradient, artificial light (street
-    lights and headlights from ``light``, lamps' own glow), extinction by distance towards the fog
-    colour, rain (darkening and streaks drawn from ``rng``), then the camera model
-    (:func:`sensor_codes`; its noise from ``rng`` unless ``noise`` is False).
+    Sun and sky light come baked per triangle; one compiled pass (:func:`cosim.sensors.surface.shade_linear`)
+    adds the sky gradient, procedural surface detail, wet roads under rain, artificial light (street
+    lights and headlights from ``light``, lamps' own glow, lit windows), extinction by distance towards
+    the fog colour and the rain's dimming; then rain streaks drawn from ``rng`` and the camera model
+    (:func:`sensor_codes`; its noise from ``rng`` unless ``noise`` is False) with the gamma table.
     """
     h, w = gid.shape
-    sky = gid == tables.miss
-    g = _with_sky(gid, sky, tables.miss + 1, cam, K, pose, block_px)
-    if lit is not None:
-        g = np.where(lit, g, g + np.int32(tables.rows))
-    linear_needed = (atm.artificial > 0 or atm.beta > 0 or atm.rain_rate_mm_h > 0 or cam.vignetting > 0
-                     or (noise and (cam.read_noise > 0 or cam.shot_noise > 0)))
-    if not linear_needed:
-        return np.take(tables.srgb, g, axis=0)
-    rgb = np.take(tables.linear, g, axis=0)
-    # numpy is several times slower broadcasting over a last axis of 3: per-pixel factors go to one
-    # channel at a time, per-channel constants to (H, 3 W) rows
-    wide = rgb.reshape(h, w * 3)
-    if atm.artificial > 0 and light is not None:
-        e = _street_light(light, np.where(sky, np.float32(0), depth), pixel_grid(cam, K), pose)
-        e *= np.float32(atm.artificial)
-        lit = np.take(tables.albedo_lamp, g, axis=0)
-        for c in range(3):
-            lit[..., c] *= e
-        rgb += lit
-    if atm.beta > 0:  # rgb <- fog + transmittance * (rgb - fog); the sky (depth inf) is all fog
-        if cam.distortion is not None and any(cam.distortion):
-            xg, yg = pixel_grid(cam, K)
-            trans = np.sqrt(xg * xg + yg * yg + 1).astype(np.float32) * depth
-        else:
-            trans = _ray_lengths(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])) * depth
-        trans *= np.float32(-atm.beta)
-        with np.errstate(over="ignore", invalid="ignore"):
-            np.exp(trans, out=trans)
-        fog = np.tile(atm.fog_rgb.astype(np.float32), w)
-        wide -= fog
-        for c in range(3):
-            rgb[..., c] *= trans
-        wide += fog
-    if atm.rain_rate_mm_h > 0:
-        rgb *= np.float32(0.8)
+    xg, yg = (np.broadcast_to(np.asarray(a, np.float64), (h, w)) for a in pixel_grid(cam, K))
+    surf = tables.surface
+    rot, origin = np.asarray(pose.rotation, np.float64), np.asarray(pose.position_m, np.float64)
+    lamps, rects = _NO_LAMPS, _NO_RECTS
+    if atm.wet_roads and atm.artificial > 0:
+        lamps = camera_emitters(surf.emitters, origin, rot[:, 2])
+        if len(lamps):
+            rects = lamp_rects(gid, depth, xg, yg, rot, origin, tables.miss, surf.material, surf.normal, WET_FILM,
+                               lamps, LAMP_PROBE_PX)
+    out = np.empty((h, w, 3), np.uint8)
+    rain = atm.rain_rate_mm_h > 0
+    # without rain streaks to draw in between, the camera model runs in the same pass
+    rgb = np.empty((h, w, 3), np.float32) if rain else _NO_RGB
+    model = _NO_MODEL if rain else _camera_model_inputs(cam, K, h, w, rng if noise else None)
+    values = light.values if light is not None and atm.artificial > 0 else _NO_LIGHT
+    shade_linear(
+        gid, depth, _NO_LIT if lit is None else lit, xg, yg, rot, origin, tables.linear, tables.albedo_lamp,
+        tables.rows, tables.miss, SKY_LEVELS, surf.material, surf.normal, surf.instance, surf.detail, float(K[0, 0]),
+        atm.wet_roads, WET_ALBEDO, WET_FILM, _f64(atm.sun_dir), _f64(atm.sun_rgb), _f64(atm.sky_zenith),
+        _f64(atm.sky_horizon), values, float(light.x0) if light is not None else 0.0,
+        float(light.y0) if light is not None else 0.0, float(light.res_m) if light is not None else 1.0,
+        float(atm.artificial), float(atm.beta), _f64(atm.fog_rgb), 0.8 if rain else 1.0, lamps, rects, rgb,
+        float(np.float32(atm.exposure * FULL_SCALE)), *model, out if not rain else _NO_OUT,
+    )
+    if rain:
         vv, uu, dd = rain_streaks(depth, atm.rain_rate_mm_h, float(K[0, 0]), rng)
         # nearer drops are brighter (they cover more of the pixel)
         rgb[vv, uu] = rgb[vv, uu] * np.float32(0.7) + (np.float32(0.6) / np.maximum(dd, 2.0))[:, None]
-    sensor_codes(rgb, cam, K, atm.exposure, rng if noise else None)
-    return np.take(_GAMMA_LUT, rgb.astype(np.int16))
+        _camera_model(rgb, cam, K, atm.exposure, rng if noise else None, out)
+    return out
+
+
+_NO_LIT = np.zeros((0, 0), bool)
+_NO_LIGHT = np.zeros((0, 0), np.float32)
+_NO_LAMPS = np.zeros((0, 7), np.float64)
+_NO_RECTS = np.zeros((0, 4), np.int64)
+_NO_NOISE = np.zeros((0, 0, 3), np.float32)
+_NO_VIGNETTE = np.zeros((0, 0), np.float32)
+_NO_OUT = np.zeros((0, 0, 3), np.uint8)
+_NO_RGB = np.zeros((0, 0, 3), np.float32)
+_NO_MODEL = (_NO_VIGNETTE, _NO_NOISE, 0, 0, np.zeros(4096, np.float32), _GAMMA_LUT)
+
+
+def _f64(a) -> np.ndarray:
+    return np.asarray(a, np.float64)
 
 
 #: codes of the sensor's linear output (12 bit)
@@ -643,72 +668,28 @@ def sensor_codes(rgb: np.ndarray, cam: CameraSpec, K: np.ndarray, exposure: floa
     (``cam.vignetting``), then with ``rng`` shot and read noise (``cam.shot_noise``, ``cam.read_noise``:
     std sqrt(shot x signal + read^2) in full-scale units), clipped to the sensor's 12-bit codes
     [0, FULL_SCALE]. The noise is a seeded standard normal field cut at an offset drawn from ``rng``."""
-    h, w = rgb.shape[:2]
-    rgb *= np.float32(exposure * FULL_SCALE)
-    if cam.vignetting > 0:
-        vig = _vignette(w, h, float(K[0, 2]), float(K[1, 2]), float(cam.vignetting))
-        for c in range(3):
-            rgb[..., c] *= vig
-    np.clip(rgb, 0, FULL_SCALE, out=rgb)
-    if rng is not None and (cam.read_noise > 0 or cam.shot_noise > 0):
-        oy, ox = (int(x) for x in rng.integers(0, _NOISE_PAD, 2))
-        std = np.take(_noise_std_lut(float(cam.read_noise), float(cam.shot_noise)), rgb.astype(np.int16))
-        std *= _noise_field(h, w)[oy:oy + h, ox:ox + w]
-        rgb += std
-        np.clip(rgb, 0, FULL_SCALE, out=rgb)
+    _camera_model(rgb, cam, K, exposure, rng, _NO_OUT)
     return rgb
 
 
-def _street_light(light: LightMap, depth: np.ndarray, grid: tuple[np.ndarray, np.ndarray], pose: Pose) -> np.ndarray:
-    """(H, W) float32 artificial irradiance at each pixel's surface point (``depth`` 0 for the sky):
-    the light map at its ground position, interpolated bilinearly between cell centres (no steps),
-    fading smoothly over the lowest 8 m (pools light the ground and the lower few metres of walls)."""
-    xg, yg = grid
-    xg, yg = xg.astype(np.float32), yg.astype(np.float32)
-    r = pose.rotation.astype(np.float32)
-    o = pose.position_m.astype(np.float32)  # float32 throughout (a float64 scalar would promote)
-    ny, nx = light.values.shape
-    inv = np.float32(1.0 / light.res_m)
-    # light-map column and row of the point, in cells from the first cell's centre
-    cells, fracs = [], []
-    for k, (origin, n) in enumerate(((light.x0, nx), (light.y0, ny))):
-        f = depth * ((r[k, 0] * inv) * xg + ((r[k, 1] * inv) * yg + r[k, 2] * inv))
-        f += np.float32((o[k] - origin) * inv - 0.5)
-        np.clip(f, 0, n - 1.001, out=f)
-        c = f.astype(np.int32)
-        f -= c
-        cells.append(c)
-        fracs.append(f)
-    (j, i), (fx, fy) = cells, fracs
-    i *= np.int32(nx)
-    i += j
-    v = light.values
-    e0 = np.take(v, i)
-    e0 += fx * (np.take(v, i + 1) - e0)
-    i += np.int32(nx)
-    e1 = np.take(v, i)
-    e1 += fx * (np.take(v, i + 1) - e1)
-    e1 -= e0
-    e1 *= fy
-    e0 += e1
-    pz = depth * (r[2, 0] * xg + (r[2, 1] * yg + r[2, 2]))
-    pz += o[2]
-    pz *= np.float32(1 / 8)
-    np.clip(pz, 0, 1, out=pz)
-    # 1 - smoothstep: no kink where the fade ends
-    fade = pz * pz * (np.float32(3.0) - np.float32(2.0) * pz)
-    e0 *= np.float32(1.0) - fade
-    return e0
+def _camera_model_inputs(cam: CameraSpec, K: np.ndarray, h: int, w: int, rng: np.random.Generator | None):
+    """Vignette, noise field, its offsets (drawn from ``rng``), noise std table and gamma table of a camera."""
+    vig = _NO_VIGNETTE
+    if cam.vignetting > 0:
+        vig = _vignette(w, h, float(K[0, 2]), float(K[1, 2]), float(cam.vignetting))
+    field, std, oy, ox = _NO_NOISE, _noise_std_lut(0.0, 0.0), 0, 0
+    if rng is not None and (cam.read_noise > 0 or cam.shot_noise > 0):
+        oy, ox = (int(x) for x in rng.integers(0, _NOISE_PAD, 2))
+        field, std = _noise_field(h, w), _noise_std_lut(float(cam.read_noise), float(cam.shot_noise))
+    return vig, field, oy, ox, std, _GAMMA_LUT
 
 
-@lru_cache(maxsize=16)
-def _ray_lengths(w: int, h: int, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
-    """(H, W) float32 length of each pixel's ray (x, y, 1) (planar depth -> distance); read-only."""
-    xs = ((np.arange(w) + 0.5 - cx) / fx).astype(np.float32)
-    ys = ((np.arange(h) + 0.5 - cy) / fy).astype(np.float32)
-    out = np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + np.float32(1.0))
-    out.flags.writeable = False
-    return out
+def _camera_model(rgb: np.ndarray, cam: CameraSpec, K: np.ndarray, exposure: float,
+                  rng: np.random.Generator | None, out: np.ndarray) -> None:
+    """:func:`sensor_codes`, and with ``out`` (H, W, 3) uint8 (not empty) its sRGB codes (gamma table)."""
+    h, w = rgb.shape[:2]
+    sensor_codes_kernel(rgb, float(np.float32(exposure * FULL_SCALE)), *_camera_model_inputs(cam, K, h, w, rng), out)
+
 
 #: [m] nearest and farthest rain streak the cameras draw
 RAIN_NEAR_M, RAIN_FAR_M = 1.0, 25.0

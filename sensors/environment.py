@@ -4,6 +4,8 @@ Fog follows Koschmieder's law: extinction ``beta = 3.0 / visibility`` [1/m] (5 %
 visibility distance); light and laser pulses travel through it with transmittance ``exp(-beta d)``
 (two-way for LiDAR). Rain adds a weaker extinction ``beta_rain = 0.00045 * rate^0.63`` [1/m]
 (rate in mm/h), LiDAR dropout, range noise and spurious near returns, and darkens the cameras.
+Under rain the roads are wet (``Atmosphere.wet_roads``): the cameras draw them darker and glossy
+(:mod:`cosim.sensors.surface`), with the constants below.
 """
 
 from __future__ import annotations
@@ -19,6 +21,23 @@ from cosim.scenario.model import EnvironmentSpec
 DEFAULT_FOG_VISIBILITY_M = 100.0
 DEFAULT_RAIN_RATE_MM_H = 10.0
 CLEAR_VISIBILITY_M = 20_000.0
+
+#: Wet surfaces under rain: diffuse albedo factor of a wet road (water fills the asphalt's pores:
+#: about half as bright), of wet lane paint and of wet paving and roofs.
+WET_ROAD_ALBEDO = 0.55
+WET_MARKING_ALBEDO = 0.8
+WET_PAVING_ALBEDO = 0.7
+#: Water film on a wet road: Fresnel reflectance at normal incidence (water, Schlick's approximation),
+#: Blinn-Phong exponent of its specular lobe (a rough film: highlights stretch towards the camera), and
+#: the share of the road the film covers on paving and roofs (roads 1).
+WET_F0 = 0.02
+WET_SHININESS = 120.0
+WET_FILM_PAVING = 0.5
+#: [linear] radiance of a lit window at night (times the lighting's artificial level), warm white
+WINDOW_RGB = (1.0, 0.78, 0.5)
+WINDOW_RADIANCE = 0.35
+#: share of windows lit at night
+LIT_WINDOW_FRACTION = 0.35
 
 
 @dataclass(frozen=True)
@@ -37,6 +56,7 @@ class Atmosphere:
     fog_rgb: np.ndarray  # (3,) colour that distant things fade to
     artificial: float  # 0..1 how strongly street lights and headlights shine (night 1, dusk 0.5)
     exposure: float  # camera gain
+    wet_roads: bool = False  # rain: roads darker and glossy (WET_* constants)
 
     @property
     def casts_shadows(self) -> bool:
@@ -114,5 +134,5 @@ def atmosphere(env: EnvironmentSpec, seed: int | None = None) -> Atmosphere:
         rain = env.rain_rate_mm_h
     return Atmosphere(
         env.weather, env.lighting, float(visibility), float(rain), sun_dir, v(sun, np.float64),
-        v(amb, np.float64), v(zen, np.float64), v(hor, np.float64), v(fog, np.float64), art, expo,
+        v(amb, np.float64), v(zen, np.float64), v(hor, np.float64), v(fog, np.float64), art, expo, rain > 0,
     )

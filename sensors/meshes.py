@@ -6,7 +6,9 @@ Every mesh carries one row per triangle of labels and material:
 - ``instance`` (T,) uint32: track id for actors, ``Prism.instance_id`` for static things (0 = stuff);
 - ``albedo`` (T, 3) float32 in [0, 1]: diffuse colour;
 - ``reflectivity`` (T,) float32 in [0, 1]: LiDAR reflectivity at normal incidence;
-- ``emissive`` (T,) float32 >= 0: self-luminance at night (lamp heads, headlights, tail lights).
+- ``emissive`` (T,) float32 >= 0: self-luminance at night (lamp heads, headlights, tail lights);
+- ``material`` (T,) uint8 (derived, :func:`material_kinds`): which procedural surface detail the
+  cameras draw on the triangle (:mod:`cosim.sensors.surface`).
 
 Vertices are float32 metres in ``map`` (static) or in the actor's body frame FLU, box-centred
 (templates); triangles are wound counter-clockwise seen from outside (normals point out).
@@ -18,6 +20,7 @@ import math
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -63,6 +66,11 @@ class TriMesh:
         ])
         _, face = np.unique(key, axis=0, return_inverse=True)
         return face.astype(np.int32).ravel()
+
+    @cached_property
+    def material(self) -> np.ndarray:
+        """Surface material kind (T,) uint8 (:func:`material_kinds`), computed once per mesh."""
+        return material_kinds(self.semantic, self.normals())
 
     def normals(self) -> np.ndarray:
         """Unit face normals (T, 3) float32 from the winding (outward)."""
@@ -264,6 +272,26 @@ _PAINTS = np.array(
     [(0.75, 0.75, 0.78), (0.08, 0.08, 0.09), (0.55, 0.05, 0.05), (0.10, 0.20, 0.45), (0.85, 0.85, 0.85),
      (0.35, 0.36, 0.38), (0.70, 0.55, 0.15), (0.15, 0.35, 0.20)], np.float32,
 )
+
+
+#: Surface material kinds (per triangle, :attr:`TriMesh.material`): the procedural detail the cameras
+#: draw (:mod:`cosim.sensors.surface`). Plain: none (poles, actors...).
+MAT_PLAIN, MAT_ASPHALT, MAT_MARKING, MAT_PAVING, MAT_FACADE, MAT_ROOF, MAT_FOLIAGE, MAT_GRASS = range(8)
+MATERIAL_KINDS = ("plain", "asphalt", "marking", "paving", "facade", "roof", "foliage", "grass")
+_MATERIAL_OF_CLASS = {"road": MAT_ASPHALT, "lane_marking": MAT_MARKING, "sidewalk": MAT_PAVING,
+                      "building": MAT_FACADE, "vegetation": MAT_FOLIAGE, "terrain": MAT_GRASS}
+
+
+def material_kinds(semantic: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Material kind (T,) uint8 of triangles from their semantic class and unit normal: roads are
+    asphalt, lane markings paint, sidewalks paving, buildings facade on their walls and roof on faces
+    turned up (normal z > 0.5), vegetation foliage, terrain grass; anything else plain."""
+    table = np.zeros(256, np.uint8)
+    for cls, kind in _MATERIAL_OF_CLASS.items():
+        table[SEMANTIC_ID[cls]] = kind
+    out = table[np.asarray(semantic, np.uint8)]
+    out[(out == MAT_FACADE) & (np.asarray(normals)[:, 2] > 0.5)] = MAT_ROOF
+    return out
 
 
 def _hash01(value: int, salt: int) -> float:

@@ -204,6 +204,7 @@ class TickScene:
             "normal": self.table(self.static.normals, a.normals(), (0.0, 0.0, 1.0)),
             "albedo": self.table(self.static.mesh.albedo, a.albedo, (0.0, 0.0, 0.0)),
             "emissive": self.table(self.static.mesh.emissive, a.emissive, 0.0),
+            "material": self.table(self.static.mesh.material, a.material, 0),
             "face": self.table(self.static.faces, a.faces() + (int(self.static.faces.max(initial=-1)) + 1), -1),
         }
 

@@ -48,6 +48,7 @@ from .lidar import LidarFrame, render_lidar
 from .meshes import is_lamp, static_mesh
 from .rig import camera_pose, intrinsics, projection, sensor_pose
 from .scene import StaticHits, StaticScene, TickScene
+from .surface import surface_inputs
 from .visibility import VisibilityFrame, render_visibility
 
 log = logging.getLogger(__name__)
@@ -317,7 +318,8 @@ class SensorSuite:
         rgb = scene.table(self._static_rgb, _shaded(scene.actors.albedo, n_act, self.atm), (0.0, 0.0, 0.0))
         rgb_shadow = scene.table(self._static_rgb_shadow, _shaded(scene.actors.albedo, n_act, self.atm, sun=False),
                                  (0.0, 0.0, 0.0))
-        tables = shading_tables(rgb, lut["albedo"], lut["emissive"], scene.miss, self.atm, rgb_shadow)
+        tables = shading_tables(rgb, lut["albedo"], lut["emissive"], scene.miss, self.atm, rgb_shadow,
+                                surface_inputs(scene, self.scenario.sensors.surface_detail))
         light = _add_headlights(self._light, snapshot.actors) if self._light is not None else None
         actors = snapshot.actors
         if actors:

@@ -82,7 +82,8 @@ def _down_camera_scenario(lighting: str, seed: int = 3, **cam) -> Scenario:
     down = CameraSpec(name="down", fov_deg=90.0, mount=Mount(xyz_m=(0.0, 0.0, 20.0), rpy_deg=(0.0, 90.0, 0.0)), **cam)
     return Scenario(name="t", seed=seed, environment={"lighting": lighting},
                     agents=AgentsSpec(vehicles=VehicleAgents(count=1), rsus=RsuAgents(count=0), drones=[]),
-                    sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=[down], gnss=None, imu=None)))
+                    sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=[down], gnss=None, imu=None),
+                                        surface_detail=False))  # flat surfaces: the light alone is measured
 
 
 def _ego_snapshot():

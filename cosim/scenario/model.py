@@ -407,6 +407,9 @@ class SensorsSpec(Model):
     render_processes: int | None = Field(0, ge=0, le=16)
     # cameras trace the sun's shadows by day and dusk (about 1.7x the rays of a frame); false: no sun shadows
     sun_shadows: bool = True
+    # cameras draw procedural surface detail (asphalt grain, worn markings, window grids, lit windows at
+    # night, vegetation and terrain variation); false: flat colour per surface
+    surface_detail: bool = True
 
     @model_validator(mode="before")
     @classmethod
