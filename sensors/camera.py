@@ -492,31 +492,6 @@ def sky_table(atm: Atmosphere) -> np.ndarray:
     return (atm.sky_horizon * (1 - k) + atm.sky_zenith * k).astype(np.float32)
 
 
-def _sky_grid(cam: CameraSpec, K: np.ndarray, s: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """Optical x (1 or H / s, W / s) and y (H / s, 1 or W / s) of the ray through the centre of each
-    block of ``s`` px, and the block size used (``s``, or 1 when it does not divide the image)."""
-    h, w = cam.height, cam.width
-    s = s if s > 1 and h % s == 0 and w % s == 0 else 1
-    if s == 1:
-        xg, yg = pixel_grid(cam, K)
-    else:
-        xg = ((np.arange(0, w, s) + 0.5 * s - K[0, 2]) / K[0, 0])[None, :]
-        yg = ((np.arange(0, h, s) + 0.5 * s - K[1, 2]) / K[1, 1])[:, None]
-    return xg, yg, s
-
-
-def _with_sky(gid: np.ndarray, sky: np.ndarray, first_level: int, cam: CameraSpec, K: np.ndarray, pose: Pose,
-              s: int) -> np.ndarray:
-    """``gid`` (H, W) int32 with the ``sky`` pixels set to ``first_level`` + their sky level (from the
-    elevation of the ray through the centre of their block of ``s`` px, :func:`_sky_grid`; only at
-    sky pixels): a new array, or ``gid`` itself without sky."""
-    if not sky.any():
-        return gid
-    xg, yg, s = _sky_grid(cam, K, s)
-    return kernels.with_sky(gid, sky, np.int32(first_level), xg, yg, np.ascontiguousarray(pose.rotation[2]), s,
-                            SKY_LEVELS)
-
-
 @dataclass(frozen=True)
 class ShadingTables:
     """Per global triangle index (rows 0..miss-1), then ``miss`` (unused), then the sky levels: R

@@ -233,29 +233,6 @@ def copy_mixed(mixed, G, T, S, gid, depth, lit, with_lit):
 
 
 @_jit
-def with_sky(gid, sky, first_level, xg, yg, rz, s, levels):
-    """``gid`` (H, W) with its ``sky`` pixels set to ``first_level`` + the sky level of the ray elevation
-    at the centre of their block of ``s`` px (optical x ``xg`` (1 or H / s, W / s), y ``yg`` (H / s,
-    1 or W / s), ``rz`` the rotation's last row): a new array."""
-    h, w = gid.shape
-    out = gid.copy()
-    xrow = xg.shape[0] > 1
-    ycol = yg.shape[1] > 1
-    top = np.float64(levels - 1)
-    for i in range(h):
-        bi = i // s
-        for j in range(w):
-            if not sky[i, j]:
-                continue
-            bj = j // s
-            x = xg[bi if xrow else 0, bj]
-            y = yg[bi, bj if ycol else 0]
-            dz = (rz[0] * x + rz[1] * y + rz[2]) / np.sqrt(x * x + y * y + 1)
-            out[i, j] = np.int32(min(max(dz * top + 0.5, 0.0), top)) + first_level
-    return out
-
-
-@_jit
 def gather(index, table):
     """``table[index]`` for an (H, W) index image (one pass, no bounds wrap: indices are valid)."""
     out = np.empty(index.shape, table.dtype)
