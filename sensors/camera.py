@@ -568,10 +568,15 @@ def shade(
             rects = lamp_rects(gid, depth, xg, yg, rot, origin, tables.miss, surf.material, surf.normal, WET_FILM,
                                lamps, LAMP_PROBE_PX)
     out = np.empty((h, w, 3), np.uint8)
+    streaks = _NO_STREAKS
     rain = atm.rain_rate_mm_h > 0
-    # without rain streaks to draw in between, the camera model runs in the same pass
-    rgb = np.empty((h, w, 3), np.float32) if rain else _NO_RGB
-    model = _NO_MODEL if rain else _camera_model_inputs(cam, K, h, w, rng if noise else None)
+    if rain:
+        # what each streak pixel adds (nearer drops are brighter: they cover more of the pixel); where
+        # streaks cross, the last one drawn counts
+        vv, uu, dd = rain_streaks(depth, atm.rain_rate_mm_h, float(K[0, 0]), rng)
+        streaks = np.full((h, w), -1.0, np.float32)
+        streaks[vv, uu] = np.float32(0.6) / np.maximum(dd, np.float32(2.0))
+    model = _camera_model_inputs(cam, K, h, w, rng if noise else None)
     values = light.values if light is not None and atm.artificial > 0 else _NO_LIGHT
     shade_linear(
         gid, depth, _NO_LIT if lit is None else lit, xg, yg, rot, origin, tables.linear, tables.albedo_lamp,
@@ -579,14 +584,9 @@ def shade(
         atm.wet_roads, WET_ALBEDO, WET_FILM, _f64(atm.sun_dir), _f64(atm.sun_rgb), _f64(atm.sky_zenith),
         _f64(atm.sky_horizon), values, float(light.x0) if light is not None else 0.0,
         float(light.y0) if light is not None else 0.0, float(light.res_m) if light is not None else 1.0,
-        float(atm.artificial), float(atm.beta), _f64(atm.fog_rgb), 0.8 if rain else 1.0, lamps, rects, rgb,
-        float(np.float32(atm.exposure * FULL_SCALE)), *model, out if not rain else _NO_OUT,
+        float(atm.artificial), float(atm.beta), _f64(atm.fog_rgb), 0.8 if rain else 1.0, lamps, rects,
+        streaks, _NO_RGB, float(np.float32(atm.exposure * FULL_SCALE)), *model, out,
     )
-    if rain:
-        vv, uu, dd = rain_streaks(depth, atm.rain_rate_mm_h, float(K[0, 0]), rng)
-        # nearer drops are brighter (they cover more of the pixel)
-        rgb[vv, uu] = rgb[vv, uu] * np.float32(0.7) + (np.float32(0.6) / np.maximum(dd, 2.0))[:, None]
-        _camera_model(rgb, cam, K, atm.exposure, rng if noise else None, out)
     return out
 
 
@@ -598,7 +598,7 @@ _NO_NOISE = np.zeros((0, 0, 3), np.float32)
 _NO_VIGNETTE = np.zeros((0, 0), np.float32)
 _NO_OUT = np.zeros((0, 0, 3), np.uint8)
 _NO_RGB = np.zeros((0, 0, 3), np.float32)
-_NO_MODEL = (_NO_VIGNETTE, _NO_NOISE, 0, 0, np.zeros(4096, np.float32), _GAMMA_LUT)
+_NO_STREAKS = np.zeros((0, 0), np.float32)
 
 
 def _f64(a) -> np.ndarray:
