@@ -35,7 +35,7 @@ from .surface import (
     WET_FILM,
     SurfaceInputs,
     camera_emitters,
-    lamp_rects,
+    lamp_spans,
     sensor_codes_kernel,
     shade_linear,
 )
@@ -561,11 +561,11 @@ def shade(
     xg, yg = (np.broadcast_to(np.asarray(a, np.float64), (h, w)) for a in pixel_grid(cam, K))
     surf = tables.surface
     rot, origin = np.asarray(pose.rotation, np.float64), np.asarray(pose.position_m, np.float64)
-    lamps, rects = _NO_LAMPS, _NO_RECTS
+    lamps, spans = _NO_LAMPS, _NO_SPANS
     if atm.wet_roads and atm.artificial > 0:
         lamps = camera_emitters(surf.emitters, origin, rot[:, 2])
         if len(lamps):
-            rects = lamp_rects(gid, depth, xg, yg, rot, origin, tables.miss, surf.material, surf.normal, WET_FILM,
+            spans = lamp_spans(gid, depth, xg, yg, rot, origin, tables.miss, surf.material, surf.normal, WET_FILM,
                                lamps, LAMP_PROBE_PX)
     out = np.empty((h, w, 3), np.uint8)
     streaks = _NO_STREAKS
@@ -584,7 +584,7 @@ def shade(
         atm.wet_roads, WET_ALBEDO, WET_FILM, _f64(atm.sun_dir), _f64(atm.sun_rgb), _f64(atm.sky_zenith),
         _f64(atm.sky_horizon), values, float(light.x0) if light is not None else 0.0,
         float(light.y0) if light is not None else 0.0, float(light.res_m) if light is not None else 1.0,
-        float(atm.artificial), float(atm.beta), _f64(atm.fog_rgb), 0.8 if rain else 1.0, lamps, rects,
+        float(atm.artificial), float(atm.beta), _f64(atm.fog_rgb), 0.8 if rain else 1.0, lamps, spans,
         streaks, _NO_RGB, float(np.float32(atm.exposure * FULL_SCALE)), *model, out,
     )
     return out
@@ -593,7 +593,7 @@ def shade(
 _NO_LIT = np.zeros((0, 0), bool)
 _NO_LIGHT = np.zeros((0, 0), np.float32)
 _NO_LAMPS = np.zeros((0, 7), np.float64)
-_NO_RECTS = np.zeros((0, 4), np.int64)
+_NO_SPANS = np.zeros((0, 0, 2), np.int32)
 _NO_NOISE = np.zeros((0, 0, 3), np.float32)
 _NO_VIGNETTE = np.zeros((0, 0), np.float32)
 _NO_OUT = np.zeros((0, 0, 3), np.uint8)

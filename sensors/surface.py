@@ -154,7 +154,7 @@ def camera_emitters(all_emitters: np.ndarray, position: np.ndarray, forward: np.
 
 #: [m] lamps this close to a camera are its own vehicle's (not reflected in its image)
 OWN_LAMPS_M = 3.5
-#: [px] lamp reflections are looked for on a grid of this pitch (:func:`lamp_rects`)
+#: [px] lamp reflections are looked for on a grid of this pitch (:func:`lamp_spans`)
 LAMP_PROBE_PX = 4
 
 
@@ -309,18 +309,21 @@ def _detail(m, px, py, pz, nx, ny, fp, inst, artificial):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def lamp_rects(g, depth, xg, yg, rot, origin, miss, material, normal, wet_film, lamps, stride):
-    """Image rectangle (E, 4) int64 (row0, row1, col0, col1, inclusive; empty when row0 > row1) where
-    each lamp's specular lobe on a wet surface may reach: probed every ``stride`` pixels, padded by a
-    pitch (the lobe is smooth over a few pixels)."""
+def lamp_spans(g, depth, xg, yg, rot, origin, miss, material, normal, wet_film, lamps, stride):
+    """Column span (E, H, 2) int32 (first, last, inclusive; empty when first > last) of each image row
+    where each lamp's specular lobe on a wet surface may reach: probed every ``stride`` pixels, each
+    probe inside the lobe covering the pixels up to a pitch away (the lobe is smooth over a few pixels).
+    Per row rather than one rectangle per lamp: a reflection's streak runs slanted across the image."""
     h, w = g.shape
     n = lamps.shape[0]
-    out = np.empty((n, 4), np.int64)
-    out[:, 0] = h
-    out[:, 1] = -1
-    out[:, 2] = w
-    out[:, 3] = -1
+    out = np.empty((n, h, 2), np.int32)
+    out[:, :, 0] = w
+    out[:, :, 1] = -1
     cos_cut = math.exp(math.log(_LOBE_CUT) / WET_SHININESS)
+    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+    o0, o1, o2 = origin[0], origin[1], origin[2]
     for i in range(stride // 2, h, stride):
         for j in range(stride // 2, w, stride):
             gi = g[i, j]
@@ -328,12 +331,12 @@ def lamp_rects(g, depth, xg, yg, rot, origin, miss, material, normal, wet_film, 
             if gi >= miss or not d < np.inf or normal[gi, 2] <= 0.7 or wet_film[material[gi]] <= 0.0:
                 continue
             x, y = xg[i, j], yg[i, j]
-            dx = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2]
-            dy = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2]
-            dz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2]
-            ray = math.sqrt(x * x + y * y + 1.0)
-            px, py, pz = origin[0] + d * dx, origin[1] + d * dy, origin[2] + d * dz
-            vx, vy, vz = -dx / ray, -dy / ray, -dz / ray
+            dx = r00 * x + r01 * y + r02
+            dy = r10 * x + r11 * y + r12
+            dz = r20 * x + r21 * y + r22
+            inv_ray = 1.0 / math.sqrt(x * x + y * y + 1.0)
+            px, py, pz = o0 + d * dx, o1 + d * dy, o2 + d * dz
+            vx, vy, vz = -dx * inv_ray, -dy * inv_ray, -dz * inv_ray
             nx, ny, nz = normal[gi, 0], normal[gi, 1], normal[gi, 2]
             for q in range(n):
                 lx, ly, lz = lamps[q, 0] - px, lamps[q, 1] - py, lamps[q, 2] - pz
@@ -341,10 +344,9 @@ def lamp_rects(g, depth, xg, yg, rot, origin, miss, material, normal, wet_film, 
                 hx, hy, hz = lx * inv + vx, ly * inv + vy, lz * inv + vz
                 hn = math.sqrt(hx * hx + hy * hy + hz * hz)
                 if hn > 1e-9 and (nx * hx + ny * hy + nz * hz) >= cos_cut * hn:
-                    out[q, 0] = min(out[q, 0], i - stride)
-                    out[q, 1] = max(out[q, 1], i + stride)
-                    out[q, 2] = min(out[q, 2], j - stride)
-                    out[q, 3] = max(out[q, 3], j + stride)
+                    for ii in range(max(i - stride, 0), min(i + stride + 1, h)):
+                        out[q, ii, 0] = min(out[q, ii, 0], j - stride)
+                        out[q, ii, 1] = max(out[q, ii, 1], j + stride)
     return out
 
 
@@ -363,7 +365,7 @@ def _pow_int(x, n):
 @njit(cache=True, nogil=True, error_model="numpy")
 def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, miss, sky_levels, material, normal,
                  instance, detail, fx_px, wet, wet_albedo, wet_film, sun_dir, sun_rgb, sky_zenith, sky_horizon,
-                 light, light_x0, light_y0, light_res, artificial, beta, fog_rgb, dim, lamps, rects, streaks, out,
+                 light, light_x0, light_y0, light_res, artificial, beta, fog_rgb, dim, lamps, spans, streaks, out,
                  scale, vignette, noise, oy, ox, std_lut, gamma, out8):
     """Linear colour ``out`` (H, W, 3) float32 of every pixel (see the module docstring), or with
     ``out8`` (H, W, 3) uint8 (not empty) its sRGB codes through the camera model
@@ -375,7 +377,7 @@ def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, 
     ray x, y at z = 1; ``rot`` (3, 3), ``origin`` (3,) the camera pose; ``linear``, ``albedo_lamp``
     (2 rows, 3) the shading tables (sun, then shadow); ``material``, ``normal``, ``instance`` per
     global index; ``light`` (ny, nx) the light map or (0, 0); ``lamps`` (E, 7) point lights and
-    ``rects`` (E, 4) where each may be reflected (:func:`lamp_rects`); ``streaks`` (H, W) float32 the
+    ``spans`` (E, H, 2) where each may be reflected (:func:`lamp_spans`); ``streaks`` (H, W) float32 the
     light a rain streak adds where it covers the pixel (which keeps 0.7 of its own; negative: no
     streak), or (0, 0)."""
     h, w = g.shape
@@ -403,12 +405,12 @@ def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, 
     zen_r, zen_g, zen_b = sky_zenith[0], sky_zenith[1], sky_zenith[2]
     sun_x, sun_y, sun_z = sun_dir[0], sun_dir[1], sun_dir[2]
     sun_r, sun_g, sun_b = sun_rgb[0], sun_rgb[1], sun_rgb[2]
-    # lamps whose rectangle holds the current row
+    # lamps whose lobe may reach the current row
     active = np.empty(max(n_lamps, 1), np.int64)
     for i in range(h):
         n_active = 0
         for q in range(n_lamps):
-            if rects[q, 0] <= i <= rects[q, 1]:
+            if spans[q, i, 0] <= spans[q, i, 1]:
                 active[n_active] = q
                 n_active += 1
         for j in range(w):
@@ -477,7 +479,7 @@ def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, 
                     for src in range(n_sources):
                         if src < n_active:
                             q = active[src]
-                            if j < rects[q, 2] or j > rects[q, 3]:
+                            if j < spans[q, i, 0] or j > spans[q, i, 1]:
                                 continue
                             lx, ly, lz = lamps[q, 0] - px, lamps[q, 1] - py, lamps[q, 2] - pz
                             d2 = lx * lx + ly * ly + lz * lz
