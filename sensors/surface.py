@@ -230,10 +230,11 @@ def _smooth(e0, e1, x):
     return t * t * (3.0 - 2.0 * t)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _detail(m, px, py, pz, nx, ny, fp, inst, artificial):
     """Albedo factor (r, g, b) and emitted radiance (r, g, b) of material ``m`` at map point (px, py,
-    pz) with unit normal (nx, ny) (horizontal part) and footprint ``fp`` [m]."""
+    pz) with unit normal (nx, ny) (horizontal part) and footprint ``fp`` [m]. (Inlined into the pixel
+    loop: a call returning six floats costs ~15 % of a clear-day image.)"""
     fr = fg = fb = 1.0
     er = eg = eb = 0.0
     if m == MAT_ASPHALT:
