@@ -566,7 +566,7 @@ def shade(
         lamps = camera_emitters(surf.emitters, origin, rot[:, 2])
         if len(lamps):
             spans = lamp_spans(gid, depth, xg, yg, rot, origin, tables.miss, surf.material, surf.normal, WET_FILM,
-                               lamps, LAMP_PROBE_PX)
+                               lamps, float(atm.artificial), LAMP_PROBE_PX)
     out = np.empty((h, w, 3), np.uint8)
     streaks = _NO_STREAKS
     rain = atm.rain_rate_mm_h > 0

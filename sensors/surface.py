@@ -84,9 +84,11 @@ WET_FILM = np.zeros(8, np.float64)
 WET_FILM[[MAT_ASPHALT, MAT_MARKING, MAT_PAVING, MAT_ROOF]] = (1.0, 0.7, WET_FILM_PAVING, WET_FILM_PAVING)
 #: the Blinn-Phong exponent as an integer (the lobe is computed by repeated squaring)
 _SHININESS = int(WET_SHININESS)
-assert _SHININESS == WET_SHININESS, "WET_SHININESS must be a whole number"
-#: the specular lobe of a lamp is not evaluated below this fraction of its peak
+assert _SHININESS == WET_SHININESS and _SHININESS % 2 == 0, "WET_SHININESS must be an even whole number"
+#: the specular lobe of a lamp is not evaluated below this fraction of its peak, nor below this linear
+#: radiance (a 12-bit sensor code is 2.4e-4 at exposure 1; the read noise is larger)
 _LOBE_CUT = 1e-3
+_LOBE_FLOOR = 1e-4
 
 # emitter columns (:func:`emitters`)
 EMITTER_COLUMNS = ("x_m", "y_m", "z_m", "intensity", "r", "g", "b")
@@ -309,18 +311,32 @@ def _detail(m, px, py, pz, nx, ny, fp, inst, artificial):
     return fr, fg, fb, er, eg, eb
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _pow_int(x, n):
+    """x ** n for an integer n >= 1 by repeated squaring (exp(n log x) costs several times more)."""
+    out = 1.0
+    while n > 0:
+        if n & 1:
+            out *= x
+        x *= x
+        n >>= 1
+    return out
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
-def lamp_spans(g, depth, xg, yg, rot, origin, miss, material, normal, wet_film, lamps, stride):
+def lamp_spans(g, depth, xg, yg, rot, origin, miss, material, normal, wet_film, lamps, artificial, stride):
     """Column span (E, H, 2) int32 (first, last, inclusive; empty when first > last) of each image row
-    where each lamp's specular lobe on a wet surface may reach: probed every ``stride`` pixels, each
-    probe inside the lobe covering the pixels up to a pitch away (the lobe is smooth over a few pixels).
-    Per row rather than one rectangle per lamp: a reflection's streak runs slanted across the image."""
+    where each lamp's specular lobe on a wet surface may reach (above ``_LOBE_CUT`` of its peak and
+    above ``_LOBE_FLOOR`` absolute): probed every ``stride`` pixels, each probe inside the lobe covering
+    the pixels up to a pitch away (the lobe is smooth over a few pixels). Per row rather than one
+    rectangle per lamp: a reflection's streak runs slanted across the image."""
     h, w = g.shape
     n = lamps.shape[0]
     out = np.empty((n, h, 2), np.int32)
     out[:, :, 0] = w
     out[:, :, 1] = -1
     cos_cut = math.exp(math.log(_LOBE_CUT) / WET_SHININESS)
+    lobe_norm = (WET_SHININESS + 8.0) / 8.0
     r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
     r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
     r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
@@ -341,25 +357,19 @@ def lamp_spans(g, depth, xg, yg, rot, origin, miss, material, normal, wet_film, 
             nx, ny, nz = normal[gi, 0], normal[gi, 1], normal[gi, 2]
             for q in range(n):
                 lx, ly, lz = lamps[q, 0] - px, lamps[q, 1] - py, lamps[q, 2] - pz
-                inv = 1.0 / math.sqrt(lx * lx + ly * ly + lz * lz + 1e-12)
+                d2 = lx * lx + ly * ly + lz * lz + 1e-12
+                inv = 1.0 / math.sqrt(d2)
                 hx, hy, hz = lx * inv + vx, ly * inv + vy, lz * inv + vz
                 hn = math.sqrt(hx * hx + hy * hy + hz * hz)
-                if hn > 1e-9 and (nx * hx + ny * hy + nz * hz) >= cos_cut * hn:
+                if hn <= 1e-9:
+                    continue
+                ndh = (nx * hx + ny * hy + nz * hz) / hn
+                # the lobe's bound (Fresnel, film and n.l at most 1): a far or weak lamp's faint tail is left out
+                peak = lobe_norm * lamps[q, 3] * artificial / d2
+                if ndh >= cos_cut and peak * _pow_int(ndh, _SHININESS) >= _LOBE_FLOOR:
                     for ii in range(max(i - stride, 0), min(i + stride + 1, h)):
                         out[q, ii, 0] = min(out[q, ii, 0], j - stride)
                         out[q, ii, 1] = max(out[q, ii, 1], j + stride)
-    return out
-
-
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _pow_int(x, n):
-    """x ** n for an integer n >= 1 by repeated squaring (exp(n log x) costs several times more)."""
-    out = 1.0
-    while n > 0:
-        if n & 1:
-            out *= x
-        x *= x
-        n >>= 1
     return out
 
 
@@ -395,6 +405,7 @@ def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, 
     shin = WET_SHININESS
     lobe_norm = (shin + 8.0) / 8.0
     cos_cut = math.exp(math.log(_LOBE_CUT) / shin)
+    cos_cut2 = cos_cut * cos_cut
     # the pose and colours as scalars: loads from arrays in the pixel loop are not hoisted (the output
     # might alias them as far as the compiler knows)
     r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
@@ -497,17 +508,17 @@ def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, 
                         ndl = nxx * lx + nyy * ly + nzz * lz
                         if ndl <= 0.0:
                             continue
+                        # half vector h = l + v: n.h / |h| >= cos_cut tested squared (no root), and
+                        # v.h / |h| = |h| / 2 (v, l unit), so one division and one root, side by side
                         hx, hy, hz = lx + vx, ly + vy, lz + vz
                         hn2 = hx * hx + hy * hy + hz * hz
-                        if hn2 < 1e-18:
+                        nh = nxx * hx + nyy * hy + nzz * hz
+                        if nh <= 0.0 or nh * nh < cos_cut2 * hn2 or hn2 < 1e-18:
                             continue
-                        inv_hn = 1.0 / math.sqrt(hn2)
-                        ndh = (nxx * hx + nyy * hy + nzz * hz) * inv_hn
-                        if ndh < cos_cut:
-                            continue
-                        vdh = max((vx * hx + vy * hy + vz * hz) * inv_hn, 0.0)
+                        ndh2 = nh * nh / hn2
+                        vdh = min(0.5 * math.sqrt(hn2), 1.0)
                         fres = WET_F0 + (1.0 - WET_F0) * _pow_int(1.0 - vdh, 5)
-                        s = film * fres * lobe_norm * _pow_int(ndh, _SHININESS) * irr * ndl
+                        s = film * fres * lobe_norm * _pow_int(ndh2, _SHININESS // 2) * irr * ndl
                         r += s * cr
                         gr += s * cg
                         b += s * cb
