@@ -336,6 +336,7 @@ def lamp_spans(g, depth, xg, yg, rot, origin, miss, material, normal, wet_film, 
     out[:, :, 0] = w
     out[:, :, 1] = -1
     cos_cut = math.exp(math.log(_LOBE_CUT) / WET_SHININESS)
+    cos_cut2 = cos_cut * cos_cut
     lobe_norm = (WET_SHININESS + 8.0) / 8.0
     r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
     r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
@@ -360,13 +361,13 @@ def lamp_spans(g, depth, xg, yg, rot, origin, miss, material, normal, wet_film, 
                 d2 = lx * lx + ly * ly + lz * lz + 1e-12
                 inv = 1.0 / math.sqrt(d2)
                 hx, hy, hz = lx * inv + vx, ly * inv + vy, lz * inv + vz
-                hn = math.sqrt(hx * hx + hy * hy + hz * hz)
-                if hn <= 1e-9:
+                hn2 = hx * hx + hy * hy + hz * hz
+                nh = nx * hx + ny * hy + nz * hz
+                if nh <= 0.0 or nh * nh < cos_cut2 * hn2:
                     continue
-                ndh = (nx * hx + ny * hy + nz * hz) / hn
                 # the lobe's bound (Fresnel, film and n.l at most 1): a far or weak lamp's faint tail is left out
-                peak = lobe_norm * lamps[q, 3] * artificial / d2
-                if ndh >= cos_cut and peak * _pow_int(ndh, _SHININESS) >= _LOBE_FLOOR:
+                peak = lobe_norm * lamps[q, 3] * artificial * inv * inv
+                if peak * _pow_int(nh * nh / hn2, _SHININESS // 2) >= _LOBE_FLOOR:
                     for ii in range(max(i - stride, 0), min(i + stride + 1, h)):
                         out[q, ii, 0] = min(out[q, ii, 0], j - stride)
                         out[q, ii, 1] = max(out[q, ii, 1], j + stride)
