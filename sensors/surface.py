@@ -323,6 +323,27 @@ def _pow_int(x, n):
     return out
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _lobe(nx, ny, nz, vx, vy, vz, lx, ly, lz, cos_cut2):
+    """Specular reflection of a unit irradiance from unit direction (lx, ly, lz) towards the unit view
+    direction (vx, vy, vz) on a water film with unit normal (nx, ny, nz): normalised Blinn-Phong
+    (``WET_SHININESS``) x Schlick Fresnel x n.l, 0 where n.h is below ``sqrt(cos_cut2)``. With the half
+    vector h = l + v, the cut is tested squared (no root) and v.h / |h| = |h| / 2 (v, l unit): one
+    division and one root, side by side."""
+    ndl = nx * lx + ny * ly + nz * lz
+    if ndl <= 0.0:
+        return 0.0
+    hx, hy, hz = lx + vx, ly + vy, lz + vz
+    hn2 = hx * hx + hy * hy + hz * hz
+    nh = nx * hx + ny * hy + nz * hz
+    if nh <= 0.0 or nh * nh < cos_cut2 * hn2 or hn2 < 1e-18:
+        return 0.0
+    ndh2 = nh * nh / hn2
+    vdh = min(0.5 * math.sqrt(hn2), 1.0)
+    fres = WET_F0 + (1.0 - WET_F0) * _pow_int(1.0 - vdh, 5)
+    return fres * ((WET_SHININESS + 8.0) / 8.0) * _pow_int(ndh2, _SHININESS // 2) * ndl
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def lamp_spans(g, depth, xg, yg, rot, origin, miss, material, normal, wet_film, lamps, artificial, stride):
     """Column span (E, H, 2) int32 (first, last, inclusive; empty when first > last) of each image row
@@ -403,9 +424,7 @@ def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, 
     ny, nx = light.shape
     n_lamps = lamps.shape[0] if artificial > 0.0 else 0
     inv_res = 1.0 / light_res
-    shin = WET_SHININESS
-    lobe_norm = (shin + 8.0) / 8.0
-    cos_cut = math.exp(math.log(_LOBE_CUT) / shin)
+    cos_cut = math.exp(math.log(_LOBE_CUT) / WET_SHININESS)
     cos_cut2 = cos_cut * cos_cut
     # the pose and colours as scalars: loads from arrays in the pixel loop are not hoisted (the output
     # might alias them as far as the compiler knows)
@@ -418,14 +437,58 @@ def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, 
     zen_r, zen_g, zen_b = sky_zenith[0], sky_zenith[1], sky_zenith[2]
     sun_x, sun_y, sun_z = sun_dir[0], sun_dir[1], sun_dir[2]
     sun_r, sun_g, sun_b = sun_rgb[0], sun_rgb[1], sun_rgb[2]
-    # lamps whose lobe may reach the current row
-    active = np.empty(max(n_lamps, 1), np.int64)
+    # per row, the lamps' reflections summed over their spans (a pass of their own: checking each
+    # lamp's span at each pixel cost as much as evaluating the lobes)
+    acc_r = np.zeros(w, np.float64)
+    acc_g = np.zeros(w, np.float64)
+    acc_b = np.zeros(w, np.float64)
     for i in range(h):
-        n_active = 0
+        j_lo, j_hi = w, -1
         for q in range(n_lamps):
-            if spans[q, i, 0] <= spans[q, i, 1]:
-                active[n_active] = q
-                n_active += 1
+            j0, j1 = max(spans[q, i, 0], 0), min(spans[q, i, 1], w - 1)
+            if j0 > j1:
+                continue
+            if j_hi < j_lo:
+                j_lo, j_hi = j0, j1
+                acc_r[j0:j1 + 1] = 0.0
+                acc_g[j0:j1 + 1] = 0.0
+                acc_b[j0:j1 + 1] = 0.0
+            else:
+                for j in range(j0, j_lo):
+                    acc_r[j] = acc_g[j] = acc_b[j] = 0.0
+                for j in range(j_hi + 1, j1 + 1):
+                    acc_r[j] = acc_g[j] = acc_b[j] = 0.0
+                j_lo, j_hi = min(j_lo, j0), max(j_hi, j1)
+            lamp_x, lamp_y, lamp_z = lamps[q, 0], lamps[q, 1], lamps[q, 2]
+            power = lamps[q, 3] * artificial
+            cr, cg, cb = lamps[q, 4], lamps[q, 5], lamps[q, 6]
+            for j in range(j0, j1 + 1):
+                gi = g[i, j]
+                d = depth[i, j]
+                if gi == miss or not d < np.inf or not wet:
+                    continue
+                nxx, nyy, nzz = normal[gi, 0], normal[gi, 1], normal[gi, 2]
+                film = wet_film[material[gi]]
+                if nzz <= 0.7 or film <= 0.0:
+                    continue
+                x, y = xg[i, j], yg[i, j]
+                dx = r00 * x + r01 * y + r02
+                dy = r10 * x + r11 * y + r12
+                dz = r20 * x + r21 * y + r22
+                inv_ray = 1.0 / math.sqrt(x * x + y * y + 1.0)
+                vx, vy, vz = -dx * inv_ray, -dy * inv_ray, -dz * inv_ray
+                if nxx * vx + nyy * vy + nzz * vz <= 0.0:
+                    continue
+                lx, ly, lz = lamp_x - (o0 + d * dx), lamp_y - (o1 + d * dy), lamp_z - (o2 + d * dz)
+                d2 = lx * lx + ly * ly + lz * lz
+                if d2 < 0.25:
+                    continue
+                inv = 1.0 / math.sqrt(d2)
+                s = film * power * (inv * inv) * _lobe(nxx, nyy, nzz, vx, vy, vz, lx * inv, ly * inv, lz * inv,
+                                                       cos_cut2)
+                acc_r[j] += s * cr
+                acc_g[j] += s * cg
+                acc_b[j] += s * cb
         for j in range(w):
             gi = g[i, j]
             x, y = xg[i, j], yg[i, j]
@@ -488,41 +551,15 @@ def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, 
                     r += s * (hor_r * (1.0 - k) + zen_r * k)
                     gr += s * (hor_g * (1.0 - k) + zen_g * k)
                     b += s * (hor_b * (1.0 - k) + zen_b * k)
-                    n_sources = n_active + (0 if shadow else 1)
-                    for src in range(n_sources):
-                        if src < n_active:
-                            q = active[src]
-                            if j < spans[q, i, 0] or j > spans[q, i, 1]:
-                                continue
-                            lx, ly, lz = lamps[q, 0] - px, lamps[q, 1] - py, lamps[q, 2] - pz
-                            d2 = lx * lx + ly * ly + lz * lz
-                            if d2 < 0.25:
-                                continue
-                            inv = 1.0 / math.sqrt(d2)
-                            lx, ly, lz = lx * inv, ly * inv, lz * inv
-                            irr = lamps[q, 3] * (inv * inv) * artificial
-                            cr, cg, cb = lamps[q, 4], lamps[q, 5], lamps[q, 6]
-                        else:
-                            lx, ly, lz = sun_x, sun_y, sun_z
-                            irr = 1.0
-                            cr, cg, cb = sun_r, sun_g, sun_b
-                        ndl = nxx * lx + nyy * ly + nzz * lz
-                        if ndl <= 0.0:
-                            continue
-                        # half vector h = l + v: n.h / |h| >= cos_cut tested squared (no root), and
-                        # v.h / |h| = |h| / 2 (v, l unit), so one division and one root, side by side
-                        hx, hy, hz = lx + vx, ly + vy, lz + vz
-                        hn2 = hx * hx + hy * hy + hz * hz
-                        nh = nxx * hx + nyy * hy + nzz * hz
-                        if nh <= 0.0 or nh * nh < cos_cut2 * hn2 or hn2 < 1e-18:
-                            continue
-                        ndh2 = nh * nh / hn2
-                        vdh = min(0.5 * math.sqrt(hn2), 1.0)
-                        fres = WET_F0 + (1.0 - WET_F0) * _pow_int(1.0 - vdh, 5)
-                        s = film * fres * lobe_norm * _pow_int(ndh2, _SHININESS // 2) * irr * ndl
-                        r += s * cr
-                        gr += s * cg
-                        b += s * cb
+                    if j_lo <= j <= j_hi:
+                        r += acc_r[j]
+                        gr += acc_g[j]
+                        b += acc_b[j]
+                    if not shadow:
+                        s = film * _lobe(nxx, nyy, nzz, vx, vy, vz, sun_x, sun_y, sun_z, cos_cut2)
+                        r += s * sun_r
+                        gr += s * sun_g
+                        b += s * sun_b
                 if beta > 0.0:
                     t = math.exp(-beta * dist)
                     r = fog_r + t * (r - fog_r)
