@@ -554,8 +554,9 @@ def shade(
     Sun and sky light come baked per triangle; one compiled pass (:func:`cosim.sensors.surface.shade_linear`)
     adds the sky gradient, procedural surface detail, wet roads under rain, artificial light (street
     lights and headlights from ``light``, lamps' own glow, lit windows), extinction by distance towards
-    the fog colour and the rain's dimming; then rain streaks drawn from ``rng`` and the camera model
-    (:func:`sensor_codes`; its noise from ``rng`` unless ``noise`` is False) with the gamma table.
+    the fog colour, the rain's dimming and its streaks (drawn from ``rng`` first), and the camera model
+    (:func:`sensor_codes`'s; its noise offsets from ``rng`` next, unless ``noise`` is False) with the
+    gamma table.
     """
     h, w = gid.shape
     xg, yg = (np.broadcast_to(np.asarray(a, np.float64), (h, w)) for a in pixel_grid(cam, K))
