@@ -25,8 +25,8 @@ its material (:attr:`cosim.sensors.meshes.TriMesh.material`), then
 Kernels are compiled lazily and cached on disk (``cache=True``) and release the GIL (``nogil=True``),
 so render threads run them side by side with Open3D casting; each pixel is computed on its own (the
 lamps' reflections row by row), so results do not depend on threads. Arithmetic is IEEE float64 without
-``fastmath`` (which would let the compiler reorder and fuse operations by the CPU it runs on, about 10 %
-faster): the same inputs give the same bytes on any x86-64 machine with the same libm.
+``fastmath`` (which would let the compiler reorder and fuse operations by the CPU it runs on, for a
+few per cent): the same inputs give the same bytes on any x86-64 machine with the same libm.
 """
 
 from __future__ import annotations
