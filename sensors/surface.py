@@ -328,6 +328,16 @@ def _pow_int(x, n):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _view_ray(x, y, r00, r01, r02, r10, r11, r12, r20, r21, r22):
+    """Map direction (dx, dy, dz) of the optical-frame ray (x, y, 1) (rotation rows r0*, r1*, r2*) and the
+    reciprocal of its length."""
+    dx = r00 * x + r01 * y + r02
+    dy = r10 * x + r11 * y + r12
+    dz = r20 * x + r21 * y + r22
+    return dx, dy, dz, 1.0 / math.sqrt(x * x + y * y + 1.0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _lobe(nx, ny, nz, vx, vy, vz, lx, ly, lz, cos_cut2):
     """Specular reflection of a unit irradiance from unit direction (lx, ly, lz) towards the unit view
     direction (vx, vy, vz) on a water film with unit normal (nx, ny, nz): normalised Blinn-Phong
@@ -373,11 +383,7 @@ def lamp_spans(g, depth, xg, yg, rot, origin, miss, material, normal, wet_film, 
             d = depth[i, j]
             if gi >= miss or not d < np.inf or normal[gi, 2] <= 0.7 or wet_film[material[gi]] <= 0.0:
                 continue
-            x, y = xg[i, j], yg[i, j]
-            dx = r00 * x + r01 * y + r02
-            dy = r10 * x + r11 * y + r12
-            dz = r20 * x + r21 * y + r22
-            inv_ray = 1.0 / math.sqrt(x * x + y * y + 1.0)
+            dx, dy, dz, inv_ray = _view_ray(xg[i, j], yg[i, j], r00, r01, r02, r10, r11, r12, r20, r21, r22)
             px, py, pz = o0 + d * dx, o1 + d * dy, o2 + d * dz
             vx, vy, vz = -dx * inv_ray, -dy * inv_ray, -dz * inv_ray
             nx, ny, nz = normal[gi, 0], normal[gi, 1], normal[gi, 2]
@@ -475,11 +481,7 @@ def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, 
                 film = wet_film[material[gi]]
                 if nzz <= 0.7 or film <= 0.0:
                     continue
-                x, y = xg[i, j], yg[i, j]
-                dx = r00 * x + r01 * y + r02
-                dy = r10 * x + r11 * y + r12
-                dz = r20 * x + r21 * y + r22
-                inv_ray = 1.0 / math.sqrt(x * x + y * y + 1.0)
+                dx, dy, dz, inv_ray = _view_ray(xg[i, j], yg[i, j], r00, r01, r02, r10, r11, r12, r20, r21, r22)
                 vx, vy, vz = -dx * inv_ray, -dy * inv_ray, -dz * inv_ray
                 if nxx * vx + nyy * vy + nzz * vz <= 0.0:
                     continue
