@@ -51,6 +51,8 @@ from cosim.world.build import build_world
 
 log = logging.getLogger("bench")
 ROOT = Path(__file__).resolve().parents[1]
+#: [s] wall time per full-rig frame in an episode that issue 14 asks for on a 2-core machine
+FRAME_TARGET_S = 1.0
 
 
 def paper_rig_scenario(path: Path, compression: str | None = None, lidar: dict | None = None,
@@ -300,7 +302,8 @@ def run(args) -> None:
         print(f"per frame: sequential {seq:.2f} s (mean over {len(snaps)} snapshots: render, then encode, then "
               f"write); pipelined {pipe:.2f} s (runs {pipe_a:.2f}, {pipe_b:.2f}; episodes of {len(episode)} frames, "
               f"writing overlaps the next render, as in cosim run); bare casting {bare:.2f} s")
-        line = f"RESULT frame time {pipe:.2f} s: frame/bare = {pipe / bare:.2f} (target <= 1.3)"
+        line = (f"RESULT frame time {pipe:.2f} s (target <= {FRAME_TARGET_S:.1f} s on 2 cores): frame/bare = "
+                f"{pipe / bare:.2f} (target <= 1.3)")
         extra = f"sequential: {seq / bare:.2f}"
         if not args.no_pybullet:
             pb = float(np.mean([r[2][0] for r in refs]))

@@ -179,6 +179,37 @@ def test_an_image_without_calibration_is_named(tmp_path):
     assert {p.tick for p in found} == {0, 1, 2} and all(p.topic == "/drone_0/down/image" for p in found)
 
 
+def _lens(model, D):
+    def edit(k, topic, msg):
+        if topic == "/drone_0/down/calibration" and k == 1:
+            msg = copy.deepcopy(msg)
+            msg.distortion_model = model
+            del msg.D[:]
+            msg.D.extend(D)
+        return msg
+
+    return edit
+
+
+@pytest.mark.parametrize(
+    ("model", "D", "words"),
+    [
+        ("plumb_bob", [-0.1, 0.01, 0, 0, float("nan")], "is not finite"),
+        ("equidistant", [-0.1, 0.01, 0, 0], "a distorted lens is plumb_bob with 5 coefficients"),
+        ("plumb_bob", [-0.1, 0.01, 0], "a distorted lens is plumb_bob with 5 coefficients"),
+    ],
+)
+def test_a_lens_cosim_cannot_project_is_named(tmp_path, model, D, words):
+    path = write_synthetic_episode(tmp_path / "lens.mcap", ticks=3, edit=_lens(model, D))
+    found = _only(validate_episode(path), "calibration")
+    assert [(p.tick, p.topic) for p in found] == [(1, "/drone_0/down/image")] and words in found[0].message
+
+
+def test_a_distorted_plumb_bob_lens_is_valid(tmp_path):
+    path = write_synthetic_episode(tmp_path / "lens.mcap", ticks=3, edit=_lens("plumb_bob", [-0.1, 0.01, 0, 0, 0]))
+    assert validate_episode(path).ok
+
+
 def test_an_unknown_format_version_is_named(tmp_path, capsys):
     path = write_synthetic_episode(tmp_path / "v9.mcap", ticks=2, sensors=False, metadata={"format_version": "9.1"})
     found = _only(validate_episode(path), "metadata")

@@ -16,7 +16,8 @@ file yields a problem report, never an exception. Checks:
   LiDAR point, instance pixel and visibility entry refers to a track alive at that tick;
 - transforms: ``/tf`` forms one tree rooted at ``map`` (one parent per frame, no cycle), every
   agent has ``<agent>/base_link`` and every message's frame id is in the tree;
-- calibration: every image has a calibration on the same tick, same frame, same size;
+- calibration: every image has a calibration on the same tick, same frame, same size, finite
+  intrinsics, and a lens that is a pinhole or ``plumb_bob`` with 5 coefficients;
 - sensors: LiDAR point records have the fields and types of section 3.4, depth images the encoding
   of section 3.5 (and, with pixels, only NaN or finite distances >= 0);
 - comm: ``/comm/links`` decodes (columns of one length, known link types and LOS states, finite
@@ -61,6 +62,7 @@ from mcap.stream_reader import StreamReader, get_chunk_data_stream
 from cosim.classes import OBJECT_CLASSES
 from cosim.comm.message import decode_links
 from cosim.errors import CosimError, FormatError, InputError
+from cosim.geometry import has_distortion
 from cosim.io.decode import PROTO_DECODERS, TransformTree, decode_transforms, parse_json, parse_proto
 from cosim.io.format import (
     LABEL_TOPICS,
@@ -775,6 +777,15 @@ class _Validator:
                 tick,
                 topic,
             )
+        K, D = np.asarray(calib.K, np.float64), np.asarray(calib.D, np.float64)
+        if not (K.size == 9 and np.isfinite(K).all() and K[0] > 0 and K[4] > 0):
+            self.problem("calibration", f"intrinsics K = {K.tolist()} are not a pinhole camera's "
+                         "(9 finite values, fx > 0, fy > 0)", tick, topic)
+        if not np.isfinite(D).all():
+            self.problem("calibration", f"lens D = {D.tolist()} is not finite", tick, topic)
+        elif has_distortion(D) and (calib.distortion_model != "plumb_bob" or D.size != 5):
+            self.problem("calibration", f"lens model {calib.distortion_model!r} with D = {D.tolist()}: a distorted "
+                         "lens is plumb_bob with 5 coefficients (k1, k2, p1, p2, k3)", tick, topic)
 
     def check_chunk_index(self) -> None:
         """The summary's chunk index must point at the chunks really in the file (seeking readers use it)."""
