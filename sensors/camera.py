@@ -35,7 +35,7 @@ from .surface import (
     WET_FILM,
     SurfaceInputs,
     camera_emitters,
-    lamp_rects,
+    lamp_spans,
     sensor_codes_kernel,
     shade_linear,
 )
@@ -554,24 +554,30 @@ def shade(
     Sun and sky light come baked per triangle; one compiled pass (:func:`cosim.sensors.surface.shade_linear`)
     adds the sky gradient, procedural surface detail, wet roads under rain, artificial light (street
     lights and headlights from ``light``, lamps' own glow, lit windows), extinction by distance towards
-    the fog colour and the rain's dimming; then rain streaks drawn from ``rng`` and the camera model
-    (:func:`sensor_codes`; its noise from ``rng`` unless ``noise`` is False) with the gamma table.
+    the fog colour, the rain's dimming and its streaks (drawn from ``rng`` first), and the camera model
+    (:func:`sensor_codes`'s; its noise offsets from ``rng`` next, unless ``noise`` is False) with the
+    gamma table.
     """
     h, w = gid.shape
     xg, yg = (np.broadcast_to(np.asarray(a, np.float64), (h, w)) for a in pixel_grid(cam, K))
     surf = tables.surface
     rot, origin = np.asarray(pose.rotation, np.float64), np.asarray(pose.position_m, np.float64)
-    lamps, rects = _NO_LAMPS, _NO_RECTS
+    lamps, spans = _NO_LAMPS, _NO_SPANS
     if atm.wet_roads and atm.artificial > 0:
         lamps = camera_emitters(surf.emitters, origin, rot[:, 2])
         if len(lamps):
-            rects = lamp_rects(gid, depth, xg, yg, rot, origin, tables.miss, surf.material, surf.normal, WET_FILM,
-                               lamps, LAMP_PROBE_PX)
+            spans = lamp_spans(gid, depth, xg, yg, rot, origin, tables.miss, surf.material, surf.normal, WET_FILM,
+                               lamps, float(atm.artificial), LAMP_PROBE_PX)
     out = np.empty((h, w, 3), np.uint8)
+    streaks = _NO_STREAKS
     rain = atm.rain_rate_mm_h > 0
-    # without rain streaks to draw in between, the camera model runs in the same pass
-    rgb = np.empty((h, w, 3), np.float32) if rain else _NO_RGB
-    model = _NO_MODEL if rain else _camera_model_inputs(cam, K, h, w, rng if noise else None)
+    if rain:
+        # what each streak pixel adds (nearer drops are brighter: they cover more of the pixel); where
+        # streaks cross, the last one drawn counts
+        vv, uu, dd = rain_streaks(depth, atm.rain_rate_mm_h, float(K[0, 0]), rng)
+        streaks = np.full((h, w), -1.0, np.float32)
+        streaks[vv, uu] = np.float32(0.6) / np.maximum(dd, np.float32(2.0))
+    model = _camera_model_inputs(cam, K, h, w, rng if noise else None)
     values = light.values if light is not None and atm.artificial > 0 else _NO_LIGHT
     shade_linear(
         gid, depth, _NO_LIT if lit is None else lit, xg, yg, rot, origin, tables.linear, tables.albedo_lamp,
@@ -579,26 +585,21 @@ def shade(
         atm.wet_roads, WET_ALBEDO, WET_FILM, _f64(atm.sun_dir), _f64(atm.sun_rgb), _f64(atm.sky_zenith),
         _f64(atm.sky_horizon), values, float(light.x0) if light is not None else 0.0,
         float(light.y0) if light is not None else 0.0, float(light.res_m) if light is not None else 1.0,
-        float(atm.artificial), float(atm.beta), _f64(atm.fog_rgb), 0.8 if rain else 1.0, lamps, rects, rgb,
-        float(np.float32(atm.exposure * FULL_SCALE)), *model, out if not rain else _NO_OUT,
+        float(atm.artificial), float(atm.beta), _f64(atm.fog_rgb), 0.8 if rain else 1.0, lamps, spans,
+        streaks, _NO_RGB, float(np.float32(atm.exposure * FULL_SCALE)), *model, out,
     )
-    if rain:
-        vv, uu, dd = rain_streaks(depth, atm.rain_rate_mm_h, float(K[0, 0]), rng)
-        # nearer drops are brighter (they cover more of the pixel)
-        rgb[vv, uu] = rgb[vv, uu] * np.float32(0.7) + (np.float32(0.6) / np.maximum(dd, 2.0))[:, None]
-        _camera_model(rgb, cam, K, atm.exposure, rng if noise else None, out)
     return out
 
 
 _NO_LIT = np.zeros((0, 0), bool)
 _NO_LIGHT = np.zeros((0, 0), np.float32)
 _NO_LAMPS = np.zeros((0, 7), np.float64)
-_NO_RECTS = np.zeros((0, 4), np.int64)
+_NO_SPANS = np.zeros((0, 0, 2), np.int32)
 _NO_NOISE = np.zeros((0, 0, 3), np.float32)
 _NO_VIGNETTE = np.zeros((0, 0), np.float32)
 _NO_OUT = np.zeros((0, 0, 3), np.uint8)
 _NO_RGB = np.zeros((0, 0, 3), np.float32)
-_NO_MODEL = (_NO_VIGNETTE, _NO_NOISE, 0, 0, np.zeros(4096, np.float32), _GAMMA_LUT)
+_NO_STREAKS = np.zeros((0, 0), np.float32)
 
 
 def _f64(a) -> np.ndarray:

@@ -15,14 +15,18 @@ its material (:attr:`cosim.sensors.meshes.TriMesh.material`), then
 - **wet roads** under rain (:attr:`Atmosphere.wet_roads`): roads, markings, paving and roofs facing up
   are darker (``WET_*_ALBEDO``) and carry a water film: Fresnel (Schlick, ``WET_F0``) reflection of the
   sky, a Blinn-Phong lobe (``WET_SHININESS``) towards the sun where it reaches the surface and towards
-  every street lamp and vehicle lamp nearby (:func:`emitters`) at dusk and night;
-- the street lights' and headlights' irradiance from the light map, extinction towards the fog colour
-  and the rain's dimming.
+  every street lamp and vehicle lamp nearby (:func:`emitters`) at dusk and night, each only within the
+  column spans per image row a coarse probe grid finds its lobe in (:func:`lamp_spans`);
+- the street lights' and headlights' irradiance from the light map, extinction towards the fog colour,
+  the rain's dimming and its streaks (drawn beforehand into a map of the light they add);
+- the camera model (exposure, vignetting, seeded shot and read noise, 12-bit clipping) and the gamma
+  table (:func:`sensor_codes_kernel` alone applies them to a given linear image).
 
-:func:`sensor_codes_kernel` then applies the camera model (exposure, vignetting, seeded shot and read
-noise, 12-bit clipping) and the gamma table in one more pass. Kernels are compiled lazily and cached
-on disk (``cache=True``) and release the GIL (``nogil=True``), so render threads run them side by
-side with Open3D casting; each pixel is computed on its own, so results do not depend on threads.
+Kernels are compiled lazily and cached on disk (``cache=True``) and release the GIL (``nogil=True``),
+so render threads run them side by side with Open3D casting; each pixel is computed on its own (the
+lamps' reflections row by row), so results do not depend on threads. Arithmetic is IEEE float64 without
+``fastmath`` (which would let the compiler reorder and fuse operations by the CPU it runs on, for a
+few per cent): the same inputs give the same bytes on any x86-64 machine with the same libm.
 """
 
 from __future__ import annotations
@@ -82,8 +86,13 @@ WET_ALBEDO[[MAT_ASPHALT, MAT_MARKING, MAT_PAVING, MAT_ROOF]] = (WET_ROAD_ALBEDO,
                                                                WET_PAVING_ALBEDO, WET_PAVING_ALBEDO)
 WET_FILM = np.zeros(8, np.float64)
 WET_FILM[[MAT_ASPHALT, MAT_MARKING, MAT_PAVING, MAT_ROOF]] = (1.0, 0.7, WET_FILM_PAVING, WET_FILM_PAVING)
-#: the specular lobe of a lamp is not evaluated below this fraction of its peak
+#: the Blinn-Phong exponent as an integer (the lobe is computed by repeated squaring)
+_SHININESS = int(WET_SHININESS)
+assert _SHININESS == WET_SHININESS and _SHININESS % 2 == 0, "WET_SHININESS must be an even whole number"
+#: the specular lobe of a lamp is not evaluated below this fraction of its peak, nor below this linear
+#: radiance (a 12-bit sensor code is 2.4e-4 at exposure 1; the read noise is larger)
 _LOBE_CUT = 1e-3
+_LOBE_FLOOR = 1e-4
 
 # emitter columns (:func:`emitters`)
 EMITTER_COLUMNS = ("x_m", "y_m", "z_m", "intensity", "r", "g", "b")
@@ -151,7 +160,7 @@ def camera_emitters(all_emitters: np.ndarray, position: np.ndarray, forward: np.
 
 #: [m] lamps this close to a camera are its own vehicle's (not reflected in its image)
 OWN_LAMPS_M = 3.5
-#: [px] lamp reflections are looked for on a grid of this pitch (:func:`lamp_rects`)
+#: [px] lamp reflections are looked for on a grid of this pitch (:func:`lamp_spans`)
 LAMP_PROBE_PX = 4
 
 
@@ -191,15 +200,16 @@ def _noise(x, y, salt):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _octave(x, y, cell, fp, salt):
-    """Zero-mean noise in [-1, 1] of feature size ``cell`` [m] at (x, y) [m], faded out as the
-    footprint ``fp`` [m] grows from half a cell to 1.5 cells (0 beyond: nothing to alias)."""
-    att = 1.5 - fp / cell
+def _octave(x, y, inv_cell, fp, salt):
+    """Zero-mean noise in [-1, 1] of feature size 1 / ``inv_cell`` [m] at (x, y) [m], faded out as the
+    footprint ``fp`` [m] grows from half a cell to 1.5 cells (0 beyond: nothing to alias). (Reciprocals
+    of sizes throughout the kernels: a multiplication costs a fraction of a division.)"""
+    att = 1.5 - fp * inv_cell
     if att <= 0.0:
         return 0.0
     if att > 1.0:
         att = 1.0
-    return att * (2.0 * _noise(x / cell, y / cell, salt) - 1.0)
+    return att * (2.0 * _noise(x * inv_cell, y * inv_cell, salt) - 1.0)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -211,67 +221,73 @@ def _pulse_integral(x, a, w):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _pulse(x, fw, a, w):
-    """The pulse train of :func:`_pulse_integral` box-filtered over width ``fw`` (periods) about x."""
+def _pulse(x, fw, inv_fw, a, w):
+    """The pulse train of :func:`_pulse_integral` box-filtered over width ``fw`` (periods, 1 / ``inv_fw``)
+    about x."""
     if fw < 1e-4:
         r = x - math.floor(x)
         return 1.0 if a <= r < a + w else 0.0
-    return (_pulse_integral(x + 0.5 * fw, a, w) - _pulse_integral(x - 0.5 * fw, a, w)) / fw
+    return (_pulse_integral(x + 0.5 * fw, a, w) - _pulse_integral(x - 0.5 * fw, a, w)) * inv_fw
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _smooth(e0, e1, x):
-    t = min(max((x - e0) / (e1 - e0), 0.0), 1.0)
+    t = min(max((x - e0) * (1.0 / (e1 - e0)), 0.0), 1.0)
     return t * t * (3.0 - 2.0 * t)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _detail(m, px, py, pz, nx, ny, fp, inst, artificial):
     """Albedo factor (r, g, b) and emitted radiance (r, g, b) of material ``m`` at map point (px, py,
-    pz) with unit normal (nx, ny) (horizontal part) and footprint ``fp`` [m]."""
+    pz) with unit normal (nx, ny) (horizontal part) and footprint ``fp`` [m]. (Inlined into the pixel
+    loop: a call returning six floats costs ~15 % of a clear-day image.)"""
     fr = fg = fb = 1.0
     er = eg = eb = 0.0
     if m == MAT_ASPHALT:
-        v = 1.0 + 0.22 * _octave(px, py, ASPHALT_GRAIN_M, fp, 11) + 0.10 * _octave(px, py, ASPHALT_AGGREGATE_M, fp, 12)
+        v = (1.0 + 0.22 * _octave(px, py, 1.0 / ASPHALT_GRAIN_M, fp, 11)
+             + 0.10 * _octave(px, py, 1.0 / ASPHALT_AGGREGATE_M, fp, 12))
         # repaired (darker) patches and lighter worn areas, faded to their mean far away
-        n = _noise(px / ASPHALT_PATCH_M, py / ASPHALT_PATCH_M, 13)
-        att = min(max(1.5 - fp / ASPHALT_PATCH_M, 0.0), 1.0)
+        n = _noise(px * (1.0 / ASPHALT_PATCH_M), py * (1.0 / ASPHALT_PATCH_M), 13)
+        att = min(max(1.5 - fp * (1.0 / ASPHALT_PATCH_M), 0.0), 1.0)
         patch = 0.12 * _smooth(0.62, 0.7, n) - 0.06 * _smooth(0.2, 0.35, 1.0 - n)
         v -= ASPHALT_PATCH_MEAN + att * (patch - ASPHALT_PATCH_MEAN)
         fr = fg = fb = v
     elif m == MAT_MARKING:
         # worn paint shows the asphalt (about 0.2 of the paint's albedo) in blotches
-        att = min(max(1.5 - fp / MARKING_WEAR_M, 0.0), 1.0)
-        n = _noise(px / MARKING_WEAR_M, py / MARKING_WEAR_M, 21)
+        att = min(max(1.5 - fp * (1.0 / MARKING_WEAR_M), 0.0), 1.0)
+        n = _noise(px * (1.0 / MARKING_WEAR_M), py * (1.0 / MARKING_WEAR_M), 21)
         wear = 0.7 * _smooth(0.55, 0.8, n)
         wear = 0.06 + att * (wear - 0.06)
-        v = 1.0 - wear * 0.8 + 0.08 * _octave(px, py, ASPHALT_GRAIN_M, fp, 22)
+        v = 1.0 - wear * 0.8 + 0.08 * _octave(px, py, 1.0 / ASPHALT_GRAIN_M, fp, 22)
         fr = fg = fb = v
     elif m == MAT_PAVING:
-        fw = fp / PAVING_TILE_M
+        fw = fp * (1.0 / PAVING_TILE_M)
+        inv_fw = PAVING_TILE_M / fp
         a = PAVING_GROOVE_M / PAVING_TILE_M
-        gx = _pulse(px / PAVING_TILE_M, fw, 0.0, a)
-        gy = _pulse(py / PAVING_TILE_M, fw, 0.0, a)
+        tx, ty = px * (1.0 / PAVING_TILE_M), py * (1.0 / PAVING_TILE_M)
+        gx = _pulse(tx, fw, inv_fw, 0.0, a)
+        gy = _pulse(ty, fw, inv_fw, 0.0, a)
         groove = 1.0 - (1.0 - gx) * (1.0 - gy)
         att = min(max(1.5 - fw, 0.0), 1.0)
-        tile = att * 0.12 * (_hash01(np.int64(math.floor(px / PAVING_TILE_M)), np.int64(math.floor(py / PAVING_TILE_M)),
-                                     31) - 0.5)
-        v = (1.0 + tile + 0.08 * _octave(px, py, ASPHALT_GRAIN_M, fp, 32)) * (1.0 - 0.45 * groove)
+        tile = att * 0.12 * (_hash01(np.int64(math.floor(tx)), np.int64(math.floor(ty)), 31) - 0.5)
+        v = (1.0 + tile + 0.08 * _octave(px, py, 1.0 / ASPHALT_GRAIN_M, fp, 32)) * (1.0 - 0.45 * groove)
         fr = fg = fb = v
     elif m == MAT_FACADE:
         hn = math.sqrt(nx * nx + ny * ny)
         u = (-ny * px + nx * py) / hn if hn > 1e-6 else px
-        fu, fz = fp / WINDOW_SPACING_M, fp / FLOOR_M
-        cu = _pulse(u / WINDOW_SPACING_M, fu, WINDOW_U0_M / WINDOW_SPACING_M, WINDOW_W_M / WINDOW_SPACING_M)
-        cz = _pulse(pz / FLOOR_M, fz, WINDOW_Z0_M / FLOOR_M, WINDOW_H_M / FLOOR_M)
+        fu, fz = fp * (1.0 / WINDOW_SPACING_M), fp * (1.0 / FLOOR_M)
+        inv_fp = 1.0 / fp
+        uc, zc = u * (1.0 / WINDOW_SPACING_M), pz * (1.0 / FLOOR_M)
+        cu = _pulse(uc, fu, WINDOW_SPACING_M * inv_fp, WINDOW_U0_M / WINDOW_SPACING_M, WINDOW_W_M / WINDOW_SPACING_M)
+        cz = _pulse(zc, fz, FLOOR_M * inv_fp, WINDOW_Z0_M / FLOOR_M, WINDOW_H_M / FLOOR_M)
         c = cu * cz
-        grain = 1.0 + 0.06 * _octave(u, pz, 0.5, fp, 41)
+        grain = 1.0 + 0.06 * _octave(u, pz, 1.0 / 0.5, fp, 41)
         fr = grain * (1.0 - c) + c * GLASS_RGB[0]
         fg = grain * (1.0 - c) + c * GLASS_RGB[1]
         fb = grain * (1.0 - c) + c * GLASS_RGB[2]
         if artificial > 0.0 and c > 0.0:
-            col = np.int64(math.floor(u / WINDOW_SPACING_M))
-            flr = np.int64(math.floor(pz / FLOOR_M))
+            col = np.int64(math.floor(uc))
+            flr = np.int64(math.floor(zc))
             lit = 1.0 if _hash01(col, flr, 43 + np.int64(inst)) < LIT_WINDOW_FRACTION else 0.0
             level = lit * (0.5 + _hash01(col, flr, 47 + np.int64(inst)))
             # far away, a pixel covers many windows: the mean share lit
@@ -280,16 +296,17 @@ def _detail(m, px, py, pz, nx, ny, fp, inst, artificial):
             e = artificial * WINDOW_RADIANCE * c * level
             er, eg, eb = e * WINDOW_RGB[0], e * WINDOW_RGB[1], e * WINDOW_RGB[2]
     elif m == MAT_ROOF:
-        v = 1.0 + 0.10 * _octave(px, py, 0.08, fp, 51) + 0.08 * _octave(px, py, 1.2, fp, 52)
+        v = 1.0 + 0.10 * _octave(px, py, 1.0 / 0.08, fp, 51) + 0.08 * _octave(px, py, 1.0 / 1.2, fp, 52)
         fr = fg = fb = v
     elif m == MAT_FOLIAGE:
-        b = 0.25 * _octave(px + pz, py - pz, FOLIAGE_CLUMP_M, fp, 61) + 0.12 * _octave(px, py + pz, 1.5, fp, 62)
-        hue = 0.15 * _octave(px - pz, py, 1.0, fp, 63)
+        b = (0.25 * _octave(px + pz, py - pz, 1.0 / FOLIAGE_CLUMP_M, fp, 61)
+             + 0.12 * _octave(px, py + pz, 1.0 / 1.5, fp, 62))
+        hue = 0.15 * _octave(px - pz, py, 1.0 / 1.0, fp, 63)
         fr, fg, fb = (1.0 + b) * (1.0 + hue), 1.0 + b, (1.0 + b) * (1.0 - hue)
     elif m == MAT_GRASS:
-        b = 0.14 * _octave(px, py, GRASS_BLADE_M, fp, 71) + 0.12 * _octave(px, py, GRASS_PATCH_M, fp, 72)
-        att = min(max(1.5 - fp / 6.0, 0.0), 1.0)
-        soil = _smooth(0.68, 0.8, _noise(px / 6.0, py / 6.0, 73))
+        b = 0.14 * _octave(px, py, 1.0 / GRASS_BLADE_M, fp, 71) + 0.12 * _octave(px, py, 1.0 / GRASS_PATCH_M, fp, 72)
+        att = min(max(1.5 - fp * (1.0 / 6.0), 0.0), 1.0)
+        soil = _smooth(0.68, 0.8, _noise(px * (1.0 / 6.0), py * (1.0 / 6.0), 73))
         soil = 0.08 + att * (soil - 0.08)
         # bare soil: browner (relative to the grass albedo)
         fr = (1.0 + b) * (1.0 + 0.5 * soil)
@@ -298,50 +315,100 @@ def _detail(m, px, py, pz, nx, ny, fp, inst, artificial):
     return fr, fg, fb, er, eg, eb
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _pow_int(x, n):
+    """x ** n for an integer n >= 1 by repeated squaring (exp(n log x) costs several times more)."""
+    out = 1.0
+    while n > 0:
+        if n & 1:
+            out *= x
+        x *= x
+        n >>= 1
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _view_ray(x, y, r00, r01, r02, r10, r11, r12, r20, r21, r22):
+    """Map direction (dx, dy, dz) of the optical-frame ray (x, y, 1) (rotation rows r0*, r1*, r2*) and the
+    reciprocal of its length."""
+    dx = r00 * x + r01 * y + r02
+    dy = r10 * x + r11 * y + r12
+    dz = r20 * x + r21 * y + r22
+    return dx, dy, dz, 1.0 / math.sqrt(x * x + y * y + 1.0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _lobe(nx, ny, nz, vx, vy, vz, lx, ly, lz, cos_cut2):
+    """Specular reflection of a unit irradiance from unit direction (lx, ly, lz) towards the unit view
+    direction (vx, vy, vz) on a water film with unit normal (nx, ny, nz): normalised Blinn-Phong
+    (``WET_SHININESS``) x Schlick Fresnel x n.l, 0 where n.h is below ``sqrt(cos_cut2)``. With the half
+    vector h = l + v, the cut is tested squared (no root) and v.h / |h| = |h| / 2 (v, l unit): one
+    division and one root, side by side."""
+    ndl = nx * lx + ny * ly + nz * lz
+    if ndl <= 0.0:
+        return 0.0
+    hx, hy, hz = lx + vx, ly + vy, lz + vz
+    hn2 = hx * hx + hy * hy + hz * hz
+    nh = nx * hx + ny * hy + nz * hz
+    if nh <= 0.0 or nh * nh < cos_cut2 * hn2 or hn2 < 1e-18:
+        return 0.0
+    ndh2 = nh * nh / hn2
+    vdh = min(0.5 * math.sqrt(hn2), 1.0)
+    fres = WET_F0 + (1.0 - WET_F0) * _pow_int(1.0 - vdh, 5)
+    return fres * ((WET_SHININESS + 8.0) / 8.0) * _pow_int(ndh2, _SHININESS // 2) * ndl
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
-def lamp_rects(g, depth, xg, yg, rot, origin, miss, material, normal, wet_film, lamps, stride):
-    """Image rectangle (E, 4) int64 (row0, row1, col0, col1, inclusive; empty when row0 > row1) where
-    each lamp's specular lobe on a wet surface may reach: probed every ``stride`` pixels, padded by a
-    pitch (the lobe is smooth over a few pixels)."""
+def lamp_spans(g, depth, xg, yg, rot, origin, miss, material, normal, wet_film, lamps, artificial, stride):
+    """Column span (E, H, 2) int32 (first, last, inclusive; empty when first > last) of each image row
+    where each lamp's specular lobe on a wet surface may reach (above ``_LOBE_CUT`` of its peak and
+    above ``_LOBE_FLOOR`` absolute): probed every ``stride`` pixels, each probe inside the lobe covering
+    the pixels up to a pitch away (the lobe is smooth over a few pixels). Per row rather than one
+    rectangle per lamp: a reflection's streak runs slanted across the image."""
     h, w = g.shape
     n = lamps.shape[0]
-    out = np.empty((n, 4), np.int64)
-    out[:, 0] = h
-    out[:, 1] = -1
-    out[:, 2] = w
-    out[:, 3] = -1
+    out = np.empty((n, h, 2), np.int32)
+    out[:, :, 0] = w
+    out[:, :, 1] = -1
     cos_cut = math.exp(math.log(_LOBE_CUT) / WET_SHININESS)
+    cos_cut2 = cos_cut * cos_cut
+    lobe_norm = (WET_SHININESS + 8.0) / 8.0
+    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+    o0, o1, o2 = origin[0], origin[1], origin[2]
     for i in range(stride // 2, h, stride):
         for j in range(stride // 2, w, stride):
             gi = g[i, j]
             d = depth[i, j]
             if gi >= miss or not d < np.inf or normal[gi, 2] <= 0.7 or wet_film[material[gi]] <= 0.0:
                 continue
-            x, y = xg[i, j], yg[i, j]
-            dx = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2]
-            dy = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2]
-            dz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2]
-            ray = math.sqrt(x * x + y * y + 1.0)
-            px, py, pz = origin[0] + d * dx, origin[1] + d * dy, origin[2] + d * dz
-            vx, vy, vz = -dx / ray, -dy / ray, -dz / ray
+            dx, dy, dz, inv_ray = _view_ray(xg[i, j], yg[i, j], r00, r01, r02, r10, r11, r12, r20, r21, r22)
+            px, py, pz = o0 + d * dx, o1 + d * dy, o2 + d * dz
+            vx, vy, vz = -dx * inv_ray, -dy * inv_ray, -dz * inv_ray
             nx, ny, nz = normal[gi, 0], normal[gi, 1], normal[gi, 2]
             for q in range(n):
                 lx, ly, lz = lamps[q, 0] - px, lamps[q, 1] - py, lamps[q, 2] - pz
-                inv = 1.0 / math.sqrt(lx * lx + ly * ly + lz * lz + 1e-12)
+                d2 = lx * lx + ly * ly + lz * lz + 1e-12
+                inv = 1.0 / math.sqrt(d2)
                 hx, hy, hz = lx * inv + vx, ly * inv + vy, lz * inv + vz
-                hn = math.sqrt(hx * hx + hy * hy + hz * hz)
-                if hn > 1e-9 and (nx * hx + ny * hy + nz * hz) >= cos_cut * hn:
-                    out[q, 0] = min(out[q, 0], i - stride)
-                    out[q, 1] = max(out[q, 1], i + stride)
-                    out[q, 2] = min(out[q, 2], j - stride)
-                    out[q, 3] = max(out[q, 3], j + stride)
+                hn2 = hx * hx + hy * hy + hz * hz
+                nh = nx * hx + ny * hy + nz * hz
+                if nh <= 0.0 or nh * nh < cos_cut2 * hn2:
+                    continue
+                # the lobe's bound (Fresnel, film and n.l at most 1): a far or weak lamp's faint tail is left out
+                peak = lobe_norm * lamps[q, 3] * artificial * inv * inv
+                if peak * _pow_int(nh * nh / hn2, _SHININESS // 2) >= _LOBE_FLOOR:
+                    for ii in range(max(i - stride, 0), min(i + stride + 1, h)):
+                        out[q, ii, 0] = min(out[q, ii, 0], j - stride)
+                        out[q, ii, 1] = max(out[q, ii, 1], j + stride)
     return out
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, miss, sky_levels, material, normal,
                  instance, detail, fx_px, wet, wet_albedo, wet_film, sun_dir, sun_rgb, sky_zenith, sky_horizon,
-                 light, light_x0, light_y0, light_res, artificial, beta, fog_rgb, dim, lamps, rects, out,
+                 light, light_x0, light_y0, light_res, artificial, beta, fog_rgb, dim, lamps, spans, streaks, out,
                  scale, vignette, noise, oy, ox, std_lut, gamma, out8):
     """Linear colour ``out`` (H, W, 3) float32 of every pixel (see the module docstring), or with
     ``out8`` (H, W, 3) uint8 (not empty) its sRGB codes through the camera model
@@ -353,29 +420,90 @@ def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, 
     ray x, y at z = 1; ``rot`` (3, 3), ``origin`` (3,) the camera pose; ``linear``, ``albedo_lamp``
     (2 rows, 3) the shading tables (sun, then shadow); ``material``, ``normal``, ``instance`` per
     global index; ``light`` (ny, nx) the light map or (0, 0); ``lamps`` (E, 7) point lights and
-    ``rects`` (E, 4) where each may be reflected (:func:`lamp_rects`)."""
+    ``spans`` (E, H, 2) where each may be reflected (:func:`lamp_spans`); ``streaks`` (H, W) float32 the
+    light a rain streak adds where it covers the pixel (which keeps 0.7 of its own; negative: no
+    streak), or (0, 0)."""
     h, w = g.shape
     has_lit = lit.shape[0] > 0
     has_out8 = out8.shape[0] > 0
     has_vig = vignette.shape[0] > 0
     has_noise = noise.shape[0] > 0
+    has_streaks = streaks.shape[0] > 0
     top = sky_levels - 1
     has_light = light.shape[0] > 0 and artificial > 0.0
     ny, nx = light.shape
     n_lamps = lamps.shape[0] if artificial > 0.0 else 0
     inv_res = 1.0 / light_res
-    shin = WET_SHININESS
-    lobe_norm = (shin + 8.0) / 8.0
-    cos_cut = math.exp(math.log(_LOBE_CUT) / shin)
+    cos_cut = math.exp(math.log(_LOBE_CUT) / WET_SHININESS)
+    cos_cut2 = cos_cut * cos_cut
+    # the pose and colours as scalars: loads from arrays in the pixel loop are not hoisted (the output
+    # might alias them as far as the compiler knows)
+    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    fog_r, fog_g, fog_b = fog_rgb[0], fog_rgb[1], fog_rgb[2]
+    hor_r, hor_g, hor_b = sky_horizon[0], sky_horizon[1], sky_horizon[2]
+    zen_r, zen_g, zen_b = sky_zenith[0], sky_zenith[1], sky_zenith[2]
+    sun_x, sun_y, sun_z = sun_dir[0], sun_dir[1], sun_dir[2]
+    sun_r, sun_g, sun_b = sun_rgb[0], sun_rgb[1], sun_rgb[2]
+    # per row, the lamps' reflections summed over their spans (a pass of their own: checking each
+    # lamp's span at each pixel cost as much as evaluating the lobes)
+    acc_r = np.zeros(w, np.float64)
+    acc_g = np.zeros(w, np.float64)
+    acc_b = np.zeros(w, np.float64)
     for i in range(h):
+        j_lo, j_hi = w, -1
+        for q in range(n_lamps):
+            j0, j1 = max(spans[q, i, 0], 0), min(spans[q, i, 1], w - 1)
+            if j0 > j1:
+                continue
+            if j_hi < j_lo:
+                j_lo, j_hi = j0, j1
+                acc_r[j0:j1 + 1] = 0.0
+                acc_g[j0:j1 + 1] = 0.0
+                acc_b[j0:j1 + 1] = 0.0
+            else:
+                for j in range(j0, j_lo):
+                    acc_r[j] = acc_g[j] = acc_b[j] = 0.0
+                for j in range(j_hi + 1, j1 + 1):
+                    acc_r[j] = acc_g[j] = acc_b[j] = 0.0
+                j_lo, j_hi = min(j_lo, j0), max(j_hi, j1)
+            lamp_x, lamp_y, lamp_z = lamps[q, 0], lamps[q, 1], lamps[q, 2]
+            power = lamps[q, 3] * artificial
+            cr, cg, cb = lamps[q, 4], lamps[q, 5], lamps[q, 6]
+            for j in range(j0, j1 + 1):
+                gi = g[i, j]
+                d = depth[i, j]
+                if gi == miss or not d < np.inf or not wet:
+                    continue
+                nxx, nyy, nzz = normal[gi, 0], normal[gi, 1], normal[gi, 2]
+                film = wet_film[material[gi]]
+                if nzz <= 0.7 or film <= 0.0:
+                    continue
+                dx, dy, dz, inv_ray = _view_ray(xg[i, j], yg[i, j], r00, r01, r02, r10, r11, r12, r20, r21, r22)
+                vx, vy, vz = -dx * inv_ray, -dy * inv_ray, -dz * inv_ray
+                if nxx * vx + nyy * vy + nzz * vz <= 0.0:
+                    continue
+                lx, ly, lz = lamp_x - (o0 + d * dx), lamp_y - (o1 + d * dy), lamp_z - (o2 + d * dz)
+                d2 = lx * lx + ly * ly + lz * lz
+                if d2 < 0.25:
+                    continue
+                inv = 1.0 / math.sqrt(d2)
+                s = film * power * (inv * inv) * _lobe(nxx, nyy, nzz, vx, vy, vz, lx * inv, ly * inv, lz * inv,
+                                                       cos_cut2)
+                acc_r[j] += s * cr
+                acc_g[j] += s * cg
+                acc_b[j] += s * cb
         for j in range(w):
             gi = g[i, j]
             x, y = xg[i, j], yg[i, j]
-            dz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2]
+            dz = r20 * x + r21 * y + r22
             ray = math.sqrt(x * x + y * y + 1.0)
+            inv_ray = 1.0 / ray
             row = gi
             if gi == miss:
-                row = miss + 1 + int(min(max(dz / ray * top + 0.5, 0.0), top))
+                row = miss + 1 + int(min(max(dz * inv_ray * top + 0.5, 0.0), top))
             shadow = False
             if has_lit and not lit[i, j]:
                 row += rows
@@ -386,13 +514,13 @@ def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, 
             d = depth[i, j]
             if gi == miss or not d < np.inf:  # sky: all fog where there is fog
                 if beta > 0.0:
-                    r, gr, b = fog_rgb[0], fog_rgb[1], fog_rgb[2]
+                    r, gr, b = fog_r, fog_g, fog_b
             else:
-                dx = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2]
-                dy = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2]
-                px, py, pz = origin[0] + d * dx, origin[1] + d * dy, origin[2] + d * dz
+                dx = r00 * x + r01 * y + r02
+                dy = r10 * x + r11 * y + r12
+                px, py, pz = o0 + d * dx, o1 + d * dy, o2 + d * dz
                 dist = d * ray
-                vx, vy, vz = -dx / ray, -dy / ray, -dz / ray  # towards the camera
+                vx, vy, vz = -dx * inv_ray, -dy * inv_ray, -dz * inv_ray  # towards the camera
                 m = material[gi]
                 nxx, nyy, nzz = normal[gi, 0], normal[gi, 1], normal[gi, 2]
                 cos_v = nxx * vx + nyy * vy + nzz * vz
@@ -423,52 +551,33 @@ def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, 
                 r, gr, b = r * fr + er, gr * fg + eg, b * fb + eb
                 if film > 0.0 and cos_v > 0.0:
                     # the sky in the mirror direction (elevation = cos_v over a level surface)
-                    fres = WET_F0 + (1.0 - WET_F0) * (1.0 - cos_v) ** 5
+                    fres = WET_F0 + (1.0 - WET_F0) * _pow_int(1.0 - cos_v, 5)
                     k = math.sqrt(min(cos_v, 1.0))
                     s = film * fres
-                    r += s * (sky_horizon[0] * (1.0 - k) + sky_zenith[0] * k)
-                    gr += s * (sky_horizon[1] * (1.0 - k) + sky_zenith[1] * k)
-                    b += s * (sky_horizon[2] * (1.0 - k) + sky_zenith[2] * k)
-                    n_sources = n_lamps + (0 if shadow else 1)
-                    for q in range(n_sources):
-                        if q < n_lamps:
-                            if i < rects[q, 0] or i > rects[q, 1] or j < rects[q, 2] or j > rects[q, 3]:
-                                continue
-                            lx, ly, lz = lamps[q, 0] - px, lamps[q, 1] - py, lamps[q, 2] - pz
-                            d2 = lx * lx + ly * ly + lz * lz
-                            if d2 < 0.25:
-                                continue
-                            inv = 1.0 / math.sqrt(d2)
-                            lx, ly, lz = lx * inv, ly * inv, lz * inv
-                            irr = lamps[q, 3] / d2 * artificial
-                            cr, cg, cb = lamps[q, 4], lamps[q, 5], lamps[q, 6]
-                        else:
-                            lx, ly, lz = sun_dir[0], sun_dir[1], sun_dir[2]
-                            irr = 1.0
-                            cr, cg, cb = sun_rgb[0], sun_rgb[1], sun_rgb[2]
-                        ndl = nxx * lx + nyy * ly + nzz * lz
-                        if ndl <= 0.0:
-                            continue
-                        hx, hy, hz = lx + vx, ly + vy, lz + vz
-                        hn = math.sqrt(hx * hx + hy * hy + hz * hz)
-                        if hn < 1e-9:
-                            continue
-                        ndh = (nxx * hx + nyy * hy + nzz * hz) / hn
-                        if ndh < cos_cut:
-                            continue
-                        vdh = max((vx * hx + vy * hy + vz * hz) / hn, 0.0)
-                        fres = WET_F0 + (1.0 - WET_F0) * (1.0 - vdh) ** 5
-                        s = film * fres * lobe_norm * math.exp(shin * math.log(ndh)) * irr * ndl
-                        r += s * cr
-                        gr += s * cg
-                        b += s * cb
+                    r += s * (hor_r * (1.0 - k) + zen_r * k)
+                    gr += s * (hor_g * (1.0 - k) + zen_g * k)
+                    b += s * (hor_b * (1.0 - k) + zen_b * k)
+                    if j_lo <= j <= j_hi:
+                        r += acc_r[j]
+                        gr += acc_g[j]
+                        b += acc_b[j]
+                    if not shadow:
+                        s = film * _lobe(nxx, nyy, nzz, vx, vy, vz, sun_x, sun_y, sun_z, cos_cut2)
+                        r += s * sun_r
+                        gr += s * sun_g
+                        b += s * sun_b
                 if beta > 0.0:
                     t = math.exp(-beta * dist)
-                    r = fog_rgb[0] + t * (r - fog_rgb[0])
-                    gr = fog_rgb[1] + t * (gr - fog_rgb[1])
-                    b = fog_rgb[2] + t * (b - fog_rgb[2])
+                    r = fog_r + t * (r - fog_r)
+                    gr = fog_g + t * (gr - fog_g)
+                    b = fog_b + t * (b - fog_b)
             # (no helper function taking arrays here: numba would count references to them per pixel)
             r, gr, b = r * dim, gr * dim, b * dim
+            if has_streaks:
+                add = streaks[i, j]
+                if add >= 0.0:
+                    # a drop: nearer drops are brighter (they cover more of the pixel)
+                    r, gr, b = r * 0.7 + add, gr * 0.7 + add, b * 0.7 + add
             if not has_out8:
                 out[i, j, 0] = r
                 out[i, j, 1] = gr
