@@ -177,7 +177,7 @@ def run_episode(
         rendered: list[Any] = []  # the frames handed to the writer last; on failure their encodes are dropped
         if suite is not None:  # on failure: drop the pending encodes, do not wait for abandoned sensors
             cleanup.push(lambda failed, *_: suite.close(wait=failed is None))
-            cleanup.callback(lambda: rendered and _cancel_encodes(rendered[-1]))
+            cleanup.callback(lambda: rendered and rendered[-1].cancel_encodes())
         writer.add_metadata("episode", episode_metadata(loaded, world))
         loop = _closed_loop(conductor, loaded, world, escorts)
         conductor.start()
@@ -257,15 +257,6 @@ def run_episode(
         client_waits_s=loop.waits_s if loop is not None else [],
         client_cpu_s=loop.cpu_s if loop is not None else [],
     )
-
-
-def _cancel_encodes(frames: Any) -> None:
-    """Drop the image encodes of abandoned frames not started yet; the writer thread may still be
-    consuming the frames (taking cameras out), so this walks copies of their dicts."""
-    for af in list(frames.agents.values()):
-        for cam in list(af.cameras.values()):
-            if cam.encoded is not None:
-                cam.encoded[1].cancel()
 
 
 def _closed_loop(conductor: Conductor, loaded: LoadedScenario, world: World, escorts: dict[str, str]) -> Any:

@@ -113,21 +113,19 @@ class EpisodeWriter:
 
     def write_proto(self, topic: str, message: ProtoMessage, t_ns: int) -> None:
         """Write a protobuf message (e.g. a ``foxglove.FrameTransforms``) at simulation time ``t_ns``."""
-        desc = message.DESCRIPTOR
-        channel_id = self._channels.get(topic)
-        if channel_id is None:
-            channel_id = self._channel(topic, desc.full_name, "protobuf",
-                                       proto_file_descriptor_set(type(message)), "protobuf")
-        self._add(channel_id, message.SerializeToString(deterministic=True), t_ns)
+        self._add(self._proto_channel(topic, type(message)), message.SerializeToString(deterministic=True), t_ns)
 
     def write_serialized(self, topic: str, record: Serialized, t_ns: int) -> None:
         """Write a message serialized beforehand (see :class:`Serialized`) at simulation time ``t_ns``."""
+        self._add(self._proto_channel(topic, record.message_type), record.data, t_ns)
+
+    def _proto_channel(self, topic: str, message_type: type[ProtoMessage]) -> int:
+        """The channel id of ``topic``, registered with ``message_type``'s schema on first use."""
         channel_id = self._channels.get(topic)
         if channel_id is None:
-            desc = record.message_type.DESCRIPTOR
-            channel_id = self._channel(topic, desc.full_name, "protobuf",
-                                       proto_file_descriptor_set(record.message_type), "protobuf")
-        self._add(channel_id, record.data, t_ns)
+            channel_id = self._channel(topic, message_type.DESCRIPTOR.full_name, "protobuf",
+                                       proto_file_descriptor_set(message_type), "protobuf")
+        return channel_id
 
     def write_json(self, topic: str, schema_name: str, schema: dict[str, Any], payload: Any, t_ns: int) -> None:
         """Write a JSON message described by a JSON Schema (project schemas such as ``cosim.ObjectArray``)."""

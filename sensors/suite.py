@@ -81,9 +81,10 @@ class SensorFrameSet:
     timing_s: dict[str, float] = field(default_factory=dict, compare=False)
 
     def cancel_encodes(self) -> None:
-        """Drop the image encodes not started yet (the frames are abandoned, e.g. the episode failed)."""
-        for agent in self.agents.values():
-            for cam in agent.cameras.values():
+        """Drop the image encodes not started yet (the frames are abandoned, e.g. the episode failed).
+        The writer thread may still be consuming the set (taking cameras out), so this walks copies."""
+        for agent in list(self.agents.values()):
+            for cam in list(agent.cameras.values()):
                 if cam.encoded is not None:
                     cam.encoded[1].cancel()
 
