@@ -27,8 +27,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from cosim.learn import require_torch
 
     require_torch()
-    from cosim.eval.dataset import VEHICLE_CLASSES
-    from cosim.eval.dataset import load_dataset
+    from cosim.eval.dataset import VEHICLE_CLASSES, load_dataset
     from cosim.learn.data import Setup, split_episodes
     from cosim.learn.train import TrainOptions, device_of, train
 
@@ -41,7 +40,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         val_refs = split_episodes(refs, args.val_split or "val", "val", args.dataset)
     opts = TrainOptions(epochs=args.epochs, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                         every=args.every, val_every_tick=args.val_every_tick, val_steps=args.val_steps,
-                        save_every=args.save_every, seed=args.seed, width=args.width, threads=args.threads)
+                        save_every=args.save_every, keep_every=args.keep_every, seed=args.seed, width=args.width,
+                        threads=args.threads)
     summary = train(train_refs, val_refs, setup, opts, Path(args.out), resume=args.resume,
                     device=device_of(args.device), show_progress=not args.quiet)
     print(f"run      {args.out}\n"
@@ -88,6 +88,23 @@ def cmd_predict(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_validate(args: argparse.Namespace) -> int:
+    from cosim.learn import require_torch
+
+    require_torch()
+    from cosim.eval.dataset import load_dataset
+    from cosim.learn.data import split_episodes
+    from cosim.learn.train import validate_checkpoints
+
+    run = Path(args.run)
+    refs = split_episodes(load_dataset(Path(args.dataset)), args.split, args.split, args.dataset)
+    t0 = time.perf_counter()
+    for step, ap in validate_checkpoints(run, refs, args.every, args.split, threads=args.threads):
+        print(f"step {step}: {args.split} AP30 {ap['AP30']:.1f}  AP50 {ap['AP50']:.1f}  AP70 {ap['AP70']:.1f}")
+    print(f"wall     {time.perf_counter() - t0:.1f} s")
+    return EXIT_OK
+
+
 def cmd_curves(args: argparse.Namespace) -> int:
     from cosim.learn.curves import plot_curves
 
@@ -127,6 +144,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--val-every-tick", type=_positive, default=10, help="validate on ticks 0, k, 2k... (default 10)")
     tr.add_argument("--val-steps", type=int, default=0, help="validate every this many steps (default: at the end)")
     tr.add_argument("--save-every", type=_positive, default=100, help="checkpoint every this many steps")
+    tr.add_argument("--keep-every", type=int, default=0, help="also keep checkpoint_<step>.pt every this many "
+                                                              "steps (for cosim learn validate)")
     tr.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--width", type=_positive, default=16, help="pillar feature channels (default 16)")
@@ -146,6 +165,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     pr.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's)")
     pr.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     pr.set_defaults(func=cmd_predict)
+
+    va = lsub.add_parser("validate", help="score every kept checkpoint of a run on a split (the learning curve "
+                                          "in log.jsonl)")
+    va.add_argument("run", help="a run folder of cosim learn train (with checkpoint_<step>.pt from --keep-every)")
+    va.add_argument("dataset", help="batch folder")
+    va.add_argument("--split", default="val", help="split to score (default val)")
+    va.add_argument("--every", type=_positive, default=10, help="ticks 0, every, 2 every... (default 10)")
+    va.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's)")
+    va.set_defaults(func=cmd_validate)
 
     cu = lsub.add_parser("curves", help="plot validation AP against steps of one or more runs (PNG)")
     cu.add_argument("runs", nargs="+", help="run folders")

@@ -151,7 +151,7 @@ def targets(boxes: np.ndarray, labels: np.ndarray, grid: Grid, n_classes: int, m
             continue
         radius = max(1.0, gaussian_radius(box[3] / cell, box[4] / cell))
         sigma = (2 * radius + 1) / 6
-        r = int(math.ceil(radius))
+        r = math.ceil(radius)
         y0, y1, x0, x1 = max(0, cy - r), min(h, cy + r + 1), max(0, cx - r), min(w, cx + r + 1)
         g = np.exp(-((xx[y0:y1, x0:x1] - cx) ** 2 + (yy[y0:y1, x0:x1] - cy) ** 2) / (2 * sigma ** 2))
         np.maximum(heat[k, y0:y1, x0:x1], g.astype(np.float32), out=heat[k, y0:y1, x0:x1])
@@ -168,7 +168,7 @@ def decode(heat: np.ndarray, reg: np.ndarray, grid: Grid, score_min: float = 0.1
     """Boxes from one sample's head output: ``heat`` (K, H, W) probabilities, already reduced to local
     maxima (others 0), ``reg`` (8, H, W). Returns boxes (N, 7) [x, y, z, l, w, h, yaw], scores (N,),
     class indices (N,), best first."""
-    k, h, w = heat.shape
+    _k, h, w = heat.shape
     flat = heat.reshape(-1)
     cand = np.nonzero(flat >= score_min)[0]
     cand = cand[np.argsort(-flat[cand], kind="stable")][:top_k]

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import shutil
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -48,6 +49,7 @@ class TrainOptions:
     val_every_tick: int = 10
     val_steps: int = 0  # validate every this many steps (0: only at the end); needs a val split
     save_every: int = 100
+    keep_every: int = 0  # also keep checkpoint_<step>.pt every this many steps (0: none), for `cosim learn validate`
     seed: int = 0
     width: int = 16  # channels of the pillar features (the backbone has 2x, 3x and 4x)
     threads: int | None = None  # torch CPU threads (None: torch's default)
@@ -93,8 +95,9 @@ def new_model(setup: Setup, opts: TrainOptions, device: torch.device) -> PillarD
 
 
 def load_run(run: Path, device: torch.device | None = None) -> tuple[PillarDetector, Setup, dict[str, Any]]:
-    """The model of a RUN folder (its last checkpoint), its setup and the checkpoint."""
-    path = Path(run) / CHECKPOINT
+    """The model of a RUN folder (its last checkpoint) or of one checkpoint file, its setup and the checkpoint."""
+    run = Path(run)
+    path = run if run.is_file() else run / CHECKPOINT
     if not path.is_file():
         raise InputError(f"{run}: no {CHECKPOINT}: not a training run of cosim learn train")
     device = device or device_of(None)
@@ -269,8 +272,8 @@ def train(train_refs: list[EpisodeRef], val_refs: list[EpisodeRef] | None, setup
         optim.step()
         step += 1
         last = float(loss.item())
-        _append_log(log_path, {"step": step, "epoch": epoch, "loss": round(last, 5), "heat": round(float(l_heat.detach()), 5),
-                               "reg": round(float(l_reg.detach()), 5)})
+        _append_log(log_path, {"step": step, "epoch": epoch, "loss": round(last, 5),
+                               "heat": round(float(l_heat.detach()), 5), "reg": round(float(l_reg.detach()), 5)})
         bar.update(1)
         bar.set_postfix(loss=f"{last:.3f}", epoch=epoch)
         do_val = val is not None and ((opts.val_steps and step % opts.val_steps == 0) or step == total)
@@ -280,8 +283,11 @@ def train(train_refs: list[EpisodeRef], val_refs: list[EpisodeRef] | None, setup
             val_s += time.perf_counter() - tv
             _append_log(log_path, {"step": step, "val": ap})
             bar.write(f"step {step}: val AP30 {ap['AP30']:.1f}  AP50 {ap['AP50']:.1f}  AP70 {ap['AP70']:.1f}")
-        if step % opts.save_every == 0 or step == total:
+        kept = bool(opts.keep_every) and step % opts.keep_every == 0
+        if kept or step % opts.save_every == 0 or step == total:
             save(step, prior_s + time.perf_counter() - t_train)
+        if kept:
+            shutil.copyfile(ckpt_path, run / f"checkpoint_{step:06d}.pt")
     bar.close()
     train_s = prior_s + time.perf_counter() - t_train
     samples.close()
@@ -293,3 +299,33 @@ def train(train_refs: list[EpisodeRef], val_refs: list[EpisodeRef] | None, setup
                "train_s": round(train_s, 1), "val_s": round(val_s, 1)}
     (run / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def validate_checkpoints(run: Path, refs: list[EpisodeRef], every: int, split: str, threads: int | None = None):
+    """Score ``checkpoint_<step>.pt`` of a run (and its last checkpoint) on ``refs``; each result is also
+    appended to the run's ``log.jsonl`` as ``{"step", "val", "split"}``. Yields (step, AP dict)."""
+    run = Path(run)
+    files = sorted(run.glob("checkpoint_*.pt"))
+    if (run / CHECKPOINT).is_file():
+        files.append(run / CHECKPOINT)
+    if not files:
+        raise InputError(f"{run}: no checkpoints (train with --keep-every N to keep some)")
+    if threads:
+        torch.set_num_threads(threads)
+    device = device_of(None)
+    done: set[int] = set()
+    samples = None
+    for f in files:
+        model, setup, ckpt = load_run(f, device)
+        step = int(ckpt["step"])
+        if step in done:
+            continue
+        done.add(step)
+        if samples is None:
+            check_classes(refs, setup.classes, f"the model in {run}")
+            samples = Samples(refs, setup, every=every)
+        ap = validate(model, samples, device)
+        _append_log(run / "log.jsonl", {"step": step, "val": ap, "split": split})
+        yield step, ap
+    if samples is not None:
+        samples.close()
