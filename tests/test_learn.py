@@ -30,17 +30,17 @@ base: {base}
 set:
   duration_s: 1
   map.size_m: 300
-  map.kind: urban
   traffic.density_veh_per_km: 14
   agents.vehicles.count: 2
   agents.rsus.count: 1
   agents.drones: [{{strategy: hover, altitude_m: 40}}]
+  environment.lighting: day
   sensors.bev: false
   sensors.vehicle.cameras: []
   sensors.rsu.cameras: []
   sensors.drone.cameras: []
 axes:
-  lighting: {{key: environment.lighting, values: [day, night]}}
+  environment: {{key: map.kind, values: [urban]}}
 count: 2
 split: {{train: 1, test: 1}}
 """
@@ -162,6 +162,7 @@ def trained(tiny_batch, tmp_path_factory) -> Path:
 
 @needs_torch
 @pytest.mark.integration
+@pytest.mark.timeout(900)
 def test_thirty_steps_lower_the_loss(trained):
     rows = [json.loads(line) for line in (trained / "log.jsonl").read_text().splitlines()]
     loss = [r["loss"] for r in rows if "loss" in r]
@@ -171,6 +172,7 @@ def test_thirty_steps_lower_the_loss(trained):
 
 @needs_torch
 @pytest.mark.integration
+@pytest.mark.timeout(900)
 def test_predictions_pass_the_validator_and_score_on_training_episodes(trained, tiny_batch, tmp_path):
     from cosim.eval.predictions import read_predictions
 
@@ -197,6 +199,7 @@ def _ap(doc: dict, key: str) -> float:
 
 @needs_torch
 @pytest.mark.integration
+@pytest.mark.timeout(900)
 def test_same_seed_same_weights_and_resume_continues_exactly(tiny_batch, tmp_path):
     import torch
 
@@ -227,6 +230,7 @@ def test_same_seed_same_weights_and_resume_continues_exactly(tiny_batch, tmp_pat
 
 @needs_torch
 @pytest.mark.integration
+@pytest.mark.timeout(900)
 def test_late_fusion_detects_per_agent_and_merges(tiny_batch, tmp_path):
     from cosim.eval.dataset import load_dataset
     from cosim.learn.data import Samples, Setup
@@ -250,6 +254,7 @@ def test_late_fusion_detects_per_agent_and_merges(tiny_batch, tmp_path):
 
 @needs_torch
 @pytest.mark.integration
+@pytest.mark.timeout(900)
 def test_bad_input_one_message_exit_2(trained, tiny_batch, tmp_path):
     import torch
 
