@@ -4,6 +4,7 @@ plot learning curves (docs/learnability.md). Torch is imported only when a comma
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -60,7 +61,7 @@ def cmd_predict(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from cosim.eval.dataset import load_dataset
-    from cosim.learn.data import Samples, check_classes, split_episodes
+    from cosim.learn.data import Samples, Setup, check_classes, split_episodes
     from cosim.learn.train import device_of, load_run, record_lines
 
     if not args.out.endswith(".jsonl"):
@@ -69,6 +70,12 @@ def cmd_predict(args: argparse.Namespace) -> int:
     if args.threads:
         require_torch().set_num_threads(args.threads)
     model, setup, _ = load_run(Path(args.run), device)
+    if args.fusion or args.agents:
+        fusion = args.fusion or setup.fusion
+        setup = Setup(fusion=fusion, agents=args.agents or ("ego" if fusion == "none" else setup.agents),
+                      classes=setup.classes, grid=setup.grid, delivery=setup.delivery, min_points=setup.min_points)
+    if args.delivery:
+        setup = dataclasses.replace(setup, delivery=True)
     refs = split_episodes(load_dataset(Path(args.dataset)), args.split, "test", args.dataset)
     check_classes(refs, setup.classes, f"the model in {args.run}")
     samples = Samples(refs, setup, every=args.every)
@@ -127,7 +134,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--out", required=True, help="run folder: checkpoint.pt, log.jsonl, summary.json")
     tr.add_argument("--fusion", choices=FUSIONS, default="none", help="none (ego only), late (boxes merged), "
                                                                       "early (points merged); default none")
-    tr.add_argument("--agents", choices=[s for s in SETTINGS], help="collaborating agent kinds (default: ego for "
+    tr.add_argument("--agents", choices=list(SETTINGS), help="collaborating agent kinds (default: ego for "
                                                                     "fusion none, all otherwise)")
     tr.add_argument("--classes", nargs="+", metavar="CLASS", help="object classes to detect (default: the six "
                                                                   "vehicle classes)")
@@ -161,6 +168,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     pr.add_argument("--out", required=True, help="predictions file (.jsonl)")
     pr.add_argument("--split", help="split to predict (default: test, or all episodes of a dataset without splits)")
     pr.add_argument("--every", type=_positive, default=1, help="predict ticks 0, every, 2 every... (default 1)")
+    pr.add_argument("--fusion", choices=FUSIONS, help="fuse otherwise than the model was trained (e.g. late with an "
+                                                      "ego-only model: each agent's cloud detected alone)")
+    pr.add_argument("--agents", choices=list(SETTINGS), help="collaborating agent kinds at prediction time "
+                                                             "(default: the model's)")
+    pr.add_argument("--delivery", action="store_true", help="apply /comm/links delivery (see train)")
     pr.add_argument("--device", help="torch device (default: cuda when present, else cpu)")
     pr.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's)")
     pr.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
