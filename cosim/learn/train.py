@@ -110,7 +110,10 @@ def load_run(run: Path, device: torch.device | None = None) -> tuple[PillarDetec
     setup = Setup.from_dict(ckpt["setup"])
     opts = TrainOptions(**ckpt["options"])
     model = PillarDetector(setup.grid, len(setup.classes), width=opts.width).to(device)
-    model.load_state_dict(ckpt["model"])
+    try:
+        model.load_state_dict(ckpt["model"])
+    except RuntimeError as exc:
+        raise InputError(f"{path}: the weights do not fit the model its setup describes ({str(exc)[:200]})") from None
     model.eval()
     return model, setup, ckpt
 
