@@ -305,8 +305,9 @@ def train(train_refs: list[EpisodeRef], val_refs: list[EpisodeRef] | None, setup
 
 
 def validate_checkpoints(run: Path, refs: list[EpisodeRef], every: int, split: str, threads: int | None = None):
-    """Score ``checkpoint_<step>.pt`` of a run (and its last checkpoint) on ``refs``; each result is also
-    appended to the run's ``log.jsonl`` as ``{"step", "val", "split"}``. Yields (step, AP dict)."""
+    """Score ``checkpoint_<step>.pt`` of a run (and its last checkpoint) on ``refs``, except steps already
+    scored on ``split``; each result is appended to the run's ``log.jsonl`` as ``{"step", "val", "split"}``.
+    Yields (step, AP dict)."""
     run = Path(run)
     files = sorted(run.glob("checkpoint_*.pt"))
     if (run / CHECKPOINT).is_file():
@@ -316,7 +317,7 @@ def validate_checkpoints(run: Path, refs: list[EpisodeRef], every: int, split: s
     if threads:
         torch.set_num_threads(threads)
     device = device_of(None)
-    done: set[int] = set()
+    done = {int(r["step"]) for r in read_log(run) if "val" in r and r.get("split") == split}  # scored before
     samples = None
     for f in files:
         model, setup, ckpt = load_run(f, device)
