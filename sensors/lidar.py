@@ -336,6 +336,8 @@ def render_lidar(
                             lambda r: _cast_binned(scene, r, t_off_s, exclude_track, with_static=False))
     else:
         t, gid = _cast_binned(scene, rays, t_off_s, exclude_track)
+    if noise:  # foliage lets part of the beams through (drawn first: the crowns decide what a beam hits)
+        t, gid = _through_crowns(scene, rays, t, gid, rng.random(n), exclude_track)
     hit = t <= spec.range_m
     r = np.where(hit, t, 0.0).astype(np.float64)
 
@@ -415,6 +417,42 @@ def _surface_intensity(scene: TickScene, atm: Atmosphere, gid: np.ndarray, d_map
         wet = np.where(normals[:, 2] > 0.5, wet_factor(atm.rain_rate_mm_h), 1.0)
         rho, retro = rho * wet, retro * wet
     return intensity_model(rho, retro, cos_inc, r, atm.beta), cls, np.take(lab["instance"], gid)
+
+
+def _through_crowns(scene: TickScene, rays: np.ndarray, t: np.ndarray, gid: np.ndarray, u: np.ndarray,
+                    exclude_track: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """Beams into a porous crown (leaf density mu > 0, :mod:`cosim.sensors.assets.vegetation`): each
+    travels a free path -ln(1 - u) / mu into it (Beer-Lambert); shorter than the way to the crown's far
+    side (or a branch inside), it returns from the leaves there; else it goes on, to the branch or on
+    through the crown to whatever lies behind. ``rays`` have unit directions; ``t``, ``gid`` are the
+    first hits, returned updated."""
+    dens = np.take(scene.labels["leaf_density"], gid)
+    idx = np.nonzero((dens > 0) & np.isfinite(t))[0]
+    if not len(idx):
+        return t, gid
+    t, gid = t.copy(), gid.copy()
+    eps = np.float32(1e-3)
+    r = rays[idx].copy()
+    entry = t[idx]
+    r[:, :3] += (entry + eps)[:, None] * r[:, 3:]
+    t2, g2 = scene.cast(r, exclude_track, with_actors=False)  # the crown's far side, or a branch in it
+    depth = -np.log1p(-np.minimum(u[idx], 1 - 1e-9)) / dens[idx]
+    inside = depth < t2
+    t[idx[inside]] = entry[inside] + depth[inside].astype(np.float32)
+    # through the leaves to a branch or trunk: that is the hit
+    branch = ~inside & np.isfinite(t2) & (np.take(scene.labels["leaf_density"], g2) <= 0)
+    t[idx[branch]] = entry[branch] + eps + t2[branch]
+    gid[idx[branch]] = g2[branch]
+    # out of the far side: on to whatever lies behind (a second crown behind it is taken as solid)
+    out = np.nonzero(~inside & ~branch)[0]
+    if len(out):
+        r3 = r[out].copy()
+        far = np.where(np.isfinite(t2[out]), t2[out], 0.0) + eps
+        r3[:, :3] += far[:, None] * r3[:, 3:]
+        t3, g3 = scene.cast(r3, exclude_track)
+        t[idx[out]] = entry[out] + eps + far + t3
+        gid[idx[out]] = g3
+    return t, gid
 
 
 def _ray_drop(spec: LidarSpec, scene: TickScene, atm: Atmosphere, gid: np.ndarray, d_map: np.ndarray,

@@ -43,12 +43,16 @@ class TriMesh:
     group: np.ndarray  # (T,) int64: triangles of one convex planar polygon share a group (see faces())
     retro: np.ndarray | None = None  # (T,) float32: retro-reflective LiDAR reflectivity (plates, lamps); None: 0
     glass: np.ndarray | None = None  # (T,) bool: glazing (the LiDAR mostly loses its returns); None: none
+    leaf_density: np.ndarray | None = None  # (T,) float32 [1/m]: a porous crown's foliage (0: solid); None: 0
 
     def retro_values(self) -> np.ndarray:
         return np.zeros(self.n_triangles, np.float32) if self.retro is None else self.retro
 
     def glass_values(self) -> np.ndarray:
         return np.zeros(self.n_triangles, bool) if self.glass is None else self.glass
+
+    def leaf_density_values(self) -> np.ndarray:
+        return np.zeros(self.n_triangles, np.float32) if self.leaf_density is None else self.leaf_density
 
     @property
     def n_triangles(self) -> int:
@@ -114,6 +118,8 @@ def concat(meshes: Sequence[TriMesh]) -> TriMesh:
         np.concatenate([m.retro_values() for m in meshes]).astype(np.float32)
         if any(m.retro is not None for m in meshes) else None,
         np.concatenate([m.glass_values() for m in meshes]) if any(m.glass is not None for m in meshes) else None,
+        np.concatenate([m.leaf_density_values() for m in meshes]).astype(np.float32)
+        if any(m.leaf_density is not None for m in meshes) else None,
     )
 
 
@@ -336,8 +342,58 @@ FAR_GROUND_M = 10_000.0
 
 
 def static_mesh(layout: StaticLayout) -> TriMesh:
-    """Mesh of every prism of ``layout`` (map frame), in prism order, then :func:`far_ground`."""
-    return concat([*(_prism_mesh(p) for p in layout.prisms), far_ground(layout)])
+    """Mesh of every prism of ``layout`` (map frame), in prism order, then :func:`far_ground`. A tree's
+    trunk and crown prisms become one procedural tree (:func:`cosim.sensors.assets.vegetation.tree_mesh`)
+    where the crown was; hedges get a porous foliage."""
+    trees = _tree_pairs(layout)
+    parts = []
+    for k, p in enumerate(layout.prisms):
+        if k in trees:
+            if trees[k] >= 0:
+                parts.append(_tree(p, layout.prisms[trees[k]]))
+            continue
+        parts.append(_prism_mesh(p))
+    return concat([*parts, far_ground(layout)])
+
+
+def _tree_pairs(layout: StaticLayout) -> dict[int, int]:
+    """Crown prism index -> its trunk's index, and trunk index -> -1, for every tree of the layout (a
+    vegetation prism raised off the ground above a square vegetation prism of the same centre)."""
+    trunks: dict[tuple[float, float], int] = {}
+    for k, p in enumerate(layout.prisms):
+        if p.cls == "vegetation" and len(p.footprint) == 4 and p.z0_m <= layout.ground_z_m + 0.01:
+            c = np.mean(np.asarray(p.footprint), axis=0)
+            trunks[(round(float(c[0]), 1), round(float(c[1]), 1))] = k
+    out: dict[int, int] = {}
+    for k, p in enumerate(layout.prisms):
+        if p.cls == "vegetation" and p.z0_m > layout.ground_z_m + 0.5:
+            c = np.mean(np.asarray(p.footprint), axis=0)
+            t = trunks.get((round(float(c[0]), 1), round(float(c[1]), 1)))
+            if t is not None and abs(layout.prisms[t].z1_m - p.z0_m) < 0.01:
+                out[k] = t
+                out[t] = -1
+    return out
+
+
+#: bark colour and LiDAR reflectivity of trunks and branches
+_BARK = ((0.22, 0.16, 0.11), 0.35)
+
+
+def _tree(crown: Prism, trunk: Prism) -> TriMesh:
+    from .assets import vegetation
+
+    fp = np.asarray(crown.footprint, np.float64)
+    c = fp.mean(axis=0)
+    radius = float(np.linalg.norm(fp - c, axis=1).max())
+    v, t, part, grp, species = vegetation.tree_mesh(float(c[0]), float(c[1]), trunk.z0_m, crown.z0_m, crown.z1_m,
+                                                    radius)
+    alb, refl = material_of("vegetation", 0)
+    albedo = np.where((part == vegetation.PART_CROWN)[:, None], alb, np.asarray(_BARK[0], np.float32))
+    mesh = _labelled(v, t, "vegetation", 0, albedo, refl, group=grp)
+    density = np.where(part == vegetation.PART_CROWN, vegetation.SPECIES[species][1], 0.0).astype(np.float32)
+    return TriMesh(mesh.vertices, mesh.triangles, mesh.semantic, mesh.instance, mesh.albedo,
+                   np.where(part == vegetation.PART_CROWN, refl, _BARK[1]).astype(np.float32), mesh.emissive,
+                   mesh.group, None, None, density)
 
 
 def far_ground(layout: StaticLayout, reach_m: float = FAR_GROUND_M) -> TriMesh:
@@ -378,7 +434,14 @@ def _prism_mesh(prism: Prism) -> TriMesh:
     g = prism_groups(fp, len(t))
     if lamp:
         return _labelled(v, t, prism.cls, prism.instance_id, LAMP_ALBEDO, refl, emissive=1.0, group=g)
-    return _labelled(v, t, prism.cls, prism.instance_id, alb, refl, group=g)
+    mesh = _labelled(v, t, prism.cls, prism.instance_id, alb, refl, group=g)
+    if prism.cls == "vegetation":  # a hedge or bush: porous foliage
+        from .assets.vegetation import HEDGE_DENSITY
+
+        return TriMesh(*(getattr(mesh, f) for f in ("vertices", "triangles", "semantic", "instance", "albedo",
+                                                    "reflectivity", "emissive", "group")), None, None,
+                       np.full(len(t), HEDGE_DENSITY, np.float32))
+    return mesh
 
 
 # ------------------------------------------------------------------------------ actor shapes

@@ -224,6 +224,7 @@ class TickScene:
                                + (int(self.static.faces.max(initial=-1)) + 1), -1),
             "retro": self.table(self.static.mesh.retro_values(), a.retro_values(), 0.0),
             "glass": self.table(self.static.mesh.glass_values(), a.glass_values(), False),
+            "leaf_density": self.table(self.static.mesh.leaf_density_values(), a.leaf_density_values(), 0.0),
         }
 
     def occluded(self, rays: np.ndarray, with_static: bool = True, with_actors: bool = True) -> np.ndarray:

@@ -227,3 +227,40 @@ def test_licence_plates_outshine_paint_in_lidar_intensity():
     plate, paint = inten[part == _PART_PLATE], inten[part == _PART_BODY]
     assert len(plate) > 5 and len(paint) > 50
     assert plate.min() > paint.max()
+
+
+def _tree_prisms(x: float, y: float, radius: float = 2.5, height: float = 9.0):
+    from cosim.world.types import Prism
+
+    trunk = Prism("vegetation", ((x - 0.2, y - 0.2), (x + 0.2, y - 0.2), (x + 0.2, y + 0.2), (x - 0.2, y + 0.2)),
+                  0.0, 2.5, 0)
+    ang = np.arange(8) * math.pi / 4 + 0.3
+    crown = Prism("vegetation", tuple((x + radius * math.cos(a), y + radius * math.sin(a)) for a in ang), 2.5,
+                  height, 0)
+    return [trunk, crown]
+
+
+def test_every_species_crown_passes_10_to_50_percent_of_lidar_rays():
+    from cosim.sensors.assets.vegetation import SPECIES, species_of
+    from cosim.sensors.lidar import _through_crowns
+    from cosim.sensors.meshes import static_mesh
+    from cosim.sensors.scene import StaticScene, TickScene
+    from cosim.world.types import Prism, StaticLayout
+
+    for species in SPECIES:
+        y = next(float(y) for y in np.arange(0.0, 50.0, 0.5) if species_of(15.0, float(y)) == species)
+        wall = Prism("building", ((30.0, y - 20), (31.0, y - 20), (31.0, y + 20), (30.0, y + 20)), 0.0, 30.0,
+                     1_000_001)
+        scene = TickScene.build(StaticScene(static_mesh(StaticLayout((*_tree_prisms(15.0, y), wall)))), [])
+        assert scene.static.mesh.n_triangles > 100  # a trunk, branches and a crown, not two prisms
+        zs, ys = np.meshgrid(np.linspace(2.0, 10.0, 80), np.linspace(y - 3.0, y + 3.0, 80))
+        d = np.stack([np.full(ys.size, 15.0), ys.ravel() - y, zs.ravel() - 5.5], 1)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        rays = np.concatenate([np.broadcast_to([0.0, y, 5.5], d.shape), d], 1).astype(np.float32)
+        t, gid = scene.cast(rays)
+        crown = np.take(scene.labels["leaf_density"], gid) > 0
+        assert crown.sum() > 500
+        t2, g2 = _through_crowns(scene, rays, t, gid, np.random.default_rng(3).random(len(rays)), None)
+        behind = np.take(scene.labels["instance"], g2[crown]) == 1_000_001
+        assert 0.10 <= behind.mean() <= 0.50, (species, behind.mean())
+        assert np.all(t2[crown] >= t[crown])  # never in front of the crown's surface

@@ -195,3 +195,27 @@ def write_catalogue(out: Path, pictures: bool = True) -> list[dict]:
         gallery([r["name"] for r in rows], out / "gallery.png")
         lidar_gallery(list(LIDAR_GALLERY), out / "lidar_gallery.png")
     return rows
+
+
+def cmd_assets(args) -> int:
+    """``cosim assets [--out DIR] [--no-pictures]``: print the table, write catalogue.json and the pictures."""
+    from cosim.errors import InputError
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: exists and is not a folder")
+    rows = write_catalogue(out, pictures=not args.no_pictures)
+    print(table(rows))
+    n_veh = sum(r["class"] != "pedestrian" for r in rows)
+    written = "catalogue.json" + ("" if args.no_pictures else ", gallery.png, lidar_gallery.png")
+    print(f"{n_veh} vehicle models, {len(rows) - n_veh} people; wrote {written} to {out}")
+    return 0
+
+
+def register(sub) -> None:
+    """Add ``assets`` to the ``cosim`` command."""
+    p = sub.add_parser("assets", help="the procedural asset catalogue: a table, catalogue.json, gallery.png and "
+                                      "lidar_gallery.png")
+    p.add_argument("--out", default="assets", help="output folder (default: ./assets)")
+    p.add_argument("--no-pictures", action="store_true", help="the table and catalogue.json only")
+    p.set_defaults(func=cmd_assets)
