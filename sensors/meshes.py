@@ -597,12 +597,19 @@ def vehicle_model(cls: str, size_m, key: str) -> str:
     return names[zlib.crc32(key.encode()) % len(names)]
 
 
-@lru_cache(maxsize=8192)
 def person_template(key: str, gait_phase: float, speed_mps: float) -> ActorTemplate:
-    """The unit-box template of person ``key`` posed at ``gait_phase`` walking at ``speed_mps``."""
+    """The unit-box template of person ``key`` posed at ``gait_phase`` walking at ``speed_mps`` (at the
+    steps the traffic worker's boxes use, :func:`cosim.sensors.assets.people.posed_box`)."""
     from .assets import people
 
-    p, v, t, part, grp, _, _ = people.posed(key, gait_phase, speed_mps)
+    return _person_template(key, *people.quantized(gait_phase, speed_mps))
+
+
+@lru_cache(maxsize=8192)
+def _person_template(key: str, q_phase: int, q_speed: int) -> ActorTemplate:
+    from .assets import people
+
+    p, v, t, part, grp, _, _ = people.posed_steps(key, q_phase, q_speed)
     palette = np.zeros((N_PARTS, 3), np.float32)
     palette[_PART_SKIN:_PART_SHOES + 1] = p.colours
     return unit_template(v, t, part, grp, palette, f"person:{key}")
@@ -618,11 +625,8 @@ def actor_template(actor) -> ActorTemplate:
     if actor.cls in VEHICLE_CLASSES:
         return vehicle_template(vehicle_model(actor.cls, actor.size_m, person_key(actor)))
     if actor.cls == "pedestrian":
-        from .assets.people import PHASE_STEPS
-
         speed = math.hypot(actor.velocity_mps[0], actor.velocity_mps[1])
-        q = round((actor.gait_phase % 1.0) * PHASE_STEPS) / PHASE_STEPS
-        return person_template(person_key(actor), q, round(min(speed, 3.0), 2))
+        return person_template(person_key(actor), actor.gait_phase, speed)
     return template_for(actor.cls)
 
 

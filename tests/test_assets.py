@@ -127,7 +127,7 @@ def test_a_walking_persons_limbs_move_between_ticks_and_the_box_follows():
 
 def test_people_differ_in_height_build_and_clothes():
     ps = [people.Person.from_key(k) for k in catalogue.people_keys()]
-    assert len({p.height_m for p in ps}) == len(ps)
+    assert len({(p.height_m, p.build) for p in ps}) == len(ps) >= 12
     assert len({p.colours[2].tobytes() for p in ps}) >= 4
     assert max(p.build for p in ps) - min(p.build for p in ps) > 0.2
     kids = [p for p in ps if p.child]
@@ -245,6 +245,7 @@ def test_every_species_crown_passes_10_to_50_percent_of_lidar_rays():
     from cosim.sensors.lidar import _through_crowns
     from cosim.sensors.meshes import static_mesh
     from cosim.sensors.scene import StaticScene, TickScene
+
     from cosim.world.types import Prism, StaticLayout
 
     for species in SPECIES:

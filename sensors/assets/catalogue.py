@@ -173,8 +173,8 @@ def lidar_gallery(names: list[str], path: Path, px: int = 220) -> None:
             ix = ((u / span + 0.5) * px).astype(int)
             iy = ((0.5 - w / span) * px).astype(int)
             ok = (ix >= 1) & (ix < px - 1) & (iy >= 1) & (iy < px - 1)
-            for dx in (0, 1):
-                for dy in (0, 1):
+            for dx in (-1, 0, 1):
+                for dy in (-1, 0, 1):
                     canvas[iy[ok] + dy, ix[ok] + dx] = (20, 60, 160)
             x0, y0 = j * px, k * (px + 14)
             img.paste(Image.fromarray(canvas), (x0, y0 + 14))
@@ -183,7 +183,7 @@ def lidar_gallery(names: list[str], path: Path, px: int = 220) -> None:
 
 
 #: the model per class the LiDAR gallery scans
-LIDAR_GALLERY = ("saloon_1", "panel_van_1", "box_0", "city_bus_1", "sport_0", "city_0", "person_0")
+LIDAR_GALLERY = ("saloon_1", "panel_van_1", "box_0", "city_bus_1", "sport_0", "city_0", "person_1")
 
 
 def write_catalogue(out: Path, pictures: bool = True) -> list[dict]:

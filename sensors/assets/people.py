@@ -15,8 +15,8 @@ labels report (:func:`posed_box`), so a box follows the pose.
 
 from __future__ import annotations
 
+import hashlib
 import math
-import zlib
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -37,7 +37,9 @@ _CLOTH = np.array([(0.10, 0.12, 0.20), (0.60, 0.10, 0.10), (0.15, 0.35, 0.60), (
 
 
 def _u(key: str, salt: int) -> float:
-    return (zlib.crc32(f"{salt}:{key}".encode()) & 0xFFFFFF) / float(0xFFFFFF)
+    """A uniform number in [0, 1] from ``key`` and ``salt`` (a hash, so similar keys draw unrelated values)."""
+    h = hashlib.blake2b(f"{salt}:{key}".encode(), digest_size=8).digest()
+    return int.from_bytes(h, "little") / float(2**64 - 1)
 
 
 @dataclass(frozen=True)
@@ -191,12 +193,14 @@ def person_mesh(p: Person, pose: Pose) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return v, t, part, grp, comp
 
 
-def _quant(phase: float, speed: float) -> tuple[int, int]:
+def quantized(phase: float, speed: float) -> tuple[int, int]:
+    """The cache steps of a gait phase and a speed: (phase step of PHASE_STEPS, speed in 5 cm/s)."""
     return round((phase % 1.0) * PHASE_STEPS) % PHASE_STEPS, round(min(max(speed, 0.0), 3.0) * 20)
 
 
 @lru_cache(maxsize=4096)
-def _posed(key: str, q_phase: int, q_speed: int):
+def posed_steps(key: str, q_phase: int, q_speed: int):
+    """:func:`posed` at cache steps (:func:`quantized`)."""
     p = Person.from_key(key)
     v, t, part, grp, _ = person_mesh(p, walk_pose(q_phase / PHASE_STEPS, q_speed / 20))
     lo, hi = v.min(0), v.max(0)
@@ -209,7 +213,7 @@ Vec3 = tuple[float, float, float]
 def posed_box(key: str, phase: float, speed_mps: float) -> tuple[Vec3, Vec3]:
     """Tight box of person ``key`` walking: size (length, width, height) [m] and the box centre in the
     body frame (origin on the ground under the pelvis)."""
-    _, _, _, _, _, lo, hi = _posed(key, *_quant(phase, speed_mps))
+    _, _, _, _, _, lo, hi = posed_steps(key, *quantized(phase, speed_mps))
     size = tuple(float(x) for x in (hi - lo))
     centre = tuple(float(x) for x in (lo + hi) / 2)
     return size, centre  # type: ignore[return-value]
@@ -218,7 +222,7 @@ def posed_box(key: str, phase: float, speed_mps: float) -> tuple[Vec3, Vec3]:
 def posed(key: str, phase: float, speed_mps: float):
     """(person, vertices, triangles, part, group, lo, hi) of person ``key`` at this gait phase and speed
     (cached at :data:`PHASE_STEPS` phases and 5 cm/s of speed)."""
-    return _posed(key, *_quant(phase, speed_mps))
+    return posed_steps(key, *quantized(phase, speed_mps))
 
 
 def seated_pose(lean_deg: float, knee_deg: float, reach: float) -> Pose:
