@@ -265,3 +265,32 @@ def test_every_species_crown_passes_10_to_50_percent_of_lidar_rays():
         behind = np.take(scene.labels["instance"], g2[crown]) == 1_000_001
         assert 0.10 <= behind.mean() <= 0.50, (species, behind.mean())
         assert np.all(t2[crown] >= t[crown])  # never in front of the crown's surface
+
+
+def test_cosim_assets_writes_the_catalogue_and_refuses_a_file_as_folder(tmp_path, capsys):
+    import json
+
+    from cosim.cli import main
+
+    assert main(["assets", "--out", str(tmp_path / "cat"), "--no-pictures"]) == 0
+    data = json.loads((tmp_path / "cat" / "catalogue.json").read_text())
+    names = [m["name"] for m in data["models"]]
+    assert len(names) == len(set(names)) == len(vehicles.MODELS) + catalogue.N_PEOPLE
+    assert {"name", "class", "style", "length_m", "width_m", "height_m", "triangles", "volume_ratio"} <= set(
+        data["models"][0])
+    assert "51 vehicle models, 16 people" in capsys.readouterr().out
+    (tmp_path / "file").write_text("x")
+    assert main(["assets", "--out", str(tmp_path / "file")]) == 2
+    assert "not a folder" in capsys.readouterr().err
+
+
+def test_gallery_pictures_show_the_models(tmp_path):
+    from PIL import Image
+
+    catalogue.gallery(["saloon_0", "person_1"], tmp_path / "g.png", px=60, cols=2)
+    img = np.asarray(Image.open(tmp_path / "g.png").convert("RGB")).astype(int)
+    assert img.shape == (74, 240, 3)
+    for cell in (img[14:, :120], img[14:, 120:]):  # each model's two views differ from the background
+        assert (np.abs(cell - [237, 240, 245]).sum(axis=2) > 60).mean() > 0.05
+    catalogue.lidar_gallery(["saloon_0"], tmp_path / "l.png", px=80)
+    assert len(catalogue.lidar_scan("saloon_0", 10.0)) > 10 * len(catalogue.lidar_scan("saloon_0", 40.0)) > 0
