@@ -291,7 +291,9 @@ def test_labels_poses_calibration_and_pixels_agree():
 
 
 def _town_lidar_scenario(**env) -> Scenario:
-    rig = RigSpec(lidar=LidarSpec(horizontal_resolution_deg=0.7, range_m=200.0), cameras=[], gnss=None, imu=None)
+    # a long-range unit: the ray drop's energy term would otherwise lose the grazing ground beyond 60 m
+    lidar = LidarSpec(horizontal_resolution_deg=0.7, range_m=200.0, detection_range_10pct_m=1000.0)
+    rig = RigSpec(lidar=lidar, cameras=[], gnss=None, imu=None)
     return Scenario(name="t", environment=env, agents=AgentsSpec(vehicles=VehicleAgents(count=1),
                                                                 rsus=RsuAgents(count=2), drones=[]),
                     sensors=SensorsSpec(vehicle=rig, rsu=rig))
