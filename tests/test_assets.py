@@ -53,7 +53,7 @@ def test_mesh_volume_over_box_volume_is_real_world_per_class(rows):
 
 
 def test_vtypes_take_their_size_from_the_models():
-    from cosim.traffic.vtypes import VARIANTS
+    from cosim.world.vtypes import VARIANTS
 
     for cls, variants in VARIANTS.items():
         for v in variants:

@@ -12,7 +12,7 @@ their cabs and bodies and add load boxes, tanks, frames and a posed rider
 
 Every model (:data:`MODELS`) is a style plus continuous parameters drawn from the catalogue seed;
 its dimensions are those of its tight box, rounded to centimetres, and the SUMO vTypes take them
-(:mod:`cosim.traffic.vtypes`), so traffic and sensors agree.
+(:mod:`cosim.world.vtypes`), so traffic and sensors agree.
 """
 
 from __future__ import annotations
