@@ -605,7 +605,7 @@ def person_template(key: str, gait_phase: float, speed_mps: float) -> ActorTempl
     return _person_template(key, *people.quantized(gait_phase, speed_mps))
 
 
-@lru_cache(maxsize=8192)
+@lru_cache(maxsize=1024)  # about 20 MB (19 kB a posed person)
 def _person_template(key: str, q_phase: int, q_speed: int) -> ActorTemplate:
     from .assets import people
 

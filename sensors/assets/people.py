@@ -198,7 +198,7 @@ def quantized(phase: float, speed: float) -> tuple[int, int]:
     return round((phase % 1.0) * PHASE_STEPS) % PHASE_STEPS, round(min(max(speed, 0.0), 3.0) * 20)
 
 
-@lru_cache(maxsize=4096)
+@lru_cache(maxsize=1024)  # about 25 MB (25 kB a posed body)
 def posed_steps(key: str, q_phase: int, q_speed: int):
     """:func:`posed` at cache steps (:func:`quantized`)."""
     p = Person.from_key(key)
