@@ -247,7 +247,8 @@ def _clean_loc(loc: Sequence[str | int], data: Any) -> list[str | int]:
 def _error(exc: ValidationError, doc: YamlDoc, source: str) -> SweepError:
     err = located_error(exc, doc, error_cls=SweepError, clean=_clean_loc, message=_sweep_message)
     if not err.source:
-        err = SweepError(err.detail, path=err.path, line=err.line, source=source)
+        err = SweepError(err.detail, path=err.path, line=err.line, source=source, problems=err.problems,
+                         more=err.more)
     return err
 
 
