@@ -82,6 +82,11 @@ class FormatError(CosimError):
     """An episode file does not follow docs/episode_format.md."""
 
 
+class EpisodeFileError(FormatError, InputError):
+    """The file given as an episode cannot be opened as one (truncated, not MCAP, no cosim metadata, a format
+    version this reader does not know): bad input, exit status 2, the same message for every command."""
+
+
 class ClientError(WorkerError):
     """A closed-loop client (``cosim.client``) went away or broke the protocol during an episode."""
 

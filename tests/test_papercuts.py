@@ -125,3 +125,34 @@ def test_an_error_already_in_the_file_still_names_the_file_despite_a_set(tmp_pat
 
 
 # ----------------------------------------------------------------------------------------- cosim eval ego
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory) -> Path:
+    from cosim.io.synthetic import write_synthetic_episode
+
+    return write_synthetic_episode(tmp_path_factory.mktemp("syn") / "syn.mcap", ticks=2, sensors=True)
+
+
+@pytest.mark.parametrize("ego", ["rsu_0", "drone_0"])
+def test_eval_rejects_an_ego_that_is_not_a_vehicle(synthetic, tmp_path, capsys, ego):
+    f = tmp_path / "p.jsonl"
+    f.write_text(json.dumps({"episode": "syn", "tick": 0, "ego": ego, "boxes": []}) + "\n")
+    status, _, err = cli(capsys, "eval", "--gt", str(synthetic), "--pred", str(f), "--out", str(tmp_path / "ev"))
+    assert status == 2
+    assert err.strip().splitlines() == [f"cosim: error: {f}:1: ego: {ego!r} is not a vehicle: the ego of a frame "
+                                        "is a connected vehicle (vehicle_0)"]
+
+
+# ------------------------------------------------------------------------------------------ truncated files
+
+
+@pytest.mark.parametrize("command", [["info"], ["render", "--out", "R"], ["export", "--format", "airv2x", "--out", "E"],
+                                     ["export", "--format", "opv2v", "--out", "E"], ["comm"]])
+def test_a_truncated_file_gives_the_same_status_and_message_in_every_command(synthetic, tmp_path, capsys, command):
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(synthetic.read_bytes()[: synthetic.stat().st_size * 2 // 3])
+    args = [str(tmp_path / a) if a in ("R", "E") else a for a in command[1:]]
+    status, _, err = cli(capsys, command[0], str(cut), *args)
+    assert status == 2
+    assert err.startswith(f"cosim: error: {cut}: truncated or corrupt MCAP") and len(err.strip().splitlines()) == 1

@@ -24,7 +24,7 @@ from typing import Any, BinaryIO
 from mcap.reader import SeekingReader, make_reader
 
 from cosim.comm.message import LinkSet
-from cosim.errors import CosimError, FormatError, InputError
+from cosim.errors import CosimError, EpisodeFileError, FormatError, InputError
 from cosim.io.decode import (
     Boxes,
     Calibration,
@@ -424,7 +424,8 @@ def open_episode(path: str | Path) -> Episode:
     """Open an episode for reading.
 
     Raises :class:`~cosim.errors.InputError` when the file is missing and
-    :class:`~cosim.errors.FormatError` when it is not a complete cosim episode (truncated, no
+    :class:`~cosim.errors.EpisodeFileError` (a FormatError and an InputError: exit status 2) when it is not a
+    complete cosim episode (truncated, no
     summary, no ``episode`` metadata) or has a format major version this reader does not know.
     """
     path = Path(path)
@@ -450,12 +451,17 @@ def open_episode(path: str | Path) -> Episode:
         if raw is None:
             raise FormatError(f"{path}: no 'episode' metadata record; not a cosim episode")
         return Episode(path, stream, reader, summary, raw)
+    except FormatError as exc:
+        stream.close()
+        if isinstance(exc, InputError):
+            raise
+        raise EpisodeFileError(str(exc)) from None
     except CosimError:
         stream.close()
         raise
     except Exception as exc:
         stream.close()
-        raise FormatError(f"{path}: not a readable MCAP file ({type(exc).__name__}: {exc})") from None
+        raise EpisodeFileError(f"{path}: not a readable MCAP file ({type(exc).__name__}: {exc})") from None
     except BaseException:
         stream.close()
         raise
