@@ -300,3 +300,74 @@ def test_dry_run_prints_the_resolved_scenario_and_builds_nothing(tmp_path, capsy
     resolved = yaml.safe_load(out)
     assert resolved == load_scenario("default", ["sensors.drone.lidar.dropout=0.1"]).resolved
     assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------- issue 27 item 8: strict kinds, bounds, long values
+
+
+@pytest.mark.parametrize("assignment, key, message", [
+    ("duration_s=true", "duration_s", "expected a number, got true"),
+    ("duration_s='20'", "duration_s", 'expected a number, got "20"'),
+    ("sensors.enabled=1", "sensors.enabled", "expected true or false, got 1"),
+    ("comm.shadow_fading=yes_please", "comm.shadow_fading", 'expected true or false, got "yes_please"'),
+    ("agents.vehicles.count=3.0", "agents.vehicles.count", "expected a whole number, got 3.0"),
+    ("seed=false", "seed", "expected a whole number, got false"),
+    ("sensors.vehicle.lidar.mount.xyz_m=[0, true, 0]", "sensors.vehicle.lidar.mount.xyz_m.1",
+     "expected a number, got true"),
+    ("traffic.mix.car=false", "traffic.mix.car", "expected a number, got false"),
+])
+def test_numbers_and_booleans_are_strict(capsys, no_world, assignment, key, message):
+    status, err = cli(capsys, "run", "default", "--dry-run", "--set", assignment)
+    assert status == 2
+    assert err.strip().splitlines() == [f"cosim: error: --set {assignment}: {key}: {message}"]
+
+
+def test_every_wrong_kind_in_a_file_is_listed(tmp_path, no_world):
+    f = write(tmp_path, "kinds.yaml", """\
+        extends: default
+        name: kinds
+        duration_s: true
+        sensors: {enabled: 0}
+        agents: {vehicles: {count: "4"}}
+        """)
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(f)
+    assert [(p.line, p.path, p.detail) for p in err.value.problems] == [
+        (3, "duration_s", "expected a number, got true"),
+        (4, "sensors.enabled", "expected true or false, got 0"),
+        (5, "agents.vehicles.count", 'expected a whole number, got "4"')]
+
+
+def test_a_plain_exponent_is_a_number_as_in_yaml_1_2(tmp_path):
+    f = write(tmp_path, "exp.yaml", "extends: default\nname: exp\nduration_s: 2e1\n")
+    assert load_scenario(f).scenario.duration_s == 20.0
+
+
+@pytest.mark.parametrize("assignment, key", [
+    ("agents.drones.2.offset_m=[1.2e21, 0]", "agents.drones.2.offset_m.0"),
+    ("agents.drones.0.start=[0, -5e8]", "agents.drones.0.start.1"),
+    ("agents.drones.1.waypoints=[[0, 0], [1e12, 0]]", "agents.drones.1.waypoints.1.0"),
+    ("events=[{kind: breakdown, position_m: [3e7, 0]}]", "events.0.position_m.0"),
+    ("sensors.vehicle.lidar.mount.xyz_m=[0, 0, 1e4]", "sensors.vehicle.lidar.mount.xyz_m.2"),
+    ("sensors.drone.gnss.noise_m=1e9", "sensors.drone.gnss.noise_m"),
+    ("geo_origin.alt_m=1e30", "geo_origin.alt_m"),
+    ("runtime.tick_timeout_s=1e300", "runtime.tick_timeout_s"),
+    ("agents.rsus.height_m=[6, 1e6]", "agents.rsus.height_m"),
+    ("traffic.mix.car=1e300", "traffic.mix"),
+])
+def test_physical_quantities_have_bounds(capsys, no_world, assignment, key):
+    status, err = cli(capsys, "run", "default", "--dry-run", "--set", assignment)
+    assert status == 2
+    assert err.startswith(f"cosim: error: --set {assignment}: {key}: "), err
+
+
+def test_a_long_bad_value_is_cut_in_the_message(tmp_path, capsys, no_world):
+    long = "x" * 10_000
+    f = write(tmp_path, "long.yaml", f"extends: default\nname: long\nduration_s: {long}\noutput: {{name: {long}}}\n"
+                                     f"{'k' * 1000}: 1\n")  # PyYAML's longest plain key
+    status, err = cli(capsys, "run", str(f), "--dry-run")
+    assert status == 2 and "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert lines[0] == f"cosim: error: {f}: 3 problems:"
+    assert all(len(line) < 500 for line in lines), [len(line) for line in lines]
+    assert "(10002 characters)" in err and "output.name: " in err and "(1000 characters)" in err

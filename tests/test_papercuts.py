@@ -7,7 +7,6 @@ synthetic ones of :mod:`cosim.io.synthetic`.
 from __future__ import annotations
 
 import json
-import logging
 import textwrap
 from pathlib import Path
 
@@ -16,7 +15,6 @@ import pytest
 from cosim.cli import main
 from cosim.errors import ScenarioError
 from cosim.scenario import load_scenario
-from tests.conftest import SCENARIOS
 
 
 def cli(capsys, *args: str) -> tuple[int, str, str]:

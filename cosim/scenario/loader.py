@@ -11,6 +11,7 @@ import datetime
 import difflib
 import json
 import os
+import re
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,7 +21,15 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from cosim.errors import ScenarioError
-from cosim.scenario.model import EnvironmentSpec, MapSpec, RuleError, Scenario, complete_rigs, merge_fields
+from cosim.scenario.model import (
+    EnvironmentSpec,
+    MapSpec,
+    RuleError,
+    Scenario,
+    WrongKind,
+    complete_rigs,
+    merge_fields,
+)
 
 Key = tuple[str | int, ...]
 
@@ -70,6 +79,10 @@ class _LineLoader(yaml.SafeLoader):
     """SafeLoader that refuses duplicate keys (a silent overwrite hides typos)."""
 
 
+#: A plain scalar such as ``1e9`` or ``1.2E-3``: a float in YAML 1.2, text in PyYAML's YAML 1.1.
+_YAML12_EXPONENT = re.compile(r"[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)[eE][-+]?[0-9]+")
+
+
 def _construct(node: yaml.Node, source: str, path: Key, marks: dict[Key, tuple[str, int]]) -> Any:
     marks[path] = (source, node.start_mark.line + 1)
     if isinstance(node, yaml.MappingNode):
@@ -92,6 +105,8 @@ def _construct(node: yaml.Node, source: str, path: Key, marks: dict[Key, tuple[s
     if isinstance(node, yaml.SequenceNode):
         return [_construct(v, source, (*path, i), marks) for i, v in enumerate(node.value)]
     line = node.start_mark.line + 1
+    if node.tag == "tag:yaml.org,2002:str" and node.style is None and _YAML12_EXPONENT.fullmatch(node.value):
+        return float(node.value)  # YAML 1.2 reads a plain 1e9 as a number; PyYAML (YAML 1.1) as text
     try:
         value = yaml.SafeLoader(" ").construct_object(node, deep=True)
     except yaml.MarkedYAMLError as exc:
@@ -386,6 +401,8 @@ def unknown_key_message(bad: str, owner: type[BaseModel] | None) -> str:
 
 #: Longest rendering of an offending value inside an error message [characters].
 MAX_VALUE_CHARS = 80
+#: Longest message of one problem [characters].
+MAX_MESSAGE_CHARS = 400
 #: Most problems listed for one invalid file (the rest are counted).
 MAX_PROBLEMS = 10
 
@@ -397,6 +414,8 @@ def shown_value(value: Any) -> str:
 
 def error_message(err: dict[str, Any], path: list[str | int], data: Any) -> str:
     kind = err["type"]
+    if isinstance(err.get("input"), WrongKind):
+        return err["input"].message
     if kind == "extra_forbidden":
         return unknown_key_message(_printable(str(path[-1]), MAX_VALUE_CHARS), _model_at(path[:-1], data))
     if kind == "missing":
@@ -413,7 +432,7 @@ def error_message(err: dict[str, Any], path: list[str | int], data: Any) -> str:
     got = err.get("input")
     if kind not in ("value_error", "assertion_error") and not isinstance(got, dict | list):
         msg += f", got {shown_value(got)}"
-    return msg
+    return _printable(msg, MAX_MESSAGE_CHARS)  # a rule's own message may quote a long value in full
 
 
 def _override_marks(doc: YamlDoc) -> list[tuple[Key, tuple[str, int | None]]]:
@@ -435,7 +454,7 @@ def _where(path: Sequence[str | int], doc: YamlDoc, from_file: bool | None) -> t
     overrides = _override_marks(doc)
     if not overrides or str(mark[0]).startswith("--set ") or from_file:
         return mark
-    shared = [(sum(1 for _ in _common(k, path)), m) for k, m in overrides]
+    shared = [(_shared(k, path), m) for k, m in overrides]
     best_len = max(n for n, _ in shared)
     best = [m for n, m in shared if n == best_len][-1]
     if from_file is False or depth == 0 or (depth < len(path) and best_len >= depth):
@@ -443,11 +462,14 @@ def _where(path: Sequence[str | int], doc: YamlDoc, from_file: bool | None) -> t
     return mark
 
 
-def _common(a: Sequence[Any], b: Sequence[Any]) -> Iterable[Any]:
-    for x, y in zip(a, b):
+def _shared(a: Sequence[Any], b: Sequence[Any]) -> int:
+    """How many leading parts two key paths share."""
+    n = 0
+    for x, y in zip(a, b, strict=False):
         if x != y:
-            return
-        yield x
+            break
+        n += 1
+    return n
 
 
 def located_error(
