@@ -371,3 +371,166 @@ def test_a_long_bad_value_is_cut_in_the_message(tmp_path, capsys, no_world):
     assert lines[0] == f"cosim: error: {f}: 3 problems:"
     assert all(len(line) < 500 for line in lines), [len(line) for line in lines]
     assert "(10002 characters)" in err and "output.name: " in err and "(1000 characters)" in err
+
+
+# --------------------------------------------------------------------- issue 27 item 8: unusable output folders
+
+
+@pytest.fixture
+def read_only_dir(tmp_path):
+    """A folder on a read-only file system (a read-only tmpfs): root ignores permission bits, not that.
+    Skipped where mounting is not allowed."""
+    import shutil
+    import subprocess
+
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    if not shutil.which("mount"):
+        pytest.skip("no mount(8) here")
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(folder)], capture_output=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a read-only tmpfs here: {r.stderr.decode().strip()}")
+    yield folder
+    subprocess.run(["umount", str(folder)], check=True)
+
+
+def bad_out_dirs(tmp_path: Path, read_only: Path | None) -> dict[str, Path]:
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    out = {"/proc": Path("/proc/x"), "regular file": a_file, "under a file": a_file / "sub" / "dir"}
+    if read_only is not None:
+        out |= {"read-only folder": read_only, "under a read-only folder": read_only / "sub"}
+    return out
+
+
+@pytest.mark.parametrize("dry_run", [False, True])
+def test_batch_into_an_unusable_output_folder_is_one_message_and_exit_2(tmp_path, capsys, read_only_dir, dry_run):
+    for what, out in bad_out_dirs(tmp_path, read_only_dir).items():
+        args = ["batch", "smoke", "--out", str(out), "--count", "1", *(["--dry-run", "--calibrate-s", "0"]
+                                                                       if dry_run else [])]
+        status, err = cli(capsys, *args)
+        assert status == 2, (what, status, err)
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"cosim: error: cannot write episodes into output folder "
+                                                       f"{out}") or lines[0].startswith(
+            f"cosim: error: output folder {out} is a file"), (what, err)
+        assert "Traceback" not in err
+    assert not (read_only_dir / "sub").exists()
+
+
+def test_run_dry_run_checks_the_folder_without_creating_it(tmp_path, capsys, no_world):
+    out = tmp_path / "new" / "folder"
+    status, err = cli(capsys, "run", "default", "--dry-run", "--out", str(out))
+    assert status == 0 and not (tmp_path / "new").exists(), err
+    status, err = cli(capsys, "run", "default", "--dry-run", "--out", "/proc/x/y")
+    assert status == 2 and err.startswith("cosim: error: cannot write episodes into output folder /proc/x/y (in "
+                                          "/proc)"), err
+
+
+# ------------------------------------------------------------- issue 27 item 8: a killed conductor's leftovers
+
+WRITER = """
+import sys, time
+from pathlib import Path
+from cosim.exporters.mcap_writer import EpisodeWriter
+w = EpisodeWriter(Path(sys.argv[1]))
+print(w.tmp_path, flush=True)
+time.sleep(120)
+"""
+
+
+def killed_writer(final: Path) -> Path:
+    """Start an episode writer in another process, SIGKILL it; returns the partial file it left."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", WRITER, str(final)], stdout=subprocess.PIPE, text=True)
+    partial = Path(proc.stdout.readline().strip())
+    proc.kill()
+    proc.wait(10)
+    return partial
+
+
+def test_the_next_run_removes_what_a_killed_run_left_and_says_so(tmp_path, monkeypatch, capsys, caplog):
+    import fcntl
+
+    import cosim.world
+    from cosim.errors import InputError
+    from cosim.exporters.mcap_writer import temporary_path
+
+    out = tmp_path / "out"
+    stale = killed_writer(out / "other_s3.mcap")
+    assert stale.exists() and stale.parent == out and str(stale.name).startswith(".other_s3.mcap.")
+    legacy = out / ".older_s1.mcap.partial"  # the name cosim used before
+    legacy.write_bytes(b"x" * 1000)
+    live = temporary_path(out / "busy_s0.mcap", 4242)  # held by a writer that is still running
+    live.write_bytes(b"y")
+    holder = open(live, "rb")  # noqa: SIM115
+    fcntl.flock(holder.fileno(), fcntl.LOCK_EX)
+
+    def stop(*_a, **_k):
+        raise InputError("stopped after the output folder was prepared")
+
+    monkeypatch.setattr(cosim.world, "build_world", stop)
+    try:
+        with caplog.at_level("WARNING"):
+            status, err = cli(capsys, "run", "default", "--out", str(out), "--no-sensors")
+    finally:
+        holder.close()
+    assert status == 2 and "stopped after the output folder was prepared" in err
+    assert not stale.exists() and not legacy.exists() and live.exists()
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any(str(stale) in w and "left by a run that was killed" in w for w in warned), warned
+    assert any(str(legacy) in w for w in warned), warned
+
+
+def test_a_batch_removes_partial_files_left_in_its_folders(tmp_path, monkeypatch, caplog):
+    from cosim.batch import runner
+    from cosim.batch.plan import plan_file
+
+    plan = plan_file("smoke", count=2)
+    out = tmp_path / "batch"
+    leftovers = [killed_writer(out / plan.episodes[0].file), killed_writer(out / "unrelated_s9.mcap")]
+    assert all(p.exists() for p in leftovers)
+
+    class NoExecutor:
+        status_lines = 0
+
+        def busy(self):
+            return False
+
+        def has_capacity(self):
+            raise AssertionError("stop before running anything")
+
+        def shutdown(self):
+            pass
+
+    with caplog.at_level("WARNING"), pytest.raises(AssertionError, match="stop before running"):
+        runner.run_batch(plan, out, NoExecutor(), show_progress=False)
+    assert not any(p.exists() for p in leftovers)
+    assert sum("left by a run that was killed" in r.getMessage() for r in caplog.records) == 2
+
+
+def test_netconvert_and_other_sumo_tools_die_with_the_conductor(tmp_path):
+    """A process running a SUMO tool through the world builder is SIGKILLed: the tool goes too."""
+    import subprocess
+    import sys
+    import time
+
+    import psutil
+
+    script = ("import sys\nfrom pathlib import Path\nimport cosim.world.netgen as n\n"
+              "n.sumo_binary = lambda name: '/bin/sleep'\nprint('go', flush=True)\n"
+              "n._run_tool('netconvert', ['60'], Path('.'))\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=tmp_path)
+    assert proc.stdout.readline().strip() == "go"
+    deadline = time.monotonic() + 20
+    children: list[psutil.Process] = []
+    while not children and time.monotonic() < deadline:
+        children = psutil.Process(proc.pid).children()
+        time.sleep(0.02)
+    assert children and children[0].name() == "sleep", children
+    proc.kill()
+    proc.wait(10)
+    gone, alive = psutil.wait_procs(children, timeout=5)
+    assert not alive, alive
