@@ -31,6 +31,7 @@ from cosim.errors import InputError
 from cosim.io.format import FORMAT_VERSION
 from cosim.protocol import drone_from_dict, vehicle_from_dict
 from cosim.scenario import LoadedScenario
+from cosim.scenario.loader import printable
 from cosim.scenario.model import EscortDrone
 from cosim.snapshot import WorldSnapshot
 from cosim.world.types import World
@@ -90,23 +91,25 @@ def check_output_dir(out_dir: Path, *, create: bool = True) -> None:
     cannot be created or is not writable (read-only file system, no permission, ``/proc``). ``create=False``
     (dry runs) creates nothing: a missing folder's nearest existing parent must be a writable folder.
     """
-    out = Path(out_dir)
+    out = probe = Path(out_dir)
     try:
+        if "\0" in str(out):
+            raise ValueError("a path cannot hold a NUL character")
         if out.exists() and not out.is_dir():
-            raise InputError(f"output folder {out} is a file, not a folder")
-        probe = out
+            raise InputError(f"output folder {printable(str(out))} is a file, not a folder")
         if create:
             out.mkdir(parents=True, exist_ok=True)
         else:
             while not probe.exists() and probe.parent != probe:
                 probe = probe.parent
             if not probe.is_dir():
-                raise InputError(f"cannot write episodes into output folder {out}: {probe} is a file, not a folder")
+                raise InputError(f"cannot write episodes into output folder {printable(str(out))}: "
+                                 f"{printable(str(probe))} is a file, not a folder")
         with tempfile.NamedTemporaryFile(dir=probe, prefix=".cosim-write-check-"):
             pass
     except (OSError, ValueError) as exc:
         reason = getattr(exc, "strerror", None) or str(exc)
-        where = out if probe == out else f"{out} (in {probe})"
+        where = printable(str(out)) + ("" if probe == out else f" (in {printable(str(probe))})")
         raise InputError(f"cannot write episodes into output folder {where}: {reason}") from None
 
 

@@ -533,5 +533,5 @@ def test_netconvert_and_other_sumo_tools_die_with_the_conductor(tmp_path):
     assert children and children[0].name() == "sleep", children
     proc.kill()
     proc.wait(10)
-    gone, alive = psutil.wait_procs(children, timeout=5)
+    _, alive = psutil.wait_procs(children, timeout=5)
     assert not alive, alive

@@ -254,10 +254,10 @@ def _find_base(parent: str, folder: Path, line: int | None, source: str) -> Path
                 if cand.is_file():
                     return cand.resolve()
     except (OSError, ValueError) as exc:  # a name too long for the file system, a NUL in it
-        raise ScenarioError(f"cannot open the base scenario {_printable(parent, 80)!r}: "
+        raise ScenarioError(f"cannot open the base scenario {printable(parent, 80)!r}: "
                             f"{getattr(exc, 'strerror', None) or exc}", path="extends", line=line,
                             source=source) from None
-    raise ScenarioError(f"base scenario not found: {_printable(parent, 80)!r} is neither a file beside "
+    raise ScenarioError(f"base scenario not found: {printable(parent, 80)!r} is neither a file beside "
                         f"{source or 'the scenario'} nor a shipped scenario{_did_you_mean(parent)}",
                         path="extends", line=line, source=source)
 
@@ -282,25 +282,25 @@ def _did_you_mean(name: str | Path) -> str:
 def apply_override(doc: YamlDoc, assignment: str) -> None:
     """Apply one ``a.b.0.c=value`` override; the value is parsed as YAML (``3``, ``true``, ``[1, 2]``)."""
     key, sep, raw = assignment.partition("=")
-    source = f"--set {_printable(assignment)}"
+    source = f"--set {printable(assignment)}"
     if not sep or not key.strip():
         raise ScenarioError("expected KEY=VALUE, for example --set environment.weather=foggy", source=source)
     parts: list[str | int] = [int(p) if p.isdigit() else p for p in key.strip().split(".")]
     if _deeper_than(raw, MAX_FLOW_DEPTH) is not None:
         raise ScenarioError(f"value is not valid YAML: brackets nested more than {MAX_FLOW_DEPTH} levels deep",
-                            path=_printable(key), source=source)
+                            path=printable(key), source=source)
     try:
         node = yaml.compose(raw, Loader=_LineLoader) if raw.strip() else None
         value = _construct(node, source, tuple(parts), {}) if node is not None else None if raw.strip() else ""
     except yaml.reader.ReaderError as exc:
         raise ScenarioError(f"value is not valid YAML: control character U+{int(exc.character):04X} is not allowed",
-                            path=_printable(key), source=source) from None
+                            path=printable(key), source=source) from None
     except yaml.MarkedYAMLError as exc:
-        raise ScenarioError(f"value is not valid YAML: {exc.problem}", path=_printable(key), source=source) from None
+        raise ScenarioError(f"value is not valid YAML: {exc.problem}", path=printable(key), source=source) from None
     except yaml.YAMLError as exc:
-        raise ScenarioError(f"value is not valid YAML: {exc}", path=_printable(key), source=source) from None
+        raise ScenarioError(f"value is not valid YAML: {exc}", path=printable(key), source=source) from None
     except RecursionError:
-        raise ScenarioError("value is nested too deeply", path=_printable(key), source=source) from None
+        raise ScenarioError("value is nested too deeply", path=printable(key), source=source) from None
     if doc.before_overrides is None:
         doc.before_overrides = copy.deepcopy(doc.data)
     node: Any = doc.data
@@ -328,7 +328,7 @@ def apply_override(doc: YamlDoc, assignment: str) -> None:
     doc.marks[tuple(parts)] = (source, None)  # type: ignore[assignment]
 
 
-def _printable(text: str, limit: int = 120) -> str:
+def printable(text: str, limit: int = 120) -> str:
     """``text`` for an error message: control characters escaped, long text shortened."""
     shown = text if text.isprintable() else text.encode("unicode_escape").decode("ascii")
     return shown if len(shown) <= limit else f"{shown[: limit - 20]}... ({len(text)} characters)"
@@ -409,7 +409,7 @@ MAX_PROBLEMS = 10
 
 def shown_value(value: Any) -> str:
     """A bad value as JSON for an error message, cut to :data:`MAX_VALUE_CHARS`."""
-    return _printable(json.dumps(value, default=str), MAX_VALUE_CHARS)
+    return printable(json.dumps(value, default=str), MAX_VALUE_CHARS)
 
 
 def error_message(err: dict[str, Any], path: list[str | int], data: Any) -> str:
@@ -417,14 +417,14 @@ def error_message(err: dict[str, Any], path: list[str | int], data: Any) -> str:
     if isinstance(err.get("input"), WrongKind):
         return err["input"].message
     if kind == "extra_forbidden":
-        return unknown_key_message(_printable(str(path[-1]), MAX_VALUE_CHARS), _model_at(path[:-1], data))
+        return unknown_key_message(printable(str(path[-1]), MAX_VALUE_CHARS), _model_at(path[:-1], data))
     if kind == "missing":
         return "required key is missing"
     if kind in ("literal_error", "enum"):
         return f"{err['msg']}, got {shown_value(err.get('input'))}"
     if kind == "union_tag_invalid":
         key = str(err["ctx"].get("discriminator", "'strategy'")).strip("'")
-        return (f"unknown {key} {_printable(repr(err['ctx']['tag']), MAX_VALUE_CHARS)}; "
+        return (f"unknown {key} {printable(repr(err['ctx']['tag']), MAX_VALUE_CHARS)}; "
                 f"expected one of {err['ctx']['expected_tags']}")
     msg = err["msg"]
     if msg.startswith("Value error, "):
@@ -432,7 +432,7 @@ def error_message(err: dict[str, Any], path: list[str | int], data: Any) -> str:
     got = err.get("input")
     if kind not in ("value_error", "assertion_error") and not isinstance(got, dict | list):
         msg += f", got {shown_value(got)}"
-    return _printable(msg, MAX_MESSAGE_CHARS)  # a rule's own message may quote a long value in full
+    return printable(msg, MAX_MESSAGE_CHARS)  # a rule's own message may quote a long value in full
 
 
 def _override_marks(doc: YamlDoc) -> list[tuple[Key, tuple[str, int | None]]]:
@@ -498,7 +498,7 @@ def located_error(
         seen.add(key)
         from_file = None if without_overrides is None else key in without_overrides
         source, line = _where(path, doc, from_file)
-        problems.append(error_cls(message(err, path, doc.data), path=_printable(key), line=line, source=source))
+        problems.append(error_cls(message(err, path, doc.data), path=printable(key), line=line, source=source))
     if len(problems) == 1:
         return problems[0]
     order = {p.source: i for i, p in reversed(list(enumerate(problems)))}
@@ -537,7 +537,7 @@ def find_scenario(name_or_path: str | Path) -> Path:
     found = find_yaml(name_or_path, scenario_dirs())
     if found is not None:
         return found
-    shown = _printable(str(name_or_path), 120)
+    shown = printable(str(name_or_path), 120)
     raise ScenarioError(f"scenario not found: {shown}{_did_you_mean(name_or_path)} (see `cosim scenarios` for "
                         "the shipped ones)", source=shown)
 
