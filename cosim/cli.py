@@ -80,10 +80,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.dry_run:
         import yaml
 
+        from cosim.preflight import check_scenario_inputs
         from cosim.runner import check_output_dir, episode_path
 
         path = episode_path(loaded, out_dir)
         check_output_dir(path.parent, create=False)
+        check_scenario_inputs(loaded)
         print(f"# {path}: {loaded.scenario.n_ticks} ticks, {len(loaded.scenario.agent_ids())} agents")
         print(yaml.safe_dump(loaded.resolved, sort_keys=False), end="")
         return EXIT_OK

@@ -159,12 +159,14 @@ def run_episode(
     from cosim.exporters.events import EVENTS_SCHEMA, events_payload
     from cosim.exporters.labels import label_messages
     from cosim.exporters.mcap_writer import BackgroundWriter, EpisodeWriter, remove_stale_partials
+    from cosim.preflight import check_scenario_inputs
     from cosim.world import build_world
 
     s = loaded.scenario
     started = time.perf_counter()
     final = episode_path(loaded, out_dir)
     check_output_dir(final.parent)
+    check_scenario_inputs(loaded)
     remove_stale_partials(final.parent)
     with tempfile.TemporaryDirectory(prefix="cosim-world-") as workdir:
         world = build_world(loaded, Path(workdir))

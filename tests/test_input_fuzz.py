@@ -131,9 +131,11 @@ def run_cli(capsys, args: list[str]) -> tuple[int, str]:
 def check(status: int, err: str, text: str) -> None:
     assert "Traceback" not in err, (err, text)
     assert status in (0, 2), (status, err, text)
-    if status == 2:
+    if status == 2:  # one message: one line, or a list of the problems under "FILE: N problems:"
         lines = err.strip().splitlines()
-        assert len(lines) == 1 and lines[0].startswith("cosim: error: "), (err, text)
+        assert lines[0].startswith("cosim: error: "), (err, text)
+        if len(lines) > 1:
+            assert lines[0].endswith(" problems:") and all(line.startswith("  ") for line in lines[1:]), (err, text)
 
 
 def _scenario_seeds() -> list[dict]:

@@ -15,6 +15,7 @@ import pytest
 from cosim.cli import main
 from cosim.errors import ScenarioError
 from cosim.scenario import load_scenario
+from tests.conftest import SCENARIOS
 
 
 def cli(capsys, *args: str) -> tuple[int, str, str]:
@@ -154,3 +155,58 @@ def test_a_truncated_file_gives_the_same_status_and_message_in_every_command(syn
     status, _, err = cli(capsys, command[0], str(cut), *args)
     assert status == 2
     assert err.startswith(f"cosim: error: {cut}: truncated or corrupt MCAP") and len(err.strip().splitlines()) == 1
+
+
+# ------------------------------------------------------------------ --dry-run checks what the real run checks
+
+
+def test_dry_run_checks_the_map_file(tmp_path, capsys):
+    missing = write(tmp_path, "missing.yaml", "extends: default\nname: m\nmap: {kind: net, file: nowhere.net.xml}\n")
+    status, _, err = cli(capsys, "run", str(missing), "--dry-run", "--out", str(tmp_path / "o"))
+    assert status == 2 and err.startswith("cosim: error: map.file 'nowhere.net.xml' not found"), err
+    (tmp_path / "not_a_net.net.xml").write_text("<osm version='0.6'/>\n")
+    wrong = write(tmp_path, "wrong.yaml", "extends: default\nname: w\nmap: {kind: net, file: not_a_net.net.xml}\n")
+    status, _, err = cli(capsys, "run", str(wrong), "--dry-run", "--out", str(tmp_path / "o"))
+    assert status == 2 and "is not a SUMO network (.net.xml)" in err, err
+
+
+def test_dry_run_checks_that_the_drone_backends_are_installed(tmp_path, capsys, monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "pybullet" else real(name, *a))
+    status, _, err = cli(capsys, "run", "default", "--dry-run", "--out", str(tmp_path / "o"))
+    assert status == 2
+    assert err.strip() == ("cosim: error: the drones fly with the pybullet backend, which is not installed: "
+                           "pip install pybullet")
+    status, _, err = cli(capsys, "batch", "smoke", "--dry-run", "--calibrate-s", "0", "--out", str(tmp_path / "b"),
+                         "--set", "agents.drone_backend=pybullet")
+    assert status == 2 and "pybullet backend, which is not installed" in err, err
+
+
+def test_batch_dry_run_checks_that_ray_is_installed(tmp_path, capsys, monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "ray" else real(name, *a))
+    for dry in (["--dry-run", "--calibrate-s", "0"], []):
+        status, _, err = cli(capsys, "batch", "smoke", "--backend", "ray", "--out", str(tmp_path / "b"), *dry)
+        assert status == 2
+        assert err.strip() == "cosim: error: --backend ray needs Ray: pip install -e '.[ray]' (or pip install " \
+                              "'ray>=2.9')"
+
+
+def test_batch_dry_run_checks_the_map_files_of_its_episodes(tmp_path, capsys):
+    sweep = write(tmp_path, "nets.yaml", f"""\
+        name: nets
+        base: {SCENARIOS / "default.yaml"}
+        axes:
+          town:
+            levels:
+              - {{label: a, set: {{map.kind: net, map.file: {tmp_path / "town_a.net.xml"}}}}}
+              - {{label: b, set: {{map.kind: net, map.file: {tmp_path / "town_b.net.xml"}}}}}
+        count: 2
+        """)
+    (tmp_path / "town_a.net.xml").write_text("<net version='1.20'/>\n")
+    status, _, err = cli(capsys, "batch", str(sweep), "--dry-run", "--calibrate-s", "0", "--out", str(tmp_path / "b"))
+    assert status == 2 and err.startswith(f"cosim: error: map.file '{tmp_path / 'town_b.net.xml'}' not found"), err
