@@ -210,3 +210,65 @@ def test_batch_dry_run_checks_the_map_files_of_its_episodes(tmp_path, capsys):
     (tmp_path / "town_a.net.xml").write_text("<net version='1.20'/>\n")
     status, _, err = cli(capsys, "batch", str(sweep), "--dry-run", "--calibrate-s", "0", "--out", str(tmp_path / "b"))
     assert status == 2 and err.startswith(f"cosim: error: map.file '{tmp_path / 'town_b.net.xml'}' not found"), err
+
+
+# ------------------------------------------------------------------------------------------------ cosim info
+
+
+@pytest.fixture
+def counted_reads(monkeypatch) -> list[int]:
+    """Messages read through Episode.messages (one entry per message)."""
+    from cosim.io.reader import Episode
+
+    read: list[int] = []
+    real = Episode.messages
+
+    def counting(self, *a, **k):
+        for m in real(self, *a, **k):
+            read.append(1)
+            yield m
+
+    monkeypatch.setattr(Episode, "messages", counting)
+    return read
+
+
+def test_info_prints_summary_and_family_bytes_first_and_topics_per_agent_without_reading_the_file(
+        synthetic, capsys, counted_reads):
+    from cosim.io import open_episode
+
+    with open_episode(synthetic) as ep:
+        per_tick = len(ep.topics)
+        total = ep.message_count
+    status, out, _ = cli(capsys, "info", str(synthetic))
+    assert status == 0
+    lines = out.splitlines()
+    family_at = next(i for i, ln in enumerate(lines) if ln.startswith("bytes by topic family"))
+    topics_at = next(i for i, ln in enumerate(lines) if ln.startswith("topics "))
+    assert family_at < topics_at and lines[topics_at] == f"topics       {per_tick} (per agent; --full lists each)"
+    per_agent = lines[topics_at + 1:]
+    assert [ln.split()[0] for ln in per_agent] == ["episode", "vehicle_0", "rsu_0", "drone_0"]
+    assert "1 camera (down) x image depth semantic instance calibration" in per_agent[3]
+    assert len(counted_reads) <= per_tick < total  # one tick read, for the compression ratios
+
+    counted_reads.clear()
+    status, out, _ = cli(capsys, "info", str(synthetic), "--full")
+    assert status == 0 and len(counted_reads) == total
+    assert "/drone_0/down/image" in out and "(payloads; stored = compressed alone" in out
+
+
+def test_info_estimates_family_bytes_close_to_the_full_count(synthetic):
+    from cosim.io.info import episode_info
+
+    quick = {f.family: f for f in episode_info(synthetic).families}
+    exact = {f.family: f for f in episode_info(synthetic, full=True).families}
+    assert quick.keys() == exact.keys()
+    for fam, f in exact.items():
+        assert quick[fam].messages == f.messages
+        assert abs(quick[fam].raw_bytes - f.raw_bytes) <= 0.05 * f.raw_bytes + 2048, (fam, quick[fam], f)
+        assert abs(quick[fam].stored_bytes - f.stored_bytes) <= 0.5 * f.stored_bytes + 2048, (fam, quick[fam], f)
+
+
+def test_info_json_writes_the_seed_as_a_number(synthetic, capsys):
+    status, out, _ = cli(capsys, "info", str(synthetic), "--json", "--no-bytes")
+    info = json.loads(out)
+    assert status == 0 and info["seed"] == 0 and isinstance(info["seed"], int)
