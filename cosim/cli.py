@@ -15,6 +15,7 @@ from pathlib import Path
 
 import cosim
 from cosim.errors import CosimError, InputError
+from cosim.logs import NOTICE
 
 log = logging.getLogger("cosim")
 
@@ -204,7 +205,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     without the interpreter's slow teardown); a list: called in-process, always returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    level = [logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
+    level = [NOTICE, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)

@@ -272,3 +272,24 @@ def test_info_json_writes_the_seed_as_a_number(synthetic, capsys):
     status, out, _ = cli(capsys, "info", str(synthetic), "--json", "--no-bytes")
     info = json.loads(out)
     assert status == 0 and info["seed"] == 0 and isinstance(info["seed"], int)
+
+
+# ------------------------------------------------------------------------------------------ normal waiting
+
+
+def test_waiting_for_external_workers_is_a_notice_not_a_warning(tmp_path):
+    import socket
+
+    from tests.conftest import run_cli
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    r = run_cli("run", "default", "--no-sensors", "--duration", "1", "--set", "map.kind=rural", "--set",
+                "map.size_m=300", "--set", "runtime.startup_timeout_s=1", "--external-workers", "--listen",
+                f"tcp/127.0.0.1:{port}", "--out", str(tmp_path), timeout=120)
+    assert r.returncode == 1 and "did not come up within 1 s" in r.stderr, r.stderr[-2000:]
+    assert f"NOTICE cosim.conductor: waiting for external workers: cosim worker traffic|drones --connect " \
+           f"tcp/127.0.0.1:{port}" in r.stderr
+    assert "WARNING" not in r.stderr
+
