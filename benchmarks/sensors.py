@@ -168,8 +168,8 @@ def pybullet_seconds(suite: SensorSuite, snap) -> tuple[float, float, float]:
 
 
 def run(args) -> None:
-    from cosim.exporters.mcap_writer import BackgroundWriter, EpisodeWriter
-    from cosim.exporters.sensor_messages import frame_records
+    from cosim.io.sensor_messages import frame_records
+    from cosim.io.writer import BackgroundWriter, EpisodeWriter
 
     env = {k: v for k, v in (("weather", args.weather), ("lighting", args.lighting)) if v}
     lidar = {"motion_distortion": not args.lidar_snapshot, "dual_returns": args.dual_returns}

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import psutil
 import pytest
-from cosim.exporters.mcap_writer import temporary_path
 
+from cosim.io.writer import temporary_path
 from tests.conftest import REPO
 
 pytestmark = pytest.mark.integration

@@ -432,7 +432,7 @@ def test_run_dry_run_checks_the_folder_without_creating_it(tmp_path, capsys, no_
 WRITER = """
 import sys, time
 from pathlib import Path
-from cosim.exporters.mcap_writer import EpisodeWriter
+from cosim.io.writer import EpisodeWriter
 w = EpisodeWriter(Path(sys.argv[1]))
 print(w.tmp_path, flush=True)
 time.sleep(120)
@@ -454,10 +454,9 @@ def killed_writer(final: Path) -> Path:
 def test_the_next_run_removes_what_a_killed_run_left_and_says_so(tmp_path, monkeypatch, capsys, caplog):
     import fcntl
 
-    from cosim.exporters.mcap_writer import temporary_path
-
     import cosim.world
     from cosim.errors import InputError
+    from cosim.io.writer import temporary_path
 
     out = tmp_path / "out"
     stale = killed_writer(out / "other_s3.mcap")

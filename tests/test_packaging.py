@@ -33,10 +33,16 @@ def test_every_package_is_listed_for_the_wheel():
 
 def test_building_the_package_prints_no_setuptools_warning(tmp_path):
     """`make run` installs with pip install -e .: no deprecation or package-data blocks from setuptools."""
+    import shutil
     import subprocess
     import sys
 
-    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--wheel-dir", str(tmp_path), str(REPO)],
+    src = tmp_path / "src"  # a copy: building in place would leave build/ in the checkout
+    for name in ("cosim", "sensors", "exporters"):
+        shutil.copytree(REPO / name, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(REPO / name, src / name)
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--wheel-dir", str(tmp_path), str(src)],
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     text = r.stdout + r.stderr

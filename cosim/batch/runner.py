@@ -84,7 +84,7 @@ def run_batch(plan: Plan, out_dir: Path | str, executor: Executor, *, retries: i
     summary = BatchSummary(planned=len(plan.episodes), skipped=len(plan.episodes) - len(todo))
     by_id = {ep.id: ep for ep in todo}
     attempts = {ep.id: int((existing.get(ep.id) or {}).get("attempts", 0)) for ep in todo}
-    from cosim.exporters.mcap_writer import remove_stale_partials
+    from cosim.io.writer import remove_stale_partials
 
     for folder in sorted({out, *((out / ep.file).parent for ep in plan.episodes)}):
         remove_stale_partials(folder)  # left by a killed run (any episode): removed, each with a warning
