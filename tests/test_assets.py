@@ -294,3 +294,11 @@ def test_gallery_pictures_show_the_models(tmp_path):
         assert (np.abs(cell - [237, 240, 245]).sum(axis=2) > 60).mean() > 0.05
     catalogue.lidar_gallery(["saloon_0"], tmp_path / "l.png", px=80)
     assert len(catalogue.lidar_scan("saloon_0", 10.0)) > 10 * len(catalogue.lidar_scan("saloon_0", 40.0)) > 0
+
+
+def test_cosim_assets_refuses_an_unwritable_folder_at_once(capsys):
+    from cosim.cli import main
+
+    assert main(["assets", "--out", "/proc/cosim_assets"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "/proc/cosim_assets" in err

@@ -199,11 +199,10 @@ def write_catalogue(out: Path, pictures: bool = True) -> list[dict]:
 
 def cmd_assets(args) -> int:
     """``cosim assets [--out DIR] [--no-pictures]``: print the table, write catalogue.json and the pictures."""
-    from cosim.errors import InputError
+    from cosim.runner import check_output_dir
 
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out}: exists and is not a folder")
+    check_output_dir(out)  # a file, /proc, a NUL, no permission: one message, exit 2, before any work
     rows = write_catalogue(out, pictures=not args.no_pictures)
     print(table(rows))
     n_veh = sum(r["class"] != "pedestrian" for r in rows)
