@@ -85,7 +85,7 @@ def _stamp(msg, t_ns: int) -> None:
     msg.timestamp.FromNanoseconds(int(t_ns))
 
 
-def lidar_message(agent_id: str, frame, t_ns: int, positions: str = "quantized") -> PointCloud:
+def lidar_message(agent_id: str, frame, t_ns: int, positions: str = "float32") -> PointCloud:
     """One sweep in the compact record of :mod:`cosim.io.points` (``positions``: ``quantized`` or ``float32``)."""
     extra = {}
     if getattr(frame, "t_offset_ns", None) is not None:
@@ -250,7 +250,7 @@ LOOKAHEAD_CAMERAS = 3
 
 
 def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png", jpeg_quality: int = 90,
-                  lidar_positions: str = "quantized", consume: bool = False) -> Iterator[tuple[str, object]]:
+                  lidar_positions: str = "float32", consume: bool = False) -> Iterator[tuple[str, object]]:
     """Every sensor topic of one tick as ``(topic, record)``, agents in frame order, made as they are
     taken: a record is a protobuf message, a :class:`~cosim.exporters.mcap_writer.Serialized` one (the
     images) or a JSON ``(schema_name, json_schema, payload)`` triple, all of which
@@ -315,7 +315,7 @@ def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png
 
 
 def frame_messages(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png",
-                   jpeg_quality: int = 90, lidar_positions: str = "quantized") -> list[tuple[str, object]]:
+                   jpeg_quality: int = 90, lidar_positions: str = "float32") -> list[tuple[str, object]]:
     """Every sensor topic of one tick as protobuf messages (or JSON triples), agents in frame order: the
     records of :func:`frame_records` with the serialized ones parsed back (for code that reads the
     messages in memory, such as closed-loop clients; the episode writer takes the records)."""

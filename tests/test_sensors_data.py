@@ -195,7 +195,7 @@ def test_compact_points_halve_the_stored_bytes_and_keep_the_data():
     for k, name in enumerate("xyz"):
         old[name] = xyz[:, k]
     old["intensity"], old["ring"], old["class_id"], old["instance_id"] = inten, ring, cls, inst
-    new = encode_points(xyz, inten, ring, cls, inst)
+    new = encode_points(xyz, inten, ring, cls, inst, kind="quantized")
     assert new.dtype.itemsize == 13 and new["x"].dtype == np.int16
     assert _zstd_size(new.tobytes()) <= 0.5 * _zstd_size(old.tobytes())
     # positions within half a count, intensity within half a step, labels exact
@@ -203,16 +203,16 @@ def test_compact_points_halve_the_stored_bytes_and_keep_the_data():
 
     frame = type("F", (), {"points": xyz.astype(np.float32), "intensity": inten.astype(np.float32), "ring": ring,
                            "class_id": cls, "instance_id": inst})()
-    pc = decode_point_cloud(lidar_message("vehicle_0", frame, 0))
+    pc = decode_point_cloud(lidar_message("vehicle_0", frame, 0, positions="quantized"))
     assert np.max(np.abs(pc.xyz - xyz)) <= POSITION_QUANTUM_M / 2 + 1e-4
     assert np.max(np.abs(pc.points["intensity"] - inten)) <= 0.5 / 255 + 1e-6
     for k in ("ring", "class_id", "instance_id"):
         assert np.array_equal(pc.points[k], {"ring": ring, "class_id": cls, "instance_id": inst}[k])
-    # beyond the int16 reach, positions widen to int32; float32 on request (viewers)
-    far = encode_points(xyz * 3.0, inten, ring, cls, inst)
+    # beyond the int16 reach, positions widen to int32; float32 by default (viewers)
+    far = encode_points(xyz * 3.0, inten, ring, cls, inst, kind="quantized")
     assert far["x"].dtype == np.int32
     assert np.max(np.abs(far["x"] * POSITION_QUANTUM_M - xyz[:, 0] * 3.0)) <= POSITION_QUANTUM_M / 2 + 1e-4
-    floats = decode_point_cloud(lidar_message("vehicle_0", frame, 0, positions="float32"))
+    floats = decode_point_cloud(lidar_message("vehicle_0", frame, 0))
     assert floats.stored["x"].dtype == np.float32 and np.max(np.abs(floats.xyz - frame.points)) <= 2.0**-11 + 1e-6
 
 

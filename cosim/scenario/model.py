@@ -400,8 +400,9 @@ class SensorsSpec(Model):
     bev: bool = True  # write /<agent>/bev grids (the paper's BEV segmentation labels); false saves their bytes
     bev_cell_m: float = Field(0.25, gt=0.01, le=5)
     bev_range_m: tuple[float, float] = (64.0, 40.0)  # [m] half extents x, y (paper section 4.2)
-    # LiDAR x, y, z as stored (docs/episode_format.md 3.4): integer 1/256 m counts, or float32 metres
-    lidar_positions: Literal["quantized", "float32"] = "quantized"
+    # LiDAR x, y, z as stored (docs/episode_format.md 3.4): float32 metres (what viewers such as Foxglove
+    # draw at true scale), or integer 1/256 m counts ("quantized", a third fewer LiDAR bytes)
+    lidar_positions: Literal["float32", "quantized"] = "float32"
     # render processes (docs/architecture.md, "Sensors"): 0 = render in the runner's process, null = automatic
     # (one per core, at most 2, for rigs of at least 2 Mpx of cameras); the output does not depend on it
     render_processes: int | None = Field(0, ge=0, le=16)
