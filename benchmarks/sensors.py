@@ -138,6 +138,10 @@ def count_encode_cpu() -> None:
 
     for name in ("encode_png", "encode_jpeg"):
         setattr(encoding, name, counted(getattr(encoding, name)))
+    from cosim.exporters import sensor_messages
+
+    if hasattr(sensor_messages, "encode_depth"):  # the compact depth images count as encoding too
+        sensor_messages.encode_depth = counted(sensor_messages.encode_depth)
 
 
 def encode_cpu_s() -> float:
@@ -239,7 +243,7 @@ def run(args) -> None:
         def messages(frames, consume=False):
             return frame_records(frames, frames.t_ns, image_format=sc.output.image_format,
                                  jpeg_quality=sc.output.jpeg_quality, lidar_positions=sc.sensors.lidar_positions,
-                                 consume=consume)
+                                 depth_format=sc.output.depth_format, consume=consume)
 
         kinds: dict[str, list[int]] = {}  # data kind -> [serialized bytes, zstd bytes] over the first pass
         n_agent_frames = [0]

@@ -323,14 +323,16 @@ class _SensorAdapter:
         out = self._scenario.output
         return self._frame_messages(frames, frames.t_ns, image_format=out.image_format,
                                     jpeg_quality=out.jpeg_quality,
-                                    lidar_positions=self._scenario.sensors.lidar_positions)
+                                    lidar_positions=self._scenario.sensors.lidar_positions,
+                                    depth_format=out.depth_format)
 
     def records(self, frames: Any) -> Iterator[tuple[str, Any]]:
         """The sensor records of rendered frames for the writer, made as they are taken; consumes ``frames``."""
         out = self._scenario.output
         return self._frame_records(frames, frames.t_ns, image_format=out.image_format,
                                    jpeg_quality=out.jpeg_quality,
-                                   lidar_positions=self._scenario.sensors.lidar_positions, consume=True)
+                                   lidar_positions=self._scenario.sensors.lidar_positions,
+                                   depth_format=out.depth_format, consume=True)
 
     @property
     def static(self) -> Any:

@@ -17,7 +17,7 @@ from cosim.sensors.rig import sensor_pose
 from cosim.sensors.synthetic import synthetic_world
 
 from cosim.geometry import quat_from_rpy
-from cosim.io.decode import decode_point_cloud, decode_raw_image
+from cosim.io.decode import decode_compressed_image, decode_point_cloud, decode_raw_image
 from cosim.io.points import POSITION_QUANTUM_M, encode_points
 from cosim.scenario.loader import load_scenario
 from cosim.scenario.model import AgentsSpec, HoverDrone, RsuAgents, Scenario, SensorsSpec, VehicleAgents
@@ -53,7 +53,7 @@ def test_nadir_depth_at_120_m_survives_the_round_trip():
         frames = suite.render(snap, np.random.default_rng(0))
     cam = frames.agents["drone_0"].cameras["down"]
     msgs = dict(frame_messages(frames, 0))
-    depth_m = decode_raw_image(msgs["/drone_0/down/depth"]).depth_m
+    depth_m = decode_compressed_image(msgs["/drone_0/down/depth"]).depth_m
     assert np.isfinite(cam.depth).all() and not np.isnan(depth_m).any()
     assert np.max(np.abs(depth_m - cam.depth)) <= 2.0**-11  # half of the 1/1024 m grid
     # flat terrain (top z = 0) below the 0.15 m camera offset: planar depth = 119.85 m everywhere

@@ -527,8 +527,12 @@ class OutputSpec(Model):
     dir: str = "out"
     name: str | None = None  # file stem inside the output folder; None = "<scenario name>_s<seed>"
     compression: Literal["zstd", "lz4", "none"] = "zstd"
-    image_format: Literal["png", "jpeg"] = "png"
-    jpeg_quality: int = Field(90, ge=10, le=100)
+    # camera RGB images (docs/episode_format.md 3.5): jpeg (libjpeg-turbo, 4:2:0, at jpeg_quality) or png (lossless)
+    image_format: Literal["jpeg", "png"] = "jpeg"
+    jpeg_quality: int = Field(85, ge=10, le=100)
+    # depth images: compressed (CompressedImage "cosim-depth", lossless, 2.4x fewer bytes) or raw (RawImage
+    # 32FC1, which Foxglove displays)
+    depth_format: Literal["compressed", "raw"] = "compressed"
 
     @field_validator("name")
     @classmethod
