@@ -4,7 +4,8 @@
     PYTHONPATH=. .venv/bin/python benchmarks/sensors.py --pictures docs/img
 
 Prints the CPU-seconds per frame of the whole process tree (this process and its render processes),
-by stage, and the wall time per frame over bare casting. Rig: 5 vehicles (LiDAR + 6 cameras), 5 RSUs (LiDAR + 4 cameras), 5 drones (LiDAR + 1 gimbal camera),
+by stage, and the wall time per frame over bare casting. Rig: 5 vehicles (LiDAR + 6 cameras), 5 RSUs
+(LiDAR + 4 cameras), 5 drones (LiDAR + 1 gimbal camera),
 every camera 1280x720, on the world that ``build_world`` makes for scenarios/default.yaml, with
 background traffic moving at ``--speed`` (LiDAR motion distortion casts each firing at its own time;
 ``--lidar-snapshot`` turns that off, ``--dual-returns`` on); ``--frames`` different snapshots (each

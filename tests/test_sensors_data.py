@@ -17,7 +17,7 @@ from cosim.sensors.rig import sensor_pose
 from cosim.sensors.synthetic import synthetic_world
 
 from cosim.geometry import quat_from_rpy
-from cosim.io.decode import decode_compressed_image, decode_point_cloud, decode_raw_image
+from cosim.io.decode import decode_compressed_image, decode_point_cloud
 from cosim.io.points import POSITION_QUANTUM_M, encode_points
 from cosim.scenario.loader import load_scenario
 from cosim.scenario.model import AgentsSpec, HoverDrone, RsuAgents, Scenario, SensorsSpec, VehicleAgents
