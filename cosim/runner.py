@@ -304,7 +304,8 @@ class _SensorAdapter:
         from cosim.sensors.suite import render_processes
 
         self._scenario = loaded.scenario
-        self._suite = SensorSuite(loaded.scenario, world, processes=render_processes(loaded.scenario))
+        self._suite = SensorSuite(loaded.scenario, world, processes=render_processes(loaded.scenario),
+                                  release_pixels=True)
         self._frame_messages = frame_messages
         self._frame_records = frame_records
         self._sensor_transforms = sensor_transforms

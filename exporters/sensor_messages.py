@@ -28,6 +28,7 @@ from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
+from cosim.errors import CosimError
 from cosim.io.depth import DEPTH_FORMAT, encode_depth
 from cosim.io.points import encode_points
 
@@ -279,13 +280,21 @@ def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png
             n_started[0] = k + 1
             af, name = order[k]
             cam = af.cameras[name]
-            rgb = None
-            if cam.rgb is not None:
-                pre = cam.encoded
-                rgb = pre[1] if pre is not None and pre[0] == image_format else \
-                    submit_encode(cam.rgb, image_format, jpeg_quality)
+            pre = cam.encoded
+            rgb = depth = None
+            if pre is not None and pre.rgb is not None and pre.image_format == image_format:
+                rgb = pre.rgb
+            elif cam.rgb is not None:
+                rgb = submit_encode(cam.rgb, image_format, jpeg_quality)
+            elif pre is not None and pre.rgb is not None:
+                raise CosimError(f"{af.agent_id}/{name}: the suite encoded {pre.image_format}, not {image_format}, "
+                                 "and released the pixels")
+            if pre is not None and pre.depth is not None:
+                if depth_format != "compressed":
+                    raise CosimError(f"{af.agent_id}/{name}: the suite encoded the depth compact and released it")
+                depth = pre.depth
             fid, base = f"{af.agent_id}/{name}/optical", f"/{af.agent_id}/{name}"
-            started[k] = (rgb, submit(_label_records, fid, base, cam, t_ns, depth_format))
+            started[k] = (rgb, depth, submit(_label_records, fid, base, cam, t_ns, depth_format))
 
     k = 0
     for agent_id, af in list(frames.agents.items()):
@@ -297,12 +306,14 @@ def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png
             start(k + 1 + LOOKAHEAD_CAMERAS)
             cam = af.cameras[name]
             fid, base = f"{a}/{name}/optical", f"/{a}/{name}"
-            rgb, labels = started.pop(k)
+            rgb, depth, labels = started.pop(k)
             k += 1
             if rgb is not None:
                 yield f"{base}/image", compressed_image_record(fid, t_ns, image_format, rgb.result())
+            if depth is not None:  # encoded by the suite (in the same order as _label_records would)
+                yield f"{base}/depth", compressed_image_record(fid, t_ns, DEPTH_FORMAT, depth.result())
             yield from labels.result()
-            del rgb, labels
+            del rgb, depth, labels
             yield f"{base}/calibration", calibration_message(fid, cam, t_ns)
             if consume:
                 del af.cameras[name]

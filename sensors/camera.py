@@ -16,9 +16,9 @@ from the same per-pixel triangle index, so they agree.
 from __future__ import annotations
 
 import math
-from concurrent.futures import Future
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -28,6 +28,9 @@ from cosim.scenario.model import CameraSpec
 from . import kernels
 from .environment import Atmosphere
 from .rig import Pose
+
+if TYPE_CHECKING:
+    from .encoding import Encodes
 from .scene import TickScene
 from .surface import (
     LAMP_PROBE_PX,
@@ -56,8 +59,9 @@ class CameraFrame:
     ``rgb`` (H, W, 3) uint8 sRGB or None; ``depth`` (H, W) float32 planar depth [m] along the optical
     axis, inf where nothing was hit; ``semantic`` (H, W) uint8 class id; ``instance`` (H, W) uint32
     (track id, static instance id, 0); ``K`` (3, 3) float64 and ``P`` (3, 4) float64 intrinsics;
-    ``pose``: map <- optical frame. ``encoded``: (format, future of the encoded ``rgb`` bytes) when
-    the suite started encoding it (not part of the data).
+    ``pose``: map <- optical frame. ``encoded``: the encodes the suite started (a
+    :class:`~cosim.sensors.encoding.Encodes`, not part of the data); a suite that releases pixels
+    leaves ``rgb`` (and ``depth``) None once their encodes hold them.
     """
 
     agent_id: str
@@ -71,7 +75,7 @@ class CameraFrame:
     depth: np.ndarray | None
     semantic: np.ndarray | None
     instance: np.ndarray | None
-    encoded: tuple[str, Future] | None = field(default=None, compare=False, repr=False)
+    encoded: Encodes | None = field(default=None, compare=False, repr=False)
     D: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)  # Brown-Conrady k1, k2, p1, p2, k3 (plumb_bob)
 
 

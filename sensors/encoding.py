@@ -21,6 +21,7 @@ import os
 import struct
 import zlib
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 
 import imagecodecs
 import numpy as np
@@ -28,6 +29,21 @@ import numpy as np
 from cosim.errors import CosimError
 
 IMAGE_FORMATS = ("jpeg", "png")
+
+
+@dataclass(frozen=True)
+class Encodes:
+    """A camera's encodes started by the suite (``CameraFrame.encoded``): the RGB image in ``image_format``
+    and, when the suite also let go of the depth array, the ``cosim-depth`` bytes of its depth."""
+
+    image_format: str
+    rgb: Future | None = None
+    depth: Future | None = None
+
+    def cancel(self) -> None:
+        for f in (self.rgb, self.depth):
+            if f is not None:
+                f.cancel()
 
 _POOL: ThreadPoolExecutor | None = None
 
