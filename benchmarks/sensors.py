@@ -140,9 +140,11 @@ def count_encode_cpu() -> None:
     for name in ("encode_png", "encode_jpeg"):
         setattr(encoding, name, counted(getattr(encoding, name)))
     from cosim.exporters import sensor_messages
+    from cosim.sensors import suite
 
-    if hasattr(sensor_messages, "encode_depth"):  # the compact depth images count as encoding too
-        sensor_messages.encode_depth = counted(sensor_messages.encode_depth)
+    for module in (sensor_messages, suite):  # the compact depth images count as encoding too
+        if hasattr(module, "encode_depth"):
+            module.encode_depth = counted(module.encode_depth)
 
 
 def encode_cpu_s() -> float:
@@ -228,7 +230,8 @@ def run(args) -> None:
         t_world = time.perf_counter() - t0
         t0 = time.perf_counter()
         processes = render_processes(sc) if args.processes is None else args.processes
-        suite = SensorSuite(sc, world, block_px=args.block_px, processes=processes)
+        # as the episode runner does: RGB and compact depth encoded as each camera is rendered
+        suite = SensorSuite(sc, world, block_px=args.block_px, processes=processes, release_pixels=True)
         t_static = time.perf_counter() - t0
         print(f"world: {len(world.layout.prisms)} prisms, static mesh {suite.static.n_triangles} triangles; "
               f"world {t_world:.2f} s, static scene {t_static:.2f} s (once per episode)")
@@ -275,10 +278,12 @@ def run(args) -> None:
                     c0, e0 = tree_cpu_s(), encode_cpu_s()
                     t0 = time.perf_counter()
                     frames = suite.render(snap, rng)
-                    for af in frames.agents.values():  # the RGB encodes count as encoding, not writing
+                    for af in frames.agents.values():  # the suite's encodes count as encoding, not writing
                         for cam in af.cameras.values():
                             if cam.encoded is not None:
-                                cam.encoded[1].result()
+                                for f in (cam.encoded.rgb, cam.encoded.depth):
+                                    if f is not None:
+                                        f.result()
                     t1 = time.perf_counter()
                     c1, e1 = tree_cpu_s(), encode_cpu_s()
                     msgs = list(messages(frames))
