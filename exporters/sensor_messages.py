@@ -18,7 +18,7 @@ from concurrent.futures import Future
 
 import numpy as np
 from cosim.exporters.mcap_writer import Serialized
-from cosim.sensors.encoding import encode_jpeg, encode_png, submit, submit_encode
+from cosim.sensors.encoding import encode_depth, encode_jpeg, encode_png, submit, submit_encode
 from cosim.sensors.suite import SensorFrameSet
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
@@ -29,7 +29,7 @@ from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
 from cosim.errors import CosimError
-from cosim.io.depth import DEPTH_FORMAT, encode_depth
+from cosim.io.depth import DEPTH_FORMAT
 from cosim.io.points import encode_points
 
 __all__ = ["depth_image", "encode_jpeg", "encode_png", "frame_messages", "frame_records", "lidar_message",

@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cosim.geometry import rotation_matrix
-from cosim.io.depth import encode_depth
 from cosim.scenario.model import RigSpec, Scenario
 from cosim.snapshot import Actor, AgentState, WorldSnapshot
 from cosim.world.types import World
@@ -41,7 +40,7 @@ from .camera import (
     shading_tables,
     shadow_boxes,
 )
-from .encoding import Encodes, submit, submit_encode
+from .encoding import Encodes, encode_depth, submit, submit_encode
 from .environment import Atmosphere, atmosphere
 from .gnss import GnssFrame, render_gnss
 from .imu import ImuFrame, imu_biases, render_imu

@@ -115,14 +115,19 @@ def test_jpeg_is_within_the_documented_psnr_and_deterministic(frames, full_size)
 def test_compact_depth_is_lossless_on_the_stored_grid_and_refuses_bad_bytes(frames):
     from cosim.exporters.sensor_messages import depth_image
 
+    from cosim.sensors.encoding import encode_depth as compiled
+
     for cam in _cameras(frames):
         data = encode_depth(cam.depth)
+        assert compiled(cam.depth) == data  # the writer's one-pass kernel gives the reference's bytes
         back = decode_depth(data)
         assert np.array_equal(back, depth_image(cam.depth), equal_nan=True)  # the 32FC1 image, bit for bit
         assert np.isnan(back).any() == (~np.isfinite(cam.depth)).any()
         assert len(data) < 0.5 * cam.depth.nbytes
     far = np.full((3, 5), 1234.5678, np.float32)
     far[1, 2] = np.inf
+    halves = (np.arange(15, dtype=np.float32).reshape(3, 5) + 0.5) / 1024  # rint's ties to even, both ways
+    assert compiled(far) == encode_depth(far) and compiled(halves) == encode_depth(halves)
     back = decode_depth(encode_depth(far))
     assert np.isnan(back[1, 2]) and back[0, 0] == np.float32(round(1234.5678 * 1024) / 1024)
     with pytest.raises(FormatError, match="cosim-depth"):

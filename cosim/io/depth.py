@@ -32,7 +32,12 @@ def encode_depth(depth_m: np.ndarray) -> bytes:
     d = np.asarray(depth_m, np.float32)
     if d.ndim != 2:
         raise CosimError(f"encode_depth takes (H, W) float depth, got {d.dtype} {d.shape}")
-    h, w = d.shape
+    return pack_depth(depth_planes(d))
+
+
+def depth_planes(d: np.ndarray) -> np.ndarray:
+    """The byte planes (4, H, W) uint8 of :func:`encode_depth` for ``d`` (H, W) float32 (the numpy reference of
+    ``cosim.sensors.kernels.depth_planes``, which the episode writer uses)."""
     c = np.rint(d * np.float32(1.0 / DEPTH_QUANTUM_M))
     c[~np.isfinite(c)] = 0
     c = c.astype(np.int64)
@@ -41,7 +46,12 @@ def encode_depth(depth_m: np.ndarray) -> bytes:
     r[:, 1:] -= c[:, :-1]
     r[1:, 1:] += c[:-1, :-1]
     z = ((r << 1) ^ (r >> 63)).astype("<u4")
-    planes = np.ascontiguousarray(z.view(np.uint8).reshape(-1, 4).T)
+    return np.ascontiguousarray(np.moveaxis(z.view(np.uint8).reshape(*d.shape, 4), 2, 0))
+
+
+def pack_depth(planes: np.ndarray) -> bytes:
+    """``cosim-depth`` bytes of the byte planes (4, H, W) uint8 of :func:`depth_planes`."""
+    _, h, w = planes.shape
     return _DEPTH_HEAD.pack(_DEPTH_MAGIC, w, h) + zstandard.ZstdCompressor(level=_DEPTH_ZSTD_LEVEL).compress(planes)
 
 
