@@ -139,8 +139,9 @@ def count_encode_cpu() -> None:
 
     for name in ("encode_png", "encode_jpeg"):
         setattr(encoding, name, counted(getattr(encoding, name)))
-    from cosim.exporters import sensor_messages
     from cosim.sensors import suite
+
+    from cosim.io import sensor_messages
 
     for module in (sensor_messages, suite):  # the compact depth images count as encoding too
         if hasattr(module, "encode_depth"):
@@ -216,8 +217,8 @@ def pybullet_seconds(suite: SensorSuite, snap) -> tuple[float, float, float]:
 
 
 def run(args) -> None:
-    from cosim.exporters.mcap_writer import BackgroundWriter, EpisodeWriter
-    from cosim.exporters.sensor_messages import frame_records
+    from cosim.io.sensor_messages import frame_records
+    from cosim.io.writer import BackgroundWriter, EpisodeWriter
 
     env = {k: v for k, v in (("weather", args.weather), ("lighting", args.lighting)) if v}
     lidar = {"motion_distortion": not args.lidar_snapshot, "dual_returns": args.dual_returns}

@@ -144,9 +144,9 @@ def run_episode(
     ``progress(done_ticks, total_ticks)`` is called after every tick. Raises a
     :class:`~cosim.errors.CosimError` on failure; no file is left at the output path then.
     """
-    from cosim.exporters.events import EVENTS_SCHEMA, events_payload
-    from cosim.exporters.labels import label_messages
-    from cosim.exporters.mcap_writer import BackgroundWriter, EpisodeWriter
+    from cosim.io.events import EVENTS_SCHEMA, events_payload
+    from cosim.io.labels import label_messages
+    from cosim.io.writer import BackgroundWriter, EpisodeWriter
     from cosim.world import build_world
 
     s = loaded.scenario
@@ -298,7 +298,7 @@ class _SensorAdapter:
     """Couples the sensor suite to the runner: rig transforms for /tf, rendering, sensor messages."""
 
     def __init__(self, loaded: LoadedScenario, world: World):
-        from cosim.exporters.sensor_messages import frame_messages, frame_records
+        from cosim.io.sensor_messages import frame_messages, frame_records
         from cosim.sensors import SensorSuite
         from cosim.sensors.rig import sensor_transforms
         from cosim.sensors.suite import render_processes

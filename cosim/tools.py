@@ -172,7 +172,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_comm(args: argparse.Namespace) -> int:
-    from cosim.comm.summary import comm_report, format_summary, summary_json
+    from cosim.io.comm_report import comm_report, format_summary, summary_json
 
     out = Path(args.out) if args.out else None
     rows, n_ticks, written = comm_report(_episode(args.episode), out, args.tick, dpi=args.dpi)

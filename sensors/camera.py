@@ -26,7 +26,7 @@ from cosim.geometry import project_to_image, undistort
 from cosim.scenario.model import CameraSpec
 
 from . import kernels
-from .environment import Atmosphere
+from .environment import LAMP_RGB, Atmosphere
 from .rig import Pose
 
 if TYPE_CHECKING:
@@ -479,7 +479,6 @@ class LightMap:
     res_m: float
 
 
-LAMP_RGB = np.array([1.0, 0.82, 0.55], np.float32)  # sodium-ish street light colour
 _GAMMA_LUT = (np.linspace(0.0, 1.0, 4096) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
 SKY_LEVELS = 1024
 

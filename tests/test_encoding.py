@@ -8,8 +8,6 @@ import io
 
 import numpy as np
 import pytest
-from cosim.exporters.mcap_writer import EpisodeWriter
-from cosim.exporters.sensor_messages import frame_records
 from cosim.sensors import SensorSuite
 from cosim.sensors.encoding import encode_jpeg, encode_png, submit_encode
 from cosim.sensors.synthetic import synthetic_snapshot, synthetic_world
@@ -17,6 +15,8 @@ from PIL import Image
 
 from cosim.errors import CosimError, FormatError
 from cosim.io.depth import decode_depth, encode_depth
+from cosim.io.sensor_messages import frame_records
+from cosim.io.writer import EpisodeWriter
 from cosim.scenario.model import (
     AgentsSpec,
     CameraSpec,
@@ -113,9 +113,9 @@ def test_jpeg_is_within_the_documented_psnr_and_deterministic(frames, full_size)
 
 
 def test_compact_depth_is_lossless_on_the_stored_grid_and_refuses_bad_bytes(frames):
-    from cosim.exporters.sensor_messages import depth_image
-
     from cosim.sensors.encoding import encode_depth as compiled
+
+    from cosim.io.sensor_messages import depth_image
 
     for cam in _cameras(frames):
         data = encode_depth(cam.depth)

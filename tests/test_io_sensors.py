@@ -8,16 +8,16 @@ import dataclasses
 import numpy as np
 import pytest
 import yaml
-from cosim.exporters.labels import label_messages
-from cosim.exporters.mcap_writer import EpisodeWriter
-from cosim.exporters.sensor_messages import depth_image, frame_messages
 from cosim.sensors import SensorSuite
 from cosim.sensors.rig import sensor_transforms
 from cosim.sensors.synthetic import synthetic_snapshot, synthetic_world
 
 from cosim.io import open_episode
+from cosim.io.labels import label_messages
+from cosim.io.sensor_messages import depth_image, frame_messages
 from cosim.io.synthetic import synthetic_metadata
 from cosim.io.validate import validate_episode
+from cosim.io.writer import EpisodeWriter
 from cosim.scenario.model import (
     AgentsSpec,
     CameraSpec,

@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from cosim.exporters.sensor_messages import calibration_message
 from cosim.exporters.undistort import pinhole_remap
 from cosim.sensors import SensorSuite
 from cosim.sensors.camera import pixel_grid
@@ -24,6 +23,7 @@ from cosim.errors import FormatError
 from cosim.geometry import distort, project_to_image, rotation_matrix, undistort
 from cosim.io import open_episode
 from cosim.io.decode import decode_calibration, parse_proto
+from cosim.io.sensor_messages import calibration_message
 from cosim.scenario.model import (
     AgentsSpec,
     CameraSpec,

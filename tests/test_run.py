@@ -182,7 +182,7 @@ def test_external_mode_needs_listen():
 
 def test_escort_drones_track_their_sumo_vehicles_from_the_first_tick(tmp_path):
     """Issue 4 with the real conductor: escorts follow SUMO-driven cars (urban, turns included)."""
-    from cosim.drones.tracking import escort_errors, rms
+    from benchmarks.drone_tracking import escort_errors, rms
     from cosim.scenario import load_scenario
 
     r = run_cli("run", "scenarios/strategy_escort.yaml", "--duration", "30", "--out", str(tmp_path), *FAST)

@@ -472,9 +472,8 @@ def test_rsu_sensors_keep_the_static_world_and_cast_only_what_moves():
 
 
 def test_frame_messages_topics_and_round_trips():
-    from cosim.exporters.sensor_messages import frame_messages
-
     from cosim.io.decode import decode_compressed_image, decode_point_cloud
+    from cosim.io.sensor_messages import frame_messages
 
     cams = [CameraSpec(name="front", width=96, height=64, mount=Mount(xyz_m=(0, 0, 1.6)))]
     sc = _scenario(RigSpec(lidar=LidarSpec(horizontal_resolution_deg=2.0), cameras=cams, gnss=GnssSpec(),

@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zstandard
-from cosim.exporters.sensor_messages import frame_messages
 from cosim.sensors import SensorSuite
 from cosim.sensors.lidar import beam_pattern
 from cosim.sensors.meshes import FAR_GROUND_M
@@ -19,6 +18,7 @@ from cosim.sensors.synthetic import synthetic_world
 from cosim.geometry import quat_from_rpy
 from cosim.io.decode import decode_compressed_image, decode_point_cloud
 from cosim.io.points import POSITION_QUANTUM_M, encode_points
+from cosim.io.sensor_messages import frame_messages
 from cosim.scenario.loader import load_scenario
 from cosim.scenario.model import AgentsSpec, HoverDrone, RsuAgents, Scenario, SensorsSpec, VehicleAgents
 from cosim.snapshot import AgentState, WorldSnapshot
@@ -199,7 +199,7 @@ def test_compact_points_halve_the_stored_bytes_and_keep_the_data():
     assert new.dtype.itemsize == 13 and new["x"].dtype == np.int16
     assert _zstd_size(new.tobytes()) <= 0.5 * _zstd_size(old.tobytes())
     # positions within half a count, intensity within half a step, labels exact
-    from cosim.exporters.sensor_messages import lidar_message
+    from cosim.io.sensor_messages import lidar_message
 
     frame = type("F", (), {"points": xyz.astype(np.float32), "intensity": inten.astype(np.float32), "ring": ring,
                            "class_id": cls, "instance_id": inst})()

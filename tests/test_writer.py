@@ -8,14 +8,14 @@ import math
 import threading
 
 import pytest
-from cosim.exporters.labels import label_messages
-from cosim.exporters.mcap_writer import BackgroundWriter, EpisodeWriter, temporary_path
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from mcap.reader import make_reader
 
 from cosim.assemble import TrackRegistry, build_snapshot
 from cosim.errors import CosimError
 from cosim.geometry import quat_from_rpy, rotation_matrix, rpy_from_quat, sumo_front_to_center
+from cosim.io.labels import label_messages
+from cosim.io.writer import BackgroundWriter, EpisodeWriter, temporary_path
 from cosim.protocol import DroneState, VehicleState
 from cosim.world.types import Junction, RsuSite, StaticLayout, World
 
@@ -208,13 +208,13 @@ def test_serialized_image_records_are_the_bytes_of_the_messages():
     """Images serialized around their pixels in place give exactly SerializeToString(deterministic=True)
     of the same message built the plain way, and parse back to the arrays."""
     import numpy as np
-    from cosim.exporters.mcap_writer import Serialized
-    from cosim.exporters.sensor_messages import _stamp, depth_image, frame_records
     from cosim.sensors.encoding import encode_png
     from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
     from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
     from cosim.io.depth import encode_depth
+    from cosim.io.sensor_messages import _stamp, depth_image, frame_records
+    from cosim.io.writer import Serialized
 
     frames = _camera_frames()
     recs = dict(frame_records(frames, frames.t_ns, depth_format="raw"))
@@ -248,7 +248,7 @@ def test_serialized_image_records_are_the_bytes_of_the_messages():
 
 def test_consumed_frames_are_emptied_and_give_the_same_records():
     """``consume`` frees each camera once its messages are made; the records are the same, in order."""
-    from cosim.exporters.sensor_messages import frame_records
+    from cosim.io.sensor_messages import frame_records
 
     def as_bytes(recs):
         return [(t, bytes(r.data) if hasattr(r, "data") and not hasattr(r, "SerializeToString")
@@ -270,7 +270,7 @@ def test_consumed_frames_are_emptied_and_give_the_same_records():
 
 def test_serialized_records_write_the_bytes_of_messages(tmp_path):
     """The writer gives the same file for a serialized record as for the message it holds."""
-    from cosim.exporters.sensor_messages import frame_records
+    from cosim.io.sensor_messages import frame_records
 
     frames = _camera_frames()
     recs = list(frame_records(frames, frames.t_ns))

@@ -59,7 +59,7 @@ def is_finished(out_dir: Path, episode: Episode, record: dict[str, Any] | None) 
 
 
 def _partial_path(final: Path) -> Path:
-    from cosim.exporters.mcap_writer import temporary_path
+    from cosim.io.writer import temporary_path
 
     return temporary_path(final)
 

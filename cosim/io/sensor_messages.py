@@ -6,7 +6,7 @@ message is the simulation time ``t_ns``. PNG/JPEG encoding runs in a thread pool
 libjpeg release the GIL), so it overlaps with the rest of the tick's work.
 
 :func:`frame_records` is what the episode writer takes: made lazily, camera after camera, the
-images as :class:`~cosim.exporters.mcap_writer.Serialized` records written around their pixels in
+images as :class:`~cosim.io.writer.Serialized` records written around their pixels in
 place; :func:`frame_messages` gives the same as protobuf messages (for code that reads them).
 """
 
@@ -17,9 +17,6 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 
 import numpy as np
-from cosim.exporters.mcap_writer import Serialized
-from cosim.sensors.encoding import encode_depth, encode_jpeg, encode_png, submit, submit_encode
-from cosim.sensors.suite import SensorFrameSet
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.Grid_pb2 import Grid
@@ -31,6 +28,9 @@ from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from cosim.errors import CosimError
 from cosim.io.depth import DEPTH_FORMAT
 from cosim.io.points import encode_points
+from cosim.io.writer import Serialized
+from cosim.sensors.encoding import encode_depth, encode_jpeg, encode_png, submit, submit_encode
+from cosim.sensors.suite import SensorFrameSet
 
 __all__ = ["depth_image", "encode_jpeg", "encode_png", "frame_messages", "frame_records", "lidar_message",
            "quantize_depth", "raw_image_record"]
@@ -258,9 +258,9 @@ def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png
                   lidar_positions: str = "float32", depth_format: str = "compressed",
                   consume: bool = False) -> Iterator[tuple[str, object]]:
     """Every sensor topic of one tick as ``(topic, record)``, agents in frame order, made as they are
-    taken: a record is a protobuf message, a :class:`~cosim.exporters.mcap_writer.Serialized` one (the
+    taken: a record is a protobuf message, a :class:`~cosim.io.writer.Serialized` one (the
     images) or a JSON ``(schema_name, json_schema, payload)`` triple, all of which
-    :meth:`EpisodeWriter.write <cosim.exporters.mcap_writer.EpisodeWriter.write>` takes.
+    :meth:`EpisodeWriter.write <cosim.io.writer.EpisodeWriter.write>` takes.
 
     Frames rendered by the suite already carry a started RGB encode (``CameraFrame.encoded``) in the
     scenario's format; other formats are started here. The label images of the next
