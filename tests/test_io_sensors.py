@@ -93,7 +93,7 @@ def test_reader_returns_the_rendered_arrays(rendered):
             for agent_id, af in fs.agents.items():
                 if af.lidar is not None:
                     pc = tick.points(agent_id)
-                    assert np.max(np.abs(pc.xyz - af.lidar.points)) <= 2.0**-9 + 1e-6  # half of 1/256 m
+                    assert np.max(np.abs(pc.xyz - af.lidar.points)) <= 2.0**-8 + 1e-6  # half of 1/128 m
                     assert pc.points["x"].dtype == np.float32 and pc.stored["x"].dtype == np.float32
                     assert np.array_equal(pc.points["instance_id"], af.lidar.instance_id)
                     assert np.array_equal(pc.points["class_id"], af.lidar.class_id)

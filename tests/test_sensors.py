@@ -506,7 +506,7 @@ def test_frame_messages_topics_and_round_trips():
     rec = decode_point_cloud(pc).points
     assert np.array_equal(rec["instance_id"], af.lidar.instance_id)
     for k, name in enumerate("xyz"):
-        assert np.max(np.abs(rec[name] - af.lidar.points[:, k])) <= 2.0**-9 + 1e-6  # half of 1/256 m
+        assert np.max(np.abs(rec[name] - af.lidar.points[:, k])) <= 2.0**-8 + 1e-6  # half of 1/128 m
     assert np.max(np.abs(rec["intensity"] - af.lidar.intensity)) <= 0.5 / 255 + 1e-6
     cal = msgs["/vehicle_0/front/calibration"]
     assert list(cal.K) == list(cf.K.ravel()) and len(cal.P) == 12

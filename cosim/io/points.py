@@ -2,7 +2,7 @@
 
 The writer stores points compactly; readers get one float view whatever was stored:
 
-- ``x``, ``y``, ``z``: float32 metres rounded to 1/256 m (``sensors.lidar_positions: float32``, the
+- ``x``, ``y``, ``z``: float32 metres rounded to 1/128 m (``sensors.lidar_positions: float32``, the
   default since format 1.2: what a reader that knows only the ``foxglove.PointCloud`` schema, such as
   the Foxglove app, draws at true scale); or, with ``quantized``, int16 counts of
   :data:`POSITION_QUANTUM_M` (1/256 m, about 3.9 mm) when every coordinate of the sweep fits
@@ -21,9 +21,10 @@ import numpy as np
 
 #: [m] one count of an integer ``x``, ``y`` or ``z`` field.
 POSITION_QUANTUM_M = 1.0 / 256.0
-#: [m] float32 positions are rounded to multiples of this (the integer quantum: 10 times below the range
-#: noise; the zeroed low mantissa bits save a tenth of the compressed bytes against 1/1024 m).
-FLOAT_QUANTUM_M = 1.0 / 256.0
+#: [m] float32 positions are rounded to multiples of this: its error (2.3 mm RMS, 3.9 mm at most) adds
+#: 1.3 % to the variance of the default 2 cm range noise, and the zeroed low mantissa bits compress (a
+#: full-rig tick's LiDAR: 6.99 MB against 7.68 at 1/256 m under zstd).
+FLOAT_QUANTUM_M = 1.0 / 128.0
 #: Largest |coordinate| [m] an int16 position holds.
 INT16_REACH_M = 32767 * POSITION_QUANTUM_M
 #: Integer intensity counts 1/INTENSITY_COUNTS.

@@ -254,7 +254,7 @@ def _label_records(fid: str, base: str, cam, t_ns: int, depth_format: str) -> li
 LOOKAHEAD_CAMERAS = 3
 
 
-def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png", jpeg_quality: int = 85,
+def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png", jpeg_quality: int = 80,
                   lidar_positions: str = "float32", depth_format: str = "compressed",
                   consume: bool = False) -> Iterator[tuple[str, object]]:
     """Every sensor topic of one tick as ``(topic, record)``, agents in frame order, made as they are
@@ -332,7 +332,7 @@ def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png
 
 
 def frame_messages(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png",
-                   jpeg_quality: int = 85, lidar_positions: str = "float32",
+                   jpeg_quality: int = 80, lidar_positions: str = "float32",
                    depth_format: str = "compressed") -> list[tuple[str, object]]:
     """Every sensor topic of one tick as protobuf messages (or JSON triples), agents in frame order: the
     records of :func:`frame_records` with the serialized ones parsed back (for code that reads the
