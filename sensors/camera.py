@@ -28,9 +28,6 @@ from cosim.scenario.model import CameraSpec
 from . import kernels
 from .environment import LAMP_RGB, Atmosphere
 from .rig import Pose
-
-if TYPE_CHECKING:
-    from .encoding import Encodes
 from .scene import TickScene
 from .surface import (
     LAMP_PROBE_PX,
@@ -42,6 +39,9 @@ from .surface import (
     sensor_codes_kernel,
     shade_linear,
 )
+
+if TYPE_CHECKING:
+    from .encoding import Encodes
 
 #: Box edges (pairs of corner indices into the 8 corners of :func:`box_corners`).
 _EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6],
