@@ -11,8 +11,9 @@ Measured on one core on 1280x720 cosim images (docs/episode_format.md section 7,
   0.45 MB, fpng 220 MP/s but 0.74 MB.
 - JPEG: libjpeg-turbo (``imagecodecs``), 4:2:0 chroma, about 440 MP/s; 77 kB a frame at quality 80,
   PSNR 40.4 dB on average against the lossless image.
-- depth: :func:`cosim.io.depth.encode_depth`, counts of 1/1024 m, a gradient predictor, byte planes, zstd: 2.4 times
-  fewer bytes than the raw float32 image under the episode's chunk compression, at the same CPU.
+- depth: :func:`encode_depth` (:func:`cosim.io.depth.encode_depth` compiled), counts of 1/1024 m, a gradient
+  predictor, byte planes, zstd: 2.7 times fewer bytes than the raw float32 image under the episode's chunk
+  compression, 2.9 ms a frame.
 """
 
 from __future__ import annotations

@@ -530,7 +530,7 @@ class OutputSpec(Model):
     # camera RGB images (docs/episode_format.md 3.5): jpeg (libjpeg-turbo, 4:2:0, at jpeg_quality) or png (lossless)
     image_format: Literal["jpeg", "png"] = "jpeg"
     jpeg_quality: int = Field(80, ge=10, le=100)
-    # depth images: compressed (CompressedImage "cosim-depth", lossless, 2.4x fewer bytes) or raw (RawImage
+    # depth images: compressed (CompressedImage "cosim-depth", lossless, 2.7x fewer bytes) or raw (RawImage
     # 32FC1, which Foxglove displays)
     depth_format: Literal["compressed", "raw"] = "compressed"
 
