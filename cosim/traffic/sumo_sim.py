@@ -33,7 +33,7 @@ from cosim.traffic.events import Timeline
 from cosim.traffic.pedestrians import Pedestrians
 from cosim.traffic.vtypes import SUMO_VCLASS, VARIANTS, class_of_type
 from cosim.world.netgen import sumo_binary
-from cosim.world.routes import read_sumolib, sources_and_sinks, strong_core
+from cosim.world.routes import inner_edges, read_sumolib, sources_and_sinks, strong_core
 from cosim.world.types import World
 
 log = logging.getLogger(__name__)
@@ -74,7 +74,7 @@ class TrafficSim:
             )
         self._rng = np.random.default_rng([scenario.seed, 10])
         net = read_sumolib(world.net_xml)
-        self._targets = {c: strong_core(net, c) for c in sorted(set(SUMO_VCLASS.values()))}
+        self._targets = {c: inner_edges(net, strong_core(net, c)) for c in sorted(set(SUMO_VCLASS.values()))}
         self._gates = {c: sources_and_sinks(net, c) for c in sorted(set(SUMO_VCLASS.values()))}
         planned = [v.get("id", "") for v in ET.fromstring(world.routes_xml).iter("vehicle")] if world.routes_xml else []
         self._next_bg = 1 + max((int(v[3:]) for v in planned if v.startswith("bg_") and v[3:].isdigit()), default=-1)

@@ -1,4 +1,12 @@
-"""Roadside-unit sites: poles at junction corners, heads facing the junction centre."""
+"""Roadside-unit sites: poles at the corners of busy inner junctions, cameras along the incoming roads.
+
+Junctions on the map's outer ring (:data:`RING_M` of the bounds of all junctions, where the roads of a
+generated town run on beyond the map and traffic enters and leaves) see half as many roads and no
+buildings' worth of traffic behind them, so RSUs stand at inner junctions first: signalised before
+unsignalised, more incoming lanes before fewer, spread over the inner area in farthest-point order from
+the junction nearest the centre. The head's yaw turns the rig's four cameras (90 degrees apart) onto the
+junction's arms (:func:`arm_yaw`), so that each camera looks along an incoming road.
+"""
 
 from __future__ import annotations
 
@@ -13,25 +21,43 @@ from cosim.world.types import RsuSite
 
 log = logging.getLogger(__name__)
 
+RING_M = 30.0  # [m] junctions this close to the bounds of all junctions are on the outer ring
+ARM_M = 30.0  # [m] how far along an incoming road a camera should look
 MAX_OFFSET_M = 14.0  # [m] farthest a pole stands from its junction centre (where the junction allows)
 FAR_OFFSET_M = 40.0  # [m] search limit for junctions wider than that
 POLE_CLEARANCE_M = 0.6  # [m] pole to road surface
 
 
+def outer_ring(junctions: list[JunctionGeom]) -> set[str]:
+    """Ids of the junctions within :data:`RING_M` of the bounds of all ``junctions``."""
+    if not junctions:
+        return set()
+    xy = np.array([j.position_m for j in junctions])
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    near = np.minimum(np.minimum(xy[:, 0] - lo[0], hi[0] - xy[:, 0]), np.minimum(xy[:, 1] - lo[1], hi[1] - xy[:, 1]))
+    return {j.junction_id for j, d in zip(junctions, near, strict=True) if d <= RING_M}
+
+
 def choose_junctions(
-    junctions: list[JunctionGeom], degree: dict[str, int], count: int, centre: tuple[float, float]
+    junctions: list[JunctionGeom], degree: dict[str, int], count: int, centre: tuple[float, float],
+    lanes_in: dict[str, int] | None = None,
 ) -> list[JunctionGeom]:
-    """``count`` junctions spread over the map (farthest-point order from the one nearest ``centre``),
-    preferring signalised junctions, then junctions with three or more incoming roads (``degree``:
-    incoming road edges per junction id). Repeats junctions when there are fewer than ``count``."""
+    """``count`` busy junctions spread over the town's inside: inner junctions (not on the
+    :func:`outer_ring`) before outer ones, then signalised, then with three or more incoming roads
+    (``degree``: incoming road edges per junction id), then more incoming lanes (``lanes_in``) first;
+    of the best such group with ``count`` members, farthest-point order from the one nearest ``centre``.
+    Repeats junctions when there are fewer than ``count``."""
     if not junctions or count <= 0:
         return []
+    ring = outer_ring(junctions)
+    lanes_in = lanes_in or {}
 
-    def rank(j: JunctionGeom) -> int:
-        return 0 if j.kind == "traffic_light" else 1 if degree.get(j.junction_id, 0) >= 3 else 2
+    def rank(j: JunctionGeom) -> tuple[int, int]:
+        kind = 0 if j.kind == "traffic_light" else 1 if degree.get(j.junction_id, 0) >= 3 else 2
+        return int(j.junction_id in ring), kind
 
-    pool = sorted(junctions, key=lambda j: (rank(j), j.junction_id))
-    for level in (0, 1):
+    pool = sorted(junctions, key=lambda j: (rank(j), -lanes_in.get(j.junction_id, 0), j.junction_id))
+    for level in sorted({rank(j) for j in pool}):
         n = sum(rank(j) <= level for j in pool)
         if n >= count:
             pool = pool[:n]
@@ -50,6 +76,22 @@ def choose_junctions(
         out.append(out[k % len(chosen)])
         k += 1
     return out
+
+
+def arm_yaw(pole_xy: tuple[float, float], arms: list[tuple[float, float]], fallback: float) -> float:
+    """Head yaw [rad] that points the rig's four cameras (yaw + k 90 degrees) closest to the points
+    ``arms`` (x, y) [m] (a spot :data:`ARM_M` up each incoming road), seen from ``pole_xy``: the sum of
+    each arm's angle to its nearest camera axis is least. ``fallback`` without arms."""
+    if not arms:
+        return fallback
+    bearings = np.array([math.atan2(y - pole_xy[1], x - pole_xy[0]) for x, y in arms])
+    cand = np.radians(np.arange(0.0, 90.0, 1.0))
+    off = (bearings[None, :] - cand[:, None]) % (math.pi / 2)
+    err = np.minimum(off, math.pi / 2 - off).sum(axis=1)
+    best = float(cand[int(np.argmin(err))])
+    # of the four equivalent yaws, the one nearest the old "face the junction" direction (stable front camera)
+    k = round((fallback - best) / (math.pi / 2))
+    return math.atan2(math.sin(best + k * math.pi / 2), math.cos(best + k * math.pi / 2))
 
 
 def _spot(
@@ -75,8 +117,12 @@ def place_rsus(
     road: Raster,
     centre: tuple[float, float],
     rng: np.random.Generator,
+    arms: dict[str, list[tuple[float, float]]] | None = None,
+    lanes_in: dict[str, int] | None = None,
 ) -> list[RsuSite]:
-    """RSU sites ``rsu_0..``: a pole off the road surface within :data:`MAX_OFFSET_M` of its junction.
+    """RSU sites ``rsu_0..``: a pole off the road surface within :data:`MAX_OFFSET_M` of its junction,
+    at junctions :func:`choose_junctions` picks (``lanes_in``: incoming lanes per junction id), the head
+    turned by :func:`arm_yaw` onto ``arms`` (junction id -> points up its incoming roads).
 
     Junctions wider than that all around (two multi-lane avenues crossing) are only used when there
     are not enough others; their pole then stands at the nearest spot off the road, with a warning.
@@ -87,7 +133,7 @@ def place_rsus(
     feasible = [j for j in junctions if _spot(j, near, [], 0.0) is not None]
     pool = feasible if len(feasible) >= min(count, len(junctions)) else junctions
     used: list[tuple[float, float]] = []
-    for i, j in enumerate(choose_junctions(pool, degree, count, centre)):
+    for i, j in enumerate(choose_junctions(pool, degree, count, centre, lanes_in)):
         jx, jy = j.position_m
         phase = float(rng.uniform(0, 2 * math.pi))
         best = _spot(j, (*near, (road, 1.0, FAR_OFFSET_M)), used, phase)
@@ -103,6 +149,6 @@ def place_rsus(
         used.append(best)
         h = round(float(rng.uniform(*height_range_m)), 3)
         x, y = round(float(best[0]), 3), round(float(best[1]), 3)
-        yaw = math.atan2(jy - y, jx - x)
+        yaw = arm_yaw((x, y), (arms or {}).get(j.junction_id, []), math.atan2(jy - y, jx - x))
         sites.append(RsuSite(f"rsu_{i}", j.junction_id, (x, y, h), yaw, h))
     return sites
