@@ -31,6 +31,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+log = logging.getLogger("data_quality")
 STOPPED_MPS = 0.1  # [m/s] below this a road user counts as stopped
 
 
@@ -57,6 +58,7 @@ def empty_frame_shares(loaded: Any, image_scale: float) -> dict[str, float]:
 
     low = low_res_cameras(loaded, image_scale)
     frames = {"rsu": 0, "vehicle": 0}
+    per_camera: dict[str, int] = {}
     empty = {"rsu": 0, "vehicle": 0}
     with tempfile.TemporaryDirectory(prefix="cosim-quality-") as tmp:
         result = run_episode(low, Path(tmp))
@@ -72,6 +74,9 @@ def empty_frame_shares(loaded: Any, image_scale: float) -> dict[str, float]:
                     seen = {c for o in vis.get("objects", []) for c, n in (o.get("pixels") or {}).items() if n > 0}
                     frames[kind] += len(cams[a])
                     empty[kind] += sum(c not in seen for c in cams[a])
+                    for c in cams[a]:
+                        per_camera[f"{a}/{c}"] = per_camera.get(f"{a}/{c}", 0) + (c not in seen)
+    log.info("empty frames per camera: %s", {k: v for k, v in sorted(per_camera.items()) if v})
     return {f"{k}_empty": empty[k] / frames[k] if frames[k] else float("nan") for k in frames}
 
 
@@ -123,6 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=Path, help="also write the numbers here")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
+    log.setLevel(logging.INFO)
     shipped = dict(shipped_scenarios())
     names = args.scenarios or sorted(shipped)
     rows: dict[str, dict[str, Any]] = {}

@@ -23,7 +23,8 @@ log = logging.getLogger(__name__)
 
 RING_M = 30.0  # [m] junctions this close to the bounds of all junctions are on the outer ring
 ARM_M = 30.0  # [m] how far along an incoming road a camera should look
-MAX_OFFSET_M = 14.0  # [m] farthest a pole stands from its junction centre (where the junction allows)
+MAX_OFFSET_M = 20.0  # [m] farthest a pole stands from its junction centre (where the junction allows): the
+# corner of two three-lane avenues with sidewalks is about 18 m from the centre
 FAR_OFFSET_M = 40.0  # [m] search limit for junctions wider than that
 POLE_CLEARANCE_M = 0.6  # [m] pole to road surface
 
