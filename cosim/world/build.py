@@ -19,7 +19,7 @@ from cosim.world.netgen import MapRequest, NetworkResult, generate_network
 from cosim.world.network import read_network
 from cosim.world.parking import place_parked
 from cosim.world.routes import plan_vehicles, read_sumolib, routes_xml
-from cosim.world.rsu import ARM_M, place_rsus
+from cosim.world.rsu import place_rsus
 from cosim.world.signals import plan_signals
 from cosim.world.types import Junction, StaticLayout, World
 
@@ -68,17 +68,12 @@ def build_world(loaded: LoadedScenario, workdir: Path) -> World:
     centre = (0.5 * (xmin + xmax), 0.5 * (ymin + ymax))
     degree: dict[str, int] = {}
     lanes_in: dict[str, int] = {}
-    arms: dict[str, list[tuple[float, float]]] = {}
     for e in net.road_edges():
         degree[e.to_node] = degree.get(e.to_node, 0) + 1
-        road_lanes = [ln for ln in e.lanes if ln.is_road]
-        lanes_in[e.to_node] = lanes_in.get(e.to_node, 0) + len(road_lanes)
-        centre_line = max(road_lanes, key=lambda ln: ln.index).shape  # the lane nearest the road's middle
-        back = max(0.0, geom.polyline_length(centre_line) - ARM_M)
-        arms.setdefault(e.to_node, []).append(tuple(float(v) for v in geom.point_at(centre_line, back)))
+        lanes_in[e.to_node] = lanes_in.get(e.to_node, 0) + sum(ln.is_road for ln in e.lanes)
     rsus = place_rsus(
         junctions, degree, sc.agents.rsus.count, sc.agents.rsus.height_m, road, centre, stage_rng(sc.seed, STAGE_RSU),
-        arms, lanes_in,
+        lanes_in,
     )
     next_id = max((p.instance_id for p in prisms), default=999_999) + 1
     for k, r in enumerate(rsus):

@@ -1,11 +1,11 @@
-"""Roadside-unit sites: poles at the corners of busy inner junctions, cameras along the incoming roads.
+"""Roadside-unit sites: poles at the corners of busy inner junctions, cameras turned onto the roads.
 
 Junctions on the map's outer ring (:data:`RING_M` of the bounds of all junctions, where the roads of a
 generated town run on beyond the map and traffic enters and leaves) see half as many roads and no
 buildings' worth of traffic behind them, so RSUs stand at inner junctions first: signalised before
 unsignalised, more incoming lanes before fewer, spread over the inner area in farthest-point order from
 the junction nearest the centre. The head's yaw turns the rig's four cameras (90 degrees apart) onto the
-junction's arms (:func:`arm_yaw`), so that each camera looks along an incoming road.
+roads around the pole (:func:`road_yaw`), so that no camera stares at the building beside it.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from cosim.world.types import RsuSite
 log = logging.getLogger(__name__)
 
 RING_M = 30.0  # [m] junctions this close to the bounds of all junctions are on the outer ring
-ARM_M = 30.0  # [m] how far along an incoming road a camera should look
+VIEW_M = 40.0  # [m] how far out a camera's view is sampled for road when the head is turned
 MAX_OFFSET_M = 20.0  # [m] farthest a pole stands from its junction centre (where the junction allows): the
 # corner of two three-lane avenues with sidewalks is about 18 m from the centre
 FAR_OFFSET_M = 40.0  # [m] search limit for junctions wider than that
@@ -79,20 +79,25 @@ def choose_junctions(
     return out
 
 
-def arm_yaw(pole_xy: tuple[float, float], arms: list[tuple[float, float]], fallback: float) -> float:
-    """Head yaw [rad] that points the rig's four cameras (yaw + k 90 degrees) closest to the points
-    ``arms`` (x, y) [m] (a spot :data:`ARM_M` up each incoming road), seen from ``pole_xy``: the sum of
-    each arm's angle to its nearest camera axis is least. ``fallback`` without arms."""
-    if not arms:
-        return fallback
-    bearings = np.array([math.atan2(y - pole_xy[1], x - pole_xy[0]) for x, y in arms])
-    cand = np.radians(np.arange(0.0, 90.0, 1.0))
-    off = (bearings[None, :] - cand[:, None]) % (math.pi / 2)
-    err = np.minimum(off, math.pi / 2 - off).sum(axis=1)
-    best = float(cand[int(np.argmin(err))])
-    # of the four equivalent yaws, the one nearest the old "face the junction" direction (stable front camera)
-    k = round((fallback - best) / (math.pi / 2))
-    return math.atan2(math.sin(best + k * math.pi / 2), math.cos(best + k * math.pi / 2))
+def road_yaw(pole_xy: tuple[float, float], road: Raster, fallback: float) -> float:
+    """Head yaw [rad] that turns the rig's four cameras (yaw + k 90 degrees) onto the roads around
+    ``pole_xy``: of yaws 3 degrees apart, the one whose cameras see the most road surface, sampled in
+    each camera's view (5 directions over 80 degrees, 6 to :data:`VIEW_M` m out), counting each
+    camera's share by its square root so that every camera gets some road; ties go to the yaw nearest
+    ``fallback``."""
+    yaws = np.radians(np.arange(0.0, 360.0, 3.0))
+    spread = np.radians(np.array([-40.0, -20.0, 0.0, 20.0, 40.0]))
+    reach = np.array([6.0, 10.0, 15.0, 20.0, 30.0, VIEW_M])
+    best, best_score = fallback, -1.0
+    for yaw in sorted(yaws, key=lambda y: abs(math.remainder(y - fallback, 2 * math.pi))):
+        score = 0.0
+        for k in range(4):
+            a = yaw + k * math.pi / 2 + spread
+            pts = np.array([(pole_xy[0] + r * math.cos(t), pole_xy[1] + r * math.sin(t)) for t in a for r in reach])
+            score += math.sqrt(float(road.lookup(pts).mean()))
+        if score > best_score + 1e-9:
+            best, best_score = float(yaw), score
+    return math.atan2(math.sin(best), math.cos(best))
 
 
 def _spot(
@@ -118,12 +123,11 @@ def place_rsus(
     road: Raster,
     centre: tuple[float, float],
     rng: np.random.Generator,
-    arms: dict[str, list[tuple[float, float]]] | None = None,
     lanes_in: dict[str, int] | None = None,
 ) -> list[RsuSite]:
     """RSU sites ``rsu_0..``: a pole off the road surface within :data:`MAX_OFFSET_M` of its junction,
     at junctions :func:`choose_junctions` picks (``lanes_in``: incoming lanes per junction id), the head
-    turned by :func:`arm_yaw` onto ``arms`` (junction id -> points up its incoming roads).
+    turned by :func:`road_yaw` onto the roads around it.
 
     Junctions wider than that all around (two multi-lane avenues crossing) are only used when there
     are not enough others; their pole then stands at the nearest spot off the road, with a warning.
@@ -150,6 +154,6 @@ def place_rsus(
         used.append(best)
         h = round(float(rng.uniform(*height_range_m)), 3)
         x, y = round(float(best[0]), 3), round(float(best[1]), 3)
-        yaw = arm_yaw((x, y), (arms or {}).get(j.junction_id, []), math.atan2(jy - y, jx - x))
+        yaw = road_yaw((x, y), road, math.atan2(jy - y, jx - x))
         sites.append(RsuSite(f"rsu_{i}", j.junction_id, (x, y, h), yaw, h))
     return sites
