@@ -3,7 +3,7 @@
 Runs scenarios (labels only) and prints, per escorting drone, the RMS and max horizontal distance to
 its commanded offset point, and the wall time of the run.
 
-    .venv/bin/python benchmarks/escort_tracking.py [--duration 60] [SCENARIO ...]
+    PYTHONPATH=. .venv/bin/python benchmarks/escort_tracking.py [--duration 60] [SCENARIO ...]
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pathlib import Path
 
 from mcap.reader import make_reader
 
-from cosim.drones.tracking import escort_errors, rms
+from benchmarks.drone_tracking import escort_errors, rms
 from cosim.runner import run_episode
 from cosim.scenario import load_scenario
 

@@ -81,7 +81,7 @@ class StepRequest:
     tick: int
     t_ns: int
     escort_targets: dict[str, EscortTarget] = field(default_factory=dict)
-    #: closed-loop clients' actions for this worker's agents, applied before the step (cosim.client.actions)
+    #: closed-loop clients' actions for this worker's agents, applied before the step (cosim.actions)
     actions: list[dict[str, Any]] = field(default_factory=list)
 
 

@@ -17,6 +17,9 @@ import numpy as np
 
 from cosim.scenario.model import EnvironmentSpec
 
+#: Street lamps and headlights: sodium-ish colour of artificial light (linear RGB), cameras and surfaces.
+LAMP_RGB = np.array([1.0, 0.82, 0.55], np.float32)
+
 #: Defaults when the scenario leaves them open.
 DEFAULT_FOG_VISIBILITY_M = 100.0
 DEFAULT_RAIN_RATE_MM_H = 10.0

@@ -38,6 +38,7 @@ import numpy as np
 from numba import njit
 
 from .environment import (
+    LAMP_RGB,
     LIT_WINDOW_FRACTION,
     WET_F0,
     WET_FILM_PAVING,
@@ -121,8 +122,6 @@ def emitters(scene) -> np.ndarray:
     """Point lights (E, 7) of one tick (:data:`EMITTER_COLUMNS`): each glowing static lamp head (one per
     instance, under its middle, intensity h^2 so that it gives irradiance 1 at height h below, as the
     light map does) and each actor's lamp units (one per actor and colour: headlights 20, tail lights 2)."""
-    from .camera import LAMP_RGB
-
     rows = []
     for mesh, static in ((scene.static.mesh, True), (scene.actors, False)):
         glow = np.nonzero(mesh.emissive > 0)[0]

@@ -15,7 +15,7 @@ import numpy as np
 import psutil
 import pytest
 
-from cosim.client.actions import ActionContext, check_actions
+from cosim.actions import ActionContext, check_actions
 from cosim.errors import ActionRejected
 from cosim.io import open_episode
 from cosim.io.validate import validate_episode

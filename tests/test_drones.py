@@ -1,7 +1,7 @@
 """Drone flight dynamics, control and strategies (cosim.drones), on every registered backend.
 
-Test worlds come from cosim.drones.demo (a few box buildings on a junction grid, empty net), so the
-tests need neither SUMO nor the world builder. Acceptance numbers: ``python -m cosim.drones.report``.
+Test worlds come from benchmarks.drone_demo (a few box buildings on a junction grid, empty net), so the
+tests need neither SUMO nor the world builder. Acceptance numbers: ``python -m benchmarks.drone_report``.
 """
 
 from __future__ import annotations
@@ -11,14 +11,14 @@ import math
 import numpy as np
 import pytest
 
+from benchmarks.drone_demo import demo_world
+from benchmarks.drone_report import fly_escort, fly_hover, fly_patrol, rms
 from cosim.drones import DroneFleet, backend_class, backend_names, register_backend
 from cosim.drones.airframe import G_MPS2, airframe_for_mass
 from cosim.drones.backends.base import DynamicsBackend
 from cosim.drones.control import BodyState, Controller, mixer_matrix
-from cosim.drones.demo import demo_world
 from cosim.drones.fleet import build_strategy
 from cosim.drones.obstacles import Obstacles
-from cosim.drones.report import fly_escort, fly_hover, fly_patrol, rms
 from cosim.drones.routes import road_graph
 from cosim.drones.strategies import SWING_FEEDFORWARD, Escort, Hover, Patrol
 from cosim.drones.wind import Wind
@@ -532,8 +532,8 @@ def shipped_flights(tmp_path_factory):
     """Every shipped scenario's drones for 30 s over its built world, escorts following real SUMO traffic.
 
     30 s is enough to fail: with ``agents.drone_separation_m=0`` four shipped scenarios bring two drones
-    within 15 m in that time (``python -m cosim.drones.survey --duration 30 --set agents.drone_separation_m=0``)."""
-    from cosim.drones.survey import Survey, shipped_scenarios
+    within 15 m in that time (``python -m benchmarks.drone_survey --duration 30 --set agents.drone_separation_m=0``)."""
+    from benchmarks.drone_survey import Survey, shipped_scenarios
     from cosim.scenario.loader import load_scenario
 
     survey = Survey(tmp_path_factory.mktemp("survey"))

@@ -8,7 +8,6 @@ import math
 
 import numpy as np
 import pytest
-from cosim.exporters.sensor_messages import frame_messages
 from cosim.sensors import SensorSuite
 from cosim.sensors.lidar import RETURN_LAST, RETURN_SINGLE, RETURN_STRONGEST, rosette_pattern, scan_pattern, sweep_ns
 from cosim.sensors.rig import mount_rotation
@@ -19,6 +18,7 @@ from cosim.errors import CosimError
 from cosim.geometry import quat_from_rpy, rotation_matrix
 from cosim.io import deskew
 from cosim.io.decode import decode_point_cloud
+from cosim.io.sensor_messages import frame_messages
 from cosim.scenario.model import AgentsSpec, LidarSpec, Mount, RigSpec, RsuAgents, Scenario, SensorsSpec, VehicleAgents
 from cosim.snapshot import Actor, AgentState, WorldSnapshot
 from cosim.world.types import Prism, StaticLayout, World
@@ -269,12 +269,12 @@ def test_a_standing_sensor_with_a_rosette_casts_each_frames_own_firings():
 def test_deskew_tick_uses_the_poses_recorded_in_the_episode(tmp_path):
     """Through a real file: /tf, the labels' velocity and the IMU's rates give back a flat wall."""
     import yaml
-    from cosim.exporters.labels import label_messages
-    from cosim.exporters.mcap_writer import EpisodeWriter
     from cosim.sensors.rig import sensor_transforms
 
     from cosim.io import deskew_tick, open_episode
+    from cosim.io.labels import label_messages
     from cosim.io.synthetic import synthetic_metadata
+    from cosim.io.writer import EpisodeWriter
     from cosim.scenario.model import ImuSpec
 
     rig = RigSpec(lidar=SPIN, cameras=[], gnss=None, imu=ImuSpec(gyro_noise_radps=0.0, gyro_bias_radps=0.0))

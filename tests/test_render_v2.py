@@ -34,7 +34,7 @@ def _small_rig_scenario(**env) -> Scenario:
 
 
 def _frame_bytes(frames) -> list[tuple[str, bytes]]:
-    from cosim.exporters.sensor_messages import frame_messages
+    from cosim.io.sensor_messages import frame_messages
 
     return [(topic, msg.SerializeToString() if hasattr(msg, "SerializeToString") else repr(msg).encode())
             for topic, msg in frame_messages(frames, frames.t_ns)]
@@ -210,8 +210,7 @@ def test_rendered_noise_is_seeded_and_off_without_noise():
 def test_distorted_calibration_projects_a_point_where_the_renderer_put_it():
     """A small block seen near the corner of a barrel-distorted camera: the centroid of its instance
     pixels is where the calibration (K, D) projects its centre, within 0.5 px; D is in the calibration."""
-    from cosim.exporters.sensor_messages import calibration_message
-
+    from cosim.io.sensor_messages import calibration_message
     from cosim.scenario.model import Mount
     from cosim.snapshot import AgentState, WorldSnapshot
     from cosim.world.types import Prism, StaticLayout, World

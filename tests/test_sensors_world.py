@@ -64,8 +64,8 @@ def test_built_world_renders_consistent_labels(world_and_scenario):
 
 
 def test_built_world_messages_write_an_episode(world_and_scenario, tmp_path):
-    from cosim.exporters.mcap_writer import EpisodeWriter
-    from cosim.exporters.sensor_messages import frame_messages
+    from cosim.io.sensor_messages import frame_messages
+    from cosim.io.writer import EpisodeWriter
 
     world, sc = world_and_scenario
     suite = SensorSuite(sc, world)

@@ -296,9 +296,9 @@ def test_class_shares_over_20_seeds_follow_the_mix(tmp_path: Path) -> None:
     class is within 5 points of ``traffic.mix`` (one vehicle of every class per episode is not)."""
     from collections import Counter
 
-    from cosim.traffic.vtypes import class_of_type
     from cosim.world.build import STAGE_ROUTES, stage_rng
     from cosim.world.routes import plan_vehicles, read_sumolib, routes_xml
+    from cosim.world.vtypes import class_of_type
 
     def scenario(seed: int):
         return load_scenario_data({"name": "mix", "seed": seed, "map": {"kind": "urban", "size_m": 200},

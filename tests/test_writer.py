@@ -8,14 +8,14 @@ import math
 import threading
 
 import pytest
-from cosim.exporters.labels import label_messages
-from cosim.exporters.mcap_writer import BackgroundWriter, EpisodeWriter, temporary_path
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from mcap.reader import make_reader
 
 from cosim.assemble import TrackRegistry, build_snapshot
 from cosim.errors import CosimError
 from cosim.geometry import quat_from_rpy, rotation_matrix, rpy_from_quat, sumo_front_to_center
+from cosim.io.labels import label_messages
+from cosim.io.writer import BackgroundWriter, EpisodeWriter, temporary_path
 from cosim.protocol import DroneState, VehicleState
 from cosim.world.types import Junction, RsuSite, StaticLayout, World
 
@@ -208,14 +208,17 @@ def test_serialized_image_records_are_the_bytes_of_the_messages():
     """Images serialized around their pixels in place give exactly SerializeToString(deterministic=True)
     of the same message built the plain way, and parse back to the arrays."""
     import numpy as np
-    from cosim.exporters.mcap_writer import Serialized
-    from cosim.exporters.sensor_messages import _stamp, depth_image, frame_records
     from cosim.sensors.encoding import encode_png
     from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
     from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
+    from cosim.io.depth import encode_depth
+    from cosim.io.sensor_messages import _stamp, depth_image, frame_records
+    from cosim.io.writer import Serialized
+
     frames = _camera_frames()
-    recs = dict(frame_records(frames, frames.t_ns))
+    recs = dict(frame_records(frames, frames.t_ns, depth_format="raw"))
+    compact = dict(frame_records(_camera_frames(), frames.t_ns))
     for name, cam in frames.agents["vehicle_0"].cameras.items():
         fid, base = f"vehicle_0/{name}/optical", f"/vehicle_0/{name}"
         expect = {
@@ -233,6 +236,9 @@ def test_serialized_image_records_are_the_bytes_of_the_messages():
         png = CompressedImage(frame_id=fid, format="png", data=encode_png(cam.rgb))
         _stamp(png, frames.t_ns)
         assert bytes(recs[f"{base}/image"].data) == png.SerializeToString(deterministic=True)
+        depth = CompressedImage(frame_id=fid, format="cosim-depth", data=encode_depth(cam.depth))
+        _stamp(depth, frames.t_ns)
+        assert bytes(compact[f"{base}/depth"].data) == depth.SerializeToString(deterministic=True)
         depth = recs[f"{base}/depth"].message()
         got = np.frombuffer(depth.data, "<f4").reshape(cam.height, cam.width)
         fin = np.isfinite(cam.depth)
@@ -242,7 +248,7 @@ def test_serialized_image_records_are_the_bytes_of_the_messages():
 
 def test_consumed_frames_are_emptied_and_give_the_same_records():
     """``consume`` frees each camera once its messages are made; the records are the same, in order."""
-    from cosim.exporters.sensor_messages import frame_records
+    from cosim.io.sensor_messages import frame_records
 
     def as_bytes(recs):
         return [(t, bytes(r.data) if hasattr(r, "data") and not hasattr(r, "SerializeToString")
@@ -264,7 +270,7 @@ def test_consumed_frames_are_emptied_and_give_the_same_records():
 
 def test_serialized_records_write_the_bytes_of_messages(tmp_path):
     """The writer gives the same file for a serialized record as for the message it holds."""
-    from cosim.exporters.sensor_messages import frame_records
+    from cosim.io.sensor_messages import frame_records
 
     frames = _camera_frames()
     recs = list(frame_records(frames, frames.t_ns))

@@ -134,7 +134,7 @@ class Client:
         return Observation(header["tick"], t_ns, messages, last=header["last"], failed=header["failed"])
 
     def act(self, actions: Sequence[dict[str, Any]]) -> int:
-        """Send this tick's actions (see :mod:`cosim.client.actions`); returns how many were accepted.
+        """Send this tick's actions (see :mod:`cosim.actions`); returns how many were accepted.
 
         Raises :class:`~cosim.errors.ActionRejected` when the conductor refused them (the message names each
         bad action); the tick then counts as answered with no actions and the episode goes on. On the last

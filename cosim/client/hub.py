@@ -3,7 +3,7 @@
 Per tick the runner calls :meth:`ClientHub.publish` (the tick's messages, filtered by each client's
 topics, put to ``<prefix>/clients/<name>/obs``) and then :meth:`ClientHub.collect`, which waits for
 every client's ``act`` query of that tick. Queries are answered on Zenoh's threads as they arrive:
-validated against the observed tick (:func:`cosim.client.actions.check_actions`), a refused message
+validated against the observed tick (:func:`cosim.actions.check_actions`), a refused message
 gets an error reply naming each bad action and counts as the client's (empty) answer, so the episode
 goes on. A client's liveliness token going away ends the episode with :class:`ClientError`, a missing
 answer with :class:`ClientTimeout`, both naming the client and the tick.
@@ -23,9 +23,10 @@ from typing import Any
 
 import zenoh
 
+from cosim.actions import ActionContext, as_dicts, check_actions
 from cosim.client import wire
-from cosim.client.actions import ActionContext, as_dicts, check_actions
 from cosim.errors import ActionRejected, ClientError, ClientTimeout
+from cosim.logs import NOTICE
 from cosim.scenario.model import ClientSpec
 
 log = logging.getLogger(__name__)
@@ -95,9 +96,9 @@ class ClientHub:
 
     def wait_connected(self, timeout_s: float, endpoint: str) -> None:
         """Block until every client said hello; ClientTimeout naming the first missing one."""
-        log.warning("waiting for clients %s: connect with cosim.client.connect(NAME, endpoint=%r, prefix=%r) "
-                    "or COSIM_ENDPOINT=%s COSIM_PREFIX=%s", ", ".join(self._specs), endpoint, self._prefix,
-                    endpoint, self._prefix)
+        log.log(NOTICE, "waiting for clients %s: connect with cosim.client.connect(NAME, endpoint=%r, prefix=%r) "
+                "or COSIM_ENDPOINT=%s COSIM_PREFIX=%s", ", ".join(self._specs), endpoint, self._prefix,
+                endpoint, self._prefix)
         deadline = time.monotonic() + timeout_s
         while True:
             with self._lock:

@@ -14,7 +14,7 @@ import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from typing import Any
 
-from cosim.client.actions import ACTION_ARRAY_SCHEMA, VEHICLE_ACTIONS, ActionContext
+from cosim.actions import ACTION_ARRAY_SCHEMA, VEHICLE_ACTIONS, ActionContext
 from cosim.client.hub import ClientAction, ClientHub
 from cosim.protocol import VehicleState
 from cosim.scenario import LoadedScenario

@@ -43,7 +43,7 @@ class Encoded:
 
 
 def encode_message(message: Any) -> Encoded:
-    """The bytes :class:`exporters.mcap_writer.EpisodeWriter` writes for a (topic, message) pair's message:
+    """The bytes :class:`cosim.io.writer.EpisodeWriter` writes for a (topic, message) pair's message:
     a protobuf message, or a ``(schema_name, json_schema, payload)`` triple."""
     if isinstance(message, ProtoMessage):
         return Encoded(message.DESCRIPTOR.full_name, "protobuf", message.SerializeToString(deterministic=True))
@@ -54,7 +54,7 @@ def encode_message(message: Any) -> Encoded:
 def schema_bytes(message: Any) -> bytes:
     """The schema record's data the writer stores for this message's channel."""
     if isinstance(message, ProtoMessage):
-        from cosim.exporters.mcap_writer import proto_file_descriptor_set
+        from cosim.io.writer import proto_file_descriptor_set
 
         return proto_file_descriptor_set(type(message))
     return json.dumps(message[1], sort_keys=True).encode()

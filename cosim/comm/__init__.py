@@ -6,7 +6,7 @@
 - :mod:`cosim.comm.links`: the link model (:func:`~cosim.comm.links.compute_links`,
   :class:`~cosim.comm.links.LinkModel`);
 - :mod:`cosim.comm.message`: the ``/comm/links`` topic (schema, payload, decoding);
-- :mod:`cosim.comm.summary`: ``cosim comm``: summary per link type and plots.
+- :mod:`cosim.io.comm_report`: ``cosim comm``: summary per link type and plots.
 
 Importing this package loads nothing heavy; the link model needs Open3D (through its scene).
 """

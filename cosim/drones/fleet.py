@@ -269,11 +269,11 @@ class DroneFleet:
         return [self._state_of(d) for d in self._drones]
 
     def command(self, action: dict, tick: int) -> str | None:
-        """Apply one closed-loop client action (cosim.client.actions, already validated) from now on;
+        """Apply one closed-loop client action (cosim.actions, already validated) from now on;
         returns why it cannot be applied, else None. The drone keeps its airframe and speed limit."""
-        from cosim.client.actions import Escort as EscortAction
-        from cosim.client.actions import GoTo as GoToAction
-        from cosim.client.actions import Land, SetStrategy, parse_action
+        from cosim.actions import Escort as EscortAction
+        from cosim.actions import GoTo as GoToAction
+        from cosim.actions import Land, SetStrategy, parse_action
 
         a = parse_action(action)
         if a.agent not in self.agent_ids:

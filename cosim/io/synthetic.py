@@ -32,9 +32,9 @@ from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 
 from cosim.assemble import TrackRegistry, build_snapshot
 from cosim.classes import class_table
-from cosim.exporters.labels import label_messages, timestamp
-from cosim.exporters.mcap_writer import EpisodeWriter
 from cosim.io.format import FORMAT_VERSION
+from cosim.io.labels import label_messages, timestamp
+from cosim.io.writer import EpisodeWriter
 from cosim.protocol import DroneState, VehicleState
 from cosim.snapshot import WorldSnapshot
 from cosim.world.types import Junction, Prism, RsuSite, StaticLayout, World
@@ -112,7 +112,7 @@ def _rig(agent: str, kind: str) -> list[tuple[str, str, tuple[float, ...], tuple
 
 def _points(tick: int, n: int, live: list[int]) -> PointCloud:
     """A 10 m ring of ``n`` points 1.9 m below the sensor, stored as the sensor exporter stores sweeps."""
-    from cosim.exporters.sensor_messages import lidar_message
+    from cosim.io.sensor_messages import lidar_message
 
     a = np.linspace(0, 2 * np.pi, n, endpoint=False)
     xyz = np.stack([10 * np.cos(a), 10 * np.sin(a), np.full(n, -1.9)], axis=1)

@@ -1,7 +1,6 @@
 """Ground traffic: the SUMO adapter (:class:`TrafficSim`) and an in-process fake (:class:`FakeTraffic`).
 
-Both are imported on first use, so importing :mod:`cosim.traffic.vtypes` (as the world builder
-does) loads neither libsumo nor the world package.
+Both are imported on first use, so importing this package loads neither libsumo nor the world package.
 """
 
 from __future__ import annotations

@@ -13,8 +13,8 @@ import numpy as np
 
 from cosim.protocol import VehicleState
 from cosim.scenario.model import Scenario
-from cosim.traffic.vtypes import VARIANTS
 from cosim.world.types import World
+from cosim.world.vtypes import VARIANTS
 
 ROW_SPACING_M = 6.0  # [m] between the rows the vehicles drive on
 N_BACKGROUND = 6

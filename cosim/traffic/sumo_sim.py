@@ -31,10 +31,10 @@ from cosim.protocol import VehicleState
 from cosim.scenario.model import Scenario
 from cosim.traffic.events import Timeline
 from cosim.traffic.pedestrians import Pedestrians
-from cosim.traffic.vtypes import SUMO_VCLASS, VARIANTS, class_of_type
 from cosim.world.netgen import sumo_binary
 from cosim.world.routes import inner_edges, read_sumolib, sources_and_sinks, strong_core
 from cosim.world.types import World
+from cosim.world.vtypes import SUMO_VCLASS, VARIANTS, class_of_type
 
 log = logging.getLogger(__name__)
 
@@ -325,7 +325,7 @@ class TrafficSim:
 
     # --------------------------------------------------------------------- client actions
     def command(self, action: dict[str, Any]) -> str | None:
-        """Apply one closed-loop client action (cosim.client.actions, already validated) to a vehicle;
+        """Apply one closed-loop client action (cosim.actions, already validated) to a vehicle;
         returns SUMO's reason when it refuses (no route to the edge, vehicle gone), else None."""
         v, vid, kind = libsumo.vehicle, action["agent"], action["type"]
         try:

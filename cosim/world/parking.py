@@ -14,12 +14,12 @@ import math
 import numpy as np
 
 from cosim.scenario.model import ParkedSpec
-from cosim.traffic.vtypes import VARIANTS
 from cosim.world import geom
 from cosim.world.geom import Occupancy
 from cosim.world.layout import CELL_M, GROUND_Z, _outer_right
 from cosim.world.network import RoadNetwork
 from cosim.world.types import ParkedVehicle, Prism
+from cosim.world.vtypes import VARIANTS
 
 KERB_GAP_M = 0.4  # [m] between the sidewalk's (or road's) outer border and the parked box
 CLEAR_M = 0.3  # [m] kept free around every parked box

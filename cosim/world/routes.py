@@ -28,7 +28,7 @@ import sumolib
 
 from cosim.errors import InputError
 from cosim.scenario.model import Scenario
-from cosim.traffic.vtypes import SUMO_VCLASS, VARIANTS, VehicleVariant
+from cosim.world.vtypes import SUMO_VCLASS, VARIANTS, VehicleVariant
 
 log = logging.getLogger(__name__)
 

@@ -53,7 +53,7 @@ class ParkedVehicle:
 
     parked_id: str  # parked_<nnnn>
     cls: str
-    type_id: str  # the variant (cosim.traffic.vtypes), for its look
+    type_id: str  # the variant (cosim.world.vtypes), for its look
     center_m: tuple[float, float, float]
     size_m: tuple[float, float, float]
     yaw_rad: float

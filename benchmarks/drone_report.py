@@ -1,11 +1,11 @@
 """Acceptance flights for the drone stack: hover, patrol and escort on every backend, with metrics
 and plots (flown path against the target, error over time).
 
-    python -m cosim.drones.report --out docs/img
+    python -m benchmarks.drone_report --out docs/img
 
 prints one line per strategy and backend (errors, waypoints, speed relative to real time) and writes
 ``drone_hover.png``, ``drone_patrol.png`` and ``drone_escort.png``. Inputs come from
-:mod:`cosim.drones.demo` (no SUMO needed); the scenario defaults give the wind and gusts.
+:mod:`benchmarks.drone_demo` (no SUMO needed); the scenario defaults give the wind and gusts.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from benchmarks.drone_demo import DEMO_ROUTE, demo_world, synthetic_drive
 from cosim.drones.backends import backend_names
-from cosim.drones.demo import DEMO_ROUTE, demo_world, synthetic_drive
 from cosim.drones.fleet import DroneFleet
 from cosim.protocol import DroneState, EscortTarget
 from cosim.scenario.model import AgentsSpec, EscortDrone, HoverDrone, PatrolDrone, Scenario, VehicleAgents

@@ -1,7 +1,7 @@
 """Synthetic inputs for exercising the drone stack without SUMO or the world builder: a small
 world of box buildings on a junction grid, and a car driving a route with turns.
 
-Used by the acceptance report (:mod:`cosim.drones.report`) and the tests.
+Used by the acceptance report (:mod:`benchmarks.drone_report`) and the tests.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Pictures of a world from above: static layout, RSU sites and a tick of vehicles.
 
-``python -m cosim.world.plot OUT.png --kind urban [--seed 0] [--size 400] [--t 20]`` builds the world,
+``python -m benchmarks.world_plot OUT.png --kind urban [--seed 0] [--size 400] [--t 20]`` builds the world,
 runs the traffic to ``t`` seconds and draws it (used for docs/img/map_<kind>.png).
 """
 

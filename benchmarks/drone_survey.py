@@ -1,7 +1,7 @@
 """Fly a scenario's drones over its built world, escorts following real SUMO traffic, without the
 conductor: the separation between drones and how close patrols stay to the lanes.
 
-    python -m cosim.drones.survey [SCENARIO ...] [--duration 60]
+    python -m benchmarks.drone_survey [SCENARIO ...] [--duration 60]
 
 prints one JSON line per scenario (default: every shipped one): the smallest distance between two
 drones with the pair and tick, and each patrol drone's median horizontal distance to the nearest
@@ -32,7 +32,7 @@ from cosim.world.types import World
 
 log = logging.getLogger(__name__)
 
-SCENARIOS_DIR = Path(__file__).resolve().parents[2] / "scenarios"
+SCENARIOS_DIR = Path(__file__).resolve().parents[1] / "scenarios"
 
 
 @dataclass

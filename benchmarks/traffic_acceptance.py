@@ -1,6 +1,6 @@
 """Measure a traffic episode against the physical acceptance checks, without the conductor.
 
-``python -m cosim.traffic.acceptance [--kinds urban suburban rural highway] [--seed 0] [--duration 60]``
+``python -m benchmarks.traffic_acceptance [--kinds urban suburban rural highway] [--seed 0] [--duration 60]``
 builds each world, runs :class:`~cosim.traffic.TrafficSim` tick by tick and prints one JSON line per
 kind: classes seen, share of box centres on the road surface, worst bird's-eye overlap, connected
 vehicles missing, RSU distances to their junctions, class shares (of the vehicles seen and of the
