@@ -88,7 +88,7 @@ def traffic_shares(loaded: Any, duration_s: float) -> dict[str, Any]:
     from cosim.world import build_world
 
     sc = loaded.scenario
-    n_ticks = int(round(duration_s * sc.tick_hz))
+    n_ticks = round(duration_s * sc.tick_hz)
     worst = at_18 = 0.0
     still_since: dict[str, float] = {}
     longest, who = 0.0, ""

@@ -331,7 +331,8 @@ class AgentView:
         (``.npy`` of :data:`LIDAR_LABELS_DTYPE`, same order). Points are compensated to the sensor pose at
         the tick (:func:`cosim.io.deskew.deskew_tick`) unless the export's ``raw_lidar`` asks for them as fired."""
         pts = self.points
-        xyz = np.stack([pts["x"], pts["y"], pts["z"]], axis=1) if self.raw_lidar else deskew_tick(self.tick, self.agent_id)
+        raw = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
+        xyz = raw if self.raw_lidar else deskew_tick(self.tick, self.agent_id)
         labels = np.zeros(len(pts), LIDAR_LABELS_DTYPE)
         for f in LIDAR_LABELS_DTYPE.names or ():
             if f in (pts.dtype.names or ()):

@@ -540,7 +540,7 @@ def _static_in_box_share(root: Path, layout: str) -> tuple[int, float]:
                 meta = pickle.loads((f / "metadata.pkl").read_bytes())
                 pts, ids = read_pcd(f / "lidar.pcd"), np.load(f / "lidar_labels.npy")["instance_id"]
                 pose = add_poses(meta["lidar"]["lidar_pose"], meta["odometry"]["ego_pos"])
-                for track, sel, ok in _in_boxes(table, pts, ids, pose):
+                for _track, sel, ok in _in_boxes(table, pts, ids, pose):
                     checked, inside = checked + sel, inside + ok
     else:
         seq = only(root / "train")
@@ -549,7 +549,7 @@ def _static_in_box_share(root: Path, layout: str) -> tuple[int, float]:
                 doc = load_yaml(y)
                 pts = read_pcd(y.with_suffix(".pcd"))
                 ids = np.load(agent / f"{y.stem}_lidar_labels.npy")["instance_id"]
-                for track, sel, ok in _in_boxes(doc["cosim"]["objects"], pts, ids, doc["lidar_pose"]):
+                for _track, sel, ok in _in_boxes(doc["cosim"]["objects"], pts, ids, doc["lidar_pose"]):
                     checked, inside = checked + sel, inside + ok
     return checked, inside / max(1, checked)
 

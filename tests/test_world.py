@@ -123,7 +123,8 @@ def test_layout_invariants(kind: str, tmp_path: Path) -> None:
     assert [r.agent_id for r in world.rsus] == [f"rsu_{i}" for i in range(sc.agents.rsus.count)]
     lo_h, hi_h = sc.agents.rsus.height_m
     for r in world.rsus:
-        assert math.dist(r.position_m[:2], junctions[r.junction_id]) <= MAX_OFFSET_M + 0.01  # positions are rounded to the millimetre
+        # positions are rounded to the millimetre
+        assert math.dist(r.position_m[:2], junctions[r.junction_id]) <= MAX_OFFSET_M + 0.01
         assert lo_h <= r.height_m <= hi_h and r.position_m[2] == pytest.approx(r.height_m)
         if kind == "urban":  # (the small suburban test town has too few feasible inner junctions)
             assert r.junction_id not in ring

@@ -259,7 +259,8 @@ def plan_vehicles(
         start = ln.getEdge().getID()
         route = None if vid.startswith("vehicle_") else route_to_sink(net, start, sinks[vclass], vclass, rng)
         if route is None:  # connected, or no sink reachable: drive in the core (routes are extended)
-            route = random_route(net, start, inner[vclass] if vid.startswith("vehicle_") else cores[vclass], vclass, rng)
+            targets = inner[vclass] if vid.startswith("vehicle_") else cores[vclass]
+            route = random_route(net, start, targets, vclass, rng)
         out.append(PlannedVehicle(vid, variant, ln.getID(), ln.getIndex(), round(pos, 2), tuple(route)))
     return out
 
