@@ -6,14 +6,15 @@ junction. :func:`plan_signals` rewrites the network's ``tlLogic`` programs, keep
 and signal states (which links move together, which netconvert derived from the geometry):
 
 - the cycle follows the junction's size, :func:`cycle_s` (controlled links: a T of two-lane streets has
-  about 9, a crossing of two avenues 24 or more): 36 s for the smallest, up to 64 s for the largest;
+  about 9, a crossing of two avenues 24 or more): 30 s for the smallest, up to 50 s for the largest (shorter cycles lost more to yellow
+  and pedestrian clearance in measurements, longer ones stopped more vehicles: benchmarks/data_quality.py);
 - the green time (the cycle less the yellow and all-red phases, which keep their durations) is split
   over the green phases in proportion to the links each one releases, at least :data:`MIN_GREEN_S`;
 - each junction's offset is drawn from the scenario's generator (uniform over its cycle), so that
   neighbouring lights do not switch in lockstep;
 - ``actuated`` (the default): SUMO's gap-based actuated control (``type="actuated"``, detectors that
   SUMO places on the incoming lanes when it loads the network): a green phase lasts from
-  ``minDur`` (:data:`MIN_GREEN_S`) to ``maxDur`` (1.5 times it) and
+  ``minDur`` (:data:`MIN_GREEN_S`) to ``maxDur`` (:data:`MAX_GREEN_FACTOR` times its planned green) and
   ends early when its approaches empty; ``fixed``: the fixed-time plan; ``as_built``: the network's
   programs as netconvert (or the user's ``map.file``) made them, untouched.
 """
