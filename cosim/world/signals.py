@@ -1,4 +1,4 @@
-"""Traffic signal plans (scenario key ``traffic.signals``; docs/architecture.md, "World").
+"""Traffic signal plans (scenario key ``traffic.signals``, README's scenario keys table).
 
 netconvert gives every signalised junction the same static program: a 90 s cycle of 42 s green and 3 s
 yellow per direction, offset 0, so all lights switch in lockstep and a red lasts 45 s whatever the
@@ -6,8 +6,9 @@ junction. :func:`plan_signals` rewrites the network's ``tlLogic`` programs, keep
 and signal states (which links move together, which netconvert derived from the geometry):
 
 - the cycle follows the junction's size, :func:`cycle_s` (controlled links: a T of two-lane streets has
-  about 9, a crossing of two avenues 24 or more): 30 s for the smallest, up to 50 s for the largest (shorter cycles lost more to yellow
-  and pedestrian clearance in measurements, longer ones stopped more vehicles: benchmarks/data_quality.py);
+  about 9, a crossing of two avenues 24 or more): 30 s for the smallest, up to 50 s for the largest
+  (shorter cycles lost more to yellow and pedestrian clearance in measurements, longer ones stopped
+  more vehicles: benchmarks/data_quality.py);
 - the green time (the cycle less the yellow and all-red phases, which keep their durations) is split
   over the green phases in proportion to the links each one releases, at least :data:`MIN_GREEN_S`;
 - each junction's offset is drawn from the scenario's generator (uniform over its cycle), so that
