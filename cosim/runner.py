@@ -171,7 +171,7 @@ def run_episode(
     with tempfile.TemporaryDirectory(prefix="cosim-world-") as workdir:
         world = build_world(loaded, Path(workdir))
     suite = _sensor_suite(loaded, world)
-    links = _link_model(loaded, world, suite)
+    links = _link_model(loaded, world)
     tracks = TrackRegistry()
     escorts = {f"drone_{i}": d.target for i, d in enumerate(s.agents.drones) if isinstance(d, EscortDrone)}
     tick_times: list[float] = []
@@ -365,17 +365,15 @@ def _sensor_suite(loaded: LoadedScenario, world: World) -> _SensorAdapter | None
     return _SensorAdapter(loaded, world)
 
 
-def _link_model(loaded: LoadedScenario, world: World, suite: _SensorAdapter | None) -> Any:
-    """The ``/comm/links`` model (None when ``comm.enabled`` is false); it ray-casts through the
-    sensor suite's static scene, or through the walls of the layout when sensors are off."""
+def _link_model(loaded: LoadedScenario, world: World) -> Any:
+    """The ``/comm/links`` model (None when ``comm.enabled`` is false); it ray-casts through the walls
+    of the layout's blocking prisms, whether sensors run or not (the renderer's porous tree crowns
+    are a camera and LiDAR matter; a radio link sees a crown as its prism)."""
     s = loaded.scenario
     if not s.comm.enabled:
         return None
     from cosim.comm.links import LinkModel
     from cosim.comm.los import LinkScene
 
-    if suite is not None:
-        scene = LinkScene.of_static(suite.static, world.layout.ground_z_m)
-    else:
-        scene = LinkScene.from_layout(world.layout)
+    scene = LinkScene.from_layout(world.layout)
     return LinkModel(s.comm, scene, world.map_kind, s.seed, s.tick_ns)

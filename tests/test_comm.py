@@ -251,22 +251,6 @@ def test_a_drone_higher_above_the_same_ground_agents_has_line_of_sight_more_ofte
     assert shares[30.0] > 0.0 and shares[150.0] > shares[30.0] + 0.1, shares
 
 
-def test_the_walls_only_scene_gives_the_links_of_the_sensor_suites_scene(urban_town):
-    from cosim.sensors.meshes import static_mesh
-    from cosim.sensors.scene import StaticScene
-
-    world, walls = urban_town
-    full = LinkScene.of_static(StaticScene(static_mesh(world.layout)), world.layout.ground_z_m)
-    assert full.n_triangles > walls.n_triangles
-    states = []
-    for seed in range(4):
-        snap = world_snapshot(world, 5, 3, 20, seed=seed)
-        a, b = _links(walls, snap), _links(full, snap)
-        assert a.los == b.los and np.array_equal(a.snr_db, b.snr_db)
-        states += a.los
-    assert {"los", "nlos"} <= set(states)
-
-
 # ------------------------------------------------------------------------------- validation
 
 

@@ -1,11 +1,11 @@
 """Line of sight between antennas: LOS, NLOSv (an actor in between) or NLOS (the static world).
 
-The static world is an Open3D scene (:class:`LinkScene`: the sensor suite's static scene, one BVH
-per episode with triangles tagged by semantic class, or its blocking walls alone when sensors are
-off): the segment between two antennas is cast as a ray whose direction is the segment itself (so
-``t`` in [0, 1] lies between the ends) and every crossing is listed. Thin static parts (poles,
-street lights, lane markings, the RSU masts) do not block a radio link and are skipped; anything
-else (buildings, vegetation, terrain, road bodies) makes the link NLOS.
+The static world is an Open3D scene (:class:`LinkScene`: the side walls of the layout's blocking
+prisms, one BVH per episode, whether sensors run or not): the segment between two antennas is
+cast as a ray whose direction is the segment itself (so ``t`` in [0, 1] lies between the ends)
+and every crossing is listed. Thin static parts (poles, street lights, lane markings, the RSU
+masts) do not block a radio link and are skipped; anything else (buildings, vegetation, terrain,
+road bodies) makes the link NLOS.
 
 Actors are tested as their oriented 3D label boxes (a slab test per segment and box, vectorised),
 without the two ends' own boxes: a box crossed by the segment makes the link NLOSv, and the highest
@@ -20,7 +20,6 @@ import time
 
 import numpy as np
 
-from cosim.classes import SEMANTIC_CLASSES
 from cosim.snapshot import Actor
 
 log = logging.getLogger(__name__)
@@ -35,12 +34,11 @@ END_MARGIN_M = 0.05  # [m] crossings this close to an antenna are the antenna's 
 class LinkScene:
     """An Open3D scene of the static world for line-of-sight tests and, per triangle, whether it blocks.
 
-    Two ways to get one, with the same answers for antennas outside every solid: :meth:`of_static`
-    reuses the sensor suite's :class:`cosim.sensors.scene.StaticScene` (built anyway when sensors
-    are on); :meth:`from_layout` builds, when sensors are off, only the side walls of the blocking
-    prisms (a segment whose ends lie outside a vertical prism can only enter and leave it through
-    its walls: top and bottom are planes it crosses at most once each), which needs no polygon
-    triangulation and takes a fraction of the time.
+    :meth:`from_layout` builds only the side walls of the layout's blocking prisms (a segment whose
+    ends lie outside a vertical prism can only enter and leave it through its walls: top and bottom
+    are planes it crosses at most once each), which needs no polygon triangulation. The links use it
+    whether sensors run or not: the renderer's procedural trees (porous crowns, branches) are for
+    cameras and LiDAR, and a radio link sees a tree as its crown's prism.
     """
 
     def __init__(self, scene, blocks: np.ndarray, ground_z_m: float = 0.0):
@@ -51,13 +49,6 @@ class LinkScene:
     @property
     def n_triangles(self) -> int:
         return len(self.blocks)
-
-    @classmethod
-    def of_static(cls, static, ground_z_m: float = 0.0) -> LinkScene:
-        """Reuse a :class:`cosim.sensors.scene.StaticScene` (semantic class per triangle)."""
-        see_through = np.array([name in SEE_THROUGH for name in SEMANTIC_CLASSES], bool)
-        blocks = ~see_through[np.asarray(static.mesh.semantic, np.int64)]
-        return cls(static.scene, blocks, ground_z_m)
 
     @classmethod
     def from_layout(cls, layout) -> LinkScene:
