@@ -1,43 +1,12 @@
-"""Shared fixtures and helpers for the suite."""
+"""Shared fixtures of the suite (shared helper functions: tests/helpers.py)."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
-import psutil
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-SCENARIOS = REPO / "scenarios"
-
-
-def children_of(pid: int) -> list[psutil.Process]:
-    """Live (non-zombie) descendants of a process, except multiprocessing's resource tracker
-    (spawn starts one per parent; it lives exactly as long as the parent)."""
-    try:
-        procs = psutil.Process(pid).children(recursive=True)
-    except psutil.NoSuchProcess:
-        return []
-    out = []
-    for p in procs:
-        try:
-            if p.status() == psutil.STATUS_ZOMBIE or "resource_tracker" in " ".join(p.cmdline()):
-                continue
-        except psutil.NoSuchProcess:
-            continue
-        out.append(p)
-    return out
-
-
-def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600,
-            env: dict | None = None) -> subprocess.CompletedProcess:
-    """Run ``cosim`` in a fresh interpreter, as a user would."""
-    full_env = {**os.environ, **(env or {})}
-    return subprocess.run([sys.executable, "-m", "cosim.cli", *args], cwd=cwd or REPO, capture_output=True,
-                          text=True, timeout=timeout, env=full_env)
+from tests.helpers import REPO, run_cli
 
 
 @pytest.fixture

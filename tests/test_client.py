@@ -20,7 +20,7 @@ from cosim.errors import ActionRejected
 from cosim.io import open_episode
 from cosim.io.validate import validate_episode
 from cosim.transport import free_loopback_endpoint
-from tests.conftest import REPO, children_of, run_cli
+from tests.helpers import REPO, children_of, run_cli
 from tests.loop_clients import GOAL_ALTITUDE_M, GOAL_XY_M, SLOW_MPS
 
 SCENARIO = f"""\

@@ -20,7 +20,7 @@ from cosim.errors import FormatError
 from cosim.geometry import quat_from_rpy
 from cosim.scenario.model import CommSpec
 from cosim.snapshot import Actor, AgentState, WorldSnapshot
-from tests.conftest import run_cli
+from tests.helpers import run_cli
 
 FC = 5.9  # [GHz]
 DISTANCES_M = (25.0, 120.0, 480.0)

@@ -8,7 +8,7 @@ import pytest
 
 from cosim.io import open_episode
 from cosim.io.validate import validate_episode
-from tests.conftest import SCENARIOS, run_cli
+from tests.helpers import SCENARIOS, run_cli
 
 pytestmark = pytest.mark.integration
 

@@ -38,8 +38,9 @@ from cosim.scenario.model import (
 )
 from cosim.snapshot import AgentState, WorldSnapshot
 from cosim.world.types import Prism, StaticLayout, World
-from tests.conftest import run_cli
-from tests.test_sensors import _convex_hull, _signed_dist_inside
+from tests.helpers import convex_hull as _convex_hull
+from tests.helpers import run_cli
+from tests.helpers import signed_dist_inside as _signed_dist_inside
 
 #: A strong barrel lens, monotonic over a 90 deg field (k2 > 0 keeps r (1 + k1 r^2 + k2 r^4) rising):
 #: it moves the corners of a 4:3 image by about 60 px at 480 px width.

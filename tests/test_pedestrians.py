@@ -246,8 +246,7 @@ def test_jaywalk_episode_escorted_vehicle_sees_the_pedestrian(tmp_path: Path):
     a pedestrian's instance id lies inside that pedestrian's box grown by 0.1 m."""
     from cosim.eval.dataset import AREA_HALF_M
     from cosim.io import open_episode
-    from tests.conftest import run_cli
-    from tests.test_events import lidar_box_excess
+    from tests.helpers import lidar_box_excess, run_cli
 
     r = run_cli("run", "scenarios/event_jaywalk.yaml", "--duration", "3.4", "--out", str(tmp_path),
                 "--set", "sensors.image_scale=0.1", "--set", "agents.rsus.count=0", "--set", "map.size_m=300",
@@ -298,7 +297,7 @@ def test_hazard_lamps_glow_amber_in_a_night_camera():
         VehicleAgents,
     )
     from cosim.snapshot import AgentState, WorldSnapshot
-    from tests.test_sensors import _wall_world
+    from tests.helpers import wall_world as _wall_world
 
     rig = RigSpec(lidar=None, cameras=[CameraSpec(name="front", width=160, height=120, fov_deg=40.0,
                                                   mount=Mount(xyz_m=(0.0, 0.0, 1.0)))], gnss=None, imu=None)

@@ -10,7 +10,7 @@ import pytest
 from cosim.errors import ScenarioError
 from cosim.scenario import load_scenario, shipped_scenarios
 from cosim.scenario.model import EscortDrone, HoverDrone, PatrolDrone, Scenario
-from tests.conftest import SCENARIOS, run_cli
+from tests.helpers import SCENARIOS, run_cli
 
 
 def write(tmp_path: Path, name: str, text: str) -> Path:

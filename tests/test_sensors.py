@@ -30,21 +30,10 @@ from cosim.scenario.model import (
     VehicleAgents,
 )
 from cosim.snapshot import AgentState, WorldSnapshot
-from cosim.world.types import Prism, StaticLayout, World
-
-WALL_ID = 1_000_001
-
-
-def _rect(x0, y0, x1, y1):
-    return ((x0, y0), (x1, y0), (x1, y1), (x0, y1))
-
-
-def _wall_world(wall_x: float = 50.0) -> World:
-    prisms = (
-        Prism("terrain", _rect(-300, -300, 300, 300), -1.0, 0.0),
-        Prism("building", _rect(wall_x, -40, wall_x + 5, 40), 0.0, 30.0, WALL_ID),
-    )
-    return World("synthetic", b"", b"", (-300, -300, 300, 300), (), (), StaticLayout(prisms), (37.0, -122.0, 10.0))
+from tests.helpers import WALL_ID
+from tests.helpers import convex_hull as _convex_hull
+from tests.helpers import signed_dist_inside as _signed_dist_inside
+from tests.helpers import wall_world as _wall_world
 
 
 def _scenario(vehicle_rig: RigSpec, n_vehicles: int = 1, **env) -> Scenario:
@@ -203,28 +192,6 @@ def test_adaptive_casting_agrees_with_full_casting():
     rel = np.concatenate(rel)
     assert same / total > 0.995
     assert np.mean(rel < 1e-4) > 0.995 and rel.max() < 0.05
-
-
-def _convex_hull(p: np.ndarray) -> np.ndarray:
-    pts = sorted(map(tuple, p))
-    def half(seq):
-        h = []
-        for q in seq:
-            while len(h) >= 2 and ((h[-1][0] - h[-2][0]) * (q[1] - h[-2][1])
-                                   - (h[-1][1] - h[-2][1]) * (q[0] - h[-2][0])) <= 0:
-                h.pop()
-            h.append(q)
-        return h
-    lower, upper = half(pts), half(pts[::-1])
-    return np.array(lower[:-1] + upper[:-1])
-
-
-def _signed_dist_inside(hull: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Min signed distance of points q (N, 2) to the edges of a CCW convex hull (positive inside)."""
-    a, b = hull, np.roll(hull, -1, axis=0)
-    e = b - a
-    n = np.stack([-e[:, 1], e[:, 0]], axis=1) / np.linalg.norm(e, axis=1)[:, None]
-    return np.min(np.einsum("nij,ij->ni", q[:, None, :] - a[None], n), axis=1)
 
 
 def _compose(transforms, child: str):
