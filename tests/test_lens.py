@@ -16,7 +16,7 @@ from cosim.exporters.undistort import pinhole_remap
 from cosim.sensors import SensorSuite
 from cosim.sensors.camera import pixel_grid
 from cosim.sensors.rig import intrinsics
-from cosim.sensors.synthetic import synthetic_snapshot, synthetic_world
+from cosim.sensors.synthetic import synthetic_scenario, synthetic_snapshot, synthetic_world
 from PIL import Image
 
 from cosim.errors import FormatError
@@ -25,14 +25,10 @@ from cosim.io import open_episode
 from cosim.io.decode import decode_calibration, parse_proto
 from cosim.io.sensor_messages import calibration_message
 from cosim.scenario.model import (
-    AgentsSpec,
     CameraSpec,
     Mount,
     RigSpec,
-    RsuAgents,
-    Scenario,
     SensorsSpec,
-    VehicleAgents,
     default_rsu_rig,
     default_vehicle_rig,
 )
@@ -100,8 +96,7 @@ def _render_block(lens, noise: bool = False):
     world = World("synthetic", b"", b"", (-300, -300, 300, 300), (), (), StaticLayout(prisms), (37.0, -122.0, 10.0))
     cam = CameraSpec(name="front", width=480, height=360, fov_deg=FOV_DEG, distortion=lens,
                      mount=Mount(xyz_m=(0.0, 0.0, 1.6)))
-    sc = Scenario(name="t", agents=AgentsSpec(vehicles=VehicleAgents(count=1), rsus=RsuAgents(count=0), drones=[]),
-                  sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=[cam], gnss=None, imu=None)))
+    sc = synthetic_scenario(sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=[cam], gnss=None, imu=None)))
     ego = AgentState("vehicle_0", "vehicle", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
     with SensorSuite(sc, world, noise=noise, encode_images=False) as suite:
         frames = suite.render(WorldSnapshot(0, 0, (), (ego,)), np.random.default_rng(0))
@@ -165,8 +160,8 @@ def test_instance_pixels_of_a_distorted_camera_lie_in_boxes_projected_through_th
                            read_noise=0.002, shot_noise=0.0002, vignetting=0.25) for c in base.cameras]
         return RigSpec(lidar=None, cameras=cams, gnss=None, imu=None)
 
-    sc = Scenario(name="t", agents=AgentsSpec(vehicles=VehicleAgents(count=5), rsus=RsuAgents(count=5), drones=[]),
-                  sensors=SensorsSpec(vehicle=rig(default_vehicle_rig()), rsu=rig(default_rsu_rig())))
+    sc = synthetic_scenario(vehicles=5, rsus=5,
+                            sensors=SensorsSpec(vehicle=rig(default_vehicle_rig()), rsu=rig(default_rsu_rig())))
     snap = synthetic_snapshot(5, 5, 0)
     with SensorSuite(sc, synthetic_world(), noise=True) as suite:
         frames = suite.render(snap, np.random.default_rng(0))

@@ -10,7 +10,7 @@ import pytest
 from cosim.sensors import SensorSuite
 from cosim.sensors.meshes import ACTOR_TEMPLATES, static_mesh, triangulate_polygon
 from cosim.sensors.rig import sensor_transforms
-from cosim.sensors.synthetic import actor, synthetic_snapshot, synthetic_world
+from cosim.sensors.synthetic import actor, synthetic_scenario, synthetic_snapshot, synthetic_world
 from PIL import Image
 
 from cosim.classes import SEMANTIC_ID
@@ -37,12 +37,9 @@ from tests.helpers import wall_world as _wall_world
 
 
 def _scenario(vehicle_rig: RigSpec, n_vehicles: int = 1, **env) -> Scenario:
-    return Scenario(
-        name="t",
-        environment=env or {},
-        agents=AgentsSpec(vehicles=VehicleAgents(count=n_vehicles), rsus=RsuAgents(count=0), drones=[]),
-        sensors=SensorsSpec(vehicle=vehicle_rig),
-    )
+    return synthetic_scenario(environment=env or {},
+                              vehicles=n_vehicles,
+                              sensors=SensorsSpec(vehicle=vehicle_rig))
 
 
 def _ray_box(o, d, lo, hi):
@@ -259,9 +256,8 @@ def test_labels_poses_calibration_and_pixels_agree():
 
 def _town_lidar_scenario(**env) -> Scenario:
     rig = RigSpec(lidar=LidarSpec(horizontal_resolution_deg=0.7, range_m=200.0), cameras=[], gnss=None, imu=None)
-    return Scenario(name="t", environment=env, agents=AgentsSpec(vehicles=VehicleAgents(count=1),
-                                                                rsus=RsuAgents(count=2), drones=[]),
-                    sensors=SensorsSpec(vehicle=rig, rsu=rig))
+    return synthetic_scenario(environment=env, rsus=2,
+                              sensors=SensorsSpec(vehicle=rig, rsu=rig))
 
 
 def test_fog_removes_far_returns_and_adds_backscatter():
@@ -301,9 +297,9 @@ def test_rain_adds_dropout_and_spurious_near_returns():
 
 def _camera_scenario(lighting: str, weather: str = "clear") -> Scenario:
     cams = [CameraSpec(name="front", width=240, height=136, mount=Mount(xyz_m=(0, 0, 1.6), rpy_deg=(0, 8, 0)))]
-    return Scenario(name="t", environment={"lighting": lighting, "weather": weather},
-                    agents=AgentsSpec(vehicles=VehicleAgents(count=5), rsus=RsuAgents(count=0), drones=[]),
-                    sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=cams, gnss=None, imu=None)))
+    return synthetic_scenario(environment={"lighting": lighting, "weather": weather},
+                              vehicles=5,
+                              sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=cams, gnss=None, imu=None)))
 
 
 def test_night_is_darker_with_lit_pools_under_street_lights():
@@ -401,8 +397,8 @@ def test_rsu_sensors_keep_the_static_world_and_cast_only_what_moves():
     cams = [CameraSpec(name=c.name, width=160, height=96, mount=c.mount) for c in default_rsu_rig().cameras]
     cams.append(CameraSpec(name="up", width=160, height=96, mount=Mount(rpy_deg=(0.0, -10.0, 0.0))))  # sky too
     rig = RigSpec(lidar=LidarSpec(horizontal_resolution_deg=1.0), cameras=cams, gnss=None, imu=None)
-    sc = Scenario(name="t", agents=AgentsSpec(vehicles=VehicleAgents(count=0), rsus=RsuAgents(count=3), drones=[]),
-                  sensors=SensorsSpec(rsu=rig))
+    sc = synthetic_scenario(vehicles=0, rsus=3,
+                            sensors=SensorsSpec(rsu=rig))
     world = synthetic_world()
     first = synthetic_snapshot(0, 3, 0)
     moved = tuple(dataclasses.replace(a, center_m=(a.center_m[0] + 4.0, *a.center_m[1:])) for a in first.actors[:-3])
