@@ -89,7 +89,7 @@ test: sysdeps $(TEST_STAMP)
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc
 
 # The fast lane: tests not marked integration, container or cluster. tests/conftest.py makes a test of this
-# lane fail when it starts SUMO, JSBSim, PyBullet or a `cosim run`/`cosim batch` process.
+# lane fail when it starts SUMO, JSBSim, PyBullet or a `cosim run` process.
 FAST_MARKS := not integration and not container and not cluster
 test-fast: sysdeps $(TEST_STAMP)
 	@set +e; COSIM_TEST_FAST=1 $(VPY) -m pytest -m "$(FAST_MARKS)" $(PYTEST_ARGS); rc=$$?; \

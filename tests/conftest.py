@@ -12,7 +12,7 @@ from tests.helpers import REPO, run_cli
 
 #: ``make test-fast`` sets this: the lane of unit tests (``-m "not integration ..."``) must start no engine.
 FAST_LANE = os.environ.get("COSIM_TEST_FAST") == "1"
-_ENGINE_SUBCOMMANDS = {"run", "batch"}
+_ENGINE_SUBCOMMANDS = {"run"}
 
 
 def _refuse(what: str):
@@ -23,6 +23,7 @@ def _refuse(what: str):
 
 
 def _starts_an_episode(args) -> bool:
+    """``cosim run ...`` (as a console script or ``python -m cosim.cli``)."""
     argv = [str(a) for a in ([args] if isinstance(args, str | os.PathLike) else list(args))]
     for i, a in enumerate(argv):
         if (a == "cosim.cli" or a.endswith("/cosim") or a == "cosim") and i + 1 < len(argv):
@@ -32,7 +33,7 @@ def _starts_an_episode(args) -> bool:
 
 @pytest.fixture(scope="session", autouse=True)
 def _fast_lane_guard():
-    """In the fast lane, starting SUMO, JSBSim, PyBullet or a `cosim run`/`cosim batch` process fails the test
+    """In the fast lane, starting SUMO, JSBSim, PyBullet or a `cosim run` process fails the test
     with a message saying to mark it ``integration``: the lane stays a lane of unit tests."""
     if not FAST_LANE:
         yield

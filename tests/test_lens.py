@@ -266,6 +266,7 @@ def _rgb24(a: np.ndarray) -> np.ndarray:
     return a[..., 0] + 256 * a[..., 1] + 65536 * a[..., 2]
 
 
+@pytest.mark.integration  # lens_episode is a real `cosim run`
 def test_export_of_a_distorted_camera_is_exact_for_its_pinhole_intrinsic(lens_episode, tmp_path):
     """AirV2X export (masks on) read the devkit's way: each box projected with the exported ``intrinsic`` and
     poses holds its exported instance pixels; the recorded distorted masks would not fit (so the export did
@@ -332,6 +333,7 @@ def test_export_of_a_distorted_camera_is_exact_for_its_pinhole_intrinsic(lens_ep
     assert tested >= 10 and raw_misses >= 2 and pinhole_same >= 4 and opv2v_same >= 3
 
 
+@pytest.mark.integration  # lens_episode is a real `cosim run`
 def test_training_reader_gives_each_cameras_lens(lens_episode):
     from cosim.io.dataset import CooperativeDataset
 

@@ -157,6 +157,7 @@ def test_extends_cycle_is_reported(tmp_path):
         ("name: t\ntraffic:\n  step_hz: 7\n", "bad.yaml:3: traffic.step_hz: traffic.step_hz = 7 Hz does not divide"),
     ],
 )
+@pytest.mark.integration  # a `cosim run` process (refused before any engine starts)
 def test_cli_exits_2_with_one_message_and_no_traceback(tmp_path, text, expect):
     f = tmp_path / "bad.yaml"
     f.write_text(text)

@@ -99,6 +99,7 @@ def _ground_z(world) -> float:
 _VOIDS: dict[str, list[str]] = {}
 
 
+@pytest.mark.integration  # builds every shipped world with SUMO's netgenerate/netconvert
 @pytest.mark.parametrize("path", SHIPPED, ids=[p.stem for p in SHIPPED])
 def test_no_void_below_the_horizon_in_shipped_worlds(path):
     """Cameras at the map's edge see ground (never class 0) wherever their ray meets the ground plane
