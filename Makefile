@@ -104,7 +104,7 @@ bench: sysdeps $(STAMP)
 # Every dependency as a wheel (plus the build backend), for `pip install --no-index` in the image.
 $(WHEEL_STAMP): pyproject.toml | $(VPY)
 	find wheelhouse -name '*.whl' -delete
-	$(VPY) -m pip wheel --quiet --wheel-dir wheelhouse '.$(if $(EXTRAS),[$(EXTRAS)])' 'setuptools>=68' wheel
+	$(VPY) -m pip wheel --quiet --wheel-dir wheelhouse '.$(if $(EXTRAS),[$(EXTRAS)])' 'setuptools>=77' wheel
 	rm -f wheelhouse/cosim-*.whl
 	@touch $@
 

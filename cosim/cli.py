@@ -15,6 +15,7 @@ from pathlib import Path
 
 import cosim
 from cosim.errors import CosimError, InputError
+from cosim.logs import NOTICE
 
 log = logging.getLogger("cosim")
 
@@ -80,10 +81,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.dry_run:
         import yaml
 
+        from cosim.preflight import check_scenario_inputs
         from cosim.runner import check_output_dir, episode_path
 
         path = episode_path(loaded, out_dir)
-        check_output_dir(path.parent)
+        check_output_dir(path.parent, create=False)
+        check_scenario_inputs(loaded)
         print(f"# {path}: {loaded.scenario.n_ticks} ticks, {len(loaded.scenario.agent_ids())} agents")
         print(yaml.safe_dump(loaded.resolved, sort_keys=False), end="")
         return EXIT_OK
@@ -202,7 +205,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     without the interpreter's slow teardown); a list: called in-process, always returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    level = [logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
+    level = [NOTICE, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)

@@ -29,6 +29,7 @@ import zenoh
 
 from cosim import protocol, transport
 from cosim.errors import SyncTimeout, WorkerError
+from cosim.logs import NOTICE
 from cosim.workers import ROLES, spawned_worker_main
 
 log = logging.getLogger(__name__)
@@ -141,8 +142,8 @@ class Conductor:
                 proc.start()
                 self._procs[role] = proc
         else:
-            log.warning("waiting for external workers: cosim worker traffic|drones --connect %s --prefix %s",
-                        self.endpoint, self.prefix)
+            log.log(NOTICE, "waiting for external workers: cosim worker traffic|drones --connect %s --prefix %s",
+                    self.endpoint, self.prefix)
         self._wait_alive()
         self._query_all("init", -1, {role: self._init for role in ROLES}, self._startup_timeout_s)
 

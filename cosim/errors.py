@@ -6,6 +6,8 @@ The CLI maps :class:`InputError` (and children) to exit status 2 and every other
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 
 class CosimError(Exception):
     """Base of every error cosim raises deliberately."""
@@ -22,11 +24,21 @@ class ScenarioError(InputError):
     line when known, ``source`` the file it came from.
     """
 
-    def __init__(self, message: str, *, path: str = "", line: int | None = None, source: str = ""):
+    def __init__(self, message: str, *, path: str = "", line: int | None = None, source: str = "",
+                 problems: Sequence[ScenarioError] = (), more: int = 0):
         self.path = path
         self.line = line
         self.source = source
         self.detail = message
+        #: Several problems found at once (``message`` then says how many): one ScenarioError each, in file
+        #: order; ``more`` counts those left out. ``path``, ``line`` and ``source`` are the first one's.
+        self.problems = list(problems)
+        self.more = more
+        if self.problems:
+            listed = "".join(f"\n  {p}" for p in self.problems)
+            tail = f"\n  ... and {more} more" if more else ""
+            super().__init__(f"{self.problems[0].source or 'scenario'}: {message}:{listed}{tail}")
+            return
         where = source or "scenario"
         if line is not None:
             where += f":{line}"
@@ -68,6 +80,11 @@ class DroneCollisionError(CollisionError):
 
 class FormatError(CosimError):
     """An episode file does not follow docs/episode_format.md."""
+
+
+class EpisodeFileError(FormatError, InputError):
+    """The file given as an episode cannot be opened as one (truncated, not MCAP, no cosim metadata, a format
+    version this reader does not know): bad input, exit status 2, the same message for every command."""
 
 
 class ClientError(WorkerError):

@@ -59,10 +59,10 @@ def cmd_info(args: argparse.Namespace) -> int:
     from cosim.io.info import episode_info, format_info
 
     try:
-        info = episode_info(_episode(args.episode), bytes_per_family=not args.no_bytes)
+        info = episode_info(_episode(args.episode), bytes_per_family=not args.no_bytes, full=args.full)
     except FormatError as exc:  # not an episode at all: bad input, like a missing file
         raise InputError(str(exc)) from None
-    print(json.dumps(info.as_dict(), indent=2) if args.json else format_info(info))
+    print(json.dumps(info.as_dict(), indent=2) if args.json else format_info(info, all_topics=args.full))
     return EXIT_OK
 
 
@@ -191,8 +191,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="what an episode holds: scenario, conditions, agents, topics, size")
     p.add_argument("episode", help="episode file (.mcap)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
-    p.add_argument("--no-bytes", action="store_true",
-                   help="skip the bytes per topic family (which reads every message)")
+    p.add_argument("--no-bytes", action="store_true", help="skip the bytes per topic family")
+    p.add_argument("--full", action="store_true",
+                   help="count the bytes per topic family exactly (reads every message) and list every topic")
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("validate", help="check episodes against docs/episode_format.md (exit 1 on problems)")

@@ -21,6 +21,7 @@ from pathlib import Path
 import psutil
 import pytest
 
+from cosim.io.writer import temporary_path
 from tests.helpers import REPO
 
 pytestmark = pytest.mark.integration
@@ -124,8 +125,8 @@ def fault_while_rendering(tmp_path: Path, role: str, sig: signal.Signals, *run_a
     """Start a sensor episode, wait until its first tick is on disk (the next frame is rendering), send ``sig``
     to the ``role`` worker; returns (seconds from the signal to the exit, exit status, stderr)."""
     out = tmp_path / "out"
-    partial = out / ".default_s0.mcap.partial"
     with running(out, "scenarios/default.yaml", "--duration", "60", *run_args) as (proc, err, mark):
+        partial = temporary_path(out / "default_s0.mcap", proc.pid)  # named after the conductor
         workers = wait_for(lambda: named if len(named := {p.name(): p for p in spawned_children(proc.pid)
                                                           if p.name() in WORKER_NAMES}) == 2 else None,
                            proc, err, period_s=0.05)

@@ -300,3 +300,237 @@ def test_dry_run_prints_the_resolved_scenario_and_builds_nothing(tmp_path, capsy
     resolved = yaml.safe_load(out)
     assert resolved == load_scenario("default", ["sensors.drone.lidar.dropout=0.1"]).resolved
     assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------- issue 27 item 8: strict kinds, bounds, long values
+
+
+@pytest.mark.parametrize("assignment, key, message", [
+    ("duration_s=true", "duration_s", "expected a number, got true"),
+    ("duration_s='20'", "duration_s", 'expected a number, got "20"'),
+    ("sensors.enabled=1", "sensors.enabled", "expected true or false, got 1"),
+    ("comm.shadow_fading=yes_please", "comm.shadow_fading", 'expected true or false, got "yes_please"'),
+    ("agents.vehicles.count=3.0", "agents.vehicles.count", "expected a whole number, got 3.0"),
+    ("seed=false", "seed", "expected a whole number, got false"),
+    ("sensors.vehicle.lidar.mount.xyz_m=[0, true, 0]", "sensors.vehicle.lidar.mount.xyz_m.1",
+     "expected a number, got true"),
+    ("traffic.mix.car=false", "traffic.mix.car", "expected a number, got false"),
+])
+def test_numbers_and_booleans_are_strict(capsys, no_world, assignment, key, message):
+    status, err = cli(capsys, "run", "default", "--dry-run", "--set", assignment)
+    assert status == 2
+    assert err.strip().splitlines() == [f"cosim: error: --set {assignment}: {key}: {message}"]
+
+
+def test_every_wrong_kind_in_a_file_is_listed(tmp_path, no_world):
+    f = write(tmp_path, "kinds.yaml", """\
+        extends: default
+        name: kinds
+        duration_s: true
+        sensors: {enabled: 0}
+        agents: {vehicles: {count: "4"}}
+        """)
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(f)
+    assert [(p.line, p.path, p.detail) for p in err.value.problems] == [
+        (3, "duration_s", "expected a number, got true"),
+        (4, "sensors.enabled", "expected true or false, got 0"),
+        (5, "agents.vehicles.count", 'expected a whole number, got "4"')]
+
+
+def test_a_plain_exponent_is_a_number_as_in_yaml_1_2(tmp_path):
+    f = write(tmp_path, "exp.yaml", "extends: default\nname: exp\nduration_s: 2e1\n")
+    assert load_scenario(f).scenario.duration_s == 20.0
+
+
+@pytest.mark.parametrize("assignment, key", [
+    ("agents.drones.2.offset_m=[1.2e21, 0]", "agents.drones.2.offset_m.0"),
+    ("agents.drones.0.start=[0, -5e8]", "agents.drones.0.start.1"),
+    ("agents.drones.1.waypoints=[[0, 0], [1e12, 0]]", "agents.drones.1.waypoints.1.0"),
+    ("events=[{kind: breakdown, position_m: [3e7, 0]}]", "events.0.position_m.0"),
+    ("sensors.vehicle.lidar.mount.xyz_m=[0, 0, 1e4]", "sensors.vehicle.lidar.mount.xyz_m.2"),
+    ("sensors.drone.gnss.noise_m=1e9", "sensors.drone.gnss.noise_m"),
+    ("geo_origin.alt_m=1e30", "geo_origin.alt_m"),
+    ("runtime.tick_timeout_s=1e300", "runtime.tick_timeout_s"),
+    ("agents.rsus.height_m=[6, 1e6]", "agents.rsus.height_m"),
+    ("traffic.mix.car=1e300", "traffic.mix"),
+])
+def test_physical_quantities_have_bounds(capsys, no_world, assignment, key):
+    status, err = cli(capsys, "run", "default", "--dry-run", "--set", assignment)
+    assert status == 2
+    assert err.startswith(f"cosim: error: --set {assignment}: {key}: "), err
+
+
+def test_a_long_bad_value_is_cut_in_the_message(tmp_path, capsys, no_world):
+    long = "x" * 10_000
+    f = write(tmp_path, "long.yaml", f"extends: default\nname: long\nduration_s: {long}\noutput: {{name: {long}}}\n"
+                                     f"{'k' * 1000}: 1\n")  # PyYAML's longest plain key
+    status, err = cli(capsys, "run", str(f), "--dry-run")
+    assert status == 2 and "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert lines[0] == f"cosim: error: {f}: 3 problems:"
+    assert all(len(line) < 500 for line in lines), [len(line) for line in lines]
+    assert "(10002 characters)" in err and "output.name: " in err and "(1000 characters)" in err
+
+
+# --------------------------------------------------------------------- issue 27 item 8: unusable output folders
+
+
+@pytest.fixture
+def read_only_dir(tmp_path):
+    """A folder on a read-only file system (a read-only tmpfs): root ignores permission bits, not that.
+    Skipped where mounting is not allowed."""
+    import shutil
+    import subprocess
+
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    if not shutil.which("mount"):
+        pytest.skip("no mount(8) here")
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(folder)], capture_output=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a read-only tmpfs here: {r.stderr.decode().strip()}")
+    yield folder
+    subprocess.run(["umount", str(folder)], check=True)
+
+
+def bad_out_dirs(tmp_path: Path, read_only: Path | None) -> dict[str, Path]:
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    out = {"/proc": Path("/proc/x"), "regular file": a_file, "under a file": a_file / "sub" / "dir"}
+    if read_only is not None:
+        out |= {"read-only folder": read_only, "under a read-only folder": read_only / "sub"}
+    return out
+
+
+@pytest.mark.parametrize("dry_run", [False, True])
+def test_batch_into_an_unusable_output_folder_is_one_message_and_exit_2(tmp_path, capsys, read_only_dir, dry_run):
+    for what, out in bad_out_dirs(tmp_path, read_only_dir).items():
+        args = ["batch", "smoke", "--out", str(out), "--count", "1", *(["--dry-run", "--calibrate-s", "0"]
+                                                                       if dry_run else [])]
+        status, err = cli(capsys, *args)
+        assert status == 2, (what, status, err)
+        lines = err.strip().splitlines()
+        assert len(lines) == 1, (what, err)
+        assert lines[0].startswith((f"cosim: error: cannot write episodes into output folder {out}",
+                                    f"cosim: error: output folder {out} is a file")), (what, err)
+        assert "Traceback" not in err
+    assert not (read_only_dir / "sub").exists()
+
+
+def test_run_dry_run_checks_the_folder_without_creating_it(tmp_path, capsys, no_world):
+    out = tmp_path / "new" / "folder"
+    status, err = cli(capsys, "run", "default", "--dry-run", "--out", str(out))
+    assert status == 0 and not (tmp_path / "new").exists(), err
+    status, err = cli(capsys, "run", "default", "--dry-run", "--out", "/proc/x/y")
+    assert status == 2 and err.startswith("cosim: error: cannot write episodes into output folder /proc/x/y (in "
+                                          "/proc)"), err
+
+
+# ------------------------------------------------------------- issue 27 item 8: a killed conductor's leftovers
+
+WRITER = """
+import sys, time
+from pathlib import Path
+from cosim.io.writer import EpisodeWriter
+w = EpisodeWriter(Path(sys.argv[1]))
+print(w.tmp_path, flush=True)
+time.sleep(120)
+"""
+
+
+def killed_writer(final: Path) -> Path:
+    """Start an episode writer in another process, SIGKILL it; returns the partial file it left."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", WRITER, str(final)], stdout=subprocess.PIPE, text=True)
+    partial = Path(proc.stdout.readline().strip())
+    proc.kill()
+    proc.wait(10)
+    return partial
+
+
+def test_the_next_run_removes_what_a_killed_run_left_and_says_so(tmp_path, monkeypatch, capsys, caplog):
+    import fcntl
+
+    import cosim.world
+    from cosim.errors import InputError
+    from cosim.io.writer import temporary_path
+
+    out = tmp_path / "out"
+    stale = killed_writer(out / "other_s3.mcap")
+    assert stale.exists() and stale.parent == out and str(stale.name).startswith(".other_s3.mcap.")
+    legacy = out / ".older_s1.mcap.partial"  # the name cosim used before
+    legacy.write_bytes(b"x" * 1000)
+    live = temporary_path(out / "busy_s0.mcap", 4242)  # held by a writer that is still running
+    live.write_bytes(b"y")
+    holder = open(live, "rb")  # noqa: SIM115
+    fcntl.flock(holder.fileno(), fcntl.LOCK_EX)
+
+    def stop(*_a, **_k):
+        raise InputError("stopped after the output folder was prepared")
+
+    monkeypatch.setattr(cosim.world, "build_world", stop)
+    try:
+        with caplog.at_level("WARNING"):
+            status, err = cli(capsys, "run", "default", "--out", str(out), "--no-sensors")
+    finally:
+        holder.close()
+    assert status == 2 and "stopped after the output folder was prepared" in err
+    assert not stale.exists() and not legacy.exists() and live.exists()
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any(str(stale) in w and "left by a run that was killed" in w for w in warned), warned
+    assert any(str(legacy) in w for w in warned), warned
+
+
+def test_a_batch_removes_partial_files_left_in_its_folders(tmp_path, monkeypatch, caplog):
+    from cosim.batch import runner
+    from cosim.batch.plan import plan_file
+
+    plan = plan_file("smoke", count=2)
+    out = tmp_path / "batch"
+    leftovers = [killed_writer(out / plan.episodes[0].file), killed_writer(out / "unrelated_s9.mcap")]
+    assert all(p.exists() for p in leftovers)
+
+    class NoExecutor:
+        status_lines = 0
+
+        def busy(self):
+            return False
+
+        def has_capacity(self):
+            raise AssertionError("stop before running anything")
+
+        def shutdown(self):
+            pass
+
+    with caplog.at_level("WARNING"), pytest.raises(AssertionError, match="stop before running"):
+        runner.run_batch(plan, out, NoExecutor(), show_progress=False)
+    assert not any(p.exists() for p in leftovers)
+    assert sum("left by a run that was killed" in r.getMessage() for r in caplog.records) == 2
+
+
+def test_netconvert_and_other_sumo_tools_die_with_the_conductor(tmp_path):
+    """A process running a SUMO tool through the world builder is SIGKILLed: the tool goes too."""
+    import subprocess
+    import sys
+    import time
+
+    import psutil
+
+    script = ("import sys\nfrom pathlib import Path\nimport cosim.world.netgen as n\n"
+              "n.sumo_binary = lambda name: '/bin/sleep'\nprint('go', flush=True)\n"
+              "n._run_tool('netconvert', ['60'], Path('.'))\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=tmp_path)
+    assert proc.stdout.readline().strip() == "go"
+    deadline = time.monotonic() + 20
+    children: list[psutil.Process] = []
+    while not children and time.monotonic() < deadline:
+        children = psutil.Process(proc.pid).children()
+        time.sleep(0.02)
+    assert children and children[0].name() == "sleep", children
+    proc.kill()
+    proc.wait(10)
+    _, alive = psutil.wait_procs(children, timeout=5)
+    assert not alive, alive

@@ -131,9 +131,11 @@ def run_cli(capsys, args: list[str]) -> tuple[int, str]:
 def check(status: int, err: str, text: str) -> None:
     assert "Traceback" not in err, (err, text)
     assert status in (0, 2), (status, err, text)
-    if status == 2:
+    if status == 2:  # one message: one line, or a list of the problems under "FILE: N problems:"
         lines = err.strip().splitlines()
-        assert len(lines) == 1 and lines[0].startswith("cosim: error: "), (err, text)
+        assert lines[0].startswith("cosim: error: "), (err, text)
+        if len(lines) > 1:
+            assert lines[0].endswith(" problems:") and all(line.startswith("  ") for line in lines[1:]), (err, text)
 
 
 def _scenario_seeds() -> list[dict]:
@@ -188,3 +190,52 @@ def test_every_kind_of_mutation_was_tried():
         pytest.skip("run with the property tests above")
     assert RUNS["scenario_files"] >= SCENARIO_EXAMPLES and RUNS["sweep_files"] >= SWEEP_EXAMPLES, RUNS
     assert all(RUNS[k] >= 10 for k in KINDS), RUNS
+
+
+# ------------------------------------------------------------------------------ batch into bad output folders
+
+OUT_EXAMPLES = 30
+OUT_KINDS = ("a_file", "under_a_file", "proc", "sys", "dev_null", "nul_char", "long_name", "deep_under_file")
+
+
+@st.composite
+def bad_out(draw, root: Path) -> tuple[str, str]:
+    """(kind, path) of an output folder no episode can be written into."""
+    kind = draw(st.sampled_from(OUT_KINDS))
+    RUNS[f"out_{kind}"] += 1
+    name = draw(st.text(alphabet="abcxyz_-.0123456789", min_size=1, max_size=12).filter(lambda s: s not in (".", "..")))
+    a_file = root / "a_file"
+    if kind == "a_file":
+        return kind, str(a_file)
+    if kind == "under_a_file":
+        return kind, str(a_file / name)
+    if kind == "deep_under_file":
+        return kind, str(a_file.joinpath(*[name] * draw(st.integers(2, 20))))
+    if kind == "proc":
+        return kind, f"/proc/{name}x/{name}"
+    if kind == "sys":
+        return kind, f"/sys/{name}x"
+    if kind == "dev_null":
+        return kind, "/dev/null" + draw(st.sampled_from(["", "/x"]))
+    if kind == "nul_char":
+        return kind, str(root / f"{name}\x00{name}")
+    return kind, str(root / ("n" * draw(st.integers(256, 5000))))
+
+
+@settings(BOUNDED, max_examples=OUT_EXAMPLES)
+@given(data=st.data(), dry_run=st.booleans())
+def test_batch_into_a_bad_output_folder_exits_2_without_a_traceback(capsys, workdir, data, dry_run):
+    (workdir / "a_file").write_text("not a folder")
+    kind, out = data.draw(bad_out(workdir))
+    args = ["batch", "smoke", "--out", out, "--count", "1", *(["--dry-run", "--calibrate-s", "0"] if dry_run else [])]
+    status, err = run_cli(capsys, args)
+    assert status == 2, (kind, out, status, err)
+    check(status, err, out)
+    assert "output folder" in err, (kind, err)
+
+
+def test_every_kind_of_bad_output_folder_was_tried():
+    """Runs after the property above (file order)."""
+    if not any(RUNS[f"out_{k}"] for k in OUT_KINDS):
+        pytest.skip("run with the property test above")
+    assert all(RUNS[f"out_{k}"] >= 1 for k in OUT_KINDS), RUNS

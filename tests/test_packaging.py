@@ -23,10 +23,38 @@ def _package_dirs() -> set[str]:
     return found
 
 
+def _data_dirs() -> set[str]:
+    """Folders of package data (cosim/data/...) that hold files: setuptools wants them listed as packages."""
+    return {".".join(f.parent.relative_to(REPO).parts) for f in (REPO / "cosim" / "data").rglob("*") if f.is_file()}
+
+
 def test_every_package_is_listed_for_the_wheel():
     config = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
-    assert set(config["packages"]) == _package_dirs()
+    assert set(config["packages"]) == _package_dirs() | _data_dirs()
     assert {k: v for k, v in config["package-dir"].items() if k in MAPPED} == MAPPED
+    assert all(d in config["package-data"] for d in _data_dirs())
+
+
+def test_building_the_package_prints_no_setuptools_warning(tmp_path):
+    """`make run` installs with pip install -e .: no deprecation or package-data blocks from setuptools."""
+    import shutil
+    import subprocess
+    import sys
+
+    src = tmp_path / "src"  # a copy: building in place would leave build/ in the checkout
+    for name in ("cosim", "sensors", "exporters"):
+        shutil.copytree(REPO / name, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(REPO / name, src / name)
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--wheel-dir", str(tmp_path), str(src)],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    text = r.stdout + r.stderr
+    assert "BuildBackendWarning" not in text and "SetuptoolsDeprecationWarning" not in text, text[-3000:]
+    import zipfile
+
+    (wheel,) = tmp_path.glob("cosim-*.whl")
+    assert "cosim/data/jsbsim/aircraft/cosim_quad/cosim_quad.xml" in zipfile.ZipFile(wheel).namelist()
 
 
 def test_no_generic_top_level_import_names():

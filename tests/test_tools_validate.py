@@ -35,7 +35,7 @@ def test_a_complete_episode_is_valid(good, capsys):
 
 
 def test_info_lists_scenario_agents_topics_and_rates(good, capsys):
-    assert main(["info", str(good)]) == 0
+    assert main(["info", str(good), "--full"]) == 0
     out = capsys.readouterr().out
     assert "synthetic (seed 0)" in out and "urban, clear, day; drones: hover" in out
     assert "1.6 s, 8 ticks at 5 Hz" in out and "vehicle_0 rsu_0 drone_0" in out

@@ -105,8 +105,15 @@ def cmd_batch(args: argparse.Namespace) -> int:
         raise InputError(f"--workers must be >= 1, got {args.workers}")
     if args.retries < 0:
         raise InputError(f"--retries must be >= 0, got {args.retries}")
+    from cosim.preflight import check_plan_inputs, check_ray_installed
+    from cosim.runner import check_output_dir
+
     out = Path(args.out)
     plan = _plan(args)
+    check_output_dir(out, create=not args.dry_run)  # one message (exit 2) for a folder that cannot take episodes
+    check_plan_inputs(plan.episodes)
+    if args.backend == "ray":
+        check_ray_installed()
     if args.dry_run:
         _print_plan(plan, out)
         if args.calibrate_s > 0:

@@ -19,6 +19,7 @@ from typing import Any
 from cosim.batch.executors import PROGRESS_INTERVAL_S, Event
 from cosim.batch.job import EpisodeFn, Job, execute, run_real_episode
 from cosim.errors import CosimError, InputError
+from cosim.preflight import RAY_MISSING
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +64,7 @@ class RayExecutor:
         try:
             import ray
         except ImportError:
-            raise InputError("--backend ray needs Ray: pip install 'cosim[ray]' (or pip install 'ray>=2.9')") from None
+            raise InputError(RAY_MISSING) from None
         self._ray = ray
         self.episode_fn = episode_fn
         self._owns_ray = not ray.is_initialized()

@@ -2,8 +2,8 @@
 
 Resume rule: an episode is skipped only when its last manifest record is ``done`` for the same
 seed, parameters, file and resolved scenario (``scenario_sha256``), and the file on disk has the
-recorded size and sha256. Everything else runs again (a stale ``.partial`` from a killed run is
-removed first). Each attempt is recorded when
+recorded size and sha256. Everything else runs again (the ``.partial`` files a killed run left in the
+output folders are removed first, each with a warning). Each attempt is recorded when
 it starts (``running``) and when it ends (``done`` or ``failed``), so a crash of the batch itself
 leaves a ``running`` record that the next run simply redoes.
 """
@@ -58,12 +58,6 @@ def is_finished(out_dir: Path, episode: Episode, record: dict[str, Any] | None) 
             and record.get("scenario_sha256") == episode.fingerprint and verify(out_dir, record))
 
 
-def _partial_path(final: Path) -> Path:
-    from cosim.io.writer import temporary_path
-
-    return temporary_path(final)
-
-
 def _base_record(ep: Episode, sweep: str) -> dict[str, Any]:
     return {"episode": ep.id, "sweep": sweep, "split": ep.split, "file": ep.file, "labels": ep.labels,
             "params": ep.params, "seed": ep.seed, "duration_s": ep.duration_s, "scenario_sha256": ep.fingerprint}
@@ -90,11 +84,10 @@ def run_batch(plan: Plan, out_dir: Path | str, executor: Executor, *, retries: i
     summary = BatchSummary(planned=len(plan.episodes), skipped=len(plan.episodes) - len(todo))
     by_id = {ep.id: ep for ep in todo}
     attempts = {ep.id: int((existing.get(ep.id) or {}).get("attempts", 0)) for ep in todo}
-    for ep in todo:
-        stale = _partial_path(out / ep.file)
-        if stale.exists():
-            log.info("removing %s left by an interrupted run", stale)
-            stale.unlink()
+    from cosim.io.writer import remove_stale_partials
+
+    for folder in sorted({out, *((out / ep.file).parent for ep in plan.episodes)}):
+        remove_stale_partials(folder)  # left by a killed run (any episode): removed, each with a warning
     display = progress or BatchProgress(sum(n_ticks(ep) for ep in todo), len(todo),
                                         getattr(executor, "status_lines", 4), enabled=show_progress)
     pending: deque[Job] = deque(

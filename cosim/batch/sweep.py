@@ -31,7 +31,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, model_validator
+from pydantic import BaseModel, Discriminator, Field, Tag, ValidationError, model_validator
 
 from cosim.errors import ScenarioError
 from cosim.scenario.loader import (
@@ -43,6 +43,7 @@ from cosim.scenario.loader import (
     parse_yaml,
     unknown_key_message,
 )
+from cosim.scenario.model import Model as ScenarioModel
 from cosim.scenario.model import RuleError
 
 LABEL_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.]*$"  # no '-': it separates the parts of an episode id
@@ -58,8 +59,8 @@ class SweepError(ScenarioError):
 MAX_EPISODES = 100_000
 
 
-class Model(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid", validate_default=True, allow_inf_nan=False)
+class Model(ScenarioModel):
+    """The scenario schema's base: frozen, no unknown keys, strict numbers and booleans."""
 
 
 class Level(Model):
@@ -247,7 +248,8 @@ def _clean_loc(loc: Sequence[str | int], data: Any) -> list[str | int]:
 def _error(exc: ValidationError, doc: YamlDoc, source: str) -> SweepError:
     err = located_error(exc, doc, error_cls=SweepError, clean=_clean_loc, message=_sweep_message)
     if not err.source:
-        err = SweepError(err.detail, path=err.path, line=err.line, source=source)
+        err = SweepError(err.detail, path=err.path, line=err.line, source=source, problems=err.problems,
+                         more=err.more)
     return err
 
 

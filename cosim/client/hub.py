@@ -26,6 +26,7 @@ import zenoh
 from cosim.actions import ActionContext, as_dicts, check_actions
 from cosim.client import wire
 from cosim.errors import ActionRejected, ClientError, ClientTimeout
+from cosim.logs import NOTICE
 from cosim.scenario.model import ClientSpec
 
 log = logging.getLogger(__name__)
@@ -95,9 +96,9 @@ class ClientHub:
 
     def wait_connected(self, timeout_s: float, endpoint: str) -> None:
         """Block until every client said hello; ClientTimeout naming the first missing one."""
-        log.warning("waiting for clients %s: connect with cosim.client.connect(NAME, endpoint=%r, prefix=%r) "
-                    "or COSIM_ENDPOINT=%s COSIM_PREFIX=%s", ", ".join(self._specs), endpoint, self._prefix,
-                    endpoint, self._prefix)
+        log.log(NOTICE, "waiting for clients %s: connect with cosim.client.connect(NAME, endpoint=%r, prefix=%r) "
+                "or COSIM_ENDPOINT=%s COSIM_PREFIX=%s", ", ".join(self._specs), endpoint, self._prefix,
+                endpoint, self._prefix)
         deadline = time.monotonic() + timeout_s
         while True:
             with self._lock:

@@ -49,6 +49,7 @@ from cosim.eval.dataset import (
     EpisodeRef,
     FrameTruth,
     VisibilityRule,
+    agent_kind,
     iter_truth,
     require_visibility,
 )
@@ -283,6 +284,11 @@ def _check_record(rec: FramePrediction, ref: EpisodeRef | None, refs: dict[str, 
     if rec.ego not in ref.agents:
         raise PredictionError(rec.source, rec.line, "ego",
                               f"{rec.ego!r} is not an agent of {ref.id} ({', '.join(ref.agents)})")
+    if agent_kind(rec.ego) != "vehicle":
+        vehicles = [a for a in ref.agents if agent_kind(a) == "vehicle"]
+        raise PredictionError(rec.source, rec.line, "ego",
+                              f"{rec.ego!r} is not a vehicle: the ego of a frame is a connected vehicle "
+                              f"({', '.join(vehicles) or f'episode {ref.id} has none'})")
     known_classes = set(ref.object_classes) or set(VEHICLE_CLASSES)
     for i, c in enumerate(rec.classes):
         if c not in known_classes:

@@ -1,7 +1,9 @@
-"""``cosim info``: what an episode holds, from its metadata and summary (no message is decoded)."""
+"""``cosim info``: what an episode holds, from its metadata, summary and indexes (no message is read unless
+asked: ``full`` counts every family's bytes exactly and lists every topic)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,9 +32,11 @@ class TopicLine:
 
 @dataclass(frozen=True)
 class FamilyBytes:
-    """Bytes of one topic family: ``raw_bytes`` is the message payloads; ``stored_bytes`` the same payloads
-    compressed as the file's chunks are (its compression, 4 MiB blocks) but without the other families,
-    an estimate of the family's share of the file. ``per_agent_frame`` = stored bytes / (agents x ticks)."""
+    """Bytes of one topic family: ``raw_bytes`` is the message payloads; ``stored_bytes`` its share of the
+    file. Exact count (``cosim info --full``, :func:`family_bytes`): the payloads compressed as the file's
+    chunks are (its compression, 4 MiB blocks) but without the other families. From the index (default,
+    :func:`family_bytes_from_index`): each chunk's compressed size split by the families' shares of its
+    uncompressed records. ``per_agent_frame`` = stored bytes / (agents x ticks)."""
 
     family: str
     messages: int
@@ -49,7 +53,7 @@ class EpisodeInfo:
     generator: str
     scenario: str
     description: str
-    seed: str
+    seed: int | None
     weather: str
     lighting: str
     environment: str
@@ -63,6 +67,7 @@ class EpisodeInfo:
     attachments: list[str]
     geo_origin: list[float]
     families: list[FamilyBytes]
+    families_exact: bool = False  # families counted from every message (else estimated from the index)
 
     def as_dict(self) -> dict[str, Any]:
         d = dict(self.__dict__)
@@ -89,8 +94,9 @@ def _compressor(name: str):
     return bytes
 
 
-def family_bytes(ep: Episode) -> list[FamilyBytes]:
-    """Bytes per topic family (see :class:`FamilyBytes`), largest first; reads every message once."""
+def _compressed(ep: Episode, messages: Iterable[Any]) -> tuple[dict[str, int], dict[str, int], dict[str, int]]:
+    """(payload bytes, messages, stored bytes) per family of ``messages``, each family compressed alone in
+    blocks as the writer's chunks are."""
     compress = _compressor(ep.chunk_compression)
     raw: dict[str, int] = {}
     count: dict[str, int] = {}
@@ -104,7 +110,7 @@ def family_bytes(ep: Episode) -> list[FamilyBytes]:
             stored[fam] = stored.get(fam, 0) + len(compress(b"".join(pending[fam])))
         pending[fam], pending_n[fam] = [], 0
 
-    for m in ep.messages():
+    for m in messages:
         fam = family_of[m.topic]
         n = len(m.data)
         raw[fam] = raw.get(fam, 0) + n
@@ -115,14 +121,59 @@ def family_bytes(ep: Episode) -> list[FamilyBytes]:
             flush(fam)
     for fam in list(pending):
         flush(fam)
+    return raw, count, stored
+
+
+def family_bytes(ep: Episode) -> list[FamilyBytes]:
+    """Bytes per topic family (see :class:`FamilyBytes`), largest first; reads every message once."""
+    raw, count, stored = _compressed(ep, ep.messages())
     frames = max(1, len(ep.agents)) * max(1, ep.n_ticks)
     out = [FamilyBytes(f, count[f], raw[f], stored.get(f, 0), stored.get(f, 0) / frames) for f in raw]
     return sorted(out, key=lambda f: (-f.stored_bytes, f.family))
 
 
-def episode_info(path: str | Path, *, bytes_per_family: bool = True) -> EpisodeInfo:
+#: [bytes] of a message record besides its payload: opcode, length, channel, sequence, log and publish time.
+MESSAGE_RECORD_OVERHEAD = 1 + 8 + 2 + 4 + 8 + 8
+
+
+def family_bytes_from_index(ep: Episode) -> list[FamilyBytes]:
+    """Bytes per topic family, largest first, without reading the file: payloads from the chunk and message
+    indexes, stored bytes from each family's compression ratio in the middle tick (the one tick read)."""
+    family_of: dict[str, str] = {t: topic_family(t) for t in ep.topics}
+    records: dict[str, int] = {}
+    chunk_raw = chunk_stored = 0
+    for chunk, sizes in ep.message_sizes():
+        chunk_raw += chunk.uncompressed_size
+        chunk_stored += chunk.compressed_size
+        for topic, n in sizes.items():
+            fam = family_of.get(topic, "other")
+            records[fam] = records.get(fam, 0) + n
+    count: dict[str, int] = {}
+    for topic, t in ep.topics.items():
+        count[family_of[topic]] = count.get(family_of[topic], 0) + t.message_count
+    t0 = ep.start_ns + (ep.n_ticks // 2) * ep.tick_ns
+    sample_raw, _, sample_stored = _compressed(ep, ep.messages(start_ns=t0, end_ns=t0 + ep.tick_ns))
+    overall = chunk_stored / chunk_raw if chunk_raw else 1.0
+    frames = max(1, len(ep.agents)) * max(1, ep.n_ticks)
+    out = []
+    for f, n in records.items():
+        payload = max(0, n - MESSAGE_RECORD_OVERHEAD * count.get(f, 0))
+        ratio = sample_stored.get(f, 0) / sample_raw[f] if sample_raw.get(f) else overall
+        out.append(FamilyBytes(f, count.get(f, 0), payload, round(payload * ratio), payload * ratio / frames))
+    return sorted(out, key=lambda f: (-f.stored_bytes, f.family))
+
+
+def _seed(value: object) -> int | None:
+    try:
+        return int(str(value))
+    except ValueError:
+        return None
+
+
+def episode_info(path: str | Path, *, bytes_per_family: bool = True, full: bool = False) -> EpisodeInfo:
     """Summary of one episode; raises InputError / FormatError like :func:`open_episode`.
-    ``bytes_per_family`` reads every message to count :class:`FamilyBytes` (off: summary only)."""
+    ``bytes_per_family``: estimate :class:`FamilyBytes` from the index (off: summary only); ``full``: count
+    them exactly, reading every message (seconds per 100 MiB)."""
     path = Path(path)
     with open_episode(path) as ep:
         m = ep.metadata
@@ -138,7 +189,7 @@ def episode_info(path: str | Path, *, bytes_per_family: bool = True) -> EpisodeI
             generator=str(m.get("generator", "")),
             scenario=ep.scenario,
             description=str(m.get("description", "")),
-            seed=str(m.get("seed", "")),
+            seed=_seed(m.get("seed", "")),
             weather=str(m.get("weather", "")),
             lighting=str(m.get("lighting", "")),
             environment=str(m.get("environment", "")),
@@ -151,7 +202,8 @@ def episode_info(path: str | Path, *, bytes_per_family: bool = True) -> EpisodeI
             topics=topics,
             attachments=ep.attachments,
             geo_origin=list(m.get("geo_origin") or []),
-            families=family_bytes(ep) if bytes_per_family else [],
+            families=(family_bytes(ep) if full else family_bytes_from_index(ep)) if bytes_per_family else [],
+            families_exact=bytes_per_family and full,
         )
 
 
@@ -163,37 +215,86 @@ def human_size(n: float) -> str:
     return f"{n:.1f} GiB"
 
 
-def format_info(info: EpisodeInfo) -> str:
+def format_info(info: EpisodeInfo, *, all_topics: bool = False) -> str:
+    """The text of ``cosim info``: summary, bytes per family, then the topics collapsed per agent (every topic
+    on its own line with ``all_topics``)."""
     kinds: dict[str, int] = {}
     for a in info.agents:
         kind = a.rsplit("_", 1)[0]
         kinds[kind] = kinds.get(kind, 0) + 1
     names = {"vehicle": ("vehicle", "vehicles"), "rsu": ("RSU", "RSUs"), "drone": ("drone", "drones")}
     agents = ", ".join(f"{n} {names.get(k, (k, k + 's'))[n != 1]}" for k, n in kinds.items()) or "none"
+    seed = "?" if info.seed is None else info.seed
     lines = [
         f"episode      {info.path}",
         f"size         {human_size(info.size_bytes)} ({info.messages} messages)",
         f"format       {info.format_version} ({info.generator})",
-        f"scenario     {info.scenario} (seed {info.seed})" + (f": {info.description}" if info.description else ""),
+        f"scenario     {info.scenario} (seed {seed})" + (f": {info.description}" if info.description else ""),
         f"conditions   {info.environment}, {info.weather}, {info.lighting}; drones: "
         f"{', '.join(info.strategies) or 'none'}",
         f"duration     {info.duration_s:g} s, {info.n_ticks} ticks at {info.tick_hz:g} Hz",
         f"agents       {agents}: {' '.join(info.agents)}",
         f"geo origin   {', '.join(f'{v:g}' for v in info.geo_origin)}",
         f"attachments  {', '.join(info.attachments) or 'none'}",
-        f"topics       {len(info.topics)}",
     ]
-    width = max((len(t.topic) for t in info.topics), default=10)
-    schema_w = max((len(t.schema_name) for t in info.topics), default=10)
-    for t in info.topics:
-        lines.append(f"  {t.topic:<{width}}  {t.schema_name:<{schema_w}}  {t.messages:>6} msgs  {t.rate_hz:6.2f} Hz")
     if info.families:
         total = sum(f.stored_bytes for f in info.families) or 1
-        lines.append("bytes by topic family (payloads; stored = compressed alone as the file's chunks are)")
+        how = ("payloads; stored = compressed alone as the file's chunks are" if info.families_exact else
+               "payloads from the file's index, stored as the middle tick compresses; --full counts exactly")
+        lines.append(f"bytes by topic family ({how})")
         lines.append(f"  {'family':<18}  {'messages':>8}  {'payload':>10}  {'stored':>10}  {'share':>6}  "
                      f"{'per agent-frame':>15}")
         for f in info.families:
             lines.append(f"  {f.family:<18}  {f.messages:>8}  {human_size(f.raw_bytes):>10}  "
                          f"{human_size(f.stored_bytes):>10}  {100 * f.stored_bytes / total:5.1f}%  "
                          f"{human_size(f.per_agent_frame):>15}")
+    if all_topics:
+        lines.append(f"topics       {len(info.topics)}")
+        width = max((len(t.topic) for t in info.topics), default=10)
+        schema_w = max((len(t.schema_name) for t in info.topics), default=10)
+        for t in info.topics:
+            lines.append(f"  {t.topic:<{width}}  {t.schema_name:<{schema_w}}  {t.messages:>6} msgs  "
+                         f"{t.rate_hz:6.2f} Hz")
+    else:
+        lines.append(f"topics       {len(info.topics)} (per agent; --full lists each)")
+        lines.extend(f"  {line}" for line in collapse_topics(info.topics, info.agents))
     return "\n".join(lines)
+
+
+def _rates(topics: list[TopicLine]) -> str:
+    lo, hi = min(t.rate_hz for t in topics), max(t.rate_hz for t in topics)
+    return f"{lo:g} Hz" if abs(hi - lo) < 1e-9 else f"{lo:g}-{hi:g} Hz"
+
+
+def collapse_topics(topics: list[TopicLine], agents: list[str]) -> list[str]:
+    """One line per agent (and one for the episode-wide topics): its data kinds, cameras and what each camera
+    writes, topic and message counts and rates."""
+    groups: dict[str, list[TopicLine]] = {}
+    for t in topics:
+        head = t.topic.split("/")[1] if t.topic.count("/") >= 2 else ""
+        groups.setdefault(head if head in agents else "", []).append(t)
+    width = max((len(a) for a in agents), default=7)
+    width = max(width, len("episode"))
+    out = []
+    for owner in ["", *agents]:
+        group = groups.get(owner)
+        if not group:
+            continue
+        if owner:
+            parts = [t.topic[len(owner) + 2:] for t in group]
+            kinds = [p for p in parts if "/" not in p]
+            cams: dict[str, list[str]] = {}
+            for p in parts:
+                if "/" in p:
+                    cam, _, what = p.partition("/")
+                    cams.setdefault(cam, []).append(what)
+            outputs = sorted({tuple(v) for v in cams.values()})
+            what = " ".join(kinds)
+            if cams:
+                each = " ".join(outputs[0]) if len(outputs) == 1 else "various"
+                what += f"; {len(cams)} camera{'s' if len(cams) > 1 else ''} ({' '.join(cams)}) x {each}"
+        else:
+            what = " ".join(t.topic for t in group)
+        msgs = sum(t.messages for t in group)
+        out.append(f"{owner or 'episode':<{width}}  {len(group):>3} topics {msgs:>7} msgs  {_rates(group):>8}  {what}")
+    return out

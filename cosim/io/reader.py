@@ -24,7 +24,7 @@ from typing import Any, BinaryIO
 from mcap.reader import SeekingReader, make_reader
 
 from cosim.comm.message import LinkSet
-from cosim.errors import CosimError, FormatError, InputError
+from cosim.errors import CosimError, EpisodeFileError, FormatError, InputError
 from cosim.io.decode import (
     Boxes,
     Calibration,
@@ -283,6 +283,51 @@ class Episode:
         chunks = self._summary.chunk_indexes
         return chunks[0].compression if chunks else ""
 
+    def message_sizes(self) -> Iterator[tuple[Any, dict[str, int]]]:
+        """Per chunk of the file: its chunk index record and the bytes of its message records per topic, read
+        from the message indexes alone (no chunk is read or decompressed). A record's size is the distance
+        to the next record of the chunk, less the schema and channel records the writer puts before a
+        channel's first message (their sizes follow from the summary)."""
+        summary = self._summary
+        topic_of = {cid: ch.topic for cid, ch in summary.channels.items()}
+
+        def text(value: str | bytes) -> int:
+            return 4 + len(value.encode() if isinstance(value, str) else value)
+
+        channel_size = {cid: 9 + 2 + 2 + text(ch.topic) + text(ch.message_encoding)
+                        + 4 + sum(text(k) + text(v) for k, v in ch.metadata.items())
+                        for cid, ch in summary.channels.items()}
+        schema_size = {sid: 9 + 2 + text(sc.name) + text(sc.encoding) + text(sc.data)
+                       for sid, sc in summary.schemas.items()}
+        seen_channels: set[int] = set()
+        seen_schemas: set[int] = set()
+        for chunk in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+            starts: list[tuple[int, int]] = []
+            for cid, where in chunk.message_index_offsets.items():
+                self._stream.seek(where)
+                head = self._stream.read(15)  # opcode (1), record length (8), channel id (2), array length (4)
+                if len(head) < 15:
+                    raise FormatError(f"{self.path}: message index at byte {where} is cut off")
+                body = self._stream.read(int.from_bytes(head[11:15], "little"))
+                starts.extend((int.from_bytes(body[i + 8:i + 16], "little"), cid) for i in range(0, len(body) - 15, 16))
+            starts.sort()
+            sizes: dict[str, int] = {}
+            for k, (offset, cid) in enumerate(starts):
+                end = chunk.uncompressed_size
+                if k + 1 < len(starts):
+                    end, following = starts[k + 1]
+                    if following not in seen_channels:  # its channel (and maybe schema) record comes first
+                        seen_channels.add(following)
+                        end -= channel_size.get(following, 0)
+                        sid = summary.channels[following].schema_id if following in summary.channels else 0
+                        if sid and sid not in seen_schemas:
+                            seen_schemas.add(sid)
+                            end -= schema_size.get(sid, 0)
+                seen_channels.add(cid)
+                seen_schemas.add(summary.channels[cid].schema_id if cid in summary.channels else 0)
+                sizes[topic_of.get(cid, "?")] = sizes.get(topic_of.get(cid, "?"), 0) + max(0, end - offset)
+            yield chunk, sizes
+
     @property
     def message_count(self) -> int:
         st = self._summary.statistics
@@ -424,7 +469,8 @@ def open_episode(path: str | Path) -> Episode:
     """Open an episode for reading.
 
     Raises :class:`~cosim.errors.InputError` when the file is missing and
-    :class:`~cosim.errors.FormatError` when it is not a complete cosim episode (truncated, no
+    :class:`~cosim.errors.EpisodeFileError` (a FormatError and an InputError: exit status 2) when it is not a
+    complete cosim episode (truncated, no
     summary, no ``episode`` metadata) or has a format major version this reader does not know.
     """
     path = Path(path)
@@ -450,12 +496,17 @@ def open_episode(path: str | Path) -> Episode:
         if raw is None:
             raise FormatError(f"{path}: no 'episode' metadata record; not a cosim episode")
         return Episode(path, stream, reader, summary, raw)
+    except FormatError as exc:
+        stream.close()
+        if isinstance(exc, InputError):
+            raise
+        raise EpisodeFileError(str(exc)) from None
     except CosimError:
         stream.close()
         raise
     except Exception as exc:
         stream.close()
-        raise FormatError(f"{path}: not a readable MCAP file ({type(exc).__name__}: {exc})") from None
+        raise EpisodeFileError(f"{path}: not a readable MCAP file ({type(exc).__name__}: {exc})") from None
     except BaseException:
         stream.close()
         raise

@@ -10,9 +10,11 @@ episode start, never the wall clock, so the same scenario and seed give the same
 
 from __future__ import annotations
 
+import fcntl
 import json
 import logging
 import os
+import re
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -32,9 +34,47 @@ COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none":
 CHUNK_SIZE = 4 * 1024 * 1024  # [bytes]
 
 
-def temporary_path(final: Path) -> Path:
-    """Where an episode is written before it is complete: a hidden ``.partial`` beside ``final``."""
-    return final.with_name(f".{final.name}.partial")
+def temporary_path(final: Path, pid: int | None = None) -> Path:
+    """Where an episode is written before it is complete: ``.<name>.<pid>.partial`` beside ``final``, hidden,
+    named after the writing process (default: this one) and locked by it while it writes (``flock``), so that
+    a later run into the folder tells a file left by a killed run (:func:`remove_stale_partials`) from one
+    being written."""
+    return final.with_name(f".{final.name}.{os.getpid() if pid is None else pid}.partial")
+
+
+#: Names of unfinished episodes: ``.<name>.mcap.<pid>.partial``, and ``.<name>.mcap.partial`` as older cosim named them.
+_PARTIAL_NAME = re.compile(r"\..+\.mcap(\.\d+)?\.partial")
+
+
+def remove_stale_partials(folder: Path) -> list[Path]:
+    """Delete the unfinished episodes in ``folder`` that no live writer holds (their run was killed) and log
+    each at WARNING with its size; returns them. Files another running episode is writing are kept."""
+    removed: list[Path] = []
+    try:
+        candidates = sorted(p for p in Path(folder).glob(".*.partial") if _PARTIAL_NAME.fullmatch(p.name))
+    except OSError:
+        return removed
+    for path in candidates:
+        try:
+            fd = os.open(path, os.O_RDONLY)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:  # a running episode holds it
+            os.close(fd)
+            continue
+        try:
+            size = os.fstat(fd).st_size
+            path.unlink()
+        except OSError:
+            continue
+        finally:
+            os.close(fd)
+        log.warning("removed %s (%.1f MiB), an unfinished episode left by a run that was killed", path,
+                    size / 2**20)
+        removed.append(path)
+    return removed
 
 
 def proto_file_descriptor_set(message_type: type[ProtoMessage]) -> bytes:
@@ -79,6 +119,7 @@ class EpisodeWriter:
         self.tmp_path = temporary_path(self.final_path)
         self.final_path.parent.mkdir(parents=True, exist_ok=True)
         self._stream: BinaryIO = open(self.tmp_path, "wb")  # noqa: SIM115 (closed in finish/abort)
+        fcntl.flock(self._stream.fileno(), fcntl.LOCK_EX)  # held until closed: marks the file as being written
         self._writer = Writer(self._stream, chunk_size=CHUNK_SIZE, compression=COMPRESSION[compression])
         self._writer.start(profile="", library=f"cosim {cosim.__version__}")
         self._schemas: dict[str, int] = {}

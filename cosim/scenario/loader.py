@@ -11,6 +11,7 @@ import datetime
 import difflib
 import json
 import os
+import re
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +28,7 @@ from cosim.scenario.model import (
     MapSpec,
     RuleError,
     Scenario,
+    WrongKind,
     complete_rigs,
     merge_fields,
 )
@@ -79,6 +81,10 @@ class _LineLoader(yaml.SafeLoader):
     """SafeLoader that refuses duplicate keys (a silent overwrite hides typos)."""
 
 
+#: A plain scalar such as ``1e9`` or ``1.2E-3``: a float in YAML 1.2, text in PyYAML's YAML 1.1.
+_YAML12_EXPONENT = re.compile(r"[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)[eE][-+]?[0-9]+")
+
+
 def _construct(node: yaml.Node, source: str, path: Key, marks: dict[Key, tuple[str, int]]) -> Any:
     marks[path] = (source, node.start_mark.line + 1)
     if isinstance(node, yaml.MappingNode):
@@ -101,6 +107,8 @@ def _construct(node: yaml.Node, source: str, path: Key, marks: dict[Key, tuple[s
     if isinstance(node, yaml.SequenceNode):
         return [_construct(v, source, (*path, i), marks) for i, v in enumerate(node.value)]
     line = node.start_mark.line + 1
+    if node.tag == "tag:yaml.org,2002:str" and node.style is None and _YAML12_EXPONENT.fullmatch(node.value):
+        return float(node.value)  # YAML 1.2 reads a plain 1e9 as a number; PyYAML (YAML 1.1) as text
     try:
         value = yaml.SafeLoader(" ").construct_object(node, deep=True)
     except yaml.MarkedYAMLError as exc:
@@ -225,47 +233,76 @@ def _load_with_extends(path: Path, seen: tuple[Path, ...]) -> YamlDoc:
     parent = doc.data.pop("extends", None)
     if parent is None:
         return doc
-    if not isinstance(parent, str):
-        src, line = doc.marks[("extends",)]
-        raise ScenarioError("extends must be a path to a scenario file", path="extends", line=line, source=src)
     src, line = doc.marks[("extends",)]
-    try:
-        base_path = (path.parent / parent).resolve()
-        found = base_path.is_file()
-    except (OSError, ValueError) as exc:  # a name too long for the file system, a NUL in it
-        shown = parent if len(parent) <= 80 else f"{parent[:60]}... ({len(parent)} characters)"
-        raise ScenarioError(f"cannot open the base scenario {shown!r}: {getattr(exc, 'strerror', None) or exc}",
-                            path="extends", line=line, source=src) from None
-    if not found:
-        raise ScenarioError(f"base scenario not found: {base_path}", path="extends", line=line, source=src)
+    if not isinstance(parent, str):
+        raise ScenarioError("extends must be a path to a scenario file or the name of a shipped one",
+                            path="extends", line=line, source=src)
+    base_path = _find_base(parent, path.parent, line, src)
     base = _load_with_extends(base_path, (*seen, path))
     marks = dict(base.marks)
     marks.update(doc.marks)
     return YamlDoc(merge_fields(base.data, doc.data), marks)
 
 
+def _find_base(parent: str, folder: Path, line: int | None, source: str) -> Path:
+    """The file ``extends: parent`` names: a path relative to the extending file's ``folder``, else a shipped
+    scenario by name (``default``, ``base/paper``) from anywhere; a misspelt name gets a did-you-mean."""
+    folders = [folder] if Path(parent).is_absolute() else [folder, *scenario_dirs()]
+    try:
+        if "\0" in parent:
+            raise ValueError("a file name cannot hold a NUL character")
+        for d in folders:
+            for cand in (d / parent, d / f"{parent}.yaml"):
+                if cand.is_file():
+                    return cand.resolve()
+    except (OSError, ValueError) as exc:  # a name too long for the file system, a NUL in it
+        raise ScenarioError(f"cannot open the base scenario {printable(parent, 80)!r}: "
+                            f"{getattr(exc, 'strerror', None) or exc}", path="extends", line=line,
+                            source=source) from None
+    raise ScenarioError(f"base scenario not found: {printable(parent, 80)!r} is neither a file beside "
+                        f"{source or 'the scenario'} nor a shipped scenario{_did_you_mean(parent)}",
+                        path="extends", line=line, source=source)
+
+
+def _shipped_names() -> list[str]:
+    """Names of every shipped scenario, base overlays included (``default``, ``base/paper``)."""
+    names: set[str] = set()
+    for d in scenario_dirs():
+        if d.is_dir():
+            names.update(p.relative_to(d).with_suffix("").as_posix() for p in d.rglob("*.yaml"))
+    return sorted(names)
+
+
+def _did_you_mean(name: str | Path) -> str:
+    """``; did you mean 'town_rural_night'?`` for a name close to a shipped scenario's, else ``""``."""
+    text = str(name)
+    stem = text[:-5] if text.endswith((".yaml", ".YAML")) else text
+    close = difflib.get_close_matches(stem, _shipped_names(), n=1, cutoff=0.6)
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
 def apply_override(doc: YamlDoc, assignment: str) -> None:
     """Apply one ``a.b.0.c=value`` override; the value is parsed as YAML (``3``, ``true``, ``[1, 2]``)."""
     key, sep, raw = assignment.partition("=")
-    source = f"--set {_printable(assignment)}"
+    source = f"--set {printable(assignment)}"
     if not sep or not key.strip():
         raise ScenarioError("expected KEY=VALUE, for example --set environment.weather=foggy", source=source)
     parts: list[str | int] = [int(p) if p.isdigit() else p for p in key.strip().split(".")]
     if _deeper_than(raw, MAX_FLOW_DEPTH) is not None:
         raise ScenarioError(f"value is not valid YAML: brackets nested more than {MAX_FLOW_DEPTH} levels deep",
-                            path=_printable(key), source=source)
+                            path=printable(key), source=source)
     try:
         node = yaml.compose(raw, Loader=_LineLoader) if raw.strip() else None
         value = _construct(node, source, tuple(parts), {}) if node is not None else None if raw.strip() else ""
     except yaml.reader.ReaderError as exc:
         raise ScenarioError(f"value is not valid YAML: control character U+{int(exc.character):04X} is not allowed",
-                            path=_printable(key), source=source) from None
+                            path=printable(key), source=source) from None
     except yaml.MarkedYAMLError as exc:
-        raise ScenarioError(f"value is not valid YAML: {exc.problem}", path=_printable(key), source=source) from None
+        raise ScenarioError(f"value is not valid YAML: {exc.problem}", path=printable(key), source=source) from None
     except yaml.YAMLError as exc:
-        raise ScenarioError(f"value is not valid YAML: {exc}", path=_printable(key), source=source) from None
+        raise ScenarioError(f"value is not valid YAML: {exc}", path=printable(key), source=source) from None
     except RecursionError:
-        raise ScenarioError("value is nested too deeply", path=_printable(key), source=source) from None
+        raise ScenarioError("value is nested too deeply", path=printable(key), source=source) from None
     if doc.before_overrides is None:
         doc.before_overrides = copy.deepcopy(doc.data)
     node: Any = doc.data
@@ -293,7 +330,7 @@ def apply_override(doc: YamlDoc, assignment: str) -> None:
     doc.marks[tuple(parts)] = (source, None)  # type: ignore[assignment]
 
 
-def _printable(text: str, limit: int = 120) -> str:
+def printable(text: str, limit: int = 120) -> str:
     """``text`` for an error message: control characters escaped, long text shortened."""
     shown = text if text.isprintable() else text.encode("unicode_escape").decode("ascii")
     return shown if len(shown) <= limit else f"{shown[: limit - 20]}... ({len(text)} characters)"
@@ -363,24 +400,77 @@ def unknown_key_message(bad: str, owner: type[BaseModel] | None) -> str:
     return f"unknown key {bad!r}{hint} (known keys: {', '.join(known)})"
 
 
+#: Longest rendering of an offending value inside an error message [characters].
+MAX_VALUE_CHARS = 80
+#: Longest message of one problem [characters].
+MAX_MESSAGE_CHARS = 400
+#: Most problems listed for one invalid file (the rest are counted).
+MAX_PROBLEMS = 10
+
+
+def shown_value(value: Any) -> str:
+    """A bad value as JSON for an error message, cut to :data:`MAX_VALUE_CHARS`."""
+    return printable(json.dumps(value, default=str), MAX_VALUE_CHARS)
+
+
 def error_message(err: dict[str, Any], path: list[str | int], data: Any) -> str:
     kind = err["type"]
+    if isinstance(err.get("input"), WrongKind):
+        return err["input"].message
     if kind == "extra_forbidden":
-        return unknown_key_message(str(path[-1]), _model_at(path[:-1], data))
+        return unknown_key_message(printable(str(path[-1]), MAX_VALUE_CHARS), _model_at(path[:-1], data))
     if kind == "missing":
         return "required key is missing"
     if kind in ("literal_error", "enum"):
-        return f"{err['msg']}, got {json.dumps(err.get('input'))}"
+        return f"{err['msg']}, got {shown_value(err.get('input'))}"
     if kind == "union_tag_invalid":
         key = str(err["ctx"].get("discriminator", "'strategy'")).strip("'")
-        return f"unknown {key} {err['ctx']['tag']!r}; expected one of {err['ctx']['expected_tags']}"
+        return (f"unknown {key} {printable(repr(err['ctx']['tag']), MAX_VALUE_CHARS)}; "
+                f"expected one of {err['ctx']['expected_tags']}")
     msg = err["msg"]
     if msg.startswith("Value error, "):
         msg = msg[len("Value error, "):]
     got = err.get("input")
     if kind not in ("value_error", "assertion_error") and not isinstance(got, dict | list):
-        msg += f", got {json.dumps(got, default=str)}"
-    return msg
+        msg += f", got {shown_value(got)}"
+    return printable(msg, MAX_MESSAGE_CHARS)  # a rule's own message may quote a long value in full
+
+
+def _override_marks(doc: YamlDoc) -> list[tuple[Key, tuple[str, int | None]]]:
+    """(key path, mark) of every ``--set`` applied to ``doc``, in order."""
+    return [(k, m) for k, m in doc.marks.items() if str(m[0]).startswith("--set ")]
+
+
+def _where(path: Sequence[str | int], doc: YamlDoc, from_file: bool | None) -> tuple[str, int | None]:
+    """The (source, line) to name for a problem at ``path``: its own mark, else the nearest marked parent's; a
+    ``--set`` when one caused it. ``from_file``: whether the problem is there without the overrides (None:
+    not known). Without its own mark a problem that an override caused names that override (the one sharing
+    most of the path, else the last), never the file's first line."""
+    depth, mark = 0, ("", None)
+    for n in range(len(path), -1, -1):
+        found = doc.marks.get(tuple(path[:n]))
+        if found is not None:
+            depth, mark = n, found
+            break
+    overrides = _override_marks(doc)
+    if not overrides or str(mark[0]).startswith("--set ") or from_file:
+        return mark
+    shared = [(_shared(k, path), m) for k, m in overrides]
+    best_len = max(n for n, _ in shared)
+    best = [m for n, m in shared if n == best_len][-1]
+    if from_file is False or depth == 0 or (depth < len(path) and best_len >= depth):
+        return best
+    return mark
+
+
+def _shared(a: Sequence[Any], b: Sequence[Any]) -> int:
+    """How many leading parts two key paths share."""
+    n = 0
+    for x, y in zip(a, b, strict=False):
+        if x != y:
+            break
+        n += 1
+    return n
 
 
 def located_error(
@@ -390,25 +480,45 @@ def located_error(
     error_cls: type[ScenarioError] = ScenarioError,
     clean: Callable[[Sequence[str | int], Any], list[str | int]] = clean_error_loc,
     message: Callable[[dict[str, Any], list[str | int], Any], str] = error_message,
+    without_overrides: set[str] | None = None,
 ) -> ScenarioError:
-    """One error for a failed validation: the first problem, its dotted key path and the file and line
-    it was written at (``clean`` and ``message`` let other YAML formats, such as sweeps, adapt both)."""
-    err = exc.errors(include_url=False)[0]
-    path = clean(err["loc"], doc.data)
-    ctx_error = (err.get("ctx") or {}).get("error")
-    if isinstance(ctx_error, RuleError):
-        path = path + [int(p) if p.isdigit() else p for p in ctx_error.path.split(".")]
-    text = message(err, path, doc.data)
-    source, line = "", None
-    for n in range(len(path), -1, -1):
-        mark = doc.marks.get(tuple(path[:n]))
-        if mark is not None:
-            source, line = mark
-            break
-    more = len(exc.errors()) - 1
-    if more:
-        text += f" (and {more} more problem{'s' if more > 1 else ''})"
-    return error_cls(text, path=dotted(path), line=line, source=source)
+    """One error for a failed validation listing its problems (up to :data:`MAX_PROBLEMS`), each with its
+    dotted key path and the file and line it was written at, or the ``--set`` that caused it (``clean`` and
+    ``message`` let other YAML formats, such as sweeps, adapt both). ``without_overrides``: the key paths
+    that fail without the overrides too (None: not known)."""
+    problems: list[ScenarioError] = []
+    seen: set[str] = set()
+    for err in exc.errors(include_url=False):
+        path = clean(err["loc"], doc.data)
+        ctx_error = (err.get("ctx") or {}).get("error")
+        if isinstance(ctx_error, RuleError):
+            path = path + [int(p) if p.isdigit() else p for p in ctx_error.path.split(".")]
+        key = dotted(path)
+        if key in seen:  # one problem per key (a union reports each of its members)
+            continue
+        seen.add(key)
+        from_file = None if without_overrides is None else key in without_overrides
+        source, line = _where(path, doc, from_file)
+        problems.append(error_cls(message(err, path, doc.data), path=printable(key), line=line, source=source))
+    if len(problems) == 1:
+        return problems[0]
+    order = {p.source: i for i, p in reversed(list(enumerate(problems)))}
+    problems.sort(key=lambda p: (order[p.source], p.line is None, p.line or 0))
+    first = problems[0]
+    return error_cls(f"{len(problems)} problems", path=first.path, line=first.line, source=first.source,
+                     problems=problems[:MAX_PROBLEMS], more=max(0, len(problems) - MAX_PROBLEMS))
+
+
+def failing_keys(exc: ValidationError, data: Any) -> set[str]:
+    """Dotted key paths of every problem of a failed validation (as :func:`located_error` names them)."""
+    out = set()
+    for err in exc.errors(include_url=False):
+        path = clean_error_loc(err["loc"], data)
+        ctx_error = (err.get("ctx") or {}).get("error")
+        if isinstance(ctx_error, RuleError):
+            path = path + [int(p) if p.isdigit() else p for p in ctx_error.path.split(".")]
+        out.add(dotted(path))
+    return out
 
 
 def find_yaml(name_or_path: str | Path, dirs: Iterable[Path]) -> Path | None:
@@ -428,8 +538,9 @@ def find_scenario(name_or_path: str | Path) -> Path:
     found = find_yaml(name_or_path, scenario_dirs())
     if found is not None:
         return found
-    raise ScenarioError(f"scenario not found: {name_or_path} (see `cosim scenarios` for the shipped ones)",
-                        source=str(name_or_path))
+    shown = printable(str(name_or_path), 120)
+    raise ScenarioError(f"scenario not found: {shown}{_did_you_mean(name_or_path)} (see `cosim scenarios` for "
+                        "the shipped ones)", source=shown)
 
 
 def load_scenario(path: str | Path, overrides: Sequence[str] = ()) -> LoadedScenario:
@@ -453,10 +564,21 @@ def validate_doc(doc: YamlDoc, file: Path | None) -> LoadedScenario:
     try:
         scenario = Scenario.model_validate(doc.data)
     except ValidationError as exc:
-        raise located_error(exc, doc) from None
+        raise located_error(exc, doc, without_overrides=_failing_without_overrides(doc)) from None
     scenario = describe_overridden_conditions(scenario, doc)
     resolved = scenario.model_dump(mode="json")
     return LoadedScenario(scenario, file, resolved, file.parent if file else Path.cwd())
+
+
+def _failing_without_overrides(doc: YamlDoc) -> set[str] | None:
+    """Key paths that fail validation before any ``--set`` was applied (None: there were no overrides)."""
+    if doc.before_overrides is None:
+        return None
+    try:
+        Scenario.model_validate(doc.before_overrides)
+    except ValidationError as exc:
+        return failing_keys(exc, doc.before_overrides)
+    return set()
 
 
 def _condition_values(data: dict[str, Any]) -> dict[str, Any]:

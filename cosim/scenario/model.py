@@ -6,9 +6,11 @@ Defaults reproduce the AirV2X-Perception setting (paper Table 2, docs/convention
 
 from __future__ import annotations
 
+import json
 import re
+import types
 from fractions import Fraction
-from typing import Annotated, Any, Literal, get_args
+from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -22,6 +24,14 @@ Lighting = Literal["day", "dusk", "night"]
 MapKind = Literal["urban", "suburban", "rural", "highway", "net", "osm"]
 DynamicsBackend = Literal["jsbsim", "pybullet"]
 
+#: [m] largest map coordinate: networks lie about the origin (generated ones span at most 5 km, netconvert
+#: moves imported ones there); a point farther out is a typo, not a place.
+MAX_MAP_COORD_M = 1_000_000.0
+MapCoord = Annotated[float, Field(ge=-MAX_MAP_COORD_M, le=MAX_MAP_COORD_M)]
+MapXY = tuple[MapCoord, MapCoord]  # [m] map x, y
+MountCoord = Annotated[float, Field(ge=-50.0, le=50.0)]  # [m] a sensor's place on its agent
+Angle = Annotated[float, Field(ge=-360.0, le=360.0)]  # [deg]
+
 
 class RuleError(ValueError):
     """A cross-field rule failed; ``path`` is the offending key relative to the model checking it."""
@@ -33,9 +43,69 @@ class RuleError(ValueError):
 
 class Model(BaseModel):
     """Base: immutable, no unknown keys, no NaN or infinity in any number, validated on assignment-free
-    construction only."""
+    construction only; numbers must be numbers and switches booleans (:class:`WrongKind`)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid", validate_default=True, allow_inf_nan=False)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _strict_scalars(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        out = dict(data)
+        for name, field in cls.model_fields.items():
+            if name in out:
+                out[name] = _strict(field.annotation, out[name])
+        return out
+
+
+class WrongKind:
+    """A scalar of the wrong kind for its field (``true`` or ``"20"`` for a number, ``1`` for a switch), put in
+    its place by :meth:`Model._strict_scalars`: pydantic then reports it at its key path along with every other
+    problem, and the loader's message is :attr:`message` (pydantic's lax mode would have turned ``true`` into
+    1 s and ``"20"`` into 20)."""
+
+    __slots__ = ("message", "value")
+
+    def __init__(self, value: Any, message: str):
+        self.value = value
+        self.message = message
+
+    def __repr__(self) -> str:
+        return json.dumps(self.value)
+
+
+def _strict(annotation: Any, value: Any) -> Any:
+    """``value`` with every scalar of the wrong kind for ``annotation`` replaced by a :class:`WrongKind`;
+    containers are checked item by item, other mismatches left to pydantic."""
+    origin = get_origin(annotation)
+    if origin is Annotated:
+        return _strict(get_args(annotation)[0], value)
+    if origin in (Union, types.UnionType):
+        options = [a for a in get_args(annotation) if a is not type(None)]
+        if value is None or len(options) != 1:
+            return value
+        return _strict(options[0], value)
+    if origin in (tuple, list) and isinstance(value, list | tuple):
+        args = get_args(annotation)
+        items = args[:1] * len(value) if origin is list or (len(args) == 2 and args[1] is Ellipsis) else args
+        checked = [_strict(item, v) for item, v in zip(items, value, strict=False)] + list(value[len(items):])
+        return value if all(a is b for a, b in zip(checked, value, strict=True)) else type(value)(checked)
+    if origin is dict and isinstance(value, dict):
+        item = get_args(annotation)[1]
+        checked = {k: _strict(item, v) for k, v in value.items()}
+        return value if all(checked[k] is v for k, v in value.items()) else checked
+    if not isinstance(value, bool | int | float | str):
+        return value
+    shown = json.dumps(value)
+    shown = shown if len(shown) <= 80 else f"{shown[:60]}... ({len(shown)} characters)"
+    if annotation is bool and not isinstance(value, bool):
+        return WrongKind(value, f"expected true or false, got {shown}")
+    if annotation is float and isinstance(value, bool | str):
+        return WrongKind(value, f"expected a number, got {shown}")
+    if annotation is int and isinstance(value, bool | str | float):
+        return WrongKind(value, f"expected a whole number, got {shown}")
+    return value
 
 
 def _unique(names: list[str], rule: str) -> None:
@@ -77,14 +147,14 @@ class MapSpec(Model):
 class GeoOrigin(Model):
     lat_deg: float = Field(37.3352, ge=-90, le=90)
     lon_deg: float = Field(-121.8811, ge=-180, le=180)
-    alt_m: float = 20.0
+    alt_m: float = Field(20.0, ge=-500.0, le=9000.0)  # [m] above the WGS84 ellipsoid
 
 
 class EnvironmentSpec(Model):
     weather: Weather = "clear"
     lighting: Lighting = "day"
-    fog_visibility_m: float | None = Field(None, gt=0)  # None = weather's default
-    rain_rate_mm_h: float | None = Field(None, ge=0)
+    fog_visibility_m: float | None = Field(None, gt=0, le=100_000.0)  # None = weather's default
+    rain_rate_mm_h: float | None = Field(None, ge=0, le=500.0)
     wind_mps: float = Field(3.0, ge=0, le=20)  # mean wind at drone altitude
     gust_mps: float = Field(1.5, ge=0, le=15)  # gust standard deviation
 
@@ -101,15 +171,15 @@ class TrafficSpec(Model):
             "bicycle": 0.07,
         }
     )
-    step_hz: float = Field(20.0, gt=0)  # SUMO sub-step rate; whole multiple of tick_hz
+    step_hz: float = Field(20.0, gt=0, le=1000.0)  # SUMO sub-step rate; whole multiple of tick_hz
 
     @field_validator("mix")
     @classmethod
     def _mix_is_distribution(cls, mix: dict[str, float]) -> dict[str, float]:
         if not mix:
             raise ValueError("traffic.mix needs at least one class")
-        if any(v < 0 for v in mix.values()):
-            raise ValueError("traffic.mix shares must be >= 0")
+        if any(not 0 <= v <= 1e6 for v in mix.values()):
+            raise ValueError("traffic.mix shares must lie in [0, 1e6] (they are normalised to sum to 1)")
         total = sum(mix.values())
         if total <= 0:
             raise ValueError("traffic.mix shares must not all be 0")
@@ -131,8 +201,8 @@ class RsuAgents(Model):
     @model_validator(mode="after")
     def _range(self) -> RsuAgents:
         lo, hi = self.height_m
-        if not 0 < lo <= hi:
-            raise RuleError("height_m", f"rsus.height_m must be 0 < low <= high, got {list(self.height_m)}")
+        if not 0 < lo <= hi <= 100:
+            raise RuleError("height_m", f"rsus.height_m must be 0 < low <= high <= 100, got {list(self.height_m)}")
         return self
 
 
@@ -140,22 +210,22 @@ class DroneBase(Model):
     backend: DynamicsBackend | None = None  # None = agents.drone_backend
     altitude_m: float = Field(60.0, ge=5.0, le=300.0)  # [m] above ground
     max_speed_mps: float = Field(15.0, gt=0, le=40)
-    start: tuple[float, float] | None = None  # [m] map x, y; None = chosen by the strategy
+    start: MapXY | None = None  # [m] map x, y; None = chosen by the strategy
     clearance_m: float = Field(10.0, ge=0.0, le=200.0)  # [m] kept above obstacle tops along the path
     plan_altitude: bool = True  # False: fly at altitude_m whatever is below (can collide; for tests)
 
 
 class HoverDrone(DroneBase):
     strategy: Literal["hover"] = "hover"
-    point: tuple[float, float] | None = None  # [m] map x, y; None = above a junction
+    point: MapXY | None = None  # [m] map x, y; None = above a junction
 
 
 class PatrolDrone(DroneBase):
     strategy: Literal["patrol"] = "patrol"
-    waypoints: list[tuple[float, float]] | None = None  # [m] map x, y; None = generated along roads
-    loop_length_m: float = Field(400.0, gt=20)  # for generated loops
+    waypoints: list[MapXY] | None = Field(None, max_length=10_000)  # [m] map x, y; None = generated along roads
+    loop_length_m: float = Field(400.0, gt=20, le=100_000.0)  # for generated loops
     speed_mps: float = Field(8.0, gt=0, le=40)
-    reach_radius_m: float = Field(2.0, gt=0)
+    reach_radius_m: float = Field(2.0, gt=0, le=100.0)
 
     @model_validator(mode="after")
     def _enough_waypoints(self) -> PatrolDrone:
@@ -169,7 +239,9 @@ class PatrolDrone(DroneBase):
 class EscortDrone(DroneBase):
     strategy: Literal["escort"] = "escort"
     target: str = "vehicle_0"  # agent id of a connected vehicle
-    offset_m: tuple[float, float] = (-8.0, 0.0)  # [m] in the target's body frame (forward, left)
+    # [m] in the target's body frame (forward, left)
+    offset_m: tuple[Annotated[float, Field(ge=-500.0, le=500.0)], Annotated[float, Field(ge=-500.0, le=500.0)]] = (
+        -8.0, 0.0)
     altitude_m: float = Field(40.0, ge=5.0, le=300.0)
 
     @field_validator("target")
@@ -202,7 +274,7 @@ class AgentsSpec(Model):
         default_factory=lambda: [HoverDrone(), PatrolDrone(), EscortDrone(target="vehicle_0")]
     )
     drone_backend: DynamicsBackend = "jsbsim"
-    drone_physics_hz: float = Field(50.0, gt=0)  # dynamics rate; whole multiple of tick_hz
+    drone_physics_hz: float = Field(50.0, gt=0, le=10_000.0)  # dynamics rate; whole multiple of tick_hz
     drone_mass_kg: float = Field(3.5, gt=0.2, le=30)
     #: [m] kept between any two drones in flight (altitude layers, yielding); 0 turns it off
     drone_separation_m: float = Field(15.0, ge=0.0, le=200.0)
@@ -231,8 +303,8 @@ class AgentsSpec(Model):
 class Mount(Model):
     """Sensor pose in its agent's body frame (FLU), metres and degrees."""
 
-    xyz_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    xyz_m: tuple[MountCoord, MountCoord, MountCoord] = (0.0, 0.0, 0.0)
+    rpy_deg: tuple[Angle, Angle, Angle] = (0.0, 0.0, 0.0)
 
 
 class LidarSpec(Model):
@@ -247,11 +319,11 @@ class LidarSpec(Model):
     upper_fov_deg: float = 10.0
     lower_fov_deg: float = -38.0
     horizontal_resolution_deg: float = Field(0.35, gt=0.01, le=10)
-    rotation_hz: float = Field(20.0, gt=0)  # sweeps (spinning) or frames (rosette) per second
+    rotation_hz: float = Field(20.0, gt=0, le=1000.0)  # sweeps (spinning) or frames (rosette) per second
     point_rate_hz: float = Field(100_000.0, gt=0, le=5_000_000)  # rosette: points per second
     rosette_fov_deg: float = Field(70.4, gt=1, lt=180)  # rosette: circular field of view (full angle)
     range_m: float = Field(120.0, gt=1, le=500)
-    range_noise_m: float = Field(0.02, ge=0)
+    range_noise_m: float = Field(0.02, ge=0, le=10.0)
     dropout: float = Field(0.0, ge=0, lt=1)
     motion_distortion: bool = True  # each firing at its own time within the sweep (false: one snapshot)
     dual_returns: bool = False  # strongest and last return where a beam partly hits a near object
@@ -317,14 +389,14 @@ def _check_lens(cam: CameraSpec) -> None:
 
 
 class GnssSpec(Model):
-    noise_m: float = Field(0.5, ge=0)
+    noise_m: float = Field(0.5, ge=0, le=1000.0)
 
 
 class ImuSpec(Model):
-    accel_noise_mps2: float = Field(0.02, ge=0)
-    gyro_noise_radps: float = Field(0.002, ge=0)
-    accel_bias_mps2: float = Field(0.05, ge=0)
-    gyro_bias_radps: float = Field(0.001, ge=0)
+    accel_noise_mps2: float = Field(0.02, ge=0, le=100.0)
+    gyro_noise_radps: float = Field(0.002, ge=0, le=10.0)
+    accel_bias_mps2: float = Field(0.05, ge=0, le=100.0)
+    gyro_bias_radps: float = Field(0.001, ge=0, le=10.0)
 
 
 class RigSpec(Model):
@@ -410,7 +482,9 @@ class SensorsSpec(Model):
     image_scale: float = Field(1.0, gt=0.0, le=1.0)  # scales every camera's width and height (previews, tests)
     bev: bool = True  # write /<agent>/bev grids (the paper's BEV segmentation labels); false saves their bytes
     bev_cell_m: float = Field(0.25, gt=0.01, le=5)
-    bev_range_m: tuple[float, float] = (64.0, 40.0)  # [m] half extents x, y (paper section 4.2)
+    # [m] half extents x, y (paper section 4.2)
+    bev_range_m: tuple[Annotated[float, Field(gt=0, le=1000.0)], Annotated[float, Field(gt=0, le=1000.0)]] = (
+        64.0, 40.0)
     # LiDAR x, y, z as stored (docs/episode_format.md 3.4): integer 1/256 m counts, or float32 metres
     lidar_positions: Literal["quantized", "float32"] = "quantized"
     # render processes (docs/architecture.md, "Sensors"): 0 = render in the runner's process, null = automatic
@@ -450,8 +524,8 @@ class EventBase(Model):
     """One incident of the timeline (docs/events.md): when, and where, either a map point or ahead of a
     connected vehicle along its route (resolved at ``at_s``)."""
 
-    at_s: float = Field(0.0, ge=0.0)  # [s] episode time the event starts; a whole number of ticks
-    position_m: tuple[float, float] | None = None  # [m] map x, y: the nearest lane
+    at_s: float = Field(0.0, ge=0.0, le=24 * 3600)  # [s] episode time the event starts; a whole number of ticks
+    position_m: MapXY | None = None  # [m] map x, y: the nearest lane
     ahead_of: str | None = None  # connected vehicle id: its lane, ``ahead_m`` in front of it
     ahead_m: float = Field(40.0, ge=5.0, le=1000.0)
 
@@ -552,8 +626,8 @@ class OutputSpec(Model):
 
 
 class RuntimeSpec(Model):
-    startup_timeout_s: float = Field(60.0, gt=0)  # workers ready (processes started, world loaded)
-    tick_timeout_s: float = Field(10.0, gt=0)  # one lockstep query
+    startup_timeout_s: float = Field(60.0, gt=0, le=24 * 3600)  # workers ready (processes started, world loaded)
+    tick_timeout_s: float = Field(10.0, gt=0, le=24 * 3600)  # one lockstep query
 
 
 # ------------------------------------------------------------------------------------- clients
@@ -563,7 +637,8 @@ class ClientSpec(Model):
     """A closed-loop client (``cosim.client``): the conductor waits for its action after every tick."""
 
     name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]*$", max_length=64)
-    timeout_s: float | None = Field(None, gt=0)  # [s] for its action per tick; None = runtime.tick_timeout_s
+    # [s] for its action per tick; None = runtime.tick_timeout_s
+    timeout_s: float | None = Field(None, gt=0, le=24 * 3600)
 
 
 # ---------------------------------------------------------------------------------------- comm

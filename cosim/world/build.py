@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cosim.errors import InputError
+from cosim.preflight import map_file
 from cosim.scenario.loader import LoadedScenario
 from cosim.world import geom
 from cosim.world.layout import GROUND_Z, build_layout, prism
@@ -37,11 +37,7 @@ def build_world(loaded: LoadedScenario, workdir: Path) -> World:
     """Build the episode's world; map files (kind net/osm) are resolved against the scenario folder."""
     sc = loaded.scenario
     spec = sc.map
-    file = None
-    if spec.kind in ("net", "osm"):
-        file = loaded.resolve_path(spec.file or "")
-        if not file.is_file():
-            raise InputError(f"map.file {spec.file!r} not found (looked at {file})")
+    file = map_file(loaded)
     workdir = Path(workdir) / "map"
     result = generate_network(
         MapRequest(spec.kind, spec.size_m, spec.lanes, file, workdir, sc.pedestrians.density_per_km > 0),

@@ -14,7 +14,9 @@ import logging
 import math
 import os
 import re
+import signal
 import subprocess
+import sys
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -77,9 +79,31 @@ def sumo_binary(name: str) -> str:
     return str(Path(sumo.SUMO_HOME) / "bin" / name)
 
 
+def _die_with_parent() -> Callable[[], None] | None:
+    """A ``preexec_fn`` that makes the child SIGKILLed when the process that started it dies (Linux
+    PR_SET_PDEATHSIG; a conductor killed while netconvert runs must not leave it behind); None elsewhere."""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes
+
+    try:
+        prctl = ctypes.CDLL("libc.so.6", use_errno=True).prctl  # looked up before the fork, called after it
+    except OSError:
+        return None
+    parent = os.getpid()
+
+    def arm() -> None:
+        prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
+        if os.getppid() != parent:  # the parent died before the signal was armed
+            os._exit(1)
+
+    return arm
+
+
 def _run_tool(name: str, args: list[str], cwd: Path) -> None:
     env = {**os.environ, "SUMO_HOME": sumo.SUMO_HOME}
-    proc = subprocess.run([sumo_binary(name), *args], cwd=cwd, env=env, capture_output=True, text=True, check=False)
+    proc = subprocess.run([sumo_binary(name), *args], cwd=cwd, env=env, capture_output=True, text=True, check=False,
+                          preexec_fn=_die_with_parent())  # prctl only after the fork: no locks taken
     if proc.returncode != 0:
         msg = (proc.stderr or proc.stdout).strip().splitlines()
         raise InputError(f"{name} failed (exit {proc.returncode}): {' | '.join(msg[-5:])}")
