@@ -3,7 +3,9 @@
     PYTHONPATH=. .venv/bin/python benchmarks/sensors.py [--frames 3] [--no-pybullet] [--weather W --lighting L]
     PYTHONPATH=. .venv/bin/python benchmarks/sensors.py --pictures docs/img
 
-Rig: 5 vehicles (LiDAR + 6 cameras), 5 RSUs (LiDAR + 4 cameras), 5 drones (LiDAR + 1 gimbal camera),
+Prints the CPU-seconds per frame of the whole process tree (this process and its render processes),
+by stage, and the wall time per frame over bare casting. Rig: 5 vehicles (LiDAR + 6 cameras), 5 RSUs
+(LiDAR + 4 cameras), 5 drones (LiDAR + 1 gimbal camera),
 every camera 1280x720, on the world that ``build_world`` makes for scenarios/default.yaml, with
 background traffic moving at ``--speed`` (LiDAR motion distortion casts each firing at its own time;
 ``--lidar-snapshot`` turns that off, ``--dual-returns`` on); ``--frames`` different snapshots (each
@@ -30,6 +32,7 @@ same run on the same snapshots:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
@@ -53,6 +56,8 @@ log = logging.getLogger("bench")
 ROOT = Path(__file__).resolve().parents[1]
 #: [s] wall time per full-rig frame in an episode that issue 14 asks for on a 2-core machine
 FRAME_TARGET_S = 1.0
+#: [CPU-s] per full-rig frame for the whole process tree that issue 26 asks for
+FRAME_TARGET_CPU_S = 4.0
 
 
 def paper_rig_scenario(path: Path, compression: str | None = None, lidar: dict | None = None,
@@ -101,6 +106,50 @@ def bare_cast_seconds(suite: SensorSuite, snap) -> tuple[float, int]:
             total += time.perf_counter() - t0
             n_rays += len(rays)
     return total, n_rays
+
+
+def tree_cpu_s() -> float:
+    """CPU seconds (user + system) used so far by this process and every live child (render processes)."""
+    import psutil
+
+    me = psutil.Process()
+    total = sum(me.cpu_times()[:2])
+    for child in me.children(recursive=True):
+        with contextlib.suppress(psutil.Error):
+            total += sum(child.cpu_times()[:2])
+    return total
+
+
+_ENCODE_CPU_S = [0.0]
+
+
+def count_encode_cpu() -> None:
+    """Wrap the RGB encoders of :mod:`cosim.sensors.encoding` so that :func:`encode_cpu_s` adds up their
+    thread CPU time (the encoder pool's threads run them in this process)."""
+    from cosim.sensors import encoding
+
+    def counted(fn):
+        def wrapper(*a, **k):
+            t0 = time.thread_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                _ENCODE_CPU_S[0] += time.thread_time() - t0
+        return wrapper
+
+    for name in ("encode_png", "encode_jpeg"):
+        setattr(encoding, name, counted(getattr(encoding, name)))
+    from cosim.sensors import suite
+
+    from cosim.io import sensor_messages
+
+    for module in (sensor_messages, suite):  # the compact depth images count as encoding too
+        if hasattr(module, "encode_depth"):
+            module.encode_depth = counted(module.encode_depth)
+
+
+def encode_cpu_s() -> float:
+    return _ENCODE_CPU_S[0]
 
 
 def _data_kind(topic: str) -> str:
@@ -182,7 +231,8 @@ def run(args) -> None:
         t_world = time.perf_counter() - t0
         t0 = time.perf_counter()
         processes = render_processes(sc) if args.processes is None else args.processes
-        suite = SensorSuite(sc, world, block_px=args.block_px, processes=processes)
+        # as the episode runner does: RGB and compact depth encoded as each camera is rendered
+        suite = SensorSuite(sc, world, block_px=args.block_px, processes=processes, release_pixels=True)
         t_static = time.perf_counter() - t0
         print(f"world: {len(world.layout.prisms)} prisms, static mesh {suite.static.n_triangles} triangles; "
               f"world {t_world:.2f} s, static scene {t_static:.2f} s (once per episode)")
@@ -196,7 +246,9 @@ def run(args) -> None:
                  for k in range(args.frames)]
 
         def messages(frames, consume=False):
-            return frame_records(frames, frames.t_ns, image_format=sc.output.image_format, consume=consume)
+            return frame_records(frames, frames.t_ns, image_format=sc.output.image_format,
+                                 jpeg_quality=sc.output.jpeg_quality, lidar_positions=sc.sensors.lidar_positions,
+                                 depth_format=sc.output.depth_format, consume=consume)
 
         kinds: dict[str, list[int]] = {}  # data kind -> [serialized bytes, zstd bytes] over the first pass
         n_agent_frames = [0]
@@ -224,24 +276,43 @@ def run(args) -> None:
             rng = np.random.default_rng(sc.seed)
             with EpisodeWriter(Path(tmp) / f"{name}.mcap", compression=sc.output.compression) as w:
                 for snap in snaps:
+                    c0, e0 = tree_cpu_s(), encode_cpu_s()
                     t0 = time.perf_counter()
                     frames = suite.render(snap, rng)
+                    for af in frames.agents.values():  # the suite's encodes count as encoding, not writing
+                        for cam in af.cameras.values():
+                            if cam.encoded is not None:
+                                for f in (cam.encoded.rgb, cam.encoded.depth):
+                                    if f is not None:
+                                        f.result()
                     t1 = time.perf_counter()
+                    c1, e1 = tree_cpu_s(), encode_cpu_s()
                     msgs = list(messages(frames))
                     t2 = time.perf_counter()
-                    tally(frames, msgs)
+                    ca = tree_cpu_s()
+                    tally(frames, msgs)  # a measurement, not part of the frame's cost
+                    c2 = tree_cpu_s()
                     for topic, msg in msgs:
                         w.write(topic, msg, snap.t_ns)
                     t3 = time.perf_counter()
+                    c3 = tree_cpu_s()
                     tm = frames.timing_s
                     # the render threads' times overlap: split the render wall time in proportion to them
                     busy = tm["scene"] + tm["lidar"] + tm["camera_cast"] + tm["shading"] + tm["labels"]
                     scale = (t1 - t0) / busy if busy > 0 else 1.0
+                    # and the render CPU (the tree's, less the RGB encodes) in the same proportions
+                    enc = e1 - e0
+                    cpu_scale = max(0.0, c1 - c0 - enc) / busy if busy > 0 else 0.0
                     rows.append({"total": t3 - t0, "render": t1 - t0, "casting": tm["cast_rays"] * scale,
                                  "shading": tm["shading"] * scale,
                                  "other_render": (busy - tm["cast_rays"] - tm["shading"]) * scale,
                                  "labels": tm["labels"] * scale, "encoding": t2 - t1, "writing": t3 - t2,
-                                 "rays": tm["rays"], "cast_thread_s": tm["cast_rays"]})
+                                 "rays": tm["rays"], "cast_thread_s": tm["cast_rays"],
+                                 "cpu_total": c3 - c0 - (c2 - ca),
+                                 "cpu_casting": tm["cast_rays"] * cpu_scale, "cpu_shading": tm["shading"] * cpu_scale,
+                                 "cpu_labels": tm["labels"] * cpu_scale,
+                                 "cpu_rest": (busy - tm["cast_rays"] - tm["shading"] - tm["labels"]) * cpu_scale,
+                                 "cpu_encoding": enc, "cpu_writing": c3 - c1 - (c2 - ca)})
                 rows[-1]["bytes"] = w.finish().stat().st_size
             return rows
 
@@ -249,10 +320,12 @@ def run(args) -> None:
         episode = [world_snapshot(world, 5, 5, args.background, seed=k % len(snaps), tick=k, speed_mps=args.speed)
                    for k in range(args.episode_frames)]
 
-        def pipelined(name: str) -> float:
-            """Seconds per frame the way ``cosim run`` works: frame k is encoded and written by the
-            episode's writer thread while frame k+1 renders; includes writing the last frame."""
+        def pipelined(name: str) -> tuple[float, float]:
+            """Seconds and CPU-seconds of the process tree per frame the way ``cosim run`` works: frame k
+            is encoded and written by the episode's writer thread while frame k+1 renders; includes
+            writing the last frame."""
             rng = np.random.default_rng(sc.seed)
+            c0 = tree_cpu_s()
             with EpisodeWriter(Path(tmp) / f"{name}.mcap", compression=sc.output.compression) as w, \
                     BackgroundWriter(w) as bg:
                 t0 = time.perf_counter()
@@ -261,8 +334,9 @@ def run(args) -> None:
                     bg.submit(snap.t_ns, lambda frames=frames: messages(frames, consume=True))
                 bg.flush()
                 wall = time.perf_counter() - t0
+                cpu = tree_cpu_s() - c0
                 w.finish()
-            return wall / len(episode)
+            return wall / len(episode), cpu / len(episode)
 
         # the first tick of an episode also casts the static world for the RSUs' kept hits
         t0 = time.perf_counter()
@@ -286,6 +360,10 @@ def run(args) -> None:
                   f"labels/other {row['other_render']:.2f}: labels {row['labels']:.2f}, the rest numpy around "
                   f"casting: camera sampling/fills, LiDAR models) + encoding wait {row['encoding']:.2f} + writing "
                   f"{row['writing']:.2f}; {row['rays'] / 1e6:.1f} M rays cast")
+            print(f"         CPU-s of the process tree: {row['cpu_total']:.2f} = casting {row['cpu_casting']:.2f} + "
+                  f"shading {row['cpu_shading']:.2f} + label gathers {row['cpu_labels']:.2f} + rest (scene, LiDAR "
+                  f"models, numpy around casting) {row['cpu_rest']:.2f} + encoding {row['cpu_encoding']:.2f} + "
+                  f"writing {row['cpu_writing']:.2f} (render CPU split in proportion to the render threads' times)")
             print(f"         bare cast_rays, one ray per pixel/beam, one scene: {bare:.2f} s for "
                   f"{bare_rays / 1e6:.1f} M rays; own cast_rays calls: {row['rays'] / 1e6:.1f} M rays, "
                   f"{row['cast_thread_s']:.2f} s")
@@ -293,7 +371,11 @@ def run(args) -> None:
                 print(f"         PyBullet same rig: {pyb[0]:.2f} s (rayTestBatch {pyb[1]:.2f}, "
                       f"TinyRenderer {pyb[2]:.2f})")
         seq = float(np.mean([0.5 * (a["total"] + b["total"]) for a, b in zip(seq_a, seq_b, strict=True)]))
-        pipe = 0.5 * (pipe_a + pipe_b)
+        seq_cpu = {k: float(np.mean([0.5 * (a[k] + b[k]) for a, b in zip(seq_a, seq_b, strict=True)]))
+                   for k in seq_a[0] if k.startswith("cpu_")}
+        pipe = 0.5 * (pipe_a[0] + pipe_b[0])
+        pipe_cpu = 0.5 * (pipe_a[1] + pipe_b[1])
+        pipe_a, pipe_b = pipe_a[0], pipe_b[0]
         bare = float(np.mean([r[0] for r in refs]))
         print(f"episode file: {seq_a[-1]['bytes'] / 1e6 / len(snaps):.0f} MB per frame")
         n = max(1, n_agent_frames[0])
@@ -310,6 +392,11 @@ def run(args) -> None:
             line += f"; pybullet/frame = {pb / pipe:.1f} (target >= 10)"
             extra += f", {pb / seq:.1f}"
         print(f"{line} ({extra})")
+        print(f"RESULT CPU per frame {pipe_cpu:.2f} CPU-s for the whole process tree, pipelined (target <= "
+              f"{FRAME_TARGET_CPU_S:.0f}); sequential {seq_cpu['cpu_total']:.2f} = casting {seq_cpu['cpu_casting']:.2f}"
+              f" + shading {seq_cpu['cpu_shading']:.2f} + label gathers {seq_cpu['cpu_labels']:.2f} + rest "
+              f"{seq_cpu['cpu_rest']:.2f} + encoding {seq_cpu['cpu_encoding']:.2f} + writing "
+              f"{seq_cpu['cpu_writing']:.2f}; frame/bare casting {pipe / bare:.2f} (wall)")
 
 
 def pictures(out_dir: Path) -> None:
@@ -367,6 +454,7 @@ def main() -> None:
     ap.add_argument("--no-shadows", action="store_true", help="cameras without sun shadows (sensors.sun_shadows)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
+    count_encode_cpu()
     if args.pictures:
         pictures(args.pictures)
         return

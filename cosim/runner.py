@@ -319,7 +319,8 @@ class _SensorAdapter:
         from cosim.sensors.suite import render_processes
 
         self._scenario = loaded.scenario
-        self._suite = SensorSuite(loaded.scenario, world, processes=render_processes(loaded.scenario))
+        self._suite = SensorSuite(loaded.scenario, world, processes=render_processes(loaded.scenario),
+                                  release_pixels=True)
         self._frame_messages = frame_messages
         self._frame_records = frame_records
         self._sensor_transforms = sensor_transforms
@@ -338,14 +339,16 @@ class _SensorAdapter:
         out = self._scenario.output
         return self._frame_messages(frames, frames.t_ns, image_format=out.image_format,
                                     jpeg_quality=out.jpeg_quality,
-                                    lidar_positions=self._scenario.sensors.lidar_positions)
+                                    lidar_positions=self._scenario.sensors.lidar_positions,
+                                    depth_format=out.depth_format)
 
     def records(self, frames: Any) -> Iterator[tuple[str, Any]]:
         """The sensor records of rendered frames for the writer, made as they are taken; consumes ``frames``."""
         out = self._scenario.output
         return self._frame_records(frames, frames.t_ns, image_format=out.image_format,
                                    jpeg_quality=out.jpeg_quality,
-                                   lidar_positions=self._scenario.sensors.lidar_positions, consume=True)
+                                   lidar_positions=self._scenario.sensors.lidar_positions,
+                                   depth_format=out.depth_format, consume=True)
 
     @property
     def static(self) -> Any:

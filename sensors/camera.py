@@ -16,9 +16,9 @@ from the same per-pixel triangle index, so they agree.
 from __future__ import annotations
 
 import math
-from concurrent.futures import Future
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -40,6 +40,9 @@ from .surface import (
     shade_linear,
 )
 
+if TYPE_CHECKING:
+    from .encoding import Encodes
+
 #: Box edges (pairs of corner indices into the 8 corners of :func:`box_corners`).
 _EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6],
                    [3, 7]])
@@ -56,8 +59,9 @@ class CameraFrame:
     ``rgb`` (H, W, 3) uint8 sRGB or None; ``depth`` (H, W) float32 planar depth [m] along the optical
     axis, inf where nothing was hit; ``semantic`` (H, W) uint8 class id; ``instance`` (H, W) uint32
     (track id, static instance id, 0); ``K`` (3, 3) float64 and ``P`` (3, 4) float64 intrinsics;
-    ``pose``: map <- optical frame. ``encoded``: (format, future of the encoded ``rgb`` bytes) when
-    the suite started encoding it (not part of the data).
+    ``pose``: map <- optical frame. ``encoded``: the encodes the suite started (a
+    :class:`~cosim.sensors.encoding.Encodes`, not part of the data); a suite that releases pixels
+    leaves ``rgb`` (and ``depth``) None once their encodes hold them.
     """
 
     agent_id: str
@@ -71,7 +75,7 @@ class CameraFrame:
     depth: np.ndarray | None
     semantic: np.ndarray | None
     instance: np.ndarray | None
-    encoded: tuple[str, Future] | None = field(default=None, compare=False, repr=False)
+    encoded: Encodes | None = field(default=None, compare=False, repr=False)
     D: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)  # Brown-Conrady k1, k2, p1, p2, k3 (plumb_bob)
 
 

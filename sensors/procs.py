@@ -10,9 +10,13 @@ that process).
 
 Each agent is rendered with the generator the parent spawned for it, so the frames do not depend
 on the number of processes. The frames come back pickled, except their large arrays (images,
-depth, labels, LiDAR points), which the process writes into one shared-memory file per tick
-(under ``/dev/shm``, unlinked as soon as it is made) whose descriptor it passes over the socket;
-the parent maps it and hands out arrays backed by the mapping (freed when the last of them is).
+depth, labels, LiDAR points), which the process writes into shared-memory files (under ``/dev/shm``,
+unlinked as soon as they are made) whose descriptors it passes over the socket: one file per camera
+and one per agent for its other sensors, so that the parent, which hands out arrays backed by the
+mappings, frees each camera's memory as soon as the episode writer has dropped that camera (a
+mapping and its file go with the last array backed by it), not when the whole tick is written. The
+render process copies each array into its file and lets go of it at once, so it does not hold a
+tick's arrays twice.
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
-from multiprocessing.reduction import recv_handle, send_handle
+from multiprocessing.reduction import recvfds, sendfds
 
 import numpy as np
 
@@ -46,6 +50,8 @@ log = logging.getLogger(__name__)
 SHARED_MIN_BYTES = 1 << 16
 _ALIGN = 64
 CHECK_PERIOD_S = 0.05
+#: descriptors passed per socket message (Linux takes at most 253)
+_FDS_PER_MESSAGE = 64
 START_TIMEOUT_S = 300.0
 
 
@@ -100,43 +106,96 @@ def _import(obj, buf: mmap.mmap):
     return obj
 
 
-def _write_shared(frames, tag: str) -> tuple[object, int | None]:
-    """(frames with placeholders, descriptor of the shared file holding their arrays, or None). The file is
-    unlinked as soon as it is made: it lives as long as a descriptor or a mapping of it, so no crash leaves
-    it behind."""
-    arrays: list[np.ndarray] = []
-    offset = [0]
-    meta = _export(frames, arrays, offset)
-    if not arrays:
-        return meta, None
-    path = os.path.join(_shm_dir(), f"cosim-render-{os.getpid()}-{tag}")
-    fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_RDWR, 0o600)
-    os.unlink(path)
+@dataclass(frozen=True)
+class _Piece:
+    """Placeholder for an object whose arrays are in shared file number ``index`` of the reply."""
+
+    index: int
+    meta: object
+
+
+def _export_pieces(frames: dict) -> tuple[dict, list[tuple[list[np.ndarray], int]]]:
+    """(``frames`` by agent id with their arrays replaced by placeholders, the pieces: arrays and file size of
+    each shared file). Each camera is a piece of its own; each agent's other sensors make one more."""
+    pieces: list[tuple[list[np.ndarray], int]] = []
+
+    def piece(obj):
+        arrays: list[np.ndarray] = []
+        offset = [0]
+        meta = _export(obj, arrays, offset)
+        if not arrays:
+            return meta
+        pieces.append((arrays, offset[0]))
+        return _Piece(len(pieces) - 1, meta)
+
+    out = {}
+    for agent_id, af in frames.items():
+        cams = {name: piece(cam) for name, cam in af.cameras.items()}
+        out[agent_id] = (piece(dataclasses.replace(af, cameras={})), cams)
+    return out, pieces
+
+
+def _write_pieces(pieces: list[tuple[list[np.ndarray], int]], tag: str) -> list[int]:
+    """One shared file per piece, its arrays copied in and then dropped (``pieces`` holds the last references
+    the render process has); the descriptors. Each file is unlinked as soon as it is made: it lives as long
+    as a descriptor or a mapping of it, so no crash leaves it behind."""
+    fds: list[int] = []
     try:
-        os.ftruncate(fd, offset[0])
-        with mmap.mmap(fd, offset[0]) as mm:
-            at = 0
-            for a in arrays:
-                view = np.frombuffer(mm, a.dtype, a.size, at).reshape(a.shape)
-                view[...] = a
-                del view
-                at += -(-a.nbytes // _ALIGN) * _ALIGN
+        for k, (arrays, size) in enumerate(pieces):
+            path = os.path.join(_shm_dir(), f"cosim-render-{os.getpid()}-{tag}-{k}")
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_RDWR, 0o600)
+            os.unlink(path)
+            fds.append(fd)
+            os.ftruncate(fd, size)
+            with mmap.mmap(fd, size) as mm:
+                at = 0
+                for i, a in enumerate(arrays):
+                    view = np.frombuffer(mm, a.dtype, a.size, at).reshape(a.shape)
+                    view[...] = a
+                    del view
+                    at += -(-a.nbytes // _ALIGN) * _ALIGN
+                    arrays[i] = None  # type: ignore[call-overload]  # freed now, not with the whole tick
     except BaseException:
-        os.close(fd)
+        for fd in fds:
+            os.close(fd)
         raise
-    return meta, fd
+    return fds
 
 
-def _read_shared(meta, conn: Connection, shared: bool):
-    """``meta`` with its placeholders backed by the shared file whose descriptor follows on ``conn``."""
-    if not shared:
-        return meta
-    fd = recv_handle(conn)
+def _send_fds(conn: Connection, fds: list[int]) -> None:
+    with socket.fromfd(conn.fileno(), socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        for k in range(0, len(fds), _FDS_PER_MESSAGE):
+            sendfds(s, fds[k:k + _FDS_PER_MESSAGE])
+
+
+def _recv_fds(conn: Connection, n: int) -> list[int]:
+    fds: list[int] = []
+    with socket.fromfd(conn.fileno(), socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        while len(fds) < n:
+            fds.extend(recvfds(s, min(_FDS_PER_MESSAGE, n - len(fds))))
+    return fds
+
+
+def _read_pieces(meta: dict, conn: Connection, n_files: int) -> dict:
+    """The frames by agent id, their placeholders backed by the shared files whose descriptors follow on
+    ``conn`` (each file mapped on its own, so each camera's memory goes with that camera)."""
+    fds = _recv_fds(conn, n_files)
+    bufs = []
     try:
-        buf = mmap.mmap(fd, os.fstat(fd).st_size)
+        for fd in fds:
+            bufs.append(mmap.mmap(fd, os.fstat(fd).st_size))
     finally:
-        os.close(fd)
-    return _import(meta, buf)
+        for fd in fds:
+            os.close(fd)
+
+    def load(obj):
+        return _import(obj.meta, bufs[obj.index]) if isinstance(obj, _Piece) else obj
+
+    out = {}
+    for agent_id, (base, cams) in meta.items():
+        out[agent_id] = dataclasses.replace(load(base), cameras={n: load(c) for n, c in cams.items()})
+    bufs.clear()  # the arrays keep their mappings alive; ours go
+    return out
 
 
 def _die_with_parent() -> None:
@@ -171,21 +230,23 @@ def _main(conn: Connection) -> None:
             if msg is None:
                 return
             seq, snapshot, items = msg
-            fd = None
+            fds: list[int] = []
             try:
                 frames, timing = suite.render_agents(snapshot, items)
-                meta, fd = _write_shared(frames, str(seq))
-                reply = ("ok", seq, (meta, fd is not None, timing))
+                meta, pieces = _export_pieces(frames)
+                del frames  # the pieces hold the arrays now: each goes once copied
+                fds = _write_pieces(pieces, str(seq))
+                del pieces
+                reply = ("ok", seq, (meta, len(fds), timing))
             except BaseException:
                 reply = ("error", seq, traceback.format_exc())
             try:
                 conn.send(reply)
-                if fd is not None:
-                    send_handle(conn, fd, os.getppid())
+                _send_fds(conn, fds)
             except OSError:  # the parent is gone
                 return
             finally:
-                if fd is not None:
+                for fd in fds:
                     os.close(fd)
 
 
@@ -240,11 +301,11 @@ class RenderProcesses:
         while self._outstanding[k]:
             self._outstanding[k] -= 1
             try:
-                _, shared, _ = self._reply(k, None)
+                _, n_files, _ = self._reply(k, None)
             except RenderProcessError:
                 continue
-            if shared:
-                os.close(recv_handle(self._conns[k]))
+            for fd in _recv_fds(self._conns[k], n_files):
+                os.close(fd)
 
     def _share_of(self, agent: AgentState) -> int:
         k = self._owner.get(agent.agent_id)
@@ -271,8 +332,8 @@ class RenderProcesses:
         frames: dict = {}
         timing: dict[str, float] = {}
         for k in busy:
-            meta, shared, t = self._reply(k, check)
-            frames.update(_read_shared(meta, self._conns[k], shared))
+            meta, n_files, t = self._reply(k, check)
+            frames.update(_read_pieces(meta, self._conns[k], n_files))
             self._outstanding[k] -= 1
             for key, v in t.items():
                 timing[key] = timing.get(key, 0.0) + v

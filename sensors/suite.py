@@ -41,7 +41,7 @@ from .camera import (
     shading_tables,
     shadow_boxes,
 )
-from .encoding import submit_encode
+from .encoding import Encodes, encode_depth, submit, submit_encode
 from .environment import Atmosphere, atmosphere
 from .imu import ImuFrame, imu_biases, render_imu
 from .kinds import SensorContext, render_kinds
@@ -92,7 +92,7 @@ class SensorFrameSet:
         for agent in list(self.agents.values()):
             for cam in list(agent.cameras.values()):
                 if cam.encoded is not None:
-                    cam.encoded[1].cancel()
+                    cam.encoded.cancel()
 
 
 def _shaded(albedo: np.ndarray, normals: np.ndarray, atm: Atmosphere, sun: bool = True) -> np.ndarray:
@@ -186,7 +186,11 @@ class SensorSuite:
     ``block_px``: adaptive camera casting block (1 = one ray per pixel). ``noise``: False turns
     every random sensor effect off (exact ranges, depths, fixes), for tests. ``encode_images``:
     start encoding each RGB image (``scenario.output.image_format``) in a thread pool as soon as it
-    is shaded, so encoding overlaps with the rest of the tick. ``workers``: threads rendering
+    is shaded, so encoding overlaps with the rest of the tick. ``release_pixels`` (with
+    ``encode_images``): also start the compact depth encode (``output.depth_format: compressed``) and
+    leave a camera's ``rgb`` and ``depth`` None, their encodes holding them only until done, so that
+    a rendered tick keeps about 40 % of its camera arrays while it waits for the writer (the
+    episode runner; whoever reads the pixels leaves it off). ``workers``: threads rendering
     cameras and agents side by side (Open3D holds the GIL while casting, but the numpy work around
     it releases it, so a few threads keep two cores busy); results do not depend on it.
     ``processes``: render processes (:mod:`cosim.sensors.procs`; 0 renders in this process). Each
@@ -196,9 +200,10 @@ class SensorSuite:
     """
 
     def __init__(self, scenario: Scenario, world: World, *, block_px: int = 8, noise: bool = True,
-                 encode_images: bool = True, workers: int = 3, processes: int = 0):
+                 encode_images: bool = True, workers: int = 3, processes: int = 0, release_pixels: bool = False):
         self.scenario = scenario
         self.encode_images = encode_images
+        self.release_pixels = release_pixels and encode_images
         self._pool = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="cosim-render")
         self.world = world
         self.block_px = block_px
@@ -297,11 +302,19 @@ class SensorSuite:
         gid, depth, lit = cast_image(cam, K, pose, scene, occ, own, self.block_px, fixed)
         t1 = time.perf_counter()
         rgb = encoded = None
+        out_spec = self.scenario.output
         if "rgb" in cam.outputs:
             rgb = shade(gid, depth, lit, cam, K, pose, tables, self.atm, light, rng, 1, self.noise)
             if self.encode_images:
-                out_spec = self.scenario.output
-                encoded = (out_spec.image_format, submit_encode(rgb, out_spec.image_format, out_spec.jpeg_quality))
+                encoded = Encodes(out_spec.image_format,
+                                  submit_encode(rgb, out_spec.image_format, out_spec.jpeg_quality))
+        keep_depth = "depth" in cam.outputs
+        if self.release_pixels:
+            depth_f = None
+            if keep_depth and out_spec.depth_format == "compressed":
+                depth_f, keep_depth = submit(encode_depth, depth), False
+            encoded = Encodes(out_spec.image_format, encoded.rgb if encoded else None, depth_f)
+            rgb = None if encoded.rgb is not None else rgb
         t2 = time.perf_counter()
         if "semantic" in cam.outputs:
             semantic, instance = kernels.gather2(gid, lut["semantic"], lut["instance"])
@@ -309,7 +322,7 @@ class SensorSuite:
             semantic, instance = None, kernels.gather(gid, lut["instance"])
         frame = CameraFrame(
             agent.agent_id, cam.name, cam.width, cam.height, K, projection(cam), pose, rgb,
-            depth if "depth" in cam.outputs else None, semantic, instance, encoded,
+            depth if keep_depth else None, semantic, instance, encoded,
             tuple(float(v) for v in cam.distortion or (0.0,) * 5),
         )
         return frame, {"camera_cast": t1 - t0, "shading": t2 - t1, "labels": time.perf_counter() - t2}
@@ -392,7 +405,7 @@ class SensorSuite:
                     if not f.cancel() and f.done() and f.exception() is None and f is not base_f:
                         encoded = f.result()[0].encoded
                         if encoded is not None:
-                            encoded[1].cancel()
+                            encoded.cancel()
             raise
         for agent, base_f, cam_fs in jobs:
             rig = self.rig(agent)
@@ -449,7 +462,8 @@ def _drop_instance(c: CameraFrame) -> CameraFrame:
 def _with_encodes(af: AgentFrames, image_format: str, jpeg_quality: int) -> AgentFrames:
     """``af`` with an encode started for each RGB image (frames from render processes come without)."""
     cams = {n: c if c.rgb is None else dataclasses.replace(
-        c, encoded=(image_format, submit_encode(c.rgb, image_format, jpeg_quality))) for n, c in af.cameras.items()}
+        c, encoded=Encodes(image_format, submit_encode(c.rgb, image_format, jpeg_quality)))
+        for n, c in af.cameras.items()}
     return dataclasses.replace(af, cameras=cams)
 
 

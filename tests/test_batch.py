@@ -285,6 +285,10 @@ def test_calibration_extrapolates_to_the_plan(tmp_path):
     assert est.calibration_s == 1.0 and est.per_tick_s >= 0 and est.startup_s >= 0
     assert est.bytes == pytest.approx(3 * est.bytes_per_tick * 5)  # 3 episodes of 5 ticks, no attachments
     assert est.wall_s == pytest.approx(est.cpu_s / 2)
+    # CPU-seconds per tick of the episode's process tree, measured at the same tick marks, and the dataset cost
+    assert est.cpu_per_tick_s is not None and 0 <= est.cpu_per_tick_s < 10
+    cpu_h, size = est.dataset_cost(7200)
+    assert cpu_h == pytest.approx(2 * est.cpu_per_tick_s) and size == pytest.approx(7200 * est.bytes_per_tick)
 
 
 def test_unknown_backend_lists_the_known_ones():

@@ -129,7 +129,8 @@ def episode(tmp_path_factory) -> Path:
     from cosim.scenario import load_scenario
 
     d = tmp_path_factory.mktemp("export_episode")
-    sc = load_scenario("default", ["duration_s=1", "sensors.image_scale=0.25", "map.size_m=300"]).scenario
+    sc = load_scenario("default", ["duration_s=1", "sensors.image_scale=0.25", "map.size_m=300",
+                               "output.image_format=jpeg"]).scenario  # exports from a JPEG episode
     doc = sc.model_dump(mode="json")
     for kind in ("vehicle", "rsu", "drone"):
         doc["sensors"][kind]["lidar"]["range_noise_m"] = 0.0

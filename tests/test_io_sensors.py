@@ -89,8 +89,8 @@ def test_reader_returns_the_rendered_arrays(rendered):
             for agent_id, af in fs.agents.items():
                 if af.lidar is not None:
                     pc = tick.points(agent_id)
-                    assert np.max(np.abs(pc.xyz - af.lidar.points)) <= 2.0**-9 + 1e-6  # half a 1/256 m count
-                    assert pc.points["x"].dtype == np.float32 and pc.stored["x"].dtype == np.int16
+                    assert np.max(np.abs(pc.xyz - af.lidar.points)) <= 2.0**-8 + 1e-6  # half of 1/128 m
+                    assert pc.points["x"].dtype == np.float32 and pc.stored["x"].dtype == np.float32
                     assert np.array_equal(pc.points["instance_id"], af.lidar.instance_id)
                     assert np.array_equal(pc.points["class_id"], af.lidar.class_id)
                     assert np.array_equal(pc.points["ring"], af.lidar.ring)
@@ -119,3 +119,39 @@ def test_reader_returns_the_rendered_arrays(rendered):
                 if af.visibility is not None:
                     vis = tick.visibility(agent_id)
                     assert [o["track_id"] for o in vis["objects"]] == [o.track_id for o in af.visibility.objects]
+
+
+def _foxglove_xyz(msg) -> np.ndarray:
+    """x, y, z (N, 3) of a ``foxglove.PointCloud`` read the way a viewer that knows only the schema reads it:
+    each field's value at its offset, by its numeric type, unscaled (Foxglove's own rule: no unit field)."""
+    numeric = {1: "u1", 2: "i1", 3: "<u2", 4: "<i2", 5: "<u4", 6: "<i4", 7: "<f4", 8: "<f8"}
+    raw = np.frombuffer(msg.data, np.uint8).reshape(-1, msg.point_stride)
+    out = []
+    for name in "xyz":
+        (f,) = [f for f in msg.fields if f.name == name]
+        t = np.dtype(numeric[f.type])
+        out.append(raw[:, f.offset:f.offset + t.itemsize].copy().view(t)[:, 0].astype(np.float64))
+    return np.stack(out, axis=1)
+
+
+def test_the_default_lidar_encoding_reads_as_metres_in_a_foxglove_schema_only_reader(rendered):
+    """What the Foxglove app draws (the stored numbers of x, y, z, unscaled) is cosim.io's metres, so the
+    default episode's point clouds appear at true scale; the quantized option would be 256 times too large."""
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+    from mcap.reader import make_reader
+
+    path, _ = rendered
+    assert SensorsSpec().lidar_positions == "float32"
+    seen = 0
+    with open(path, "rb") as f, open_episode(path) as ep:
+        by_tick = {(t.t_ns, a): t.points(a) for t in ep.ticks() for a in ep.agents if f"/{a}/lidar" in t}
+        for _schema, channel, message in make_reader(f).iter_messages():
+            if not channel.topic.endswith("/lidar"):
+                continue
+            msg = PointCloud.FromString(message.data)
+            agent = channel.topic.split("/")[1]
+            ours = by_tick[(message.log_time, agent)].xyz
+            assert len(ours) > 50
+            assert np.array_equal(_foxglove_xyz(msg), ours)
+            seen += 1
+    assert seen == TICKS * 4

@@ -201,10 +201,10 @@ def test_sensor_episode_honours_the_output_image_format(tmp_path):
     from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
     r = run_cli("run", "scenarios/default.yaml", "--duration", "0.4", "--out", str(tmp_path),
-                "--set", "sensors.image_scale=0.1", "--set", "output.image_format=jpeg")
+                "--set", "sensors.image_scale=0.1", "--set", "output.image_format=png")
     assert r.returncode == 0, r.stderr
     topics = read_topics(tmp_path / "default_s0.mcap")
     images = [CompressedImage.FromString(d) for t, msgs in topics.items() if t.endswith("/image") for _, d in msgs]
     assert len(images) == 2 * (5 * 6 + 5 * 4 + 5)  # two ticks, every camera of the 5+5+5 rig
-    assert {i.format for i in images} == {"jpeg"}
-    assert all(i.data[:2] == b"\xff\xd8" for i in images)  # JPEG start-of-image marker
+    assert {i.format for i in images} == {"png"}  # JPEG is the default
+    assert all(i.data[:8] == b"\x89PNG\r\n\x1a\n" for i in images)

@@ -435,7 +435,7 @@ def test_rsu_sensors_keep_the_static_world_and_cast_only_what_moves():
 
 
 def test_frame_messages_topics_and_round_trips():
-    from cosim.io.decode import decode_point_cloud, decode_raw_image
+    from cosim.io.decode import decode_compressed_image, decode_point_cloud
     from cosim.io.sensor_messages import frame_messages
 
     cams = [CameraSpec(name="front", width=96, height=64, mount=Mount(xyz_m=(0, 0, 1.6)))]
@@ -455,8 +455,8 @@ def test_frame_messages_topics_and_round_trips():
     assert img.frame_id == "vehicle_0/front/optical"
     assert np.array_equal(np.asarray(Image.open(io.BytesIO(img.data))), cf.rgb)
     depth = msgs["/vehicle_0/front/depth"]
-    assert depth.encoding == "32FC1"
-    depth_m = decode_raw_image(depth).depth_m
+    assert depth.format == "cosim-depth"
+    depth_m = decode_compressed_image(depth).depth_m
     fin = np.isfinite(cf.depth)
     assert np.array_equal(np.isnan(depth_m), ~fin)
     assert np.max(np.abs(depth_m[fin] - cf.depth[fin])) <= 2.0**-11
@@ -469,7 +469,7 @@ def test_frame_messages_topics_and_round_trips():
     rec = decode_point_cloud(pc).points
     assert np.array_equal(rec["instance_id"], af.lidar.instance_id)
     for k, name in enumerate("xyz"):
-        assert np.max(np.abs(rec[name] - af.lidar.points[:, k])) <= 2.0**-9 + 1e-6  # half a 1/256 m count
+        assert np.max(np.abs(rec[name] - af.lidar.points[:, k])) <= 2.0**-8 + 1e-6  # half of 1/128 m
     assert np.max(np.abs(rec["intensity"] - af.lidar.intensity)) <= 0.5 / 255 + 1e-6
     cal = msgs["/vehicle_0/front/calibration"]
     assert list(cal.K) == list(cf.K.ravel()) and len(cal.P) == 12

@@ -16,7 +16,7 @@ from cosim.sensors.rig import sensor_pose
 from cosim.sensors.synthetic import synthetic_scenario, synthetic_world
 
 from cosim.geometry import quat_from_rpy
-from cosim.io.decode import decode_point_cloud, decode_raw_image
+from cosim.io.decode import decode_compressed_image, decode_point_cloud
 from cosim.io.points import POSITION_QUANTUM_M, encode_points
 from cosim.io.sensor_messages import frame_messages
 from cosim.scenario.loader import load_scenario
@@ -50,7 +50,7 @@ def test_nadir_depth_at_120_m_survives_the_round_trip():
         frames = suite.render(snap, np.random.default_rng(0))
     cam = frames.agents["drone_0"].cameras["down"]
     msgs = dict(frame_messages(frames, 0))
-    depth_m = decode_raw_image(msgs["/drone_0/down/depth"]).depth_m
+    depth_m = decode_compressed_image(msgs["/drone_0/down/depth"]).depth_m
     assert np.isfinite(cam.depth).all() and not np.isnan(depth_m).any()
     assert np.max(np.abs(depth_m - cam.depth)) <= 2.0**-11  # half of the 1/1024 m grid
     # flat terrain (top z = 0) below the 0.15 m camera offset: planar depth = 119.85 m everywhere
@@ -193,7 +193,7 @@ def test_compact_points_halve_the_stored_bytes_and_keep_the_data():
     for k, name in enumerate("xyz"):
         old[name] = xyz[:, k]
     old["intensity"], old["ring"], old["class_id"], old["instance_id"] = inten, ring, cls, inst
-    new = encode_points(xyz, inten, ring, cls, inst)
+    new = encode_points(xyz, inten, ring, cls, inst, kind="quantized")
     assert new.dtype.itemsize == 13 and new["x"].dtype == np.int16
     assert _zstd_size(new.tobytes()) <= 0.5 * _zstd_size(old.tobytes())
     # positions within half a count, intensity within half a step, labels exact
@@ -201,17 +201,17 @@ def test_compact_points_halve_the_stored_bytes_and_keep_the_data():
 
     frame = type("F", (), {"points": xyz.astype(np.float32), "intensity": inten.astype(np.float32), "ring": ring,
                            "class_id": cls, "instance_id": inst})()
-    pc = decode_point_cloud(lidar_message("vehicle_0", frame, 0))
+    pc = decode_point_cloud(lidar_message("vehicle_0", frame, 0, positions="quantized"))
     assert np.max(np.abs(pc.xyz - xyz)) <= POSITION_QUANTUM_M / 2 + 1e-4
     assert np.max(np.abs(pc.points["intensity"] - inten)) <= 0.5 / 255 + 1e-6
     for k in ("ring", "class_id", "instance_id"):
         assert np.array_equal(pc.points[k], {"ring": ring, "class_id": cls, "instance_id": inst}[k])
-    # beyond the int16 reach, positions widen to int32; float32 on request (viewers)
-    far = encode_points(xyz * 3.0, inten, ring, cls, inst)
+    # beyond the int16 reach, positions widen to int32; float32 by default (viewers)
+    far = encode_points(xyz * 3.0, inten, ring, cls, inst, kind="quantized")
     assert far["x"].dtype == np.int32
     assert np.max(np.abs(far["x"] * POSITION_QUANTUM_M - xyz[:, 0] * 3.0)) <= POSITION_QUANTUM_M / 2 + 1e-4
-    floats = decode_point_cloud(lidar_message("vehicle_0", frame, 0, positions="float32"))
-    assert floats.stored["x"].dtype == np.float32 and np.max(np.abs(floats.xyz - frame.points)) <= 2.0**-11 + 1e-6
+    floats = decode_point_cloud(lidar_message("vehicle_0", frame, 0))
+    assert floats.stored["x"].dtype == np.float32 and np.max(np.abs(floats.xyz - frame.points)) <= 2.0**-8 + 1e-6
 
 
 def test_bev_grids_are_optional():

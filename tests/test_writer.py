@@ -212,11 +212,13 @@ def test_serialized_image_records_are_the_bytes_of_the_messages():
     from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
     from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
+    from cosim.io.depth import encode_depth
     from cosim.io.sensor_messages import _stamp, depth_image, frame_records
     from cosim.io.writer import Serialized
 
     frames = _camera_frames()
-    recs = dict(frame_records(frames, frames.t_ns))
+    recs = dict(frame_records(frames, frames.t_ns, depth_format="raw"))
+    compact = dict(frame_records(_camera_frames(), frames.t_ns))
     for name, cam in frames.agents["vehicle_0"].cameras.items():
         fid, base = f"vehicle_0/{name}/optical", f"/vehicle_0/{name}"
         expect = {
@@ -234,6 +236,9 @@ def test_serialized_image_records_are_the_bytes_of_the_messages():
         png = CompressedImage(frame_id=fid, format="png", data=encode_png(cam.rgb))
         _stamp(png, frames.t_ns)
         assert bytes(recs[f"{base}/image"].data) == png.SerializeToString(deterministic=True)
+        depth = CompressedImage(frame_id=fid, format="cosim-depth", data=encode_depth(cam.depth))
+        _stamp(depth, frames.t_ns)
+        assert bytes(compact[f"{base}/depth"].data) == depth.SerializeToString(deterministic=True)
         depth = recs[f"{base}/depth"].message()
         got = np.frombuffer(depth.data, "<f4").reshape(cam.height, cam.width)
         fin = np.isfinite(cam.depth)

@@ -80,7 +80,7 @@ def _print_plan(plan: Any, out: Path) -> None:
 
 def _calibrate(plan: Any, seconds: float, workers: int) -> None:
     """Run the first episode shortened to ``seconds`` and extrapolate wall time and disk size."""
-    from cosim.batch.estimate import calibrate
+    from cosim.batch.estimate import CARLA_ANCHORS, PAPER_FRAMES, calibrate
 
     if not plan.episodes:
         return
@@ -91,6 +91,12 @@ def _calibrate(plan: Any, seconds: float, workers: int) -> None:
           f"{_human_size(est.fixed_bytes)} + {_human_size(est.bytes_per_tick)} per tick")
     print(f"estimate wall time {_human_time(est.wall_s)} with {workers} worker(s) "
           f"({_human_time(est.cpu_s)} of episode time), disk {_human_size(est.bytes)}")
+    cpu_h, size = est.dataset_cost()
+    if est.cpu_per_tick_s:
+        print(f"dataset cost of this rig: {est.cpu_per_tick_s:.2f} CPU-s per frame ({3600 / est.cpu_per_tick_s:,.0f} "
+              f"frames per CPU-hour, all processes of an episode), {est.bytes_per_tick / 1e6:.1f} MB per frame; "
+              f"the paper's {PAPER_FRAMES:,} frames: {cpu_h:,.0f} CPU-hours, {size / 1e12:.2f} TB")
+        print(f"  CARLA for comparison: {'; '.join(CARLA_ANCHORS)}")
 
 
 def _sigterm_as_interrupt(*_: Any) -> None:

@@ -1,7 +1,8 @@
 """``--dry-run`` estimates: run one short calibration episode and extrapolate to the plan.
 
 Model per episode: wall = startup + per_tick * ticks, size = fixed + bytes_per_tick * ticks. Startup
-and the per-tick cost come from the times of the calibration episode's first and last ticks; the fixed
+and the per-tick cost come from the times of the calibration episode's first and last ticks (and the
+CPU-seconds per tick, of the episode's whole process tree, from its CPU time at the same marks); the fixed
 size is its attachments (scenario, road network, routes), which do not grow with the duration. The wall time of
 the batch is the summed episode time divided by the workers (episodes are independent).
 """
@@ -17,6 +18,12 @@ from cosim.batch.plan import Plan
 from cosim.batch.runner import n_ticks
 from cosim.errors import CosimError
 
+#: Frames (ticks) of the paper's dataset: 6.73 hours at 5 Hz.
+PAPER_FRAMES = 121_000
+#: Published costs of CARLA-based generation to print beside ours (docs: README, performance).
+CARLA_ANCHORS = ("300-400 GPU-hours for a TransFuser-sized dataset (transfuser#251)",
+                 "1-4 FPS reported by CARLA users", "4-8 GB of VRAM per CARLA instance")
+
 
 @dataclass(frozen=True)
 class Estimate:
@@ -29,6 +36,12 @@ class Estimate:
     cpu_s: float  # summed episode wall time of the plan
     wall_s: float  # with the given workers
     bytes: float
+    cpu_per_tick_s: float | None = None  # CPU-seconds per tick of the episode's process tree
+
+    def dataset_cost(self, frames: int = PAPER_FRAMES) -> tuple[float | None, float]:
+        """(CPU-hours, bytes) of ``frames`` ticks of this rig (the episodes' fixed bytes left out)."""
+        cpu_h = None if self.cpu_per_tick_s is None else frames * self.cpu_per_tick_s / 3600.0
+        return cpu_h, frames * self.bytes_per_tick
 
 
 def calibrate(plan: Plan, tmp_dir: Path, *, seconds: float = 2.0, workers: int = 1,
@@ -57,11 +70,13 @@ def calibrate(plan: Plan, tmp_dir: Path, *, seconds: float = 2.0, workers: int =
     per_tick = (marks[-1] - first) / (ticks - 1) if len(marks) > 1 else last / ticks
     startup = max(0.0, last - per_tick * ticks)
     bytes_per_tick = (outcome["size_bytes"] - fixed) / ticks
+    cpu_marks = outcome.get("tick_cpu_marks_s") or []
+    cpu_per_tick = (cpu_marks[-1] - cpu_marks[0]) / (ticks - 1) if len(cpu_marks) > 1 and ticks > 1 else None
     cpu = sum(startup + per_tick * n_ticks(e) for e in plan.episodes)
     total_bytes = sum(fixed + bytes_per_tick * n_ticks(e) for e in plan.episodes)
     return Estimate(episode=ep.id, calibration_s=ticks / tick_hz, startup_s=startup, per_tick_s=per_tick,
                     bytes_per_tick=bytes_per_tick, fixed_bytes=fixed, cpu_s=cpu, wall_s=cpu / max(1, workers),
-                    bytes=total_bytes)
+                    bytes=total_bytes, cpu_per_tick_s=cpu_per_tick)
 
 
 def _attachment_bytes(path: Path) -> int:
@@ -76,4 +91,4 @@ def _attachment_bytes(path: Path) -> int:
         return 0
 
 
-__all__ = ["Estimate", "calibrate"]
+__all__ = ["CARLA_ANCHORS", "PAPER_FRAMES", "Estimate", "calibrate"]

@@ -91,6 +91,21 @@ def placement() -> dict[str, Any]:
     return {"host": socket.gethostname(), "container": container_id()}
 
 
+def tree_cpu_s() -> float:
+    """CPU seconds (user + system) used so far by this process and its live descendants (simulation workers,
+    render processes)."""
+    import psutil
+
+    me = psutil.Process()
+    total = sum(me.cpu_times()[:2])
+    for child in me.children(recursive=True):
+        try:
+            total += sum(child.cpu_times()[:2])
+        except psutil.Error:  # ended meanwhile
+            continue
+    return total
+
+
 def versions() -> dict[str, str]:
     import cosim
     from cosim.runner import dependency_versions
@@ -107,10 +122,12 @@ def execute(job: Job, fn: EpisodeFn, progress: Progress) -> dict[str, Any]:
     """
     started = time.perf_counter()
     ticks_at: list[float] = []
+    cpu_at: list[float] = []
 
     def on_progress(done: int, total: int) -> None:
         if len(ticks_at) < 2 or done >= total:
             ticks_at.append(time.perf_counter() - started)
+            cpu_at.append(tree_cpu_s())
         progress(done, total)
 
     outcome: dict[str, Any] = {"episode": job.episode_id, **placement(), "pid": os.getpid()}
@@ -126,6 +143,7 @@ def execute(job: Job, fn: EpisodeFn, progress: Progress) -> dict[str, Any]:
     outcome["wall_time_s"] = round(time.perf_counter() - started, 3)
     outcome["first_tick_s"] = ticks_at[0] if ticks_at else None
     outcome["tick_marks_s"] = ticks_at
+    outcome["tick_cpu_marks_s"] = cpu_at
     try:
         outcome["versions"] = versions()
     except Exception as exc:

@@ -27,6 +27,7 @@ from google.protobuf.message import Message as ProtoMessage
 from cosim.comm.message import decode_links
 from cosim.errors import FormatError
 from cosim.geometry import has_distortion, project_to_image
+from cosim.io.depth import DEPTH_FORMAT, decode_depth
 from cosim.io.points import float_view
 
 # ----------------------------------------------------------------------------------- types
@@ -65,8 +66,9 @@ class Image:
     """A raw or compressed image decoded to ``array``: (H, W) for one channel, (H, W, C) otherwise.
 
     ``encoding`` is the RawImage encoding (``rgb8``, ``mono16``, ``16UC1``, ``32FC1``...) or the
-    CompressedImage format (``png``, ``jpeg``); depth images are float32 metres (``32FC1``, NaN = no
-    hit) as written since format 1.1, uint16 millimetres (``16UC1``) in 1.0 files: use ``depth_m``.
+    CompressedImage format (``png``, ``jpeg``, ``cosim-depth``); depth images are float32 metres
+    (``cosim-depth`` since format 1.2 or ``32FC1``, NaN = no hit), uint16 millimetres (``16UC1``) in
+    1.0 files: use ``depth_m``.
     """
 
     t_ns: int
@@ -448,6 +450,12 @@ def decode_raw_image(msg: Any) -> Image:
 
 def decode_compressed_image(msg: Any) -> Image:
     from PIL import Image as PilImage
+
+    if msg.format == DEPTH_FORMAT:
+        try:
+            return Image(_ns(msg.timestamp), msg.frame_id, msg.format, decode_depth(msg.data))
+        except FormatError as exc:
+            raise FormatError(f"CompressedImage {msg.format!r} in {msg.frame_id!r}: {exc}") from None
 
     try:
         with PilImage.open(io.BytesIO(msg.data)) as im:

@@ -24,9 +24,11 @@ from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
+from cosim.errors import CosimError
+from cosim.io.depth import DEPTH_FORMAT
 from cosim.io.points import encode_points
 from cosim.io.writer import Serialized
-from cosim.sensors.encoding import encode_jpeg, encode_png, submit, submit_encode
+from cosim.sensors.encoding import encode_depth, encode_jpeg, encode_png, submit, submit_encode
 from cosim.sensors.kinds import SENSOR_KINDS
 from cosim.sensors.suite import SensorFrameSet
 
@@ -85,7 +87,7 @@ def _stamp(msg, t_ns: int) -> None:
     msg.timestamp.FromNanoseconds(int(t_ns))
 
 
-def lidar_message(agent_id: str, frame, t_ns: int, positions: str = "quantized") -> PointCloud:
+def lidar_message(agent_id: str, frame, t_ns: int, positions: str = "float32") -> PointCloud:
     """One sweep in the compact record of :mod:`cosim.io.points` (``positions``: ``quantized`` or ``float32``)."""
     extra = {}
     if getattr(frame, "t_offset_ns", None) is not None:
@@ -220,10 +222,13 @@ def visibility_payload(agent_id: str, vis, t_ns: int) -> dict:
     }
 
 
-def _label_records(fid: str, base: str, cam, t_ns: int) -> list[tuple[str, Serialized]]:
-    """Depth (32FC1 m), semantic (mono8) and instance (32SC1) images of one camera (runs in the encoder pool)."""
+def _label_records(fid: str, base: str, cam, t_ns: int, depth_format: str) -> list[tuple[str, Serialized]]:
+    """Depth (``cosim-depth`` or 32FC1 m), semantic (mono8) and instance (32SC1) images of one camera (runs in
+    the encoder pool)."""
     out = []
-    if cam.depth is not None:
+    if cam.depth is not None and depth_format == "compressed":
+        out.append((f"{base}/depth", compressed_image_record(fid, t_ns, DEPTH_FORMAT, encode_depth(cam.depth))))
+    elif cam.depth is not None:
         out.append((f"{base}/depth", raw_image_record(fid, t_ns, cam.depth.shape, "<f4", "32FC1",
                                                       lambda v: quantize_depth(cam.depth, v))))
     if cam.semantic is not None:
@@ -241,8 +246,9 @@ def _label_records(fid: str, base: str, cam, t_ns: int) -> list[tuple[str, Seria
 LOOKAHEAD_CAMERAS = 3
 
 
-def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png", jpeg_quality: int = 90,
-                  lidar_positions: str = "quantized", consume: bool = False) -> Iterator[tuple[str, object]]:
+def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png", jpeg_quality: int = 80,
+                  lidar_positions: str = "float32", depth_format: str = "compressed",
+                  consume: bool = False) -> Iterator[tuple[str, object]]:
     """Every sensor topic of one tick as ``(topic, record)``, agents in frame order, made as they are
     taken: a record is a protobuf message, a :class:`~cosim.io.writer.Serialized` one (the
     images) or a JSON ``(schema_name, json_schema, payload)`` triple, all of which
@@ -254,7 +260,8 @@ def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png
     GIL) while the current one is taken. ``consume``: drop each camera (and then each agent) from
     ``frames`` once its messages are made, so that a frame's arrays are freed while it is written
     rather than after (the frames are empty afterwards). ``lidar_positions``: how point positions are
-    stored (``sensors.lidar_positions``, see :mod:`cosim.io.points`).
+    stored (``sensors.lidar_positions``, see :mod:`cosim.io.points`); ``depth_format``: ``compressed``
+    (:mod:`cosim.io.depth`) or ``raw`` (32FC1), ``output.depth_format``.
     """
     order = [(af, name) for af in frames.agents.values() for name in af.cameras]
     started: dict[int, tuple[Future | None, Future]] = {}
@@ -265,13 +272,21 @@ def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png
             n_started[0] = k + 1
             af, name = order[k]
             cam = af.cameras[name]
-            rgb = None
-            if cam.rgb is not None:
-                pre = cam.encoded
-                rgb = pre[1] if pre is not None and pre[0] == image_format else \
-                    submit_encode(cam.rgb, image_format, jpeg_quality)
+            pre = cam.encoded
+            rgb = depth = None
+            if pre is not None and pre.rgb is not None and pre.image_format == image_format:
+                rgb = pre.rgb
+            elif cam.rgb is not None:
+                rgb = submit_encode(cam.rgb, image_format, jpeg_quality)
+            elif pre is not None and pre.rgb is not None:
+                raise CosimError(f"{af.agent_id}/{name}: the suite encoded {pre.image_format}, not {image_format}, "
+                                 "and released the pixels")
+            if pre is not None and pre.depth is not None:
+                if depth_format != "compressed":
+                    raise CosimError(f"{af.agent_id}/{name}: the suite encoded the depth compact and released it")
+                depth = pre.depth
             fid, base = f"{af.agent_id}/{name}/optical", f"/{af.agent_id}/{name}"
-            started[k] = (rgb, submit(_label_records, fid, base, cam, t_ns))
+            started[k] = (rgb, depth, submit(_label_records, fid, base, cam, t_ns, depth_format))
 
     k = 0
     for agent_id, af in list(frames.agents.items()):
@@ -283,12 +298,14 @@ def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png
             start(k + 1 + LOOKAHEAD_CAMERAS)
             cam = af.cameras[name]
             fid, base = f"{a}/{name}/optical", f"/{a}/{name}"
-            rgb, labels = started.pop(k)
+            rgb, depth, labels = started.pop(k)
             k += 1
             if rgb is not None:
                 yield f"{base}/image", compressed_image_record(fid, t_ns, image_format, rgb.result())
+            if depth is not None:  # encoded by the suite (in the same order as _label_records would)
+                yield f"{base}/depth", compressed_image_record(fid, t_ns, DEPTH_FORMAT, depth.result())
             yield from labels.result()
-            del rgb, labels
+            del rgb, depth, labels
             yield f"{base}/calibration", calibration_message(fid, cam, t_ns)
             if consume:
                 del af.cameras[name]
@@ -307,10 +324,11 @@ def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png
 
 
 def frame_messages(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png",
-                   jpeg_quality: int = 90, lidar_positions: str = "quantized") -> list[tuple[str, object]]:
+                   jpeg_quality: int = 80, lidar_positions: str = "float32",
+                   depth_format: str = "compressed") -> list[tuple[str, object]]:
     """Every sensor topic of one tick as protobuf messages (or JSON triples), agents in frame order: the
     records of :func:`frame_records` with the serialized ones parsed back (for code that reads the
     messages in memory, such as closed-loop clients; the episode writer takes the records)."""
     return [(topic, rec.message() if isinstance(rec, Serialized) else rec)
             for topic, rec in frame_records(frames, t_ns, image_format=image_format, jpeg_quality=jpeg_quality,
-                                            lidar_positions=lidar_positions)]
+                                            lidar_positions=lidar_positions, depth_format=depth_format)]

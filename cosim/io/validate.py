@@ -80,7 +80,8 @@ log = logging.getLogger(__name__)
 
 MAGIC_BYTES = 8  # the MCAP magic before the first record
 #: Depth encodings by format version (None: any other 1.x).
-DEPTH_ENCODINGS: dict[str | None, tuple[str, ...]] = {"1.0": ("16UC1",), None: ("32FC1",)}
+DEPTH_ENCODINGS: dict[str | None, tuple[str, ...]] = {"1.0": ("16UC1",), "1.1": ("32FC1",),
+                                                     None: ("cosim-depth", "32FC1")}
 
 #: Problems kept per (check, topic); the rest are counted.
 MAX_PER_KIND = 8
@@ -727,18 +728,19 @@ class _Validator:
         return {int(i) for i in ids if 0 < i < STATIC_INSTANCE_MIN}
 
     def check_depth(self, tick: int | None, topic: str, msg: Any) -> None:
-        """Depth is ``32FC1`` metres (``16UC1`` millimetres in format 1.0 files): with pixels, every value
-        is NaN (no hit) or a finite distance >= 0."""
-        encoding = getattr(msg, "encoding", None)
+        """Depth is ``cosim-depth`` or ``32FC1`` metres (only ``32FC1`` in format 1.1, ``16UC1`` millimetres in
+        1.0): with pixels, every value is NaN (no hit) or a finite distance >= 0."""
+        compressed = msg.DESCRIPTOR.full_name == "foxglove.CompressedImage"
+        encoding = msg.format if compressed else getattr(msg, "encoding", None)
         allowed = DEPTH_ENCODINGS.get(self.format_minor(), DEPTH_ENCODINGS[None])
         if encoding not in allowed:
             self.problem("sensors", f"depth encoding {encoding!r}, expected {' or '.join(allowed)} (section 3.5)",
                          tick, topic)
             return
-        if not self.pixels or encoding != "32FC1":
+        if not self.pixels or encoding not in ("32FC1", "cosim-depth"):
             return
         try:
-            a = PROTO_DECODERS["foxglove.RawImage"](msg).array
+            a = PROTO_DECODERS[msg.DESCRIPTOR.full_name](msg).array
         except FormatError as exc:
             self.problem("structure", str(exc), tick, topic)
             return

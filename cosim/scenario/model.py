@@ -485,8 +485,9 @@ class SensorsSpec(Model):
     # [m] half extents x, y (paper section 4.2)
     bev_range_m: tuple[Annotated[float, Field(gt=0, le=1000.0)], Annotated[float, Field(gt=0, le=1000.0)]] = (
         64.0, 40.0)
-    # LiDAR x, y, z as stored (docs/episode_format.md 3.4): integer 1/256 m counts, or float32 metres
-    lidar_positions: Literal["quantized", "float32"] = "quantized"
+    # LiDAR x, y, z as stored (docs/episode_format.md 3.4): float32 metres (what viewers such as Foxglove
+    # draw at true scale), or integer 1/256 m counts ("quantized", about a quarter fewer LiDAR bytes)
+    lidar_positions: Literal["float32", "quantized"] = "float32"
     # render processes (docs/architecture.md, "Sensors"): 0 = render in the runner's process, null = automatic
     # (one per core, at most 2, for rigs of at least 2 Mpx of cameras); the output does not depend on it
     render_processes: int | None = Field(0, ge=0, le=16)
@@ -613,8 +614,12 @@ class OutputSpec(Model):
     dir: str = "out"
     name: str | None = None  # file stem inside the output folder; None = "<scenario name>_s<seed>"
     compression: Literal["zstd", "lz4", "none"] = "zstd"
-    image_format: Literal["png", "jpeg"] = "png"
-    jpeg_quality: int = Field(90, ge=10, le=100)
+    # camera RGB images (docs/episode_format.md 3.5): jpeg (libjpeg-turbo, 4:2:0, at jpeg_quality) or png (lossless)
+    image_format: Literal["jpeg", "png"] = "jpeg"
+    jpeg_quality: int = Field(80, ge=10, le=100)
+    # depth images: compressed (CompressedImage "cosim-depth", lossless, 2.7x fewer bytes) or raw (RawImage
+    # 32FC1, which Foxglove displays)
+    depth_format: Literal["compressed", "raw"] = "compressed"
 
     @field_validator("name")
     @classmethod
