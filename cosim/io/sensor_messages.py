@@ -24,8 +24,8 @@ from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
+from cosim.depth import DEPTH_FORMAT
 from cosim.errors import CosimError
-from cosim.io.depth import DEPTH_FORMAT
 from cosim.io.points import encode_points
 from cosim.io.writer import Serialized
 from cosim.sensors.encoding import encode_depth, encode_jpeg, encode_png, submit, submit_encode
@@ -261,7 +261,7 @@ def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png
     ``frames`` once its messages are made, so that a frame's arrays are freed while it is written
     rather than after (the frames are empty afterwards). ``lidar_positions``: how point positions are
     stored (``sensors.lidar_positions``, see :mod:`cosim.io.points`); ``depth_format``: ``compressed``
-    (:mod:`cosim.io.depth`) or ``raw`` (32FC1), ``output.depth_format``.
+    (:mod:`cosim.depth`) or ``raw`` (32FC1), ``output.depth_format``.
     """
     order = [(af, name) for af in frames.agents.values() for name in af.cameras]
     started: dict[int, tuple[Future | None, Future]] = {}
