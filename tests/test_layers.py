@@ -10,11 +10,17 @@ from pathlib import Path
 
 from tests.helpers import REPO, source_modules
 
+#: Subpackages with a layer of their own (rows of the Layers table below ``cosim.<x>``).
+SUBUNITS = ("cosim.sensors.assets",)
+
 
 def unit_of(module: str) -> str:
-    """The package a module belongs to for layering: ``cosim.<x>`` (a subpackage or a top-level module)."""
-    parts = module.split(".")
-    return ".".join(parts[:2])
+    """The package a module belongs to for layering: ``cosim.<x>`` (a subpackage or a top-level module), or one
+    of :data:`SUBUNITS`."""
+    for sub in SUBUNITS:
+        if module == sub or module.startswith(sub + "."):
+            return sub
+    return ".".join(module.split(".")[:2])
 
 
 def _is_type_checking(node: ast.If) -> bool:
