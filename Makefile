@@ -77,7 +77,7 @@ $(STAMP): pyproject.toml | $(VPY)
 	@touch $@
 
 $(TEST_STAMP): $(STAMP)
-	$(VPY) -m pip install --quiet -e '.[test]'
+	$(VPY) -m pip install --quiet -e '.[test,learn]'
 	@touch $@
 
 run: sysdeps $(STAMP)

@@ -1,0 +1,195 @@
+"""``cosim learn train|predict|curves``: train the detector on a dataset, write predictions for ``cosim eval``,
+plot learning curves (docs/learnability.md). Torch is imported only when a command runs."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+from cosim.errors import InputError
+
+EXIT_OK = 0
+
+
+def _positive(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from cosim.learn import require_torch
+
+    require_torch()
+    from cosim.eval.dataset import VEHICLE_CLASSES, load_dataset
+    from cosim.learn.data import Setup, split_episodes
+    from cosim.learn.train import TrainOptions, device_of, train
+
+    setup = Setup(fusion=args.fusion, agents=args.agents or ("ego" if args.fusion == "none" else "all"),
+                  classes=tuple(args.classes or VEHICLE_CLASSES), delivery=args.delivery)
+    refs = load_dataset(Path(args.dataset))
+    train_refs = split_episodes(refs, args.split, "train", args.dataset)
+    val_refs = None
+    if not args.no_val and (args.val_split is not None or any(r.split == "val" for r in refs)):
+        val_refs = split_episodes(refs, args.val_split or "val", "val", args.dataset)
+    opts = TrainOptions(epochs=args.epochs, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
+                        every=args.every, val_every_tick=args.val_every_tick, val_steps=args.val_steps,
+                        save_every=args.save_every, keep_every=args.keep_every, seed=args.seed, width=args.width,
+                        threads=args.threads)
+    summary = train(train_refs, val_refs, setup, opts, Path(args.out), resume=args.resume,
+                    device=device_of(args.device), show_progress=not args.quiet)
+    print(f"run      {args.out}\n"
+          f"data     {summary['train_samples']} samples from {summary['train_episodes']} episodes "
+          f"(val: {summary['val_episodes']} episodes)\n"
+          f"steps    {summary['steps']}, final loss {summary['final_loss']}\n"
+          f"wall     {summary['train_s']:.1f} s training ({summary['val_s']:.1f} s of it validation) on "
+          f"{summary['device']}")
+    return EXIT_OK
+
+
+def cmd_predict(args: argparse.Namespace) -> int:
+    from cosim.learn import require_torch
+
+    require_torch()
+    from tqdm import tqdm
+
+    from cosim.eval.dataset import load_dataset
+    from cosim.learn.data import Samples, Setup, check_classes, split_episodes
+    from cosim.learn.train import device_of, load_run, record_lines
+
+    if not args.out.endswith(".jsonl"):
+        raise InputError(f"--out {args.out}: predictions are a .jsonl file")
+    device = device_of(args.device)
+    if args.threads:
+        require_torch().set_num_threads(args.threads)
+    model, setup, _ = load_run(Path(args.run), device)
+    if args.fusion or args.agents:
+        fusion = args.fusion or setup.fusion
+        setup = Setup(fusion=fusion, agents=args.agents or ("ego" if fusion == "none" else setup.agents),
+                      classes=setup.classes, grid=setup.grid, delivery=setup.delivery, min_points=setup.min_points)
+    if args.delivery:
+        setup = dataclasses.replace(setup, delivery=True)
+    refs = split_episodes(load_dataset(Path(args.dataset)), args.split, "test", args.dataset)
+    check_classes(refs, setup.classes, f"the model in {args.run}")
+    samples = Samples(refs, setup, every=args.every)
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(samples), desc="predict", unit="sample", file=sys.stderr,
+               disable=args.quiet or not sys.stderr.isatty(), dynamic_ncols=True)
+    try:
+        lines = record_lines(model, samples, device, progress=lambda done, total: bar.update(done - bar.n))
+    finally:
+        bar.close()
+        samples.close()
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("".join(line + "\n" for line in lines))
+    print(f"predictions {out}: {len(lines)} records from {len(refs)} episodes, fusion {setup.fusion}, agents "
+          f"{setup.agents} ({time.perf_counter() - t0:.1f} s)")
+    return EXIT_OK
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    from cosim.learn import require_torch
+
+    require_torch()
+    from cosim.eval.dataset import load_dataset
+    from cosim.learn.data import split_episodes
+    from cosim.learn.train import validate_checkpoints
+
+    run = Path(args.run)
+    refs = split_episodes(load_dataset(Path(args.dataset)), args.split, args.split, args.dataset)
+    t0 = time.perf_counter()
+    for step, ap in validate_checkpoints(run, refs, args.every, args.split, threads=args.threads):
+        print(f"step {step}: {args.split} AP30 {ap['AP30']:.1f}  AP50 {ap['AP50']:.1f}  AP70 {ap['AP70']:.1f}")
+    print(f"wall     {time.perf_counter() - t0:.1f} s")
+    return EXIT_OK
+
+
+def cmd_curves(args: argparse.Namespace) -> int:
+    from cosim.learn.curves import plot_curves
+
+    path = plot_curves([Path(r) for r in args.runs], Path(args.out), args.title)
+    print(path)
+    return EXIT_OK
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from cosim.eval.predictions import SETTINGS
+    from cosim.learn.data import FUSIONS
+
+    lp = sub.add_parser("learn", help="train the LiDAR detector on a dataset and predict (needs the 'learn' extra)")
+    lsub = lp.add_subparsers(dest="learn_command", metavar="ACTION", parser_class=type(lp))
+    lsub.required = True
+
+    tr = lsub.add_parser("train", help="train a detector: cosim learn train DATASET --out RUN")
+    tr.add_argument("dataset", help="batch folder (its train split, or every episode when it has no splits), a "
+                                    "folder of episodes or one episode")
+    tr.add_argument("--out", required=True, help="run folder: checkpoint.pt, log.jsonl, summary.json")
+    tr.add_argument("--fusion", choices=FUSIONS, default="none", help="none (ego only), late (boxes merged), "
+                                                                      "early (points merged); default none")
+    tr.add_argument("--agents", choices=list(SETTINGS), help="collaborating agent kinds (default: ego for "
+                                                                    "fusion none, all otherwise)")
+    tr.add_argument("--classes", nargs="+", metavar="CLASS", help="object classes to detect (default: the six "
+                                                                  "vehicle classes)")
+    tr.add_argument("--delivery", action="store_true", help="apply /comm/links: drop a collaborator's data for "
+                                                            "a tick when its link to the ego does not deliver")
+    tr.add_argument("--epochs", type=_positive, default=1, help="passes over the training samples (default 1)")
+    tr.add_argument("--steps", type=_positive, help="optimiser steps in total (overrides --epochs)")
+    tr.add_argument("--batch-size", type=_positive, default=2)
+    tr.add_argument("--lr", type=float, default=2e-3)
+    tr.add_argument("--every", type=_positive, default=1, help="train on ticks 0, every, 2 every... (default 1)")
+    tr.add_argument("--split", help="training split (default: train, or all episodes of a dataset without splits)")
+    tr.add_argument("--val-split", help="validation split (default: val when the dataset has one)")
+    tr.add_argument("--no-val", action="store_true", help="no validation")
+    tr.add_argument("--val-every-tick", type=_positive, default=10, help="validate on ticks 0, k, 2k... (default 10)")
+    tr.add_argument("--val-steps", type=int, default=0, help="validate every this many steps (default: at the end)")
+    tr.add_argument("--save-every", type=_positive, default=100, help="checkpoint every this many steps")
+    tr.add_argument("--keep-every", type=int, default=0, help="also keep checkpoint_<step>.pt every this many "
+                                                              "steps (for cosim learn validate)")
+    tr.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--width", type=_positive, default=16, help="pillar feature channels (default 16)")
+    tr.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's; 1 is fastest on a "
+                                                      "busy machine)")
+    tr.add_argument("--device", help="torch device (default: cuda when present, else cpu)")
+    tr.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    tr.set_defaults(func=cmd_train)
+
+    pr = lsub.add_parser("predict", help="write predictions for cosim eval: cosim learn predict RUN DATASET --out F")
+    pr.add_argument("run", help="a run folder of cosim learn train")
+    pr.add_argument("dataset", help="batch folder (its test split by default), a folder of episodes or one episode")
+    pr.add_argument("--out", required=True, help="predictions file (.jsonl)")
+    pr.add_argument("--split", help="split to predict (default: test, or all episodes of a dataset without splits)")
+    pr.add_argument("--every", type=_positive, default=1, help="predict ticks 0, every, 2 every... (default 1)")
+    pr.add_argument("--fusion", choices=FUSIONS, help="fuse otherwise than the model was trained (e.g. late with an "
+                                                      "ego-only model: each agent's cloud detected alone)")
+    pr.add_argument("--agents", choices=list(SETTINGS), help="collaborating agent kinds at prediction time "
+                                                             "(default: the model's)")
+    pr.add_argument("--delivery", action="store_true", help="apply /comm/links delivery (see train)")
+    pr.add_argument("--device", help="torch device (default: cuda when present, else cpu)")
+    pr.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's)")
+    pr.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    pr.set_defaults(func=cmd_predict)
+
+    va = lsub.add_parser("validate", help="score every kept checkpoint of a run on a split (the learning curve "
+                                          "in log.jsonl)")
+    va.add_argument("run", help="a run folder of cosim learn train (with checkpoint_<step>.pt from --keep-every)")
+    va.add_argument("dataset", help="batch folder")
+    va.add_argument("--split", default="val", help="split to score (default val)")
+    va.add_argument("--every", type=_positive, default=10, help="ticks 0, every, 2 every... (default 10)")
+    va.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's)")
+    va.set_defaults(func=cmd_validate)
+
+    cu = lsub.add_parser("curves", help="plot validation AP against steps of one or more runs (PNG)")
+    cu.add_argument("runs", nargs="+", help="run folders")
+    cu.add_argument("--out", required=True, help="PNG file")
+    cu.add_argument("--title", default="validation AP (vehicle) against training steps")
+    cu.set_defaults(func=cmd_curves)
+

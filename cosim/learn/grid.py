@@ -1,0 +1,184 @@
+"""The detector's bird's-eye grid in numpy: pillars from points (the voxeliser), centre-heatmap targets
+from boxes, and boxes back from the head's maps. No torch here.
+
+Frames and units are the ego LiDAR frame's (FLU, metres, radians; docs/episode_format.md).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+#: Point features per point in a pillar: x, y, z, intensity, offsets to the pillar's point mean (3) and to
+#: the pillar's centre (2).
+POINT_FEATURES = 9
+#: Regression channels per output cell: dx, dy (offset in cells), z, log l, log w, log h, sin yaw, cos yaw.
+REG_CHANNELS = 8
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Detection range and pillar size. ``stride``: output cells per pillar side (the head's maps are
+    ``ny / stride`` x ``nx / stride``)."""
+
+    x_range: tuple[float, float] = (-70.4, 70.4)
+    y_range: tuple[float, float] = (-40.0, 40.0)
+    z_range: tuple[float, float] = (-3.0, 1.0)
+    pillar_m: float = 0.8
+    max_points: int = 32
+    max_pillars: int = 16000
+    stride: int = 2
+
+    @property
+    def nx(self) -> int:
+        return round((self.x_range[1] - self.x_range[0]) / self.pillar_m)
+
+    @property
+    def ny(self) -> int:
+        return round((self.y_range[1] - self.y_range[0]) / self.pillar_m)
+
+    @property
+    def out_shape(self) -> tuple[int, int]:
+        return math.ceil(self.ny / self.stride), math.ceil(self.nx / self.stride)
+
+    @property
+    def cell_m(self) -> float:
+        return self.pillar_m * self.stride
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Grid:
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+    def crop(self, points: np.ndarray) -> np.ndarray:
+        """The points (N, >=3) inside the range."""
+        x, y, z = points[:, 0], points[:, 1], points[:, 2]
+        keep = ((x >= self.x_range[0]) & (x < self.x_range[1]) & (y >= self.y_range[0]) & (y < self.y_range[1])
+                & (z >= self.z_range[0]) & (z < self.z_range[1]))
+        return points[keep]
+
+    def box_inside(self, centers: np.ndarray) -> np.ndarray:
+        return ((centers[:, 0] >= self.x_range[0]) & (centers[:, 0] < self.x_range[1])
+                & (centers[:, 1] >= self.y_range[0]) & (centers[:, 1] < self.y_range[1]))
+
+
+def voxelise(points: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pillars of a point cloud (N, 4: x, y, z, intensity) in the grid's frame.
+
+    Returns ``features`` (P, max_points, 9) float32, ``coords`` (P, 2) int64 (row iy, column ix) and
+    ``counts`` (P,) points per pillar (<= max_points). Points are kept in their given order within a pillar
+    (the first ``max_points``); when more than ``max_pillars`` pillars are occupied, the fullest are kept
+    (ties by grid index), so the result depends only on the points.
+    """
+    pts = grid.crop(np.asarray(points, np.float32))
+    m = grid.max_points
+    if len(pts) == 0:
+        return (np.zeros((0, m, POINT_FEATURES), np.float32), np.zeros((0, 2), np.int64), np.zeros(0, np.int64))
+    ix = np.floor((pts[:, 0] - grid.x_range[0]) / grid.pillar_m).astype(np.int64).clip(0, grid.nx - 1)
+    iy = np.floor((pts[:, 1] - grid.y_range[0]) / grid.pillar_m).astype(np.int64).clip(0, grid.ny - 1)
+    flat = iy * grid.nx + ix
+    order = np.argsort(flat, kind="stable")
+    flat_s, pts_s = flat[order], pts[order]
+    uniq, start, counts = np.unique(flat_s, return_index=True, return_counts=True)
+    rank = np.arange(len(flat_s)) - np.repeat(start, counts)
+    if len(uniq) > grid.max_pillars:
+        keep = np.lexsort((uniq, -counts))[: grid.max_pillars]
+        keep.sort()
+        sel = np.zeros(len(uniq), bool)
+        sel[keep] = True
+        point_sel = np.repeat(sel, counts)
+        uniq, counts = uniq[sel], counts[sel]
+        flat_s, pts_s, rank = flat_s[point_sel], pts_s[point_sel], rank[point_sel]
+    pillar = np.repeat(np.arange(len(uniq)), counts)
+    ok = rank < m
+    pillar, rank, p = pillar[ok], rank[ok], pts_s[ok]
+    n = np.minimum(counts, m)
+    feats = np.zeros((len(uniq), m, POINT_FEATURES), np.float32)
+    feats[pillar, rank, :4] = p[:, :4]
+    mean = np.zeros((len(uniq), 3), np.float64)
+    np.add.at(mean, pillar, p[:, :3].astype(np.float64))
+    mean /= n[:, None]
+    feats[pillar, rank, 4:7] = p[:, :3] - mean[pillar].astype(np.float32)
+    cy, cx = np.divmod(uniq, grid.nx)
+    centre_x = grid.x_range[0] + (cx + 0.5) * grid.pillar_m
+    centre_y = grid.y_range[0] + (cy + 0.5) * grid.pillar_m
+    feats[pillar, rank, 7] = p[:, 0] - centre_x[pillar]
+    feats[pillar, rank, 8] = p[:, 1] - centre_y[pillar]
+    return feats, np.stack([cy, cx], axis=1).astype(np.int64), n.astype(np.int64)
+
+
+def gaussian_radius(length_cells: float, width_cells: float, min_overlap: float = 0.1) -> float:
+    """CenterNet's radius: how far a corner may move while the box keeps ``min_overlap`` IoU (three cases,
+    the smallest root)."""
+    h, w = length_cells, width_cells
+    b1 = h + w
+    c1 = w * h * (1 - min_overlap) / (1 + min_overlap)
+    r1 = (b1 + math.sqrt(b1 ** 2 - 4 * c1)) / 2
+    b2 = 2 * (h + w)
+    c2 = (1 - min_overlap) * w * h
+    r2 = (b2 + math.sqrt(b2 ** 2 - 16 * c2)) / 2
+    a3 = 4 * min_overlap
+    b3 = -2 * min_overlap * (h + w)
+    c3 = (min_overlap - 1) * w * h
+    r3 = (b3 + math.sqrt(b3 ** 2 - 4 * a3 * c3)) / 2
+    return min(r1, r2, r3)
+
+
+def targets(boxes: np.ndarray, labels: np.ndarray, grid: Grid, n_classes: int, max_objects: int = 128
+            ) -> dict[str, np.ndarray]:
+    """Training targets of one sample: ``heatmap`` (K, H, W) with a Gaussian peak of 1 at each box centre
+    in its class's channel, and up to ``max_objects`` regression targets ``reg`` (O, 8) at cells ``index``
+    (O,) (flat row * W + column), ``mask`` (O,) marking the used rows."""
+    h, w = grid.out_shape
+    heat = np.zeros((n_classes, h, w), np.float32)
+    reg = np.zeros((max_objects, REG_CHANNELS), np.float32)
+    index = np.zeros(max_objects, np.int64)
+    mask = np.zeros(max_objects, np.float32)
+    cell = grid.cell_m
+    yy, xx = np.mgrid[0:h, 0:w]
+    n = 0
+    for box, k in zip(boxes, labels, strict=True):
+        if n >= max_objects:
+            break
+        fx = (box[0] - grid.x_range[0]) / cell
+        fy = (box[1] - grid.y_range[0]) / cell
+        cx, cy = int(fx), int(fy)
+        if not (0 <= cx < w and 0 <= cy < h):
+            continue
+        radius = max(1.0, gaussian_radius(box[3] / cell, box[4] / cell))
+        sigma = (2 * radius + 1) / 6
+        r = math.ceil(radius)
+        y0, y1, x0, x1 = max(0, cy - r), min(h, cy + r + 1), max(0, cx - r), min(w, cx + r + 1)
+        g = np.exp(-((xx[y0:y1, x0:x1] - cx) ** 2 + (yy[y0:y1, x0:x1] - cy) ** 2) / (2 * sigma ** 2))
+        np.maximum(heat[k, y0:y1, x0:x1], g.astype(np.float32), out=heat[k, y0:y1, x0:x1])
+        reg[n] = [fx - cx, fy - cy, box[2], math.log(box[3]), math.log(box[4]), math.log(box[5]),
+                  math.sin(box[6]), math.cos(box[6])]
+        index[n] = cy * w + cx
+        mask[n] = 1.0
+        n += 1
+    return {"heatmap": heat, "reg": reg, "index": index, "mask": mask}
+
+
+def decode(heat: np.ndarray, reg: np.ndarray, grid: Grid, score_min: float = 0.1, top_k: int = 100
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Boxes from one sample's head output: ``heat`` (K, H, W) probabilities, already reduced to local
+    maxima (others 0), ``reg`` (8, H, W). Returns boxes (N, 7) [x, y, z, l, w, h, yaw], scores (N,),
+    class indices (N,), best first."""
+    _k, h, w = heat.shape
+    flat = heat.reshape(-1)
+    cand = np.nonzero(flat >= score_min)[0]
+    cand = cand[np.argsort(-flat[cand], kind="stable")][:top_k]
+    cls, rest = np.divmod(cand, h * w)
+    cy, cx = np.divmod(rest, w)
+    r = reg[:, cy, cx]
+    cell = grid.cell_m
+    x = grid.x_range[0] + (cx + r[0]) * cell
+    y = grid.y_range[0] + (cy + r[1]) * cell
+    size = np.exp(np.clip(r[3:6], -3.0, 3.5))
+    yaw = np.arctan2(r[6], r[7])
+    boxes = np.stack([x, y, r[2], size[0], size[1], size[2], yaw], axis=1).astype(np.float64)
+    return boxes.reshape(-1, 7), flat[cand].astype(np.float64), cls.astype(np.int64)

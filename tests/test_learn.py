@@ -1,0 +1,285 @@
+"""``cosim learn`` (cosim/learn/, issue 29): the numpy parts, the detector trained on a tiny real LiDAR-only
+batch (the loss falls, the predictions pass ``cosim eval``'s validator and score above 0 on the training
+episodes), determinism and resume, bad input, and a core that never imports torch."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cosim.learn.grid import Grid, decode, targets, voxelise
+from cosim.learn.nms import circle_nms
+
+from tests.helpers import REPO, run_cli
+
+HAVE_TORCH = importlib.util.find_spec("torch") is not None
+needs_torch = pytest.mark.skipif(not HAVE_TORCH, reason="PyTorch is not installed (pip install -e '.[learn]'; "
+                                                        "make test installs it)")
+
+SWEEP = """\
+name: learntest
+description: two tiny LiDAR-only episodes for the cosim learn tests
+seed: 5
+base: {base}
+set:
+  duration_s: 1
+  map.size_m: 300
+  traffic.density_veh_per_km: 14
+  agents.vehicles.count: 2
+  agents.rsus.count: 1
+  agents.drones: [{{strategy: hover, altitude_m: 40}}]
+  environment.lighting: day
+  sensors.bev: false
+  sensors.vehicle.cameras: []
+  sensors.rsu.cameras: []
+  sensors.drone.cameras: []
+axes:
+  environment: {{key: map.kind, values: [urban]}}
+count: 2
+split: {{train: 1, test: 1}}
+"""
+
+
+# ------------------------------------------------------------------------------------------ numpy parts
+
+
+def test_voxelise_puts_points_in_their_pillars_and_caps_them():
+    g = Grid(x_range=(-8.0, 8.0), y_range=(-4.0, 4.0), pillar_m=1.0, max_points=3, max_pillars=100)
+    pts = np.array([[0.5, 0.5, 0.0, 1.0]] * 5 + [[-7.5, 3.5, -1.0, 0.5], [9.0, 0.0, 0.0, 1.0],
+                                                 [0.0, 0.0, 5.0, 1.0]], np.float32)
+    feats, coords, counts = voxelise(pts, g)
+    # the point beyond x 8 and the one above z 1 are cropped; five points share a pillar, capped at three
+    assert sorted(map(tuple, coords.tolist())) == [(4, 8), (7, 0)]
+    by_cell = dict(zip(map(tuple, coords.tolist()), counts.tolist(), strict=True))
+    assert by_cell == {(4, 8): 3, (7, 0): 1}
+    row = int(np.nonzero((coords == [4, 8]).all(axis=1))[0][0])
+    np.testing.assert_allclose(feats[row, :3, 7:9], [[0.0, 0.0]] * 3, atol=1e-6)  # at the pillar's centre
+    assert (feats[row, 3:] == 0).all()
+    _f2, c2, _n2 = voxelise(pts[::-1].copy(), g)
+    assert sorted(map(tuple, c2.tolist())) == sorted(map(tuple, coords.tolist()))
+
+
+def test_voxelise_keeps_the_fullest_pillars_when_too_many():
+    g = Grid(x_range=(-4.0, 4.0), y_range=(-4.0, 4.0), pillar_m=1.0, max_points=4, max_pillars=2)
+    pts = np.array([[0.5, 0.5, 0, 1]] * 3 + [[1.5, 0.5, 0, 1]] + [[-2.5, -2.5, 0, 1]] * 2, np.float32)
+    _, _coords, counts = voxelise(pts, g)
+    assert sorted(counts.tolist()) == [2, 3]
+
+
+def test_targets_decode_back_to_the_boxes():
+    g = Grid()
+    boxes = np.array([[10.3, -5.2, -1.0, 4.5, 1.9, 1.6, 0.3], [-30.1, 20.7, -0.8, 12.0, 2.5, 3.2, -2.0]])
+    t = targets(boxes, np.array([0, 3]), g, 6)
+    assert t["mask"].sum() == 2 and t["heatmap"].max() == 1.0
+    reg = np.zeros((8, *g.out_shape), np.float32)
+    for n in range(2):
+        cy, cx = divmod(int(t["index"][n]), g.out_shape[1])
+        reg[:, cy, cx] = t["reg"][n]
+    heat = t["heatmap"] * (t["heatmap"] == 1)
+    out, _scores, cls = decode(heat, reg, g)
+    np.testing.assert_allclose(out, boxes, atol=1e-5)
+    assert cls.tolist() == [0, 3]
+
+
+def test_circle_nms_keeps_the_best_of_close_centres():
+    centres = np.array([[0.0, 0.0], [0.5, 0.0], [10.0, 0.0], [10.0, 1.9]])
+    keep = circle_nms(centres, np.array([0.5, 0.9, 0.3, 0.8]), radius_m=2.0)
+    assert keep.tolist() == [1, 3]
+
+
+def test_delivery_draw_is_repeatable():
+    from cosim.learn.data import _delivered
+
+    assert not _delivered("ep", 3, "rsu_0", "vehicle_0", 0.0)
+    assert _delivered("ep", 3, "rsu_0", "vehicle_0", 1.0)
+    draws = [_delivered("ep", t, "rsu_0", "vehicle_0", 0.5) for t in range(200)]
+    assert draws == [_delivered("ep", t, "rsu_0", "vehicle_0", 0.5) for t in range(200)]
+    assert 60 < sum(draws) < 140
+
+
+# ------------------------------------------------------------------------------------------ torch-free core
+
+
+def test_core_and_run_path_never_import_torch(tmp_path):
+    code = f"""
+import sys
+import cosim.cli
+cosim.cli.build_parser()
+import cosim.eval.evaluate, cosim.io.dataset, cosim.learn.data, cosim.learn.grid, cosim.learn.nms, cosim.learn.cli
+assert 'torch' not in sys.modules, 'importing the core imported torch'
+rc = cosim.cli.main(['run', 'default', '--duration', '0.2', '--out', {str(tmp_path)!r}, '-q',
+                     '--set', 'map.size_m=300', '--set', 'sensors.vehicle.cameras=[]',
+                     '--set', 'sensors.rsu.cameras=[]', '--set', 'sensors.drone.cameras=[]'])
+assert rc == 0, rc
+assert 'torch' not in sys.modules, 'cosim run imported torch'
+print('ok')
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-3000:]
+
+
+def test_learn_without_torch_says_how_to_install(tmp_path):
+    fake = tmp_path / "site" / "torch"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'torch'\", name='torch')\n")
+    env = {"PYTHONPATH": f"{tmp_path / 'site'}:{REPO}"}
+    for args in (["learn", "train", str(tmp_path), "--out", str(tmp_path / "run")],
+                 ["learn", "predict", str(tmp_path / "run"), str(tmp_path), "--out", str(tmp_path / "p.jsonl")]):
+        r = run_cli(*args, env=env)
+        assert r.returncode == 2, r.stderr
+        assert "pip install -e '.[learn]'" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+# ------------------------------------------------------------------------------------------ trained on real data
+
+
+@pytest.fixture(scope="module")
+def tiny_batch(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("learnbatch")
+    sweep = root / "sweep.yaml"
+    sweep.write_text(SWEEP.format(base=REPO / "scenarios" / "base" / "paper.yaml"))
+    out = root / "batch"
+    r = run_cli("batch", str(sweep), "--out", str(out), "--workers", "1", "-q", timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return out
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_batch, tmp_path_factory) -> Path:
+    run = tmp_path_factory.mktemp("learnrun") / "run"
+    r = run_cli("learn", "train", str(tiny_batch), "--out", str(run), "--steps", "30", "--batch-size", "2",
+                "--lr", "5e-3", "--threads", "1", "--seed", "1", "-q")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "steps    30" in r.stdout
+    return run
+
+
+@needs_torch
+@pytest.mark.integration
+@pytest.mark.timeout(900)
+def test_thirty_steps_lower_the_loss(trained):
+    rows = [json.loads(line) for line in (trained / "log.jsonl").read_text().splitlines()]
+    loss = [r["loss"] for r in rows if "loss" in r]
+    assert len(loss) == 30
+    assert np.mean(loss[-5:]) < 0.5 * np.mean(loss[:5]), loss
+
+
+@needs_torch
+@pytest.mark.integration
+@pytest.mark.timeout(900)
+def test_predictions_pass_the_validator_and_score_on_training_episodes(trained, tiny_batch, tmp_path):
+    from cosim.eval.predictions import read_predictions
+
+    preds = tmp_path / "preds.jsonl"
+    r = run_cli("learn", "predict", str(trained), str(tiny_batch), "--split", "train", "--out", str(preds), "-q")
+    assert r.returncode == 0, r.stderr[-3000:]
+    records = read_predictions(preds)  # the validator of cosim eval: raises on any malformed record
+    assert len(records) == 2 * 5 and {rec.agents for rec in records} == {"ego"}
+    r = run_cli("eval", "--gt", str(tiny_batch), "--split", "train", "--pred", str(preds), "--visible-only",
+                "--out", str(tmp_path / "eval"))
+    assert r.returncode == 0, r.stderr[-3000:]
+    overall = json.loads((tmp_path / "eval" / "eval.json").read_text())
+    ap30 = _ap(overall, "AP30")
+    assert ap30 > 0.0, overall
+
+
+def _ap(doc: dict, key: str) -> float:
+    for table in doc["tables"]:
+        if table["name"] == "overall":
+            row = table["rows"][0]
+            return float(row[table["columns"].index(key)])
+    raise AssertionError("no overall table")
+
+
+@needs_torch
+@pytest.mark.integration
+@pytest.mark.timeout(900)
+def test_same_seed_same_weights_and_resume_continues_exactly(tiny_batch, tmp_path):
+    import torch
+
+    from cosim.eval.dataset import load_dataset
+    from cosim.learn.data import Setup
+    from cosim.learn.train import CHECKPOINT, TrainOptions, train
+
+    refs = [r for r in load_dataset(tiny_batch) if r.split == "train"]
+    setup = Setup(fusion="early", agents="all")
+
+    def weights(run: Path) -> dict:
+        return torch.load(run / CHECKPOINT, weights_only=False)["model"]
+
+    opts = TrainOptions(steps=4, batch_size=2, seed=3, every=2, threads=1)
+    train(refs, None, setup, opts, tmp_path / "a", show_progress=False)
+    train(refs, None, setup, opts, tmp_path / "b", show_progress=False)
+    train(refs, None, setup, TrainOptions(steps=4, batch_size=2, seed=4, every=2, threads=1), tmp_path / "c",
+          show_progress=False)
+    half = TrainOptions(steps=2, batch_size=2, seed=3, every=2, threads=1)
+    train(refs, None, setup, half, tmp_path / "d", show_progress=False)
+    train(refs, None, setup, opts, tmp_path / "d", resume=True, show_progress=False)
+    a, b, c, d = (weights(tmp_path / n) for n in "abcd")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not all(torch.equal(a[k], c[k]) for k in a)
+    assert all(torch.equal(a[k], d[k]) for k in a), "a resumed run differs from an uninterrupted one"
+    assert len((tmp_path / "d" / "log.jsonl").read_text().splitlines()) == 4
+
+
+@needs_torch
+@pytest.mark.integration
+@pytest.mark.timeout(900)
+def test_late_fusion_detects_per_agent_and_merges(tiny_batch, tmp_path):
+    from cosim.eval.dataset import load_dataset
+    from cosim.learn.data import Samples, Setup
+    from cosim.learn.train import TrainOptions, load_run, predict_sample, train
+
+    refs = [r for r in load_dataset(tiny_batch) if r.split == "train"]
+    setup = Setup(fusion="late", agents="all")
+    train(refs, None, setup, TrainOptions(steps=2, batch_size=2, every=2, threads=1), tmp_path / "late",
+          show_progress=False)
+    model, loaded, _ = load_run(tmp_path / "late")
+    assert loaded == setup
+    samples = Samples(refs, setup, every=2)
+    item = max((samples.item(i) for i in range(len(samples))), key=lambda it: len(it["clouds"]))
+    assert len(item["clouds"]) >= 2 and all(len(s) == 1 for s in item["sources"])  # one cloud per agent
+    boxes, _scores, _ = predict_sample(model, item, setup, model.heat.weight.device, score_min=0.0)
+    centres = boxes[:, :2]
+    gaps = np.linalg.norm(centres[:, None] - centres[None], axis=2) + np.eye(len(centres)) * 1e9
+    assert gaps.min() >= 2.0  # merged: no two kept boxes closer than the NMS radius
+    samples.close()
+
+
+@needs_torch
+@pytest.mark.integration
+@pytest.mark.timeout(900)
+def test_bad_input_one_message_exit_2(trained, tiny_batch, tmp_path):
+    import torch
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    cases = [
+        (["learn", "train", str(tiny_batch), "--out", str(tmp_path / "r1"), "--split", "nope"], "no episode in split"),
+        (["learn", "train", str(empty), "--out", str(tmp_path / "r2")], "no finished episodes"),
+        (["learn", "train", str(tiny_batch), "--out", str(tmp_path / "r3"), "--classes", "zeppelin"],
+         "no class zeppelin"),
+        (["learn", "train", str(tiny_batch), "--out", str(tmp_path / "r4"), "--fusion", "none", "--agents", "all"],
+         "fusion none uses the ego alone"),
+        (["learn", "train", str(tiny_batch), "--out", str(trained), "--steps", "1"], "already holds a training run"),
+        (["learn", "predict", str(tmp_path), str(tiny_batch), "--out", str(tmp_path / "p.jsonl")], "no checkpoint.pt"),
+        (["learn", "predict", str(trained), str(tiny_batch), "--out", str(tmp_path / "p.txt")], "a .jsonl file"),
+    ]
+    ckpt = torch.load(trained / "checkpoint.pt", weights_only=False)
+    ckpt["setup"]["classes"] = ["car", "zeppelin", *ckpt["setup"]["classes"][2:]]  # same head, one class unknown
+    other = tmp_path / "other"
+    other.mkdir()
+    torch.save(ckpt, other / "checkpoint.pt")
+    cases.append((["learn", "predict", str(other), str(tiny_batch), "--out", str(tmp_path / "p.jsonl")],
+                  "no class zeppelin"))
+    for args, words in cases:
+        r = run_cli(*args)
+        assert r.returncode == 2, (args, r.stderr[-2000:])
+        lines = [line for line in r.stderr.strip().splitlines() if "Warning" not in line]
+        assert words in r.stderr and len(lines) == 1, (args, r.stderr[-2000:])
