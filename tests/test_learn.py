@@ -15,7 +15,6 @@ import pytest
 
 from cosim.learn.grid import Grid, decode, targets, voxelise
 from cosim.learn.nms import circle_nms
-
 from tests.helpers import REPO, run_cli
 
 HAVE_TORCH = importlib.util.find_spec("torch") is not None
