@@ -1,6 +1,7 @@
 # Two commands for a fresh Debian machine with Python 3.11 (see README):
 #   make run    install into .venv if needed, then generate the default episode
 #   make test   install the test extras if needed, then run the whole suite
+#   make test-fast  the unit tests only: no engines, no `cosim run` processes (a few minutes)
 #   make image  build the Docker image (README, "Containers")
 SHELL := /bin/bash
 .DEFAULT_GOAL := help
@@ -25,11 +26,12 @@ EXTRAS      ?=
 DOCKER      ?= docker
 WHEEL_STAMP := wheelhouse/.stamp
 
-.PHONY: help run test sysdeps lint bench clean image base-image wheelhouse
+.PHONY: help run test test-fast sysdeps lint bench clean image base-image wheelhouse
 
 help:
 	@echo "make run    generate the default episode ($(SCENARIO)) into out/"
 	@echo "make test   run the whole test suite"
+	@echo "make test-fast  unit tests only (no engines, no cosim run processes)"
 	@echo "make lint   ruff"
 	@echo "make bench  co-simulation overhead benchmark"
 	@echo "make image  Docker image $(IMAGE) (BASE=$(BASE) WHEELHOUSE=$(WHEELHOUSE) EXTRAS=$(EXTRAS))"
@@ -84,6 +86,13 @@ run: sysdeps $(STAMP)
 # pytest exits 5 when it collected no test: that is a failure here, never a pass.
 test: sysdeps $(TEST_STAMP)
 	@set +e; $(VPY) -m pytest $(PYTEST_ARGS); rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc
+
+# The fast lane: tests not marked integration, container or cluster. tests/conftest.py makes a test of this
+# lane fail when it starts SUMO, JSBSim, PyBullet or a `cosim run` process.
+FAST_MARKS := not integration and not container and not cluster
+test-fast: sysdeps $(TEST_STAMP)
+	@set +e; COSIM_TEST_FAST=1 $(VPY) -m pytest -m "$(FAST_MARKS)" $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc
 
 lint: $(TEST_STAMP)

@@ -17,16 +17,14 @@ import time
 
 import numpy as np
 from cosim.sensors import SensorSuite
-from cosim.sensors.synthetic import synthetic_snapshot, synthetic_world
+from cosim.sensors.synthetic import synthetic_scenario, synthetic_snapshot, synthetic_world
 
 from cosim.scenario.model import (
     AgentsSpec,
     LidarSpec,
     RigSpec,
-    RsuAgents,
     Scenario,
     SensorsSpec,
-    VehicleAgents,
     default_drone_rig,
     default_rsu_rig,
     default_vehicle_rig,
@@ -38,8 +36,8 @@ def _scenario(**lidar) -> Scenario:
     for kind, rig in (("vehicle", default_vehicle_rig()), ("rsu", default_rsu_rig()), ("drone", default_drone_rig())):
         spec = rig.lidar.model_copy(update=lidar.get(kind, lidar.get("all", {})))
         rigs[kind] = RigSpec(lidar=spec, cameras=[], gnss=None, imu=None)
-    return Scenario(name="lidar_cost", agents=AgentsSpec(vehicles=VehicleAgents(count=5), rsus=RsuAgents(count=5)),
-                    sensors=SensorsSpec(bev=False, **rigs))
+    return synthetic_scenario(name="lidar_cost", vehicles=5, rsus=5, drones=AgentsSpec().drones,
+                              sensors=SensorsSpec(bev=False, **rigs))
 
 
 def _moving(snap, speed: float):

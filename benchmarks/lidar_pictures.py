@@ -19,25 +19,20 @@ import matplotlib.pyplot as plt
 import numpy as np
 from cosim.sensors import SensorSuite
 from cosim.sensors.lidar import rosette_pattern, sweep_ns
-from cosim.sensors.synthetic import synthetic_snapshot, synthetic_world
+from cosim.sensors.synthetic import synthetic_scenario, synthetic_snapshot, synthetic_world
 
 from cosim.geometry import quat_from_rpy
 from cosim.scenario.model import (
-    AgentsSpec,
     LidarSpec,
     RigSpec,
-    RsuAgents,
-    Scenario,
     SensorsSpec,
-    VehicleAgents,
 )
 from cosim.snapshot import AgentState, WorldSnapshot
 
 
 def _sweep(lidar: LidarSpec, speed_mps: float, seed: int = 0):
-    sc = Scenario(name="pictures", agents=AgentsSpec(vehicles=VehicleAgents(count=1), rsus=RsuAgents(count=0),
-                                                      drones=[]),
-                  sensors=SensorsSpec(vehicle=RigSpec(lidar=lidar, cameras=[], gnss=None, imu=None), bev=False))
+    rig = RigSpec(lidar=lidar, cameras=[], gnss=None, imu=None)
+    sc = synthetic_scenario(name="pictures", sensors=SensorsSpec(vehicle=rig, bev=False))
     base = synthetic_snapshot(n_vehicles=0, n_rsus=0, n_drones=0)
     agent = AgentState("vehicle_0", "vehicle", (-20.0, -3.5, 0.02), quat_from_rpy(0.0, 0.0, 0.0),
                        (speed_mps, 0.0, 0.0))

@@ -24,7 +24,7 @@ from typing import Annotated, Any, Literal
 from pydantic import Field, TypeAdapter, ValidationError
 
 from cosim.errors import ActionRejected
-from cosim.scenario.model import DroneSpec, EscortDrone, Model
+from cosim.scenario.model import DRONE_STRATEGIES, DroneSpec, EscortDrone, Model
 
 MAX_VEHICLE_SPEED_MPS = 70.0  # [m/s] above any road vehicle
 
@@ -127,7 +127,7 @@ def check_actions(actions: Any, ctx: ActionContext) -> list[Action]:
 
 
 #: Discriminator values pydantic puts into error locations; left out of the key path shown.
-DRONE_KINDS_OR_TYPES = frozenset({*VEHICLE_ACTIONS, *DRONE_ACTIONS, "hover", "patrol", "escort"})
+DRONE_KINDS_OR_TYPES = frozenset({*VEHICLE_ACTIONS, *DRONE_ACTIONS, *DRONE_STRATEGIES})
 
 
 def _problem(a: Action, ctx: ActionContext) -> str | None:

@@ -7,6 +7,7 @@ Light on purpose (no engine is imported): a missing package is found with ``impo
 from __future__ import annotations
 
 import importlib.util
+import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -84,3 +85,32 @@ def check_ray_installed() -> None:
     """``--backend ray`` needs the ``ray`` extra."""
     if importlib.util.find_spec("ray") is None:
         raise InputError(RAY_MISSING)
+
+
+def check_output_dir(out_dir: Path, *, create: bool = True) -> None:
+    """Make sure episodes can be written into ``out_dir`` (created if missing) before any work is done.
+
+    Raises :class:`~cosim.errors.InputError` naming the folder for a path that is a file, lies under a file,
+    cannot be created or is not writable (read-only file system, no permission, ``/proc``). ``create=False``
+    (dry runs) creates nothing: a missing folder's nearest existing parent must be a writable folder.
+    """
+    out = probe = Path(out_dir)
+    try:
+        if "\0" in str(out):
+            raise ValueError("a path cannot hold a NUL character")
+        if out.exists() and not out.is_dir():
+            raise InputError(f"output folder {printable(str(out))} is a file, not a folder")
+        if create:
+            out.mkdir(parents=True, exist_ok=True)
+        else:
+            while not probe.exists() and probe.parent != probe:
+                probe = probe.parent
+            if not probe.is_dir():
+                raise InputError(f"cannot write episodes into output folder {printable(str(out))}: "
+                                 f"{printable(str(probe))} is a file, not a folder")
+        with tempfile.NamedTemporaryFile(dir=probe, prefix=".cosim-write-check-"):
+            pass
+    except (OSError, ValueError) as exc:
+        reason = getattr(exc, "strerror", None) or str(exc)
+        where = printable(str(out)) + ("" if probe == out else f" (in {printable(str(probe))})")
+        raise InputError(f"cannot write episodes into output folder {where}: {reason}") from None

@@ -27,11 +27,10 @@ import cosim
 from cosim.assemble import TrackRegistry, build_snapshot, escort_targets_of
 from cosim.classes import class_table
 from cosim.conductor import Conductor
-from cosim.errors import InputError
 from cosim.io.format import FORMAT_VERSION
+from cosim.preflight import check_output_dir
 from cosim.protocol import drone_from_dict, vehicle_from_dict
 from cosim.scenario import LoadedScenario
-from cosim.scenario.loader import printable
 from cosim.scenario.model import EscortDrone
 from cosim.snapshot import WorldSnapshot
 from cosim.world.types import World
@@ -82,35 +81,6 @@ def episode_path(loaded: LoadedScenario, out_dir: Path) -> Path:
     s = loaded.scenario
     stem = s.output.name or f"{s.name}_s{s.seed}"
     return Path(out_dir) / f"{stem}.mcap"
-
-
-def check_output_dir(out_dir: Path, *, create: bool = True) -> None:
-    """Make sure episodes can be written into ``out_dir`` (created if missing) before any work is done.
-
-    Raises :class:`~cosim.errors.InputError` naming the folder for a path that is a file, lies under a file,
-    cannot be created or is not writable (read-only file system, no permission, ``/proc``). ``create=False``
-    (dry runs) creates nothing: a missing folder's nearest existing parent must be a writable folder.
-    """
-    out = probe = Path(out_dir)
-    try:
-        if "\0" in str(out):
-            raise ValueError("a path cannot hold a NUL character")
-        if out.exists() and not out.is_dir():
-            raise InputError(f"output folder {printable(str(out))} is a file, not a folder")
-        if create:
-            out.mkdir(parents=True, exist_ok=True)
-        else:
-            while not probe.exists() and probe.parent != probe:
-                probe = probe.parent
-            if not probe.is_dir():
-                raise InputError(f"cannot write episodes into output folder {printable(str(out))}: "
-                                 f"{printable(str(probe))} is a file, not a folder")
-        with tempfile.NamedTemporaryFile(dir=probe, prefix=".cosim-write-check-"):
-            pass
-    except (OSError, ValueError) as exc:
-        reason = getattr(exc, "strerror", None) or str(exc)
-        where = printable(str(out)) + ("" if probe == out else f" (in {printable(str(probe))})")
-        raise InputError(f"cannot write episodes into output folder {where}: {reason}") from None
 
 
 def episode_metadata(loaded: LoadedScenario, world: World) -> dict[str, str]:

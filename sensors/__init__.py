@@ -1,5 +1,8 @@
 """Ray-cast sensors and annotations (LiDAR, cameras, GNSS, IMU, BEV, visibility); see suite.py.
 
+This folder installs as ``cosim.sensors`` (pyproject.toml ``package-dir``): import it as
+``cosim.sensors`` from an installed cosim (``pip install -e .``), never as ``sensors`` or through ``PYTHONPATH=.``.
+
 The suite is imported on first use, so that light submodules (the procedural assets, which the
 traffic worker uses for the pedestrians' boxes) do not pull in Open3D and the renderer.
 """

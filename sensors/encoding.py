@@ -11,7 +11,7 @@ Measured on one core on 1280x720 cosim images (docs/episode_format.md section 7,
   0.45 MB, fpng 220 MP/s but 0.74 MB.
 - JPEG: libjpeg-turbo (``imagecodecs``), 4:2:0 chroma, about 440 MP/s; 77 kB a frame at quality 80,
   PSNR 40.4 dB on average against the lossless image.
-- depth: :func:`encode_depth` (:func:`cosim.io.depth.encode_depth` compiled), counts of 1/1024 m, a gradient
+- depth: :func:`encode_depth` (:func:`cosim.depth.encode_depth` compiled), counts of 1/1024 m, a gradient
   predictor, byte planes, zstd: 2.7 times fewer bytes than the raw float32 image under the episode's chunk
   compression, 2.9 ms a frame.
 """
@@ -95,9 +95,9 @@ def encode_jpeg(img: np.ndarray, quality: int = 80) -> bytes:
 
 
 def encode_depth(depth_m: np.ndarray) -> bytes:
-    """:func:`cosim.io.depth.encode_depth` (the same bytes) through one compiled pass: about 6 times faster
+    """:func:`cosim.depth.encode_depth` (the same bytes) through one compiled pass: about 6 times faster
     than its numpy formulation, which spends 17 ms on a 1280x720 image before zstd's 1 ms."""
-    from cosim.io.depth import DEPTH_QUANTUM_M, pack_depth
+    from cosim.depth import DEPTH_QUANTUM_M, pack_depth
 
     from . import kernels
 

@@ -2,6 +2,8 @@
 
 The map frame is a local tangent plane (ENU) at the world's geo origin; the fix uses the
 ellipsoid's meridian and prime-vertical radii there (error below 1 mm over a few km).
+
+A sensor kind of :mod:`cosim.sensors.kinds` (``RigSpec.gnss``, ``/<agent>/gnss`` as ``foxglove.LocationFix``).
 """
 
 from __future__ import annotations
@@ -10,8 +12,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 
 from cosim.scenario.model import GnssSpec
+
+from .kinds import SensorContext, SensorKind, register_sensor_kind
 
 WGS84_A_M = 6_378_137.0
 WGS84_E2 = 6.69437999014e-3
@@ -51,3 +56,19 @@ def render_gnss(agent_id: str, spec: GnssSpec, antenna_map_m: np.ndarray, origin
     lat, lon, alt = enu_to_geodetic(np.asarray(antenna_map_m, np.float64) + e, origin)
     cov = np.diag(sigma**2)
     return GnssFrame(agent_id, lat, lon, alt, tuple(float(c) for c in cov.ravel()))
+
+
+def gnss_message(agent_id: str, g: GnssFrame, t_ns: int) -> LocationFix:
+    msg = LocationFix(frame_id=f"{agent_id}/gnss", latitude=g.latitude_deg, longitude=g.longitude_deg,
+                      altitude=g.altitude_m, position_covariance_type=LocationFix.DIAGONAL_KNOWN)
+    msg.timestamp.FromNanoseconds(int(t_ns))
+    msg.position_covariance.extend(g.covariance_m2)
+    return msg
+
+
+def _render(ctx: SensorContext) -> GnssFrame:
+    return render_gnss(ctx.agent.agent_id, ctx.spec, np.asarray(ctx.agent.position_m), ctx.world.geo_origin,
+                       ctx.rng, ctx.noise)
+
+
+register_sensor_kind(SensorKind("gnss", _render, gnss_message))

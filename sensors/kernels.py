@@ -259,7 +259,7 @@ def gather2(index, table_a, table_b):
 def depth_planes(depth, inv_quantum, out):
     """The byte planes ``out`` (4, H, W) uint8 of ``cosim-depth`` for ``depth`` (H, W) float32 [m]: counts
     rint(depth * ``inv_quantum``) (float32; 0 where not finite), residuals against left + up - upper left,
-    zigzag-coded, byte k of each in plane k (:func:`cosim.io.depth.depth_planes` in one pass)."""
+    zigzag-coded, byte k of each in plane k (:func:`cosim.depth.depth_planes` in one pass)."""
     h, w = depth.shape
     up = np.zeros(w, np.int64)
     for i in range(h):

@@ -16,6 +16,8 @@ from cosim.geometry import OPTICAL_FROM_FLU, quat_from_matrix, quat_from_rpy, ro
 from cosim.scenario.model import CameraSpec, Mount, RigSpec, Scenario
 from cosim.snapshot import AgentState
 
+from .kinds import SENSOR_KINDS
+
 #: Rotation optical -> camera body (FLU): columns are the optical axes written in FLU.
 FLU_FROM_OPTICAL = OPTICAL_FROM_FLU.T
 
@@ -110,8 +112,9 @@ def rig_transforms(rig: RigSpec, agent: AgentState) -> list[Transform]:
     for cam in rig.cameras:
         out.append((base, f"{a}/{cam.name}", _t(cam.mount.xyz_m), _quat(camera_rotation_in_body(agent, cam))))
         out.append((f"{a}/{cam.name}", f"{a}/{cam.name}/optical", (0.0, 0.0, 0.0), _quat(FLU_FROM_OPTICAL)))
-    if rig.gnss is not None:
-        out.append((base, f"{a}/gnss", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
+    for kind, _ in SENSOR_KINDS.items():
+        if getattr(rig, kind, None) is not None:
+            out.append((base, f"{a}/{kind}", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
     if rig.imu is not None:
         out.append((base, f"{a}/imu", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
     return out

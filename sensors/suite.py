@@ -18,6 +18,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -42,8 +43,8 @@ from .camera import (
 )
 from .encoding import Encodes, encode_depth, submit, submit_encode
 from .environment import Atmosphere, atmosphere
-from .gnss import GnssFrame, render_gnss
 from .imu import ImuFrame, imu_biases, render_imu
+from .kinds import SensorContext, render_kinds
 from .lidar import LidarFrame, render_lidar
 from .meshes import is_lamp, static_mesh
 from .rig import camera_pose, intrinsics, projection, sensor_pose
@@ -65,10 +66,15 @@ class AgentFrames:
     kind: str
     lidar: LidarFrame | None
     cameras: dict[str, CameraFrame]
-    gnss: GnssFrame | None
+    sensors: dict[str, Any] | None  # the frames of the sensor kinds (cosim.sensors.kinds) by kind name
     imu: ImuFrame | None
     bev: BevFrame | None
     visibility: VisibilityFrame | None
+
+    @property
+    def gnss(self) -> Any:
+        """The GNSS fix (:class:`cosim.sensors.gnss.GnssFrame`) or None."""
+        return (self.sensors or {}).get("gnss")
 
 
 @dataclass(frozen=True)
@@ -262,7 +268,7 @@ class SensorSuite:
 
     def _render_agent_base(self, agent: AgentState, rig: RigSpec, own: int | None, scene: TickScene,
                            rng: np.random.Generator, actors: tuple[Actor, ...], t_ns: int):
-        """LiDAR, GNSS, IMU and BEV of one agent (draws from ``rng`` in that order)."""
+        """LiDAR, the sensor kinds (GNSS), IMU and BEV of one agent (draws from ``rng`` in that order)."""
         t0 = time.perf_counter()
         lidar = None
         if rig.lidar is not None:
@@ -274,17 +280,14 @@ class SensorSuite:
             lidar = render_lidar(agent.agent_id, rig.lidar, pose, scene, self.atm, rng, own, self.noise, fixed,
                                  agent, t_ns)
         t1 = time.perf_counter()
-        gnss = None
-        if rig.gnss is not None:
-            gnss = render_gnss(agent.agent_id, rig.gnss, np.asarray(agent.position_m), self.world.geo_origin, rng,
-                               self.noise)
+        kinds = render_kinds(rig, lambda spec: SensorContext(agent, spec, self.world, rng, self.noise, t_ns))
         imu = None
         if rig.imu is not None:
             biases = self._biases.get(agent.agent_id, (np.zeros(3), np.zeros(3)))
             imu = render_imu(agent, rig.imu, biases, rng, self.noise)
         s = self.scenario.sensors
         bev = render_bev(agent, self._bev_raster, actors, s.bev_cell_m, s.bev_range_m) if s.bev else None
-        return (lidar, gnss, imu, bev), {"lidar": t1 - t0, "labels": time.perf_counter() - t1}
+        return (lidar, kinds, imu, bev), {"lidar": t1 - t0, "labels": time.perf_counter() - t1}
 
     def _render_camera(self, agent: AgentState, cam, own: int | None, scene: TickScene, occ: Occluders,
                        tables, light, lut, rng: np.random.Generator):
@@ -406,7 +409,7 @@ class SensorSuite:
             raise
         for agent, base_f, cam_fs in jobs:
             rig = self.rig(agent)
-            (lidar, gnss, imu, bev), t_base = base_f.result()
+            (lidar, kinds, imu, bev), t_base = base_f.result()
             cams: dict[str, CameraFrame] = {}
             for f in cam_fs:
                 frame, t_cam = f.result()
@@ -420,7 +423,7 @@ class SensorSuite:
                                     {n: c.instance for n, c in cams.items()})
             cams = {n: c if "instance" in rig_cam_outputs(rig, n) else _drop_instance(c) for n, c in cams.items()}
             timing["labels"] += time.perf_counter() - t0
-            out[agent.agent_id] = AgentFrames(agent.agent_id, agent.kind, lidar, cams, gnss, imu, bev, vis)
+            out[agent.agent_id] = AgentFrames(agent.agent_id, agent.kind, lidar, cams, kinds, imu, bev, vis)
         timing["cast_rays"] = scene.timer.seconds
         timing["rays"] = float(scene.timer.rays)
         return out, timing

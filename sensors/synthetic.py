@@ -9,8 +9,11 @@ towards y = 6.2 m) along the roads.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from typing import Any
 
 from cosim.geometry import quat_from_rpy
+from cosim.scenario.model import AgentsSpec, DroneSpec, RsuAgents, Scenario, VehicleAgents
 from cosim.snapshot import Actor, AgentState, WorldSnapshot
 from cosim.world.types import Prism, StaticLayout, World
 
@@ -20,6 +23,15 @@ ROAD_TOP_M = 0.02
 
 def _rect(x0: float, y0: float, x1: float, y1: float) -> tuple[tuple[float, float], ...]:
     return ((x0, y0), (x1, y0), (x1, y1), (x0, y1))
+
+
+def synthetic_scenario(*, vehicles: int = 1, rsus: int = 0, drones: Sequence[DroneSpec] = (), name: str = "t",
+                       **overrides: Any) -> Scenario:
+    """A scenario for the synthetic worlds: ``vehicles`` connected vehicles, ``rsus`` RSUs and the drone specs
+    ``drones`` (none by default); any other :class:`Scenario` field (``sensors``, ``environment``, ``seed``,
+    ``comm``, ...) as a keyword."""
+    agents = AgentsSpec(vehicles=VehicleAgents(count=vehicles), rsus=RsuAgents(count=rsus), drones=list(drones))
+    return Scenario(name=name, agents=agents, **overrides)
 
 
 def synthetic_world(half_m: float = 150.0) -> World:

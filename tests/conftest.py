@@ -1,43 +1,60 @@
-"""Shared fixtures and helpers for the suite."""
+"""Shared fixtures of the suite (shared helper functions: tests/helpers.py)."""
 
 from __future__ import annotations
 
 import os
 import subprocess
-import sys
 from pathlib import Path
 
-import psutil
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-SCENARIOS = REPO / "scenarios"
+from tests.helpers import REPO, run_cli
+
+#: ``make test-fast`` sets this: the lane of unit tests (``-m "not integration ..."``) must start no engine.
+FAST_LANE = os.environ.get("COSIM_TEST_FAST") == "1"
+_ENGINE_SUBCOMMANDS = {"run"}
 
 
-def children_of(pid: int) -> list[psutil.Process]:
-    """Live (non-zombie) descendants of a process, except multiprocessing's resource tracker
-    (spawn starts one per parent; it lives exactly as long as the parent)."""
-    try:
-        procs = psutil.Process(pid).children(recursive=True)
-    except psutil.NoSuchProcess:
-        return []
-    out = []
-    for p in procs:
-        try:
-            if p.status() == psutil.STATUS_ZOMBIE or "resource_tracker" in " ".join(p.cmdline()):
-                continue
-        except psutil.NoSuchProcess:
-            continue
-        out.append(p)
-    return out
+def _refuse(what: str):
+    def refuse(*_args, **_kwargs):
+        raise RuntimeError(f"{what} in the fast lane (make test-fast): mark this test @pytest.mark.integration")
+
+    return refuse
 
 
-def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600,
-            env: dict | None = None) -> subprocess.CompletedProcess:
-    """Run ``cosim`` in a fresh interpreter, as a user would."""
-    full_env = {**os.environ, **(env or {})}
-    return subprocess.run([sys.executable, "-m", "cosim.cli", *args], cwd=cwd or REPO, capture_output=True,
-                          text=True, timeout=timeout, env=full_env)
+def _starts_an_episode(args) -> bool:
+    """``cosim run ...`` (as a console script or ``python -m cosim.cli``)."""
+    argv = [str(a) for a in ([args] if isinstance(args, str | os.PathLike) else list(args))]
+    for i, a in enumerate(argv):
+        if (a == "cosim.cli" or a.endswith("/cosim") or a == "cosim") and i + 1 < len(argv):
+            return bool(_ENGINE_SUBCOMMANDS & set(argv[i + 1:i + 2]))
+    return False
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _fast_lane_guard():
+    """In the fast lane, starting SUMO, JSBSim, PyBullet or a `cosim run` process fails the test
+    with a message saying to mark it ``integration``: the lane stays a lane of unit tests."""
+    if not FAST_LANE:
+        yield
+        return
+    import jsbsim
+    import libsumo
+    import pybullet
+
+    popen_init = subprocess.Popen.__init__
+
+    def guarded_popen(self, args, *rest, **kwargs):
+        if _starts_an_episode(args):
+            _refuse(f"`{' '.join(map(str, args))}`")()
+        popen_init(self, args, *rest, **kwargs)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(libsumo, "start", _refuse("SUMO (libsumo.start)"))
+        mp.setattr(jsbsim, "FGFDMExec", _refuse("JSBSim"))
+        mp.setattr(pybullet, "connect", _refuse("PyBullet"))
+        mp.setattr(subprocess.Popen, "__init__", guarded_popen)
+        yield
 
 
 @pytest.fixture

@@ -7,7 +7,8 @@ import math
 import numpy as np
 import open3d as o3d
 import pytest
-from cosim.sensors.assets import catalogue, people, vehicles
+from cosim.sensors import catalogue
+from cosim.sensors.assets import people, vehicles
 from cosim.sensors.meshes import _PART_BODY, _PART_PLATE, actor_template, template_for
 
 from cosim.geometry import quat_from_rpy

@@ -4,17 +4,12 @@ process pool, retries, crashes, the manifest and resume (the real pipeline is in
 from __future__ import annotations
 
 import itertools
-import json
-import multiprocessing as mp
-import os
-import time
 from collections import Counter
-from pathlib import Path
 
 import pytest
 
 from cosim.batch.estimate import calibrate
-from cosim.batch.executors import LocalExecutor, make_executor
+from cosim.batch.executors import make_executor
 from cosim.batch.manifest import (
     Manifest,
     deterministic_view,
@@ -26,79 +21,12 @@ from cosim.batch.manifest import (
 from cosim.batch.plan import balanced_allocation, derive_seed, largest_remainder, plan_file
 from cosim.batch.runner import run_batch
 from cosim.batch.sweep import SweepError, load_sweep
-from cosim.errors import CosimError, InputError
-
-from .conftest import REPO, run_cli
-
-PAPER = REPO / "scenarios" / "base" / "paper.yaml"
-
-
-# ------------------------------------------------------------------------- fake episode functions
-# Module-level so spawn children import them by name. Behaviour comes from the scenario's
-# ``description`` (a real schema field), set per level in the test sweeps: no hooks in production code.
-
-
-def _write_atomically(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.partial")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-
-
-def fake_episode(job, progress):
-    """Deterministic bytes from the scenario; behaviour from ``description``."""
-    s = job.scenario
-    how = s.get("description", "")
-    ticks = round(s["duration_s"] * s["tick_hz"])
-    marker = Path(job.out_dir) / f".crashed-{job.episode_id}"
-    if how == "crash_once" and not marker.exists():
-        marker.write_text("x")
-        os._exit(3)  # a hard crash: no exception, no result
-    if how == "always_fail":
-        raise CosimError(f"forced failure of {job.episode_id}")
-    for k in range(ticks):
-        if how == "slow":
-            time.sleep(0.15)
-        progress(k + 1, ticks)
-    payload = json.dumps({"seed": s["seed"], "env": s["environment"], "map": s["map"],
-                          "vehicles": s["agents"]["vehicles"]["count"]}, sort_keys=True).encode()
-    _write_atomically(job.path, payload * 50)
-    return {"ticks": ticks}
-
-
-def _child_ok() -> None:
-    pass
-
-
-def spawning_episode(job, progress):
-    """An episode that starts its own process, as the real conductor does (needs a non-daemonic parent)."""
-    p = mp.get_context("spawn").Process(target=_child_ok)
-    p.start()
-    p.join(30)
-    if p.exitcode != 0:
-        raise CosimError(f"grandchild exited with {p.exitcode}")
-    return fake_episode(job, progress)
-
+from cosim.errors import InputError
+from tests.fakes import fake_episode, spawning_episode
+from tests.helpers import PAPER, REPO, SIX, run_cli, six_plan, write_sweep
+from tests.helpers import run_fake_batch as run
 
 # ------------------------------------------------------------------------------------ helpers
-
-
-def write_sweep(tmp_path: Path, body: str, name: str = "sweep.yaml") -> Path:
-    path = tmp_path / name
-    path.write_text(f"base: {PAPER}\n" + body)
-    return path
-
-
-SIX = """\
-name: six
-set: {sensors.enabled: false, duration_s: 1}
-axes:
-  weather: {key: environment.weather, values: [clear, foggy, rainy]}
-  env: {key: map.kind, values: [urban, rural]}
-vary:
-  agents.vehicles.count: {choice: [3, 4, 5]}
-count: 6
-"""
 
 
 FAULTS = """\
@@ -115,12 +43,7 @@ count: 6
 """
 
 
-def six_plan(tmp_path: Path, body: str = SIX, **kw):
-    return plan_file(write_sweep(tmp_path, body), **kw)
 
-
-def run(plan, out, fn=fake_episode, workers=2, retries=1):
-    return run_batch(plan, out, LocalExecutor(workers, fn), retries=retries, show_progress=False)
 
 
 # ------------------------------------------------------------------------------ sweep files
@@ -290,6 +213,7 @@ def test_crash_is_retried_and_permanent_failure_is_reported(tmp_path):
     assert any("exited with code 3" in r["error"] for r in crashes)
 
 
+@pytest.mark.integration  # starts a local Ray
 def test_ray_executor_retries_a_crashed_worker_and_reports_failures(tmp_path):
     pytest.importorskip("ray")
     body = FAULTS.replace("values: [clear, foggy]", "values: [clear]").replace("      - {label: ok}\n", "")

@@ -9,8 +9,8 @@ import pytest
 from cosim.batch.job import container_id_in
 from cosim.batch.manifest import latest_records
 from cosim.batch.report import node_label, throughput
-
-from .test_batch import run, six_plan
+from tests.helpers import run_fake_batch as run
+from tests.helpers import six_plan
 
 CID = "3f1c0a9be2d84c6f8a7d5e4b3c2a1908f7e6d5c4b3a29180f7e6d5c4b3a29180"
 

@@ -17,8 +17,7 @@ import pytest
 
 from cosim.batch.manifest import deterministic_view, latest_records, verify
 from cosim.batch.report import build_report
-
-from .conftest import REPO, run_cli
+from tests.helpers import REPO, run_cli
 
 pytestmark = pytest.mark.integration
 

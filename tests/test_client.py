@@ -20,8 +20,10 @@ from cosim.errors import ActionRejected
 from cosim.io import open_episode
 from cosim.io.validate import validate_episode
 from cosim.transport import free_loopback_endpoint
-from tests.conftest import REPO, children_of, run_cli
+from tests.helpers import REPO, children_of, run_cli
 from tests.loop_clients import GOAL_ALTITUDE_M, GOAL_XY_M, SLOW_MPS
+
+pytestmark = pytest.mark.integration  # real `cosim run` processes with SUMO and JSBSim
 
 SCENARIO = f"""\
 extends: {REPO / "scenarios/base/paper.yaml"}

@@ -20,7 +20,7 @@ from cosim.errors import FormatError
 from cosim.geometry import quat_from_rpy
 from cosim.scenario.model import CommSpec
 from cosim.snapshot import Actor, AgentState, WorldSnapshot
-from tests.conftest import run_cli
+from tests.helpers import run_cli
 
 FC = 5.9  # [GHz]
 DISTANCES_M = (25.0, 120.0, 480.0)
@@ -355,6 +355,7 @@ def test_cosim_comm_prints_the_summary_and_writes_the_plots(episodes, tmp_path):
     assert r.returncode == 2 and "has no /comm/links topic" in r.stderr
 
 
+@pytest.mark.integration  # a `cosim run` process (refused before any engine starts)
 def test_bad_comm_key_is_one_clear_message_with_exit_2(tmp_path):
     r = run_cli("run", "scenarios/default.yaml", "--no-sensors", "--out", str(tmp_path), "--set", "comm.mcs=qam9")
     assert r.returncode == 2 and "comm.mcs" in r.stderr and "Traceback" not in r.stderr

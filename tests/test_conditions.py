@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from cosim.scenario import load_scenario
-from tests.conftest import REPO, run_cli
+from tests.helpers import REPO, run_cli
 
 
 def test_overridden_conditions_are_named_in_the_description():

@@ -11,8 +11,8 @@ import pytest
 from cosim.conductor import Conductor
 from cosim.errors import SyncTimeout, WorkerError
 from cosim.protocol import EscortTarget
-from tests.conftest import children_of
 from tests.fakes import fake_worker_main
+from tests.helpers import children_of
 
 TICK_NS = 200_000_000
 

@@ -28,8 +28,7 @@ import pytest
 from cosim.batch.manifest import deterministic_view, latest_records, sha256_file, verify
 from cosim.batch.report import build_report
 from cosim.io.validate import validate_episode
-
-from .conftest import REPO, run_cli
+from tests.helpers import REPO, run_cli
 
 pytestmark = [pytest.mark.container, pytest.mark.integration, pytest.mark.timeout(3600)]
 log = logging.getLogger(__name__)

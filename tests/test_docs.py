@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from cosim.scenario.model import Scenario
-from tests.conftest import REPO
+from tests.helpers import REPO
 
 SOURCES = [
     *REPO.glob("*.md"),

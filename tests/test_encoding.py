@@ -1,4 +1,4 @@
-"""Image and depth encoders (sensors/encoding.py, cosim/io/depth.py) and the default tick's size
+"""Image and depth encoders (sensors/encoding.py, cosim/depth.py) and the default tick's size
 (docs/episode_format.md section 7): lossless where the format says so, JPEG within its documented
 error, the same bytes on every run."""
 
@@ -13,8 +13,8 @@ from cosim.sensors.encoding import encode_jpeg, encode_png, submit_encode
 from cosim.sensors.synthetic import synthetic_snapshot, synthetic_world
 from PIL import Image
 
+from cosim.depth import decode_depth, encode_depth
 from cosim.errors import CosimError, FormatError
-from cosim.io.depth import decode_depth, encode_depth
 from cosim.io.sensor_messages import frame_records
 from cosim.io.writer import EpisodeWriter
 from cosim.scenario.model import (

@@ -23,8 +23,7 @@ from cosim.eval.evaluate import EvalOptions, evaluate
 from cosim.eval.predictions import SETTINGS, read_predictions
 from cosim.io import open_episode
 from cosim.io.synthetic import write_synthetic_episode
-
-from .conftest import REPO, run_cli
+from tests.helpers import REPO, run_cli
 
 pytestmark = pytest.mark.integration
 

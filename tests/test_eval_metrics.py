@@ -15,8 +15,7 @@ from cosim.eval.dataset import FrameTruth
 from cosim.eval.evaluate import EvalOptions, EvalResult, SegAccumulator, _score_frame
 from cosim.eval.predictions import PredictionError, parse_record, read_predictions
 from cosim.traffic.metrics import convex_overlap_area
-
-from .conftest import run_cli
+from tests.helpers import run_cli
 
 
 def box(x=0.0, y=0.0, length=4.0, width=2.0, yaw=0.0) -> np.ndarray:

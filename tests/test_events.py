@@ -157,7 +157,7 @@ def test_episode_carries_events_and_validates(tmp_path: Path):
     import json
 
     from cosim.io import open_episode
-    from tests.conftest import run_cli
+    from tests.helpers import run_cli
 
     r = run_cli("run", "scenarios/event_lane_closure.yaml", "--duration", "2", "--out", str(tmp_path), "--no-sensors",
                 "--set", "agents.rsus.count=0", "--set", "map.size_m=300", "--set", "parked.density_veh_per_km=40")
@@ -212,28 +212,6 @@ def test_incidents_sweep_has_an_events_axis():
     assert all(ep.scenario["parked"]["density_veh_per_km"] == 20 for ep in plan.episodes)
 
 
-def lidar_box_excess(tick, objects: dict, keep):
-    """(topic, object, metres) per LiDAR sweep of ``tick`` and per object ``keep(object)`` selects among its
-    returns' instance ids: how far the returns (deskewed, in the map frame) reach outside the object's box."""
-    from cosim.geometry import rotation_matrix
-    from cosim.io.deskew import deskew_tick
-
-    for topic in tick.topics:
-        if not topic.endswith("/lidar"):
-            continue
-        cloud = tick[topic]
-        to_map = tick.transforms.to_root(cloud.frame_id)
-        # each firing at its own time: back into the sweep-end sensor frame first (cosim.io.deskew)
-        xyz = deskew_tick(tick, topic.split("/")[1]) @ to_map[:3, :3].T + to_map[:3, 3]
-        for tid in np.unique(cloud.points["instance_id"]):
-            o = objects.get(int(tid))
-            if o is None or not keep(o):
-                continue
-            rot = rotation_matrix(tuple(o["rotation"]))
-            local = (xyz[cloud.points["instance_id"] == tid] - np.array(o["center_m"])) @ rot
-            yield topic, o, float((np.abs(local) - np.array(o["size_m"]) / 2).max())
-
-
 @pytest.mark.integration
 def test_lidar_points_of_obstacles_and_parked_vehicles_lie_in_their_boxes(tmp_path: Path):
     """Sensors agree with the labels for the new boxes: every LiDAR return carrying the track id of a
@@ -241,7 +219,7 @@ def test_lidar_points_of_obstacles_and_parked_vehicles_lie_in_their_boxes(tmp_pa
     import json
 
     from cosim.io import open_episode
-    from tests.conftest import run_cli
+    from tests.helpers import lidar_box_excess, run_cli
 
     r = run_cli("run", "scenarios/event_lane_closure.yaml", "--duration", "0.4", "--out", str(tmp_path),
                 "--set", "sensors.image_scale=0.1", "--set", "agents.rsus.count=0", "--set", "map.size_m=300",

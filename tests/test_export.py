@@ -20,7 +20,7 @@ import yaml
 from PIL import Image
 
 from cosim.io import open_episode
-from tests.conftest import REPO, run_cli
+from tests.helpers import REPO, run_cli
 
 pytestmark = pytest.mark.integration
 

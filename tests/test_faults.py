@@ -22,7 +22,7 @@ import psutil
 import pytest
 
 from cosim.io.writer import temporary_path
-from tests.conftest import REPO
+from tests.helpers import REPO
 
 pytestmark = pytest.mark.integration
 

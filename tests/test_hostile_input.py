@@ -15,7 +15,7 @@ import pytest
 from cosim.cli import main
 from cosim.errors import ScenarioError
 from cosim.scenario import load_scenario
-from tests.conftest import SCENARIOS
+from tests.helpers import SCENARIOS
 
 BASE = SCENARIOS / "base" / "paper.yaml"
 

@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 
 from cosim.cli import main
 from cosim.scenario import load_scenario
-from tests.conftest import REPO, SCENARIOS
+from tests.helpers import REPO, SCENARIOS
 
 SCENARIO_EXAMPLES = 120
 SWEEP_EXAMPLES = 40

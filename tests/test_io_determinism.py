@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import hashlib
+from pathlib import Path
 
 import pytest
 
+from cosim.batch.manifest import latest_records
 from cosim.io import open_episode
 from cosim.io.validate import validate_episode
-from tests.conftest import SCENARIOS, run_cli
+from tests.helpers import SCENARIOS, run_cli
 
 pytestmark = pytest.mark.integration
 
@@ -68,10 +70,31 @@ def test_two_runs_with_sensors_give_byte_identical_valid_files(tmp_path):
         assert len(ep.tick(1).points("vehicle_0")) > 1000
 
 
-@pytest.mark.parametrize("scenario", sorted(p.name for p in SCENARIOS.glob("*.yaml")))
-def test_every_shipped_scenario_gives_a_valid_episode(tmp_path, scenario):
-    path = _run(f"scenarios/{scenario}", tmp_path, "--duration", "1")
+SHIPPED = sorted(p.name for p in SCENARIOS.glob("*.yaml"))
+
+
+@pytest.fixture(scope="module")
+def shipped_episodes(tmp_path_factory) -> tuple[dict[str, Path], str]:
+    """One tiny labels-only episode of every shipped scenario (1 s, 300 m map), all from one `cosim batch`
+    with two workers, and one `cosim validate` of them all: two process starts for the lot instead of two
+    per scenario. Returns scenario file name -> episode, and the validate output."""
+    tmp = tmp_path_factory.mktemp("shipped")
+    sweep = tmp / "shipped.yaml"
+    sweep.write_text(f"name: shipped\nbase: [{', '.join(str(SCENARIOS / n) for n in SHIPPED)}]\n"
+                     f"set: {{duration_s: 1, sensors.enabled: false, map.size_m: 300}}\ncount: {len(SHIPPED)}\n")
+    out = tmp / "out"
+    r = run_cli("batch", str(sweep), "--out", str(out), "--workers", "2", "-q", timeout=3000)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    files = {f"{rec['labels']['base']}.yaml": out / rec["file"] for rec in latest_records(out).values()}
+    assert sorted(files) == SHIPPED
+    v = run_cli("validate", *map(str, files.values()))
+    return files, v.stdout + v.stderr
+
+
+@pytest.mark.parametrize("scenario", SHIPPED)
+def test_every_shipped_scenario_gives_a_valid_episode(shipped_episodes, scenario):
+    files, validated = shipped_episodes
+    path = files[scenario]
     report = validate_episode(path)
     assert report.ok, report.lines()
-    r = run_cli("validate", str(path))
-    assert r.returncode == 0 and "ok (5 ticks" in r.stdout, r.stdout + r.stderr
+    assert f"{path}: ok (5 ticks" in validated, validated

@@ -217,7 +217,7 @@ def test_the_runnable_example_reads_an_episode(recorded):
     import subprocess
     import sys
 
-    from tests.conftest import REPO
+    from tests.helpers import REPO
 
     path, _ = recorded
     r = subprocess.run(

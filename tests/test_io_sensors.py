@@ -10,7 +10,7 @@ import pytest
 import yaml
 from cosim.sensors import SensorSuite
 from cosim.sensors.rig import sensor_transforms
-from cosim.sensors.synthetic import synthetic_snapshot, synthetic_world
+from cosim.sensors.synthetic import synthetic_scenario, synthetic_snapshot, synthetic_world
 
 from cosim.io import open_episode
 from cosim.io.labels import label_messages
@@ -19,16 +19,12 @@ from cosim.io.synthetic import synthetic_metadata
 from cosim.io.validate import validate_episode
 from cosim.io.writer import EpisodeWriter
 from cosim.scenario.model import (
-    AgentsSpec,
     CameraSpec,
     CommSpec,
     HoverDrone,
     LidarSpec,
     RigSpec,
-    RsuAgents,
-    Scenario,
     SensorsSpec,
-    VehicleAgents,
     default_drone_rig,
     default_rsu_rig,
     default_vehicle_rig,
@@ -46,9 +42,9 @@ def _small(rig: RigSpec) -> RigSpec:
 
 @pytest.fixture(scope="module")
 def rendered(tmp_path_factory):
-    sc = Scenario(
+    sc = synthetic_scenario(
         name="io_sensors",
-        agents=AgentsSpec(vehicles=VehicleAgents(count=2), rsus=RsuAgents(count=1), drones=[HoverDrone()]),
+        vehicles=2, rsus=1, drones=[HoverDrone()],
         sensors=SensorsSpec(
             vehicle=_small(default_vehicle_rig()),
             rsu=_small(default_rsu_rig()),

@@ -15,8 +15,7 @@ import pytest
 
 from cosim.learn.grid import Grid, decode, targets, voxelise
 from cosim.learn.nms import circle_nms
-
-from .conftest import REPO, run_cli
+from tests.helpers import REPO, run_cli
 
 HAVE_TORCH = importlib.util.find_spec("torch") is not None
 needs_torch = pytest.mark.skipif(not HAVE_TORCH, reason="PyTorch is not installed (pip install -e '.[learn]'; "

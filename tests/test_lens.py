@@ -16,7 +16,7 @@ from cosim.exporters.undistort import pinhole_remap
 from cosim.sensors import SensorSuite
 from cosim.sensors.camera import pixel_grid
 from cosim.sensors.rig import intrinsics
-from cosim.sensors.synthetic import synthetic_snapshot, synthetic_world
+from cosim.sensors.synthetic import synthetic_scenario, synthetic_snapshot, synthetic_world
 from PIL import Image
 
 from cosim.errors import FormatError
@@ -25,21 +25,18 @@ from cosim.io import open_episode
 from cosim.io.decode import decode_calibration, parse_proto
 from cosim.io.sensor_messages import calibration_message
 from cosim.scenario.model import (
-    AgentsSpec,
     CameraSpec,
     Mount,
     RigSpec,
-    RsuAgents,
-    Scenario,
     SensorsSpec,
-    VehicleAgents,
     default_rsu_rig,
     default_vehicle_rig,
 )
 from cosim.snapshot import AgentState, WorldSnapshot
 from cosim.world.types import Prism, StaticLayout, World
-from tests.conftest import run_cli
-from tests.test_sensors import _convex_hull, _signed_dist_inside
+from tests.helpers import convex_hull as _convex_hull
+from tests.helpers import run_cli
+from tests.helpers import signed_dist_inside as _signed_dist_inside
 
 #: A strong barrel lens, monotonic over a 90 deg field (k2 > 0 keeps r (1 + k1 r^2 + k2 r^4) rising):
 #: it moves the corners of a 4:3 image by about 60 px at 480 px width.
@@ -99,8 +96,7 @@ def _render_block(lens, noise: bool = False):
     world = World("synthetic", b"", b"", (-300, -300, 300, 300), (), (), StaticLayout(prisms), (37.0, -122.0, 10.0))
     cam = CameraSpec(name="front", width=480, height=360, fov_deg=FOV_DEG, distortion=lens,
                      mount=Mount(xyz_m=(0.0, 0.0, 1.6)))
-    sc = Scenario(name="t", agents=AgentsSpec(vehicles=VehicleAgents(count=1), rsus=RsuAgents(count=0), drones=[]),
-                  sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=[cam], gnss=None, imu=None)))
+    sc = synthetic_scenario(sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=[cam], gnss=None, imu=None)))
     ego = AgentState("vehicle_0", "vehicle", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
     with SensorSuite(sc, world, noise=noise, encode_images=False) as suite:
         frames = suite.render(WorldSnapshot(0, 0, (), (ego,)), np.random.default_rng(0))
@@ -164,8 +160,8 @@ def test_instance_pixels_of_a_distorted_camera_lie_in_boxes_projected_through_th
                            read_noise=0.002, shot_noise=0.0002, vignetting=0.25) for c in base.cameras]
         return RigSpec(lidar=None, cameras=cams, gnss=None, imu=None)
 
-    sc = Scenario(name="t", agents=AgentsSpec(vehicles=VehicleAgents(count=5), rsus=RsuAgents(count=5), drones=[]),
-                  sensors=SensorsSpec(vehicle=rig(default_vehicle_rig()), rsu=rig(default_rsu_rig())))
+    sc = synthetic_scenario(vehicles=5, rsus=5,
+                            sensors=SensorsSpec(vehicle=rig(default_vehicle_rig()), rsu=rig(default_rsu_rig())))
     snap = synthetic_snapshot(5, 5, 0)
     with SensorSuite(sc, synthetic_world(), noise=True) as suite:
         frames = suite.render(snap, np.random.default_rng(0))
@@ -272,6 +268,7 @@ def _rgb24(a: np.ndarray) -> np.ndarray:
     return a[..., 0] + 256 * a[..., 1] + 65536 * a[..., 2]
 
 
+@pytest.mark.integration  # lens_episode is a real `cosim run`
 def test_export_of_a_distorted_camera_is_exact_for_its_pinhole_intrinsic(lens_episode, tmp_path):
     """AirV2X export (masks on) read the devkit's way: each box projected with the exported ``intrinsic`` and
     poses holds its exported instance pixels; the recorded distorted masks would not fit (so the export did
@@ -338,6 +335,7 @@ def test_export_of_a_distorted_camera_is_exact_for_its_pinhole_intrinsic(lens_ep
     assert tested >= 10 and raw_misses >= 2 and pinhole_same >= 4 and opv2v_same >= 3
 
 
+@pytest.mark.integration  # lens_episode is a real `cosim run`
 def test_training_reader_gives_each_cameras_lens(lens_episode):
     from cosim.io.dataset import CooperativeDataset
 

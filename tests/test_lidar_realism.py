@@ -11,7 +11,7 @@ import pytest
 from cosim.sensors import SensorSuite
 from cosim.sensors.lidar import RETURN_LAST, RETURN_SINGLE, RETURN_STRONGEST, rosette_pattern, scan_pattern, sweep_ns
 from cosim.sensors.rig import mount_rotation
-from cosim.sensors.synthetic import synthetic_snapshot, synthetic_world
+from cosim.sensors.synthetic import synthetic_scenario, synthetic_snapshot, synthetic_world
 
 from cosim.classes import SEMANTIC_ID
 from cosim.errors import CosimError
@@ -19,7 +19,7 @@ from cosim.geometry import quat_from_rpy, rotation_matrix
 from cosim.io import deskew
 from cosim.io.decode import decode_point_cloud
 from cosim.io.sensor_messages import frame_messages
-from cosim.scenario.model import AgentsSpec, LidarSpec, Mount, RigSpec, RsuAgents, Scenario, SensorsSpec, VehicleAgents
+from cosim.scenario.model import LidarSpec, Mount, RigSpec, Scenario, SensorsSpec
 from cosim.snapshot import Actor, AgentState, WorldSnapshot
 from cosim.world.types import Prism, StaticLayout, World
 
@@ -41,8 +41,8 @@ def _wall_world(pole: bool = False) -> World:
 
 
 def _scenario(lidar: LidarSpec) -> Scenario:
-    return Scenario(name="t", agents=AgentsSpec(vehicles=VehicleAgents(count=1), rsus=RsuAgents(count=0), drones=[]),
-                    sensors=SensorsSpec(vehicle=RigSpec(lidar=lidar, cameras=[], gnss=None, imu=None), bev=False))
+    return synthetic_scenario(sensors=SensorsSpec(vehicle=RigSpec(lidar=lidar, cameras=[], gnss=None, imu=None),
+                              bev=False))
 
 
 def _vehicle(speed: float = SPEED_MPS, x: float = 0.0, y: float = 0.0, yaw_deg: float = 0.0,
@@ -254,8 +254,8 @@ def test_dual_returns_at_a_pole_edge_report_the_pole_and_the_wall_behind():
 
 def test_a_standing_sensor_with_a_rosette_casts_each_frames_own_firings():
     """RSUs keep their static hits between ticks; a rosette fires new directions every frame."""
-    sc = Scenario(name="t", agents=AgentsSpec(vehicles=VehicleAgents(count=0), rsus=RsuAgents(count=1), drones=[]),
-                  sensors=SensorsSpec(rsu=RigSpec(lidar=ROSETTE, cameras=[], gnss=None, imu=None), bev=False))
+    sc = synthetic_scenario(vehicles=0, rsus=1,
+                            sensors=SensorsSpec(rsu=RigSpec(lidar=ROSETTE, cameras=[], gnss=None, imu=None), bev=False))
     rsu = AgentState("rsu_0", "rsu", (9.5, 9.5, 7.0), quat_from_rpy(0.0, 0.3, math.radians(225.0)))
     snaps = [WorldSnapshot(k, k * 200_000_000, (), (rsu,)) for k in (1, 2)]
     with SensorSuite(sc, synthetic_world(), noise=False, encode_images=False) as suite:
@@ -278,8 +278,7 @@ def test_deskew_tick_uses_the_poses_recorded_in_the_episode(tmp_path):
     from cosim.scenario.model import ImuSpec
 
     rig = RigSpec(lidar=SPIN, cameras=[], gnss=None, imu=ImuSpec(gyro_noise_radps=0.0, gyro_bias_radps=0.0))
-    sc = Scenario(name="t", agents=AgentsSpec(vehicles=VehicleAgents(count=1), rsus=RsuAgents(count=0), drones=[]),
-                  sensors=SensorsSpec(vehicle=rig, bev=False))
+    sc = synthetic_scenario(sensors=SensorsSpec(vehicle=rig, bev=False))
     agent = dataclasses.replace(_vehicle(rate_z=0.5), track_id=1)
     box = Actor(1, "car", (0.0, 0.0, 0.77), (4.5, 1.9, 1.5), agent.rotation, agent.velocity_mps, "vehicle_0")
     snap = WorldSnapshot(0, 0, (box,), (agent,))

@@ -15,7 +15,7 @@ import pytest
 from cosim.cli import main
 from cosim.errors import ScenarioError
 from cosim.scenario import load_scenario
-from tests.conftest import SCENARIOS
+from tests.helpers import SCENARIOS
 
 
 def cli(capsys, *args: str) -> tuple[int, str, str]:
@@ -277,10 +277,11 @@ def test_info_json_writes_the_seed_as_a_number(synthetic, capsys):
 # ------------------------------------------------------------------------------------------ normal waiting
 
 
+@pytest.mark.integration  # a `cosim run` process that builds its world
 def test_waiting_for_external_workers_is_a_notice_not_a_warning(tmp_path):
     import socket
 
-    from tests.conftest import run_cli
+    from tests.helpers import run_cli
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

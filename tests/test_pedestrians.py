@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cosim.sensors.synthetic import synthetic_scenario
 
 from cosim.scenario import load_scenario_data
 
@@ -246,8 +247,7 @@ def test_jaywalk_episode_escorted_vehicle_sees_the_pedestrian(tmp_path: Path):
     a pedestrian's instance id lies inside that pedestrian's box grown by 0.1 m."""
     from cosim.eval.dataset import AREA_HALF_M
     from cosim.io import open_episode
-    from tests.conftest import run_cli
-    from tests.test_events import lidar_box_excess
+    from tests.helpers import lidar_box_excess, run_cli
 
     r = run_cli("run", "scenarios/event_jaywalk.yaml", "--duration", "3.4", "--out", str(tmp_path),
                 "--set", "sensors.image_scale=0.1", "--set", "agents.rsus.count=0", "--set", "map.size_m=300",
@@ -288,23 +288,18 @@ def test_hazard_lamps_glow_amber_in_a_night_camera():
     from cosim.sensors.synthetic import actor
 
     from cosim.scenario.model import (
-        AgentsSpec,
         CameraSpec,
         Mount,
         RigSpec,
-        RsuAgents,
-        Scenario,
         SensorsSpec,
-        VehicleAgents,
     )
     from cosim.snapshot import AgentState, WorldSnapshot
-    from tests.test_sensors import _wall_world
+    from tests.helpers import wall_world as _wall_world
 
     rig = RigSpec(lidar=None, cameras=[CameraSpec(name="front", width=160, height=120, fov_deg=40.0,
                                                   mount=Mount(xyz_m=(0.0, 0.0, 1.0)))], gnss=None, imu=None)
-    sc = Scenario(name="t", environment={"lighting": "night"},
-                  agents=AgentsSpec(vehicles=VehicleAgents(count=1), rsus=RsuAgents(count=0), drones=[]),
-                  sensors=SensorsSpec(vehicle=rig, bev=False))
+    sc = synthetic_scenario(environment={"lighting": "night"},
+                            sensors=SensorsSpec(vehicle=rig, bev=False))
     suite = SensorSuite(sc, _wall_world(), noise=False)
     ego = AgentState("vehicle_0", "vehicle", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
     cams = {}

@@ -25,8 +25,7 @@ import psutil
 import pytest
 
 from cosim.batch.manifest import deterministic_view, latest_records, read_records, sha256_file, verify
-
-from .conftest import REPO
+from tests.helpers import REPO
 
 pytest.importorskip("ray")
 pytestmark = [pytest.mark.cluster, pytest.mark.integration, pytest.mark.timeout(1200)]

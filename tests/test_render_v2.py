@@ -5,17 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from cosim.sensors import SensorSuite
-from cosim.sensors.synthetic import synthetic_snapshot, synthetic_world
+from cosim.sensors.synthetic import synthetic_scenario, synthetic_snapshot, synthetic_world
 
 from cosim.scenario.model import (
-    AgentsSpec,
     CameraSpec,
     LidarSpec,
     RigSpec,
-    RsuAgents,
     Scenario,
     SensorsSpec,
-    VehicleAgents,
     default_rsu_rig,
     default_vehicle_rig,
 )
@@ -25,12 +22,10 @@ def _small_rig_scenario(**env) -> Scenario:
     vcams = [CameraSpec(name=c.name, width=96, height=64, mount=c.mount) for c in default_vehicle_rig().cameras[:2]]
     rcams = [CameraSpec(name=c.name, width=96, height=64, mount=c.mount) for c in default_rsu_rig().cameras[:2]]
     lidar = LidarSpec(horizontal_resolution_deg=2.0)
-    return Scenario(
-        name="t", environment=env or {},
-        agents=AgentsSpec(vehicles=VehicleAgents(count=3), rsus=RsuAgents(count=2), drones=[]),
-        sensors=SensorsSpec(vehicle=RigSpec(lidar=lidar, cameras=vcams),
-                            rsu=RigSpec(lidar=lidar, cameras=rcams)),
-    )
+    return synthetic_scenario(environment=env or {},
+                              vehicles=3, rsus=2,
+                              sensors=SensorsSpec(vehicle=RigSpec(lidar=lidar, cameras=vcams),
+                                                  rsu=RigSpec(lidar=lidar, cameras=rcams)))
 
 
 def _frame_bytes(frames) -> list[tuple[str, bytes]]:
@@ -80,10 +75,9 @@ def _down_camera_scenario(lighting: str, seed: int = 3, **cam) -> Scenario:
 
     cam = {"width": 128, "height": 96, **cam}
     down = CameraSpec(name="down", fov_deg=90.0, mount=Mount(xyz_m=(0.0, 0.0, 20.0), rpy_deg=(0.0, 90.0, 0.0)), **cam)
-    return Scenario(name="t", seed=seed, environment={"lighting": lighting},
-                    agents=AgentsSpec(vehicles=VehicleAgents(count=1), rsus=RsuAgents(count=0), drones=[]),
-                    sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=[down], gnss=None, imu=None),
-                                        surface_detail=False))  # flat surfaces: the light alone is measured
+    return synthetic_scenario(seed=seed, environment={"lighting": lighting},
+                              sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=[down], gnss=None, imu=None),
+                                                  surface_detail=False))  # flat surfaces: the light alone is measured
 
 
 def _ego_snapshot():
@@ -227,8 +221,7 @@ def test_distorted_calibration_projects_a_point_where_the_renderer_put_it():
     for name, dist in (("pinhole", None), ("lens", D)):
         cam = CameraSpec(name="front", width=480, height=360, fov_deg=90.0, distortion=dist,
                          mount=Mount(xyz_m=(0.0, 0.0, 1.6)))
-        sc = Scenario(name="t", agents=AgentsSpec(vehicles=VehicleAgents(count=1), rsus=RsuAgents(count=0), drones=[]),
-                      sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=[cam], gnss=None, imu=None)))
+        sc = synthetic_scenario(sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=[cam], gnss=None, imu=None)))
         ego = AgentState("vehicle_0", "vehicle", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
         with SensorSuite(sc, world, noise=False, encode_images=False) as suite:
             frames[name] = suite.render(WorldSnapshot(0, 0, (), (ego,)), np.random.default_rng(0)).agents[

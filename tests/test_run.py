@@ -15,7 +15,7 @@ import psutil
 import pytest
 from mcap.reader import make_reader
 
-from tests.conftest import REPO, run_cli
+from tests.helpers import REPO, run_cli
 
 pytestmark = pytest.mark.integration
 

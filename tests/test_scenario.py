@@ -10,7 +10,7 @@ import pytest
 from cosim.errors import ScenarioError
 from cosim.scenario import load_scenario, shipped_scenarios
 from cosim.scenario.model import EscortDrone, HoverDrone, PatrolDrone, Scenario
-from tests.conftest import SCENARIOS, run_cli
+from tests.helpers import SCENARIOS, run_cli
 
 
 def write(tmp_path: Path, name: str, text: str) -> Path:
@@ -157,6 +157,7 @@ def test_extends_cycle_is_reported(tmp_path):
         ("name: t\ntraffic:\n  step_hz: 7\n", "bad.yaml:3: traffic.step_hz: traffic.step_hz = 7 Hz does not divide"),
     ],
 )
+@pytest.mark.integration  # a `cosim run` process (refused before any engine starts)
 def test_cli_exits_2_with_one_message_and_no_traceback(tmp_path, text, expect):
     f = tmp_path / "bad.yaml"
     f.write_text(text)

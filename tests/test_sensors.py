@@ -10,7 +10,7 @@ import pytest
 from cosim.sensors import SensorSuite
 from cosim.sensors.meshes import ACTOR_TEMPLATES, VEHICLE_CLASSES, static_mesh, template_for, triangulate_polygon
 from cosim.sensors.rig import sensor_transforms
-from cosim.sensors.synthetic import actor, synthetic_snapshot, synthetic_world
+from cosim.sensors.synthetic import actor, synthetic_scenario, synthetic_snapshot, synthetic_world
 from PIL import Image
 
 from cosim.classes import SEMANTIC_ID
@@ -30,30 +30,16 @@ from cosim.scenario.model import (
     VehicleAgents,
 )
 from cosim.snapshot import AgentState, WorldSnapshot
-from cosim.world.types import Prism, StaticLayout, World
-
-WALL_ID = 1_000_001
-
-
-def _rect(x0, y0, x1, y1):
-    return ((x0, y0), (x1, y0), (x1, y1), (x0, y1))
-
-
-def _wall_world(wall_x: float = 50.0) -> World:
-    prisms = (
-        Prism("terrain", _rect(-300, -300, 300, 300), -1.0, 0.0),
-        Prism("building", _rect(wall_x, -40, wall_x + 5, 40), 0.0, 30.0, WALL_ID),
-    )
-    return World("synthetic", b"", b"", (-300, -300, 300, 300), (), (), StaticLayout(prisms), (37.0, -122.0, 10.0))
+from tests.helpers import WALL_ID
+from tests.helpers import convex_hull as _convex_hull
+from tests.helpers import signed_dist_inside as _signed_dist_inside
+from tests.helpers import wall_world as _wall_world
 
 
 def _scenario(vehicle_rig: RigSpec, n_vehicles: int = 1, **env) -> Scenario:
-    return Scenario(
-        name="t",
-        environment=env or {},
-        agents=AgentsSpec(vehicles=VehicleAgents(count=n_vehicles), rsus=RsuAgents(count=0), drones=[]),
-        sensors=SensorsSpec(vehicle=vehicle_rig),
-    )
+    return synthetic_scenario(environment=env or {},
+                              vehicles=n_vehicles,
+                              sensors=SensorsSpec(vehicle=vehicle_rig))
 
 
 def _ray_box(o, d, lo, hi):
@@ -205,28 +191,6 @@ def test_adaptive_casting_agrees_with_full_casting():
     assert np.mean(rel < 1e-4) > 0.995 and rel.max() < 0.05
 
 
-def _convex_hull(p: np.ndarray) -> np.ndarray:
-    pts = sorted(map(tuple, p))
-    def half(seq):
-        h = []
-        for q in seq:
-            while len(h) >= 2 and ((h[-1][0] - h[-2][0]) * (q[1] - h[-2][1])
-                                   - (h[-1][1] - h[-2][1]) * (q[0] - h[-2][0])) <= 0:
-                h.pop()
-            h.append(q)
-        return h
-    lower, upper = half(pts), half(pts[::-1])
-    return np.array(lower[:-1] + upper[:-1])
-
-
-def _signed_dist_inside(hull: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Min signed distance of points q (N, 2) to the edges of a CCW convex hull (positive inside)."""
-    a, b = hull, np.roll(hull, -1, axis=0)
-    e = b - a
-    n = np.stack([-e[:, 1], e[:, 0]], axis=1) / np.linalg.norm(e, axis=1)[:, None]
-    return np.min(np.einsum("nij,ij->ni", q[:, None, :] - a[None], n), axis=1)
-
-
 def _compose(transforms, child: str):
     """map <- child from an agent's base_link pose and its sensor_transforms list."""
     by_child = {c: (p, np.asarray(t), rotation_matrix(q)) for p, c, t, q in transforms}
@@ -294,9 +258,8 @@ def _town_lidar_scenario(**env) -> Scenario:
     # a long-range unit: the ray drop's energy term would otherwise lose the grazing ground beyond 60 m
     lidar = LidarSpec(horizontal_resolution_deg=0.7, range_m=200.0, detection_range_10pct_m=1000.0)
     rig = RigSpec(lidar=lidar, cameras=[], gnss=None, imu=None)
-    return Scenario(name="t", environment=env, agents=AgentsSpec(vehicles=VehicleAgents(count=1),
-                                                                rsus=RsuAgents(count=2), drones=[]),
-                    sensors=SensorsSpec(vehicle=rig, rsu=rig))
+    return synthetic_scenario(environment=env, rsus=2,
+                              sensors=SensorsSpec(vehicle=rig, rsu=rig))
 
 
 def test_fog_removes_far_returns_and_adds_backscatter():
@@ -336,9 +299,9 @@ def test_rain_adds_dropout_and_spurious_near_returns():
 
 def _camera_scenario(lighting: str, weather: str = "clear") -> Scenario:
     cams = [CameraSpec(name="front", width=240, height=136, mount=Mount(xyz_m=(0, 0, 1.6), rpy_deg=(0, 8, 0)))]
-    return Scenario(name="t", environment={"lighting": lighting, "weather": weather},
-                    agents=AgentsSpec(vehicles=VehicleAgents(count=5), rsus=RsuAgents(count=0), drones=[]),
-                    sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=cams, gnss=None, imu=None)))
+    return synthetic_scenario(environment={"lighting": lighting, "weather": weather},
+                              vehicles=5,
+                              sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=cams, gnss=None, imu=None)))
 
 
 def test_night_is_darker_with_lit_pools_under_street_lights():
@@ -436,8 +399,8 @@ def test_rsu_sensors_keep_the_static_world_and_cast_only_what_moves():
     cams = [CameraSpec(name=c.name, width=160, height=96, mount=c.mount) for c in default_rsu_rig().cameras]
     cams.append(CameraSpec(name="up", width=160, height=96, mount=Mount(rpy_deg=(0.0, -10.0, 0.0))))  # sky too
     rig = RigSpec(lidar=LidarSpec(horizontal_resolution_deg=1.0), cameras=cams, gnss=None, imu=None)
-    sc = Scenario(name="t", agents=AgentsSpec(vehicles=VehicleAgents(count=0), rsus=RsuAgents(count=3), drones=[]),
-                  sensors=SensorsSpec(rsu=rig))
+    sc = synthetic_scenario(vehicles=0, rsus=3,
+                            sensors=SensorsSpec(rsu=rig))
     world = synthetic_world()
     first = synthetic_snapshot(0, 3, 0)
     moved = tuple(dataclasses.replace(a, center_m=(a.center_m[0] + 4.0, *a.center_m[1:])) for a in first.actors[:-3])

@@ -13,14 +13,14 @@ from cosim.sensors import SensorSuite
 from cosim.sensors.lidar import beam_pattern
 from cosim.sensors.meshes import FAR_GROUND_M
 from cosim.sensors.rig import sensor_pose
-from cosim.sensors.synthetic import synthetic_world
+from cosim.sensors.synthetic import synthetic_scenario, synthetic_world
 
 from cosim.geometry import quat_from_rpy
 from cosim.io.decode import decode_compressed_image, decode_point_cloud
 from cosim.io.points import POSITION_QUANTUM_M, encode_points
 from cosim.io.sensor_messages import frame_messages
 from cosim.scenario.loader import load_scenario
-from cosim.scenario.model import AgentsSpec, HoverDrone, RsuAgents, Scenario, SensorsSpec, VehicleAgents
+from cosim.scenario.model import HoverDrone, Scenario, SensorsSpec
 from cosim.snapshot import AgentState, WorldSnapshot
 from cosim.world.build import build_world
 
@@ -29,11 +29,8 @@ SHIPPED = sorted((REPO / "scenarios").glob("*.yaml"))
 
 
 def _drone_scenario(**sensors) -> Scenario:
-    return Scenario(
-        name="t",
-        agents=AgentsSpec(vehicles=VehicleAgents(count=0), rsus=RsuAgents(count=0), drones=[HoverDrone()]),
-        sensors=SensorsSpec(image_scale=0.1, **sensors),
-    )
+    return synthetic_scenario(vehicles=0, drones=[HoverDrone()],
+                              sensors=SensorsSpec(image_scale=0.1, **sensors))
 
 
 def _drone(x: float, y: float, z: float, yaw_rad: float = 0.3) -> AgentState:
@@ -102,6 +99,7 @@ def _ground_z(world) -> float:
 _VOIDS: dict[str, list[str]] = {}
 
 
+@pytest.mark.integration  # builds every shipped world with SUMO's netgenerate/netconvert
 @pytest.mark.parametrize("path", SHIPPED, ids=[p.stem for p in SHIPPED])
 def test_no_void_below_the_horizon_in_shipped_worlds(path):
     """Cameras at the map's edge see ground (never class 0) wherever their ray meets the ground plane

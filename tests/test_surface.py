@@ -8,8 +8,9 @@ import numpy as np
 from cosim.sensors import SensorSuite
 from cosim.sensors.environment import WET_ROAD_ALBEDO
 from cosim.sensors.surface import ASPHALT_PATCH_MEAN, FLOOR_M, WINDOW_SPACING_M, WINDOW_Z0_M
+from cosim.sensors.synthetic import synthetic_scenario
 
-from cosim.scenario.model import AgentsSpec, CameraSpec, Mount, RigSpec, RsuAgents, Scenario, SensorsSpec, VehicleAgents
+from cosim.scenario.model import CameraSpec, Mount, RigSpec, Scenario, SensorsSpec
 from cosim.snapshot import AgentState, WorldSnapshot
 from cosim.world.types import Prism, StaticLayout, World
 
@@ -25,10 +26,9 @@ def _world(*prisms) -> World:
 def _scenario(env: dict, detail: bool = True, z_m: float = 1.6, pitch_deg: float = 0.0, size=(320, 240)) -> Scenario:
     cam = CameraSpec(name="front", width=size[0], height=size[1], fov_deg=90.0, vignetting=0.0,
                      mount=Mount(xyz_m=(0.0, 0.0, z_m), rpy_deg=(0.0, pitch_deg, 0.0)))
-    return Scenario(name="t", seed=1, environment=env,
-                    agents=AgentsSpec(vehicles=VehicleAgents(count=1), rsus=RsuAgents(count=0), drones=[]),
-                    sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=[cam], gnss=None, imu=None),
-                                        sun_shadows=False, surface_detail=detail))
+    return synthetic_scenario(seed=1, environment=env,
+                              sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=[cam], gnss=None, imu=None),
+                                                  sun_shadows=False, surface_detail=detail))
 
 
 def _render(sc: Scenario, world: World, **atm_changes):

@@ -203,7 +203,7 @@ def test_ctrl_c_stops_a_looping_replay(tmp_path):
     import subprocess
     import sys
 
-    from tests.conftest import REPO
+    from tests.helpers import REPO
 
     path = write_synthetic_episode(tmp_path / "ep.mcap", ticks=5, sensors=False)
     proc = subprocess.Popen(
@@ -244,7 +244,7 @@ class _ReplayProcess:
         import sys
         import threading
 
-        from tests.conftest import REPO
+        from tests.helpers import REPO
 
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "cosim.cli", "replay", *args],

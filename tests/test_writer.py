@@ -212,7 +212,7 @@ def test_serialized_image_records_are_the_bytes_of_the_messages():
     from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
     from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
-    from cosim.io.depth import encode_depth
+    from cosim.depth import encode_depth
     from cosim.io.sensor_messages import _stamp, depth_image, frame_records
     from cosim.io.writer import Serialized
 

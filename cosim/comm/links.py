@@ -7,7 +7,8 @@ returns the tick's :class:`~cosim.comm.message.LinkSet` and the next fading stat
 
 1. geometry: antennas at the agents' base_link plus ``<kind>_antenna_z_m`` along map z; 3D distance;
 2. line of sight through the static world and the other actors (:mod:`cosim.comm.los`);
-3. the channel model by link type (:mod:`cosim.comm.channel`):
+3. the channel model by link type (:mod:`cosim.comm.models`, a registry of path-loss models by name, formulas
+   in :mod:`cosim.comm.channel`; ``comm.link_models`` picks another registered model per link type):
 
    - vehicle-vehicle: TR 37.885 Table 6.2.1-1, urban or highway (``comm.environment``); NLOSv adds
      the section 6.2.1 vehicle blockage loss to the LOS loss;
@@ -29,6 +30,7 @@ returns the tick's :class:`~cosim.comm.message.LinkSet` and the next fading stat
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from itertools import combinations
 from typing import Any
@@ -39,6 +41,8 @@ from cosim.comm import channel as ch
 from cosim.comm import phy
 from cosim.comm.los import LOS, LOS_STATES, NLOS, NLOSV, LinkScene, line_of_sight
 from cosim.comm.message import LINK_ARRAY_SCHEMA, LINK_TYPES, SCHEMA_NAME, TOPIC, LinkSet, links_payload
+from cosim.comm.models import LINK_MODELS, PairGeometry
+from cosim.errors import InputError
 from cosim.snapshot import AgentState, WorldSnapshot
 
 #: Scenario map kinds that are TR 37.885's "highway" setting; every other kind is "urban".
@@ -98,12 +102,14 @@ def antenna_positions(agents: tuple[AgentState, ...], spec: Any) -> np.ndarray:
 
 def pair_channels(types: list[str], state: np.ndarray, d3d_m: np.ndarray, d2d_m: np.ndarray,
                   h_a_m: np.ndarray, h_b_m: np.ndarray, drone_h_m: np.ndarray, blocker_m: np.ndarray,
-                  setting: str, ag_model: str, fc_ghz: float) -> PairChannel:
+                  setting: str, ag_model: str, fc_ghz: float,
+                  overrides: Mapping[str, str] | None = None) -> PairChannel:
     """Path loss and fading parameters of P unordered pairs (see the module docstring, step 3).
 
     ``h_a_m``, ``h_b_m``: antenna heights above ground of the two ends; ``drone_h_m``: the (lower)
     drone end's height for links with a drone end (NaN otherwise); ``blocker_m``: NLOSv blocker top
-    above ground (NaN otherwise). Every array (P,).
+    above ground (NaN otherwise). Every array (P,). ``overrides``: link type -> name of a model of
+    :data:`cosim.comm.models.LINK_MODELS` used for every pair of that type instead of the default.
     """
     p = len(types)
     pl = np.zeros(p)
@@ -117,45 +123,44 @@ def pair_channels(types: list[str], state: np.ndarray, d3d_m: np.ndarray, d2d_m:
     blk_mean = np.where(state == NLOSV, blk_mean, 0.0)
     blk_std = np.where(state == NLOSV, blk_std, 0.0)
     types_a = np.array(types)
+    h = np.maximum(np.where(np.isfinite(drone_h_m), drone_h_m, 100.0), 1.0)  # only aerial rows are kept
+    geometry = PairGeometry(d3d_m, d2d_m, h_bs, h_ut, h, fc_ghz, ag_model)
 
-    def put(mask: np.ndarray, name: str, loss_los, loss_nlos, sig_los, sig_nlos, corr: tuple[float, float]):
+    def put(mask: np.ndarray, name: str) -> None:
         if not mask.any():
             return
+        m = LINK_MODELS.get(name)(geometry)
         idx = np.nonzero(mask)[0]
-        pl[idx] = np.where(nlos[idx], np.asarray(loss_nlos)[idx], np.asarray(loss_los)[idx] + blk_mean[idx])
-        s = np.where(nlos[idx], np.asarray(sig_nlos)[idx] if np.ndim(sig_nlos) else sig_nlos,
-                     np.asarray(sig_los)[idx] if np.ndim(sig_los) else sig_los)
+        pl[idx] = np.where(nlos[idx], np.asarray(m.nlos_db)[idx], np.asarray(m.los_db)[idx] + blk_mean[idx])
+        s = np.where(nlos[idx], np.asarray(m.sigma_nlos_db)[idx] if np.ndim(m.sigma_nlos_db) else m.sigma_nlos_db,
+                     np.asarray(m.sigma_los_db)[idx] if np.ndim(m.sigma_los_db) else m.sigma_los_db)
         sigma[idx] = np.hypot(s, blk_std[idx])
-        dcorr[idx] = np.where(los[idx], corr[0], corr[1])
+        dcorr[idx] = np.where(los[idx], m.decorrelation_m[0], m.decorrelation_m[1])
         for i in idx:
             model[i] = name
 
-    vv = types_a == "vehicle-vehicle"
-    if setting == "highway":
-        put(vv, "tr37885_highway", ch.v2v_highway_los_db(d3d_m, fc_ghz), ch.v2v_urban_nlos_db(d3d_m, fc_ghz),
-            3.0, 4.0, ch.DECORRELATION_M["v2v_highway"])
-    else:
-        put(vv, "tr37885_urban", ch.v2v_urban_los_db(d3d_m, fc_ghz), ch.v2v_urban_nlos_db(d3d_m, fc_ghz),
-            3.0, 4.0, ch.DECORRELATION_M["v2v_urban"])
     drone = np.isin(types_a, ("vehicle-drone", "rsu-drone", "drone-drone"))
     aerial = drone & (drone_h_m > ch.AV_MIN_HEIGHT_M[ag_model])
-    umi = np.isin(types_a, ("vehicle-rsu", "rsu-rsu")) | (drone & ~aerial)
-    put(umi, "tr38901_umi_sc", ch.umi_sc_los_db(d3d_m, d2d_m, h_bs, h_ut, fc_ghz),
-        ch.umi_sc_nlos_db(d3d_m, d2d_m, h_bs, h_ut, fc_ghz), 4.0, 7.82, ch.DECORRELATION_M["umi_sc"])
-    h = np.maximum(np.where(np.isfinite(drone_h_m), drone_h_m, 100.0), 1.0)  # only aerial rows are kept
-    av_los, av_nlos = {
-        "umi_av": (ch.umi_av_los_db, ch.umi_av_nlos_db),
-        "uma_av": (ch.uma_av_los_db, ch.uma_av_nlos_db),
-        "rma_av": (ch.rma_av_los_db, ch.rma_av_nlos_db),
-    }[ag_model]
-    ground_air = aerial & (types_a != "drone-drone")
-    put(ground_air, f"tr36777_{ag_model}", av_los(d3d_m, h, fc_ghz), av_nlos(d3d_m, h, fc_ghz),
-        ch.av_shadow_std_db(ag_model, True, h), ch.av_shadow_std_db(ag_model, False, h), ch.DECORRELATION_M[ag_model])
-    air_air = aerial & (types_a == "drone-drone")
-    put(air_air, "free_space", ch.free_space_db(d3d_m, fc_ghz), av_nlos(d3d_m, h, fc_ghz),
-        ch.av_shadow_std_db(ag_model, True, h), ch.av_shadow_std_db(ag_model, False, h),
-        ch.DECORRELATION_M["free_space"])
+    groups = [
+        (types_a == "vehicle-vehicle", f"tr37885_{setting}"),
+        (np.isin(types_a, ("vehicle-rsu", "rsu-rsu")) | (drone & ~aerial), "tr38901_umi_sc"),
+        (aerial & (types_a != "drone-drone"), f"tr36777_{ag_model}"),
+        (aerial & (types_a == "drone-drone"), "free_space"),
+    ]
+    for link, name in (overrides or {}).items():
+        chosen = types_a == link
+        groups = [(mask & ~chosen, n) for mask, n in groups] + [(chosen, name)]
+    for mask, name in groups:
+        put(mask, name)
     return PairChannel(pl, sigma, dcorr, tuple(model))
+
+
+def check_link_models(overrides: Mapping[str, str]) -> None:
+    """``comm.link_models`` names known link types and registered models (else an InputError naming them)."""
+    for link, name in overrides.items():
+        if link not in LINK_TYPES:
+            raise InputError(f"comm.link_models: unknown link type {link!r}; known: {', '.join(LINK_TYPES)}")
+        LINK_MODELS.get(name)
 
 
 def compute_links(snapshot: WorldSnapshot, scene: LinkScene, spec: Any, map_kind: str, tick_ns: int,
@@ -191,7 +196,7 @@ def compute_links(snapshot: WorldSnapshot, scene: LinkScene, spec: Any, map_kind
     setting = setting_of(spec, map_kind)
     ag_model = air_ground_model_of(spec, setting)
     chan = pair_channels(types, state, d3d, d2d, h_a, h_b, drone_h, blocker_z - ground, setting, ag_model,
-                         spec.carrier_ghz)
+                         spec.carrier_ghz, getattr(spec, "link_models", None))
 
     innovation = rng.standard_normal(len(pairs))
     if fading is not None and fading.agent_ids == ids:
@@ -246,6 +251,7 @@ class LinkModel:
     """
 
     def __init__(self, spec: Any, scene: LinkScene, map_kind: str, seed: int, tick_ns: int):
+        check_link_models(getattr(spec, "link_models", {}))
         self.spec = spec
         self.scene = scene
         self.map_kind = map_kind

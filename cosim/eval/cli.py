@@ -36,7 +36,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     if (args.pred is None) == (args.baseline is None):
         raise InputError("give either --pred PREDICTIONS (your model's output) or --baseline NAME")
-    options = EvalOptions(visible_only=args.visible_only, rule=_rule(args), compat=args.compat, seed=args.seed)
+    options = EvalOptions(visible_only=args.visible_only, rule=_rule(args), compat=args.compat, seed=args.seed,
+                          metrics=tuple(args.metric) if args.metric else None)
     out = Path(args.out)
     if args.pred is not None:
         predictions = read_predictions(Path(args.pred))  # before reading the dataset: fail fast on a bad file
@@ -101,6 +102,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="ground truth only where an agent of the record's setting sees the object")
     p.add_argument("--compat", metavar="MODE", help="airv2x: reproduce the AirV2X release's scoring (see docs)")
     p.add_argument("--seed", type=int, default=0, help="baseline noise and compat subset seed (default 0)")
+    p.add_argument("--metric", action="append", metavar="NAME",
+                   help="compute only this metric (repeatable; default: every registered one: detection, "
+                        "segmentation and any plug-in, docs/evaluation.md)")
     g = p.add_argument_group("oracle-noise baseline")
     g.add_argument("--pos-sigma-m", type=float, default=0.0, help="centre noise, std along x and y [m]")
     g.add_argument("--size-sigma", type=float, default=0.0, help="relative size noise, std (0.1 = 10%%)")

@@ -5,6 +5,10 @@ Detection: AP at BEV IoU 0.3, 0.5 and 0.7 (:mod:`cosim.eval.ap`) for the vehicle
 and per condition (overall, lighting, weather, environment, drone strategy). Segmentation: IoU per
 BEV layer and their mean, from predicted grids against ``/<ego>/bev``.
 
+Each metric is an accumulator registered by name in :data:`METRICS` (``detection``, ``segmentation``;
+:class:`Metric`): it scores one frame, merges frames into the cells of the breakdowns, and gives its
+summary (``EvalResult.metrics()[name]``), its tables and plots; ``cosim eval --metric NAME`` picks some.
+
 Default (correct) behaviour and ``compat="airv2x"`` (the AirV2X release's scripts):
 
 =============================  ===================================  =====================================
@@ -30,7 +34,7 @@ from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -52,6 +56,7 @@ from cosim.eval.dataset import (
 from cosim.eval.predictions import SETTINGS, FramePrediction, PredictionError, iter_bev_layers
 from cosim.eval.tables import Table, bar_plot, write_tables
 from cosim.io import open_episode
+from cosim.registry import Registry
 
 log = logging.getLogger(__name__)
 
@@ -63,22 +68,95 @@ RELEASE_SEG_SUBSET = 1000
 @dataclass(frozen=True)
 class EvalOptions:
     """``visible_only``: drop ground truth no agent of the record's setting sees (the literature's
-    "visible" ground truth); ``compat``: None or ``airv2x``; ``seed``: the compat segmentation subset."""
+    "visible" ground truth); ``compat``: None or ``airv2x``; ``seed``: the compat segmentation subset;
+    ``metrics``: the names of the metrics to compute (None: all)."""
 
     thresholds: tuple[float, ...] = THRESHOLDS
     visible_only: bool = False
     rule: VisibilityRule = DEFAULT_RULE
     compat: str | None = None
     seed: int = 0
+    metrics: tuple[str, ...] | None = None  # names in METRICS; None: every registered metric
 
     def __post_init__(self) -> None:
         if self.compat is not None and self.compat not in COMPAT_MODES:
             raise InputError(f"unknown --compat {self.compat!r}; known: {', '.join(COMPAT_MODES)}")
+        for name in self.metrics or ():
+            METRICS.get(name)
+
+    def active_metrics(self) -> list[tuple[str, type[Metric]]]:
+        """(name, class) of the metrics to compute, in registration order."""
+        return [(n, m) for n, m in METRICS.items() if self.metrics is None or n in self.metrics]
+
+
+@dataclass(frozen=True)
+class FrameInputs:
+    """What a metric scores in one frame: the prediction record, the ground truth, the options, the
+    ground-truth BEV grid (None without one) and the set of detection groups seen (to extend)."""
+
+    rec: FramePrediction
+    truth: FrameTruth
+    options: EvalOptions
+    gt_bev: Any
+    groups: set[str]
+
+
+class Metric:
+    """An evaluation metric: an accumulator over frames, registered in :data:`METRICS` under its name.
+
+    :meth:`score` gives one frame's accumulator, :meth:`empty` a fresh one, :meth:`merge` adds another
+    one into this; :meth:`summary` is ``EvalResult.metrics()[name]``; :meth:`tables` and :meth:`plots` add
+    to the report (``eval.md``/``.csv``/``.json`` and PNGs); :meth:`finish` runs once on every cell after
+    the last frame."""
+
+    name: ClassVar[str] = ""
+
+    @classmethod
+    def empty(cls, options: EvalOptions) -> Metric:
+        raise NotImplementedError
+
+    @classmethod
+    def score(cls, frame: FrameInputs) -> Metric | None:
+        raise NotImplementedError
+
+    def merge(self, other: Any) -> None:
+        raise NotImplementedError
+
+    def summary(self, options: EvalOptions) -> dict[str, Any]:
+        raise NotImplementedError
+
+    @classmethod
+    def tables(cls, result: EvalResult) -> list[Table]:
+        return []
+
+    @classmethod
+    def plots(cls, result: EvalResult, out_dir: Path) -> list[Path]:
+        return []
+
+    @classmethod
+    def finish(cls, cells: dict[tuple[str, str, str], Cell], options: EvalOptions) -> None:
+        return None
+
+
+#: Evaluation metrics by name: a duplicate name is an error, an unknown one lists the known ones.
+METRICS: Registry[type[Metric]] = Registry("metric")
+
+
+def register_metric(name: str):
+    """Class decorator: add a :class:`Metric` under ``name`` (its key in ``EvalResult.metrics()``)."""
+
+    def add(cls: type[Metric]) -> type[Metric]:
+        METRICS.add(name, cls)
+        cls.name = name
+        return cls
+
+    return add
 
 
 @dataclass
-class SegAccumulator:
-    """Per layer: summed intersection and union (default) and per-frame IoUs (release mode)."""
+class SegAccumulator(Metric):
+    """BEV segmentation IoU per layer and their mean. Per layer: summed intersection and union (default) and
+    per-frame IoUs (release mode)."""
 
     inter: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     union: dict[str, int] = field(default_factory=lambda: defaultdict(int))
@@ -104,14 +182,66 @@ class SegAccumulator:
             return {k: float(np.mean(v)) for k, v in sorted(self.frame_ious.items()) if v}
         return {k: (self.inter[k] / self.union[k] if self.union[k] else float("nan")) for k in sorted(self.union)}
 
+    @classmethod
+    def empty(cls, options: EvalOptions) -> SegAccumulator:
+        return cls()
+
+    @classmethod
+    def score(cls, frame: FrameInputs) -> SegAccumulator:
+        rec, gt_bev = frame.rec, frame.gt_bev
+        out = cls()
+        if rec.bev_path is not None and gt_bev is not None:
+            names_layers = gt_bev.cells.dtype.names or ()
+            for layer, pred in iter_bev_layers(rec, gt_bev.cells.shape, names_layers):
+                out.add(layer, pred, gt_bev.cells[layer].astype(bool))
+            out.frames = 1
+        return out
+
+    def summary(self, options: EvalOptions) -> dict[str, Any]:
+        ious = self.ious(options.compat == "airv2x")
+        if not ious:
+            return {}
+        valid = [v for v in ious.values() if not math.isnan(v)]
+        return {"mIoU": 100.0 * float(np.mean(valid)) if valid else float("nan"),
+                "iou": {k: 100.0 * v for k, v in ious.items()}, "frames": self.frames}
+
+    @classmethod
+    def tables(cls, result: EvalResult) -> list[Table]:
+        settings = [s for s in SETTINGS if (s, "overall", "all") in result.cells]
+        if not any(result.metrics(s)["segmentation"] for s in settings):
+            return []
+        layers = sorted({k for s in settings for k in result.metrics(s)["segmentation"].get("iou", {})})
+        rows = [[s, *[result.metrics(s)["segmentation"].get("iou", {}).get(k, float("nan")) for k in layers]]
+                for s in settings]
+        return [Table("segmentation", "BEV segmentation IoU per layer", ["agents", *layers], rows)]
+
+    @classmethod
+    def finish(cls, cells: dict[tuple[str, str, str], Cell], options: EvalOptions) -> None:
+        if options.compat == "airv2x":
+            _release_subset(cells, options.seed)
+
 
 @dataclass
 class Cell:
-    """Everything accumulated for one (setting, breakdown, value)."""
+    """Everything accumulated for one (setting, breakdown, value): frames and each metric's accumulator."""
 
     frames: int = 0
-    detection: dict[str, DetectionAccumulator] = field(default_factory=dict)
-    seg: SegAccumulator = field(default_factory=SegAccumulator)
+    results: dict[str, Metric] = field(default_factory=dict)
+
+    def merge(self, frame: Cell, options: EvalOptions) -> None:
+        for name, acc in frame.results.items():
+            self.results.setdefault(name, METRICS.get(name).empty(options)).merge(acc)
+
+    @property
+    def detection(self) -> dict[str, DetectionAccumulator]:
+        """The detection accumulators by group (empty when detection is not computed)."""
+        acc = self.results.get("detection")
+        return acc.groups if isinstance(acc, Detection) else {}
+
+    @property
+    def seg(self) -> SegAccumulator:
+        acc = self.results.get("segmentation")
+        return acc if isinstance(acc, SegAccumulator) else SegAccumulator()
 
 
 @dataclass
@@ -133,24 +263,14 @@ class EvalResult:
 
     def _metrics(self, setting: str, breakdown: str, value: str) -> dict[str, Any]:
         cell = self.cells.get((setting, breakdown, value))
-        out: dict[str, Any] = {"frames": 0, "detection": {}, "segmentation": {}}
+        active = self.options.active_metrics()
+        out: dict[str, Any] = {"frames": 0, **{name: {} for name, _ in active}}
         if cell is None:
             return out
         out["frames"] = cell.frames
-        release = self.options.compat == "airv2x"
-        for g, acc in cell.detection.items():
-            d: dict[str, Any] = {}
-            for thr in self.options.thresholds:
-                r = acc.result(thr, frame_order=release)
-                ap = 0.0 if release and r.n_gt == 0 else r.ap  # the release scores "no ground truth" as 0
-                d[f"AP{round(thr * 100)}"] = 100.0 * ap
-                d["n_gt"], d["n_det"] = r.n_gt, r.n_det
-            out["detection"][g] = d
-        ious = cell.seg.ious(release)
-        if ious:
-            valid = [v for v in ious.values() if not math.isnan(v)]
-            out["segmentation"] = {"mIoU": 100.0 * float(np.mean(valid)) if valid else float("nan"),
-                                   "iou": {k: 100.0 * v for k, v in ious.items()}, "frames": cell.seg.frames}
+        for name, _ in active:
+            acc = cell.results.get(name)
+            out[name] = acc.summary(self.options) if acc is not None else {}
         return out
 
 
@@ -216,49 +336,95 @@ def evaluate(refs: Sequence[EpisodeRef], predictions: Sequence[FramePrediction],
             for b, v in keys:
                 cell = cells.setdefault((rec.agents, b, v), Cell())
                 cell.frames += 1
-                for g, acc in frame.detection.items():
-                    cell.detection.setdefault(g, DetectionAccumulator(options.thresholds)).merge(acc)
-                cell.seg.merge(frame.seg)
+                cell.merge(frame, options)
         if progress:
             progress(n + 1, len(evaluated))
-    if release:
-        _release_subset(cells, options.seed)
+    for _, metric in options.active_metrics():
+        metric.finish(cells, options)
     ordered = [VEHICLE_GROUP, *sorted(groups - {VEHICLE_GROUP})]
     return EvalResult(cells, options, ordered, len(evaluated), len(predictions), skipped)
 
 
 def _score_frame(rec: FramePrediction, truth: FrameTruth, options: EvalOptions, groups: set[str],
                  gt_bev: Any) -> Cell:
-    release = options.compat == "airv2x"
-    gt_mask = truth.in_area_release if release else truth.in_area
-    if options.visible_only:
-        gt_mask = gt_mask & require_visibility(truth, "--visible-only")[rec.agents]
-    det_mask = _in_area(rec.centers_m)
-    det_fp = footprints(rec.centers_m[:, :2], rec.sizes_m[:, :2], rec.yaws_rad)
-    gt_fp = truth.footprints()
-    gt_cls = np.array(truth.classes, dtype=object)
-    det_cls = np.array(rec.classes, dtype=object)
+    """One frame as a cell of its own: every active metric's accumulator of the frame."""
     frame = Cell(frames=1)
-    names = ({c for c in truth.classes if c} | set(rec.classes))
-    for g in [VEHICLE_GROUP, *sorted(names)]:
-        if g == VEHICLE_GROUP:
-            gm = gt_mask & np.isin(gt_cls, VEHICLE_CLASSES) if len(gt_cls) else gt_mask
-            dm = det_mask & np.isin(det_cls, VEHICLE_CLASSES) if len(det_cls) else det_mask
-        else:
-            gm = gt_mask & (gt_cls == g) if len(gt_cls) else gt_mask
-            dm = det_mask & (det_cls == g) if len(det_cls) else det_mask
-            if not gm.any() and not dm.any():
-                continue
-        groups.add(g)
-        acc = DetectionAccumulator(options.thresholds)
-        acc.add(det_fp[dm], rec.scores[dm], gt_fp[gm])
-        frame.detection[g] = acc
-    if rec.bev_path is not None and gt_bev is not None:
-        names_layers = gt_bev.cells.dtype.names or ()
-        for layer, pred in iter_bev_layers(rec, gt_bev.cells.shape, names_layers):
-            frame.seg.add(layer, pred, gt_bev.cells[layer].astype(bool))
-        frame.seg.frames = 1
+    inputs = FrameInputs(rec, truth, options, gt_bev, groups)
+    for name, metric in options.active_metrics():
+        acc = metric.score(inputs)
+        if acc is not None:
+            frame.results[name] = acc
     return frame
+
+
+@register_metric("detection")
+@dataclass
+class Detection(Metric):
+    """BEV AP per group (``vehicle``: the vehicle classes together, then each object class) and threshold."""
+
+    groups: dict[str, DetectionAccumulator] = field(default_factory=dict)
+    thresholds: tuple[float, ...] = THRESHOLDS
+
+    @classmethod
+    def empty(cls, options: EvalOptions) -> Detection:
+        return cls(thresholds=options.thresholds)
+
+    def merge(self, other: Detection) -> None:
+        for g, acc in other.groups.items():
+            self.groups.setdefault(g, DetectionAccumulator(self.thresholds)).merge(acc)
+
+    @classmethod
+    def score(cls, frame: FrameInputs) -> Detection:
+        rec, truth, options = frame.rec, frame.truth, frame.options
+        release = options.compat == "airv2x"
+        gt_mask = truth.in_area_release if release else truth.in_area
+        if options.visible_only:
+            gt_mask = gt_mask & require_visibility(truth, "--visible-only")[rec.agents]
+        det_mask = _in_area(rec.centers_m)
+        det_fp = footprints(rec.centers_m[:, :2], rec.sizes_m[:, :2], rec.yaws_rad)
+        gt_fp = truth.footprints()
+        gt_cls = np.array(truth.classes, dtype=object)
+        det_cls = np.array(rec.classes, dtype=object)
+        out = cls.empty(options)
+        names = ({c for c in truth.classes if c} | set(rec.classes))
+        for g in [VEHICLE_GROUP, *sorted(names)]:
+            if g == VEHICLE_GROUP:
+                gm = gt_mask & np.isin(gt_cls, VEHICLE_CLASSES) if len(gt_cls) else gt_mask
+                dm = det_mask & np.isin(det_cls, VEHICLE_CLASSES) if len(det_cls) else det_mask
+            else:
+                gm = gt_mask & (gt_cls == g) if len(gt_cls) else gt_mask
+                dm = det_mask & (det_cls == g) if len(det_cls) else det_mask
+                if not gm.any() and not dm.any():
+                    continue
+            frame.groups.add(g)
+            acc = DetectionAccumulator(options.thresholds)
+            acc.add(det_fp[dm], rec.scores[dm], gt_fp[gm])
+            out.groups[g] = acc
+        return out
+
+    def summary(self, options: EvalOptions) -> dict[str, Any]:
+        release = options.compat == "airv2x"
+        out: dict[str, Any] = {}
+        for g, acc in self.groups.items():
+            d: dict[str, Any] = {}
+            for thr in options.thresholds:
+                r = acc.result(thr, frame_order=release)
+                ap = 0.0 if release and r.n_gt == 0 else r.ap  # the release scores "no ground truth" as 0
+                d[f"AP{round(thr * 100)}"] = 100.0 * ap
+                d["n_gt"], d["n_det"] = r.n_gt, r.n_det
+            out[g] = d
+        return out
+
+    @classmethod
+    def tables(cls, result: EvalResult) -> list[Table]:
+        return _detection_tables(result)
+
+    @classmethod
+    def plots(cls, result: EvalResult, out_dir: Path) -> list[Path]:
+        return _detection_plots(result, out_dir)
+
+
+register_metric("segmentation")(SegAccumulator)  # after detection: the registration order is the tables' order
 
 
 def _read_bev(ref: EpisodeRef, recs: list[FramePrediction]) -> dict[tuple[int, str], Any]:
@@ -283,18 +449,25 @@ def _read_bev(ref: EpisodeRef, recs: list[FramePrediction]) -> dict[tuple[int, s
 def _release_subset(cells: dict[tuple[str, str, str], Cell], seed: int) -> None:
     """The release scores segmentation on a random subset of frames: keep the same seeded subset per cell."""
     for cell in cells.values():
-        for layer, ious in cell.seg.frame_ious.items():
+        seg = cell.seg
+        for layer, ious in seg.frame_ious.items():
             if len(ious) > RELEASE_SEG_SUBSET:
                 rng = np.random.default_rng(seed)
                 pick = np.sort(rng.choice(len(ious), RELEASE_SEG_SUBSET, replace=False))
-                cell.seg.frame_ious[layer] = [ious[i] for i in pick]
+                seg.frame_ious[layer] = [ious[i] for i in pick]
 
 
 # ------------------------------------------------------------------------------------------ tables
 
 
 def eval_tables(result: EvalResult) -> list[Table]:
-    """Overall, per class, per condition (paper Tables 3-6 shape: settings as rows) and per BEV layer."""
+    """Every active metric's tables, in registration order: overall, per class, per condition (paper Tables
+    3-6 shape: settings as rows) and per BEV layer for the built-in ones."""
+    return [t for _, metric in result.options.active_metrics() for t in metric.tables(result)]
+
+
+def _detection_tables(result: EvalResult) -> list[Table]:
+    """Overall, per class and per condition; the segmentation mIoU beside the AP when it is computed."""
     settings = [s for s in SETTINGS if (s, "overall", "all") in result.cells]
     aps = [f"AP{round(t * 100)}" for t in result.options.thresholds]
     tables = []
@@ -303,7 +476,7 @@ def eval_tables(result: EvalResult) -> list[Table]:
     for s in settings:
         m = result.metrics(s)
         d = m["detection"].get(VEHICLE_GROUP, {})
-        seg = m["segmentation"]
+        seg = m.get("segmentation", {})
         has_seg |= bool(seg)
         rows.append([s, m["frames"], d.get("n_gt", 0), d.get("n_det", 0), *[d.get(a, float("nan")) for a in aps],
                      seg.get("mIoU", float("nan"))])
@@ -331,14 +504,9 @@ def eval_tables(result: EvalResult) -> list[Table]:
                 d = ms[v]["detection"].get(VEHICLE_GROUP, {})
                 row += [d.get(a, float("nan")) for a in aps]
             if has_seg:
-                row += [ms[v]["segmentation"].get("mIoU", float("nan")) for v in values]
+                row += [ms[v].get("segmentation", {}).get("mIoU", float("nan")) for v in values]
             rows.append(row)
         tables.append(Table(f"by_{b}", f"By {b} (all vehicle classes)", cols, rows))
-    if has_seg:
-        layers = sorted({k for s in settings for k in result.metrics(s)["segmentation"].get("iou", {})})
-        rows = [[s, *[result.metrics(s)["segmentation"].get("iou", {}).get(k, float("nan")) for k in layers]]
-                for s in settings]
-        tables.append(Table("segmentation", "BEV segmentation IoU per layer", ["agents", *layers], rows))
     return tables
 
 
@@ -354,6 +522,15 @@ def write_eval(result: EvalResult, out_dir: Path, title: str = "Evaluation") -> 
     metrics = {f"{s}|{b}|{v}": result.metrics(s, b, v) for (s, b, v) in sorted(result.cells)}
     paths = write_tables(tables, out_dir, "eval", header, {"metrics": _json_safe(metrics),
                                                            "compat": o.compat, "visible_only": o.visible_only})
+    for _, metric in o.active_metrics():
+        paths += metric.plots(result, out_dir)
+    return paths
+
+
+def _detection_plots(result: EvalResult, out_dir: Path) -> list[Path]:
+    """AP by each breakdown (bar plots) and the precision-recall curves."""
+    o = result.options
+    paths = []
     settings = [s for s in SETTINGS if (s, "overall", "all") in result.cells]
     aps = [f"AP{round(t * 100)}" for t in o.thresholds]
     for b in ("overall", *CONDITIONS):

@@ -25,9 +25,9 @@ from google.protobuf.message import DecodeError
 from google.protobuf.message import Message as ProtoMessage
 
 from cosim.comm.message import decode_links
+from cosim.depth import DEPTH_FORMAT, decode_depth
 from cosim.errors import FormatError
 from cosim.geometry import has_distortion, project_to_image
-from cosim.io.depth import DEPTH_FORMAT, decode_depth
 from cosim.io.points import float_view
 
 # ----------------------------------------------------------------------------------- types

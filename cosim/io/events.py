@@ -9,6 +9,8 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from cosim.scenario.model import EVENT_KINDS
+
 _ID_LIST = {"type": "array", "items": {"type": "integer", "minimum": 1}}
 
 EVENTS_SCHEMA: dict[str, Any] = {
@@ -27,8 +29,7 @@ EVENTS_SCHEMA: dict[str, Any] = {
                 "required": ["id", "kind", "at_ns", "state"],
                 "properties": {
                     "id": {"type": "string"},
-                    "kind": {"enum": ["breakdown", "accident", "lane_closure", "construction_zone", "road_block",
-                                      "jaywalk", "cut_in"]},
+                    "kind": {"enum": list(EVENT_KINDS)},
                     "at_ns": {"type": "integer"},
                     "state": {"enum": ["pending", "starting", "active", "failed"]},
                     "active_from_ns": {"type": ["integer", "null"]},

@@ -139,10 +139,8 @@ def expected_topics(scenario: Any, agents: list[str]) -> set[str]:
         for cam in rig.cameras:
             out.update(f"/{agent}/{cam.name}/{CAMERA_TOPICS[o]}" for o in cam.outputs)
             out.add(f"/{agent}/{cam.name}/calibration")
-        if rig.gnss is not None:
-            out.add(f"/{agent}/gnss")
-        if rig.imu is not None:
-            out.add(f"/{agent}/imu")
+        # every other rig field is a per-agent sensor (GNSS, IMU, a sensor kind of cosim.sensors.kinds): one topic
+        out.update(f"/{agent}/{name}" for name, spec in rig if name not in ("lidar", "cameras") and spec is not None)
         out.add(f"/{agent}/visibility")
         if scenario.sensors.bev:
             out.add(f"/{agent}/bev")

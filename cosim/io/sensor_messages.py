@@ -20,16 +20,16 @@ import numpy as np
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.Grid_pb2 import Grid
-from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
+from cosim.depth import DEPTH_FORMAT
 from cosim.errors import CosimError
-from cosim.io.depth import DEPTH_FORMAT
 from cosim.io.points import encode_points
 from cosim.io.writer import Serialized
 from cosim.sensors.encoding import encode_depth, encode_jpeg, encode_png, submit, submit_encode
+from cosim.sensors.kinds import SENSOR_KINDS
 from cosim.sensors.suite import SensorFrameSet
 
 __all__ = ["depth_image", "encode_jpeg", "encode_png", "frame_messages", "frame_records", "lidar_message",
@@ -185,14 +185,6 @@ def calibration_message(frame_id: str, cam, t_ns: int) -> CameraCalibration:
     return msg
 
 
-def gnss_message(agent_id: str, g, t_ns: int) -> LocationFix:
-    msg = LocationFix(frame_id=f"{agent_id}/gnss", latitude=g.latitude_deg, longitude=g.longitude_deg,
-                      altitude=g.altitude_m, position_covariance_type=LocationFix.DIAGONAL_KNOWN)
-    _stamp(msg, t_ns)
-    msg.position_covariance.extend(g.covariance_m2)
-    return msg
-
-
 def bev_message(agent_id: str, bev, t_ns: int) -> Grid:
     """The BEV grid in ``map``: the pose puts the grid's corner cell (0, 0) where it lies in the world."""
     _ny, nx, n_layers = bev.grid.shape
@@ -269,7 +261,7 @@ def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png
     ``frames`` once its messages are made, so that a frame's arrays are freed while it is written
     rather than after (the frames are empty afterwards). ``lidar_positions``: how point positions are
     stored (``sensors.lidar_positions``, see :mod:`cosim.io.points`); ``depth_format``: ``compressed``
-    (:mod:`cosim.io.depth`) or ``raw`` (32FC1), ``output.depth_format``.
+    (:mod:`cosim.depth`) or ``raw`` (32FC1), ``output.depth_format``.
     """
     order = [(af, name) for af in frames.agents.values() for name in af.cameras]
     started: dict[int, tuple[Future | None, Future]] = {}
@@ -318,8 +310,8 @@ def frame_records(frames: SensorFrameSet, t_ns: int, *, image_format: str = "png
             if consume:
                 del af.cameras[name]
             del cam
-        if af.gnss is not None:
-            yield f"/{a}/gnss", gnss_message(a, af.gnss, t_ns)
+        for kind, frame in (af.sensors or {}).items():
+            yield f"/{a}/{kind}", SENSOR_KINDS.get(kind).message(a, frame, t_ns)
         if af.imu is not None:
             yield f"/{a}/imu", ("cosim.Imu", IMU_SCHEMA, imu_payload(a, af.imu, t_ns))
         if af.bev is not None:

@@ -22,6 +22,8 @@ from pydantic import BaseModel, ValidationError
 
 from cosim.errors import ScenarioError
 from cosim.scenario.model import (
+    DRONE_STRATEGIES,
+    EVENT_KINDS,
     EnvironmentSpec,
     MapSpec,
     RuleError,
@@ -334,8 +336,7 @@ def printable(text: str, limit: int = 120) -> str:
     return shown if len(shown) <= limit else f"{shown[: limit - 20]}... ({len(text)} characters)"
 
 
-_UNION_TAGS = ("hover", "patrol", "escort", "breakdown", "accident", "lane_closure", "construction_zone", "road_block",
-               "jaywalk", "cut_in")
+_UNION_TAGS = frozenset((*DRONE_STRATEGIES, *EVENT_KINDS))
 
 
 def _is_pydantic_artefact(part: str | int) -> bool:

@@ -259,6 +259,17 @@ class EscortDrone(DroneBase):
 DroneSpec = Annotated[HoverDrone | PatrolDrone | EscortDrone, Field(discriminator="strategy")]
 
 
+def union_tags(union: Any) -> tuple[str, ...]:
+    """The tag values of a discriminated union of models (``Annotated[A | B, Field(discriminator=...)]``), in
+    declaration order: a new kind is a new member of the union and every list of kinds follows from it."""
+    members, info = get_args(union)[:2]
+    return tuple(tag for cls in get_args(members) for tag in get_args(cls.model_fields[info.discriminator].annotation))
+
+
+#: ``hover``, ``patrol``, ``escort``: the drone strategies of :data:`DroneSpec`.
+DRONE_STRATEGIES = union_tags(DroneSpec)
+
+
 class AgentsSpec(Model):
     vehicles: VehicleAgents = VehicleAgents()
     rsus: RsuAgents = RsuAgents()
@@ -602,6 +613,8 @@ EventSpec = Annotated[
     BreakdownEvent | AccidentEvent | LaneClosureEvent | RoadBlockEvent | JaywalkEvent | CutInEvent,
     Field(discriminator="kind"),
 ]
+#: The event kinds of :data:`EventSpec` (the ``/events`` schema and the loader's messages follow from it).
+EVENT_KINDS = union_tags(EventSpec)
 
 # -------------------------------------------------------------------------------------- output
 
@@ -661,6 +674,9 @@ class CommSpec(Model):
     noise_figure_db: float = Field(9.0, ge=0.0, le=30.0)  # [dB] receiver noise figure
     environment: Literal["auto", "urban", "highway"] = "auto"  # TR 37.885 setting; auto: from map.kind
     air_ground_model: Literal["auto", "umi_av", "uma_av", "rma_av"] = "auto"  # TR 36.777 Annex B; auto: by setting
+    #: link type ("vehicle-drone") -> a path-loss model registered by name (cosim/comm/models.py) for all its
+    #: links instead of the 3GPP default; checked when the link model starts
+    link_models: dict[str, str] = Field(default_factory=dict)
     vehicle_antenna_z_m: float = Field(1.6, ge=0.0, le=10.0)  # [m] antenna above a vehicle's base_link (ground)
     rsu_antenna_z_m: float = Field(0.5, ge=0.0, le=10.0)  # [m] antenna above an RSU's base_link (mast top)
     drone_antenna_z_m: float = Field(0.0, ge=-2.0, le=2.0)  # [m] antenna above a drone's base_link (centre)

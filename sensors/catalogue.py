@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from . import people, vehicles
-from .shapes import union_volume
+from .assets import people, vehicles
+from .assets.shapes import union_volume
 
 #: how many people the catalogue lists (drawn from these keys; pedestrians get theirs from the SUMO id)
 N_PEOPLE = 16
@@ -199,7 +199,7 @@ def write_catalogue(out: Path, pictures: bool = True) -> list[dict]:
 
 def cmd_assets(args) -> int:
     """``cosim assets [--out DIR] [--no-pictures]``: print the table, write catalogue.json and the pictures."""
-    from cosim.runner import check_output_dir
+    from cosim.preflight import check_output_dir
 
     out = Path(args.out)
     check_output_dir(out)  # a file, /proc, a NUL, no permission: one message, exit 2, before any work

@@ -1,5 +1,6 @@
 """The compact lossless depth image of episodes (CompressedImage format ``cosim-depth``,
-docs/episode_format.md section 3.5): written by the exporter, read by :mod:`cosim.io.decode`."""
+docs/episode_format.md section 3.5): written by the sensors' encoders (:mod:`cosim.sensors.encoding`), read by
+:mod:`cosim.io.decode`. Below both (layer 0, docs/architecture.md): the sensors must not import :mod:`cosim.io`."""
 
 from __future__ import annotations
 
