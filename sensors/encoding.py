@@ -36,7 +36,8 @@ IMAGE_FORMATS = ("jpeg", "png")
 class PackedLabels:
     """A label image (semantic uint8 or instance uint32, (H, W)) held zstd-compressed (level 1) until its
     message is made: rendered label images are large flat regions, so a 1280x720 instance image of 3.7 MB
-    keeps a few tens of kB, for about 1 ms to pack and 2 ms to unpack (straight into the message buffer).
+    keeps some kB (2-6 kB on the synthetic world), for about 1 ms to pack and at most 2 ms to unpack
+    (straight into the message buffer).
     Lossless: :meth:`into` gives back exactly the packed pixels, so the episode bytes do not change."""
 
     shape: tuple[int, int]
