@@ -175,7 +175,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _register_more(sub: argparse._SubParsersAction) -> None:
     """Subcommands contributed by other modules (episode tools, batch)."""
-    for module_name in ("cosim.tools", "cosim.batch.cli", "cosim.eval.cli", "cosim.exporters.cli"):
+    for module_name in ("cosim.tools", "cosim.batch.cli", "cosim.eval.cli", "cosim.exporters.cli",
+                        "cosim.sensors.assets.catalogue"):
         try:
             module = __import__(module_name, fromlist=["register"])
         except ModuleNotFoundError as exc:

@@ -21,8 +21,12 @@ markings and vehicle reflectors. Rain wets upward-facing surfaces (lower reflect
 
 Weather (see :mod:`cosim.sensors.environment`): fog removes returns beyond the visibility distance and
 thins those approaching it, dims the rest, and adds near-range backscatter; rain adds dropout, range
-noise and spurious near returns from drops. Dual returns (``dual_returns``): where a beam's footprint
-straddles a near object's edge or a rain drop, the beam reports the strongest and the last return.
+noise and spurious near returns from drops. Ray drop (:func:`drop_probability`): a seeded draw per
+return removes it with the probability of CARLA's drop-off model (``dropoff_general_rate``,
+``dropoff_intensity_limit``, ``dropoff_zero_intensity``) combined with physical terms: too little
+return energy (long range, dark or grazing surfaces), glass (the beam passes through or glances off)
+and wet surfaces under rain (specular); retro-reflectors never drop. Dual returns (``dual_returns``): where
+a beam's footprint straddles a near object's edge or a rain drop, the beam reports the strongest and the last return.
 """
 
 from __future__ import annotations
@@ -183,7 +187,13 @@ def rosette_pattern(spec: LidarSpec, t_end_ns: int) -> Beams:
 #: Incidence-independent retro-reflective reflectivity per semantic class (glass-bead lane markings).
 _RETRO_BY_CLASS = np.zeros(256, np.float32)
 _RETRO_BY_CLASS[SEMANTIC_ID["lane_marking"]] = 0.35
-LAMP_RETRO = 0.6  # vehicles' lamp units carry reflectors
+
+#: probability that a return from glazing is lost (most of the beam is transmitted or reflected away)
+GLASS_DROP = 0.85
+#: probability that a return from a wet upward-facing surface at grazing incidence is lost in heavy rain
+WET_DROP = 0.8
+#: steepness of the detection probability in the return energy (2: in range, (R / R90)^4)
+DETECTION_EXPONENT = 2.0
 
 
 def wet_factor(rain_mm_h: float) -> float:
@@ -326,6 +336,8 @@ def render_lidar(
                             lambda r: _cast_binned(scene, r, t_off_s, exclude_track, with_static=False))
     else:
         t, gid = _cast_binned(scene, rays, t_off_s, exclude_track)
+    if noise:  # foliage lets part of the beams through (drawn first: the crowns decide what a beam hits)
+        t, gid = _through_crowns(scene, rays, t, gid, rng.random(n), exclude_track)
     hit = t <= spec.range_m
     r = np.where(hit, t, 0.0).astype(np.float64)
 
@@ -340,11 +352,13 @@ def render_lidar(
         u_weather = rng.random(n)
         u_spur = rng.random(n)
         u_spur_r = rng.random(n)
+        u_ray_drop = rng.random(n)
         rain = atm.rain_rate_mm_h
         sigma = spec.range_noise_m + 0.0015 * rain
         r = np.where(hit, r + sigma * u_noise, r)
         p_drop = spec.dropout + min(0.5, 0.004 * rain)
         hit &= u_drop >= p_drop
+        hit &= u_ray_drop >= _ray_drop(spec, scene, atm, gid, rays[:, 3:], r, intensity)
         if atm.beta_fog > 0:
             vis = atm.visibility_m
             # detection probability falls towards the visibility distance, zero beyond
@@ -398,12 +412,85 @@ def _surface_intensity(scene: TickScene, atm: Atmosphere, gid: np.ndarray, d_map
     cos_inc = np.abs((normals * d_map).sum(axis=1))
     cls = np.take(lab["semantic"], gid)
     rho = np.take(lab["reflectivity"], gid).astype(np.float64)
-    retro = _RETRO_BY_CLASS[cls].astype(np.float64)
-    retro = np.where((gid >= scene.n_static) & (np.take(lab["emissive"], gid) > 0), LAMP_RETRO, retro)
+    retro = np.maximum(_RETRO_BY_CLASS[cls], np.take(lab["retro"], gid)).astype(np.float64)
     if atm.rain_rate_mm_h > 0:
         wet = np.where(normals[:, 2] > 0.5, wet_factor(atm.rain_rate_mm_h), 1.0)
         rho, retro = rho * wet, retro * wet
     return intensity_model(rho, retro, cos_inc, r, atm.beta), cls, np.take(lab["instance"], gid)
+
+
+def _through_crowns(scene: TickScene, rays: np.ndarray, t: np.ndarray, gid: np.ndarray, u: np.ndarray,
+                    exclude_track: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """Beams into a porous crown (leaf density mu > 0, :mod:`cosim.sensors.assets.vegetation`): each
+    travels a free path -ln(1 - u) / mu into it (Beer-Lambert); shorter than the way to the crown's far
+    side (or a branch inside), it returns from the leaves there; else it goes on, to the branch or on
+    through the crown to whatever lies behind. ``rays`` have unit directions; ``t``, ``gid`` are the
+    first hits, returned updated."""
+    dens = np.take(scene.labels["leaf_density"], gid)
+    idx = np.nonzero((dens > 0) & np.isfinite(t))[0]
+    if not len(idx):
+        return t, gid
+    t, gid = t.copy(), gid.copy()
+    eps = np.float32(1e-3)
+    r = rays[idx].copy()
+    entry = t[idx]
+    r[:, :3] += (entry + eps)[:, None] * r[:, 3:]
+    t2, g2 = scene.cast(r, exclude_track, with_actors=False)  # the crown's far side, or a branch in it
+    depth = -np.log1p(-np.minimum(u[idx], 1 - 1e-9)) / dens[idx]
+    inside = depth < t2
+    t[idx[inside]] = entry[inside] + depth[inside].astype(np.float32)
+    # through the leaves to a branch or trunk: that is the hit
+    branch = ~inside & np.isfinite(t2) & (np.take(scene.labels["leaf_density"], g2) <= 0)
+    t[idx[branch]] = entry[branch] + eps + t2[branch]
+    gid[idx[branch]] = g2[branch]
+    # out of the far side: on to whatever lies behind (a second crown behind it is taken as solid)
+    out = np.nonzero(~inside & ~branch)[0]
+    if len(out):
+        r3 = r[out].copy()
+        far = np.where(np.isfinite(t2[out]), t2[out], 0.0) + eps
+        r3[:, :3] += far[:, None] * r3[:, 3:]
+        t3, g3 = scene.cast(r3, exclude_track)
+        t[idx[out]] = entry[out] + eps + far + t3
+        gid[idx[out]] = g3
+    return t, gid
+
+
+def _ray_drop(spec: LidarSpec, scene: TickScene, atm: Atmosphere, gid: np.ndarray, d_map: np.ndarray,
+              r: np.ndarray, intensity: np.ndarray) -> np.ndarray:
+    """:func:`drop_probability` of the hits ``gid`` (misses get any value: they are no return anyway)."""
+    lab = scene.labels
+    normals = np.take(lab["normal"], gid, axis=0)
+    cos_inc = np.abs((normals * d_map).sum(axis=1))
+    energy = np.take(lab["reflectivity"], gid) * cos_inc
+    retro = np.maximum(_RETRO_BY_CLASS[np.take(lab["semantic"], gid)], np.take(lab["retro"], gid))
+    wet = np.zeros(len(gid))
+    if atm.rain_rate_mm_h > 0:
+        wet = np.where(normals[:, 2] > 0.5, WET_DROP * min(1.0, atm.rain_rate_mm_h / 10.0) * (1.0 - cos_inc), 0.0)
+    return drop_probability(spec, intensity, r, energy, retro, np.take(lab["glass"], gid), wet)
+
+
+def drop_probability(spec: LidarSpec, intensity: np.ndarray, range_m: np.ndarray, energy: np.ndarray,
+                     retro: np.ndarray, glass: np.ndarray, wet_grazing: np.ndarray) -> np.ndarray:
+    """Probability (N,) that each return is lost.
+
+    - CARLA's drop-off (``sensor.lidar.ray_cast``): a share ``dropoff_general_rate`` is dropped at random;
+      below ``dropoff_intensity_limit`` a return is dropped with a probability falling linearly from
+      ``dropoff_zero_intensity`` at zero intensity to none at the limit.
+    - Return energy: ``energy`` (N,) is rho cos(alpha) (diffuse reflectivity times the incidence cosine);
+      the received power is energy / R^2, and the detection probability 1 / (1 + (P90 / P)^k / 9), with
+      P90 that of a 10 % target at ``detection_range_10pct_m`` (detected 9 times in 10 there).
+    - Glass drops with :data:`GLASS_DROP`; a wet upward surface with ``wet_grazing`` (N,) (0..1).
+    - A retro-reflector (``retro`` > 0) never drops.
+    """
+    keep = np.full(len(intensity), 1.0 - spec.dropoff_general_rate)
+    lim = spec.dropoff_intensity_limit
+    if lim > 0:
+        keep *= np.where(intensity >= lim, 1.0, 1.0 - spec.dropoff_zero_intensity * (1.0 - intensity / lim))
+    p90 = 0.1 / spec.detection_range_10pct_m ** 2
+    power = np.maximum(energy, 1e-9) / np.maximum(range_m, MIN_RANGE_M) ** 2
+    keep /= 1.0 + (p90 / power) ** DETECTION_EXPONENT / 9.0
+    keep *= np.where(glass, 1.0 - GLASS_DROP, 1.0) * (1.0 - wet_grazing)
+    return np.where(retro > 0, 0.0, 1.0 - keep)
 
 
 def _edge_returns(scene: TickScene, spec: LidarSpec, atm: Atmosphere, rays: np.ndarray, d_sensor: np.ndarray,

@@ -20,7 +20,7 @@ import math
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cache, cached_property, lru_cache
 
 import numpy as np
 
@@ -41,6 +41,18 @@ class TriMesh:
     reflectivity: np.ndarray  # (T,) float32
     emissive: np.ndarray  # (T,) float32
     group: np.ndarray  # (T,) int64: triangles of one convex planar polygon share a group (see faces())
+    retro: np.ndarray | None = None  # (T,) float32: retro-reflective LiDAR reflectivity (plates, lamps); None: 0
+    glass: np.ndarray | None = None  # (T,) bool: glazing (the LiDAR mostly loses its returns); None: none
+    leaf_density: np.ndarray | None = None  # (T,) float32 [1/m]: a porous crown's foliage (0: solid); None: 0
+
+    def retro_values(self) -> np.ndarray:
+        return np.zeros(self.n_triangles, np.float32) if self.retro is None else self.retro
+
+    def glass_values(self) -> np.ndarray:
+        return np.zeros(self.n_triangles, bool) if self.glass is None else self.glass
+
+    def leaf_density_values(self) -> np.ndarray:
+        return np.zeros(self.n_triangles, np.float32) if self.leaf_density is None else self.leaf_density
 
     @property
     def n_triangles(self) -> int:
@@ -103,6 +115,11 @@ def concat(meshes: Sequence[TriMesh]) -> TriMesh:
         np.concatenate([m.reflectivity for m in meshes]),
         np.concatenate([m.emissive for m in meshes]),
         np.concatenate([m.group + o for m, o in zip(meshes, g_off, strict=True)]).astype(np.int64),
+        np.concatenate([m.retro_values() for m in meshes]).astype(np.float32)
+        if any(m.retro is not None for m in meshes) else None,
+        np.concatenate([m.glass_values() for m in meshes]) if any(m.glass is not None for m in meshes) else None,
+        np.concatenate([m.leaf_density_values() for m in meshes]).astype(np.float32)
+        if any(m.leaf_density is not None for m in meshes) else None,
     )
 
 
@@ -325,8 +342,58 @@ FAR_GROUND_M = 10_000.0
 
 
 def static_mesh(layout: StaticLayout) -> TriMesh:
-    """Mesh of every prism of ``layout`` (map frame), in prism order, then :func:`far_ground`."""
-    return concat([*(_prism_mesh(p) for p in layout.prisms), far_ground(layout)])
+    """Mesh of every prism of ``layout`` (map frame), in prism order, then :func:`far_ground`. A tree's
+    trunk and crown prisms become one procedural tree (:func:`cosim.sensors.assets.vegetation.tree_mesh`)
+    where the crown was; hedges get a porous foliage."""
+    trees = _tree_pairs(layout)
+    parts = []
+    for k, p in enumerate(layout.prisms):
+        if k in trees:
+            if trees[k] >= 0:
+                parts.append(_tree(p, layout.prisms[trees[k]]))
+            continue
+        parts.append(_prism_mesh(p))
+    return concat([*parts, far_ground(layout)])
+
+
+def _tree_pairs(layout: StaticLayout) -> dict[int, int]:
+    """Crown prism index -> its trunk's index, and trunk index -> -1, for every tree of the layout (a
+    vegetation prism raised off the ground above a square vegetation prism of the same centre)."""
+    trunks: dict[tuple[float, float], int] = {}
+    for k, p in enumerate(layout.prisms):
+        if p.cls == "vegetation" and len(p.footprint) == 4 and p.z0_m <= layout.ground_z_m + 0.01:
+            c = np.mean(np.asarray(p.footprint), axis=0)
+            trunks[(round(float(c[0]), 1), round(float(c[1]), 1))] = k
+    out: dict[int, int] = {}
+    for k, p in enumerate(layout.prisms):
+        if p.cls == "vegetation" and p.z0_m > layout.ground_z_m + 0.5:
+            c = np.mean(np.asarray(p.footprint), axis=0)
+            t = trunks.get((round(float(c[0]), 1), round(float(c[1]), 1)))
+            if t is not None and abs(layout.prisms[t].z1_m - p.z0_m) < 0.01:
+                out[k] = t
+                out[t] = -1
+    return out
+
+
+#: bark colour and LiDAR reflectivity of trunks and branches
+_BARK = ((0.22, 0.16, 0.11), 0.35)
+
+
+def _tree(crown: Prism, trunk: Prism) -> TriMesh:
+    from .assets import vegetation
+
+    fp = np.asarray(crown.footprint, np.float64)
+    c = fp.mean(axis=0)
+    radius = float(np.linalg.norm(fp - c, axis=1).max())
+    v, t, part, grp, species = vegetation.tree_mesh(float(c[0]), float(c[1]), trunk.z0_m, crown.z0_m, crown.z1_m,
+                                                    radius)
+    alb, refl = material_of("vegetation", 0)
+    albedo = np.where((part == vegetation.PART_CROWN)[:, None], alb, np.asarray(_BARK[0], np.float32))
+    mesh = _labelled(v, t, "vegetation", 0, albedo, refl, group=grp)
+    density = np.where(part == vegetation.PART_CROWN, vegetation.SPECIES[species][1], 0.0).astype(np.float32)
+    return TriMesh(mesh.vertices, mesh.triangles, mesh.semantic, mesh.instance, mesh.albedo,
+                   np.where(part == vegetation.PART_CROWN, refl, _BARK[1]).astype(np.float32), mesh.emissive,
+                   mesh.group, None, None, density)
 
 
 def far_ground(layout: StaticLayout, reach_m: float = FAR_GROUND_M) -> TriMesh:
@@ -367,14 +434,26 @@ def _prism_mesh(prism: Prism) -> TriMesh:
     g = prism_groups(fp, len(t))
     if lamp:
         return _labelled(v, t, prism.cls, prism.instance_id, LAMP_ALBEDO, refl, emissive=1.0, group=g)
-    return _labelled(v, t, prism.cls, prism.instance_id, alb, refl, group=g)
+    mesh = _labelled(v, t, prism.cls, prism.instance_id, alb, refl, group=g)
+    if prism.cls == "vegetation":  # a hedge or bush: porous foliage
+        from .assets.vegetation import HEDGE_DENSITY
+
+        return TriMesh(*(getattr(mesh, f) for f in ("vertices", "triangles", "semantic", "instance", "albedo",
+                                                    "reflectivity", "emissive", "group")), None, None,
+                       np.full(len(t), HEDGE_DENSITY, np.float32))
+    return mesh
 
 
 # ------------------------------------------------------------------------------ actor shapes
 # Templates live in a unit box [-0.5, 0.5]^3 (body FLU, box centred) and are scaled by the actor's
-# (length, width, height), so every shape stays inside its labelled 3D box.
+# (length, width, height). Each touches all six faces, so a template scaled to a label box is that box's
+# tight content. Vehicles and people are the procedural models of cosim.sensors.assets; drones and
+# obstacles are a few boxes.
 
-_PART_BODY, _PART_GLASS, _PART_TYRE, _PART_LAMP_FRONT, _PART_LAMP_REAR, _PART_DARK = range(6)
+#: material part ids of actor triangles (the procedural assets use the same numbers)
+(_PART_BODY, _PART_GLASS, _PART_TYRE, _PART_LAMP_FRONT, _PART_LAMP_REAR, _PART_DARK, _PART_RIM, _PART_PLATE,
+ _PART_TRIM, _PART_CARGO, _PART_SKIN, _PART_HAIR, _PART_TOP, _PART_BOTTOM, _PART_SHOES) = range(15)
+N_PARTS = 15
 
 
 def _box(lo, hi) -> tuple[np.ndarray, np.ndarray]:
@@ -404,12 +483,25 @@ def _cylinder(center, radius: float, half_len: float, axis: str, n: int = 10) ->
 
 @dataclass(frozen=True)
 class ActorTemplate:
-    """A class shape in the unit box: vertices (V, 3), triangles (T, 3), part id per triangle (T,)."""
+    """A shape in the unit box: vertices (V, 3), triangles (T, 3), part id per triangle (T,), convex-face
+    group (T,); ``palette`` (N_PARTS, 3) overrides the part colours (a person's skin and clothes);
+    ``name`` the catalogue model."""
 
     vertices: np.ndarray
     triangles: np.ndarray
     part: np.ndarray
-    group: np.ndarray  # (T,) convex-face group (box faces: the quad's two triangles)
+    group: np.ndarray
+    palette: np.ndarray | None = None
+    name: str = ""
+
+    @cached_property
+    def faces(self) -> np.ndarray:
+        """Face ids (T,) int32 of :meth:`TriMesh.faces` (invariant under the actor's placement)."""
+        t = len(self.triangles)
+        mesh = TriMesh(self.vertices, self.triangles, np.zeros(t, np.uint8), np.zeros(t, np.uint32),
+                       np.zeros((t, 3), np.float32), self.part.astype(np.float32), np.zeros(t, np.float32),
+                       self.group)
+        return mesh.faces()
 
 
 def _assemble(parts: list[tuple[tuple[np.ndarray, np.ndarray], int]]) -> ActorTemplate:
@@ -429,98 +521,14 @@ def _assemble(parts: list[tuple[tuple[np.ndarray, np.ndarray], int]]) -> ActorTe
                          np.concatenate(gs).astype(np.int64))
 
 
-def _wheels(xs: Sequence[float], radius: float, width: float) -> list:
-    out = []
-    for x in xs:
-        for side in (-1, 1):
-            yc = side * (0.5 - width / 2)
-            out.append((_cylinder((x, yc, -0.5 + radius), radius, width / 2, "y"), _PART_TYRE))
-    return out
-
-
-#: vehicle bodies stop this far inside the box ends so the lamp units there are the outermost surface (a
-#: lamp face level with the body's would lose the ray-cast tie and never show, nor glow, nor blink)
-_BODY_X = 0.49
-
-
-def _lamps(x_front: float, x_rear: float, z: float, h: float) -> list:
-    return [
-        (_box((x_front - 0.02, -0.42, z), (x_front, -0.28, z + h)), _PART_LAMP_FRONT),
-        (_box((x_front - 0.02, 0.28, z), (x_front, 0.42, z + h)), _PART_LAMP_FRONT),
-        (_box((x_rear, -0.42, z), (x_rear + 0.02, -0.30, z + h)), _PART_LAMP_REAR),
-        (_box((x_rear, 0.30, z), (x_rear + 0.02, 0.42, z + h)), _PART_LAMP_REAR),
-    ]
-
-
-def _car() -> ActorTemplate:
-    r = 0.16  # wheel radius as a fraction of height
-    return _assemble(
-        [
-            (_box((-_BODY_X, -0.5, -0.5 + 0.6 * r), (_BODY_X, 0.5, 0.02)), _PART_BODY),
-            (_box((-0.33, -0.44, 0.02), (0.17, 0.44, 0.5)), _PART_GLASS),
-            (_box((-0.32, -0.40, 0.46), (0.15, 0.40, 0.5)), _PART_BODY),
-            *_wheels((-0.32, 0.32), r * 1.0, 0.16),
-            *_lamps(0.5, -0.5, -0.12, 0.08),
-        ]
-    )
-
-
-def _van() -> ActorTemplate:
-    r = 0.13
-    return _assemble(
-        [
-            (_box((-_BODY_X, -0.5, -0.5 + 0.6 * r), (_BODY_X, 0.5, -0.1)), _PART_BODY),
-            (_box((-_BODY_X, -0.49, -0.1), (0.22, 0.49, 0.5)), _PART_BODY),
-            (_box((0.22, -0.47, -0.1), (0.36, 0.47, 0.3)), _PART_GLASS),
-            *_wheels((-0.33, 0.33), r, 0.14),
-            *_lamps(0.5, -0.5, -0.25, 0.08),
-        ]
-    )
-
-
-def _truck() -> ActorTemplate:
-    r = 0.12
-    return _assemble(
-        [
-            (_box((0.22, -0.48, -0.5 + 0.7 * r), (_BODY_X, 0.48, 0.25)), _PART_BODY),
-            (_box((0.40, -0.46, 0.0), (0.5, 0.46, 0.22)), _PART_GLASS),
-            (_box((-_BODY_X, -0.5, -0.5 + 0.9 * r), (0.19, 0.5, 0.5)), _PART_DARK),
-            (_box((0.15, -0.2, -0.5 + 0.9 * r), (0.22, 0.2, -0.1)), _PART_TYRE),
-            *_wheels((-0.36, -0.22, 0.36), r, 0.14),
-            *_lamps(0.5, -0.5, -0.28, 0.06),
-        ]
-    )
-
-
-def _bus() -> ActorTemplate:
-    r = 0.1
-    return _assemble(
-        [
-            (_box((-_BODY_X, -0.5, -0.5 + 0.8 * r), (_BODY_X, 0.5, 0.05)), _PART_BODY),
-            (_box((-0.48, -0.5, 0.05), (0.49, 0.5, 0.35)), _PART_GLASS),
-            (_box((-0.5, -0.49, 0.05), (0.5, 0.49, 0.5)), _PART_BODY),
-            *_wheels((-0.32, 0.36), r, 0.12),
-            *_lamps(0.5, -0.5, -0.3, 0.05),
-        ]
-    )
-
-
-def _two_wheeler(motor: bool) -> ActorTemplate:
-    r = 0.19 if motor else 0.2
-    parts = [
-        (_cylinder((-0.5 + r, 0.0, -0.5 + r), r, 0.08, "y", 12), _PART_TYRE),
-        (_cylinder((0.5 - r, 0.0, -0.5 + r), r, 0.08, "y", 12), _PART_TYRE),
-    ]
-    if motor:
-        parts.append((_box((-0.3, -0.22, -0.35), (0.32, 0.22, -0.05)), _PART_BODY))
-        parts.append((_box((0.44, -0.1, -0.2), (0.5, 0.1, -0.12)), _PART_LAMP_FRONT))
-    else:
-        parts.append((_box((-0.3, -0.04, -0.25), (0.3, 0.04, -0.19)), _PART_BODY))
-        parts.append((_box((0.18, -0.04, -0.3), (0.24, 0.04, -0.05)), _PART_BODY))
-    parts.append((_box((0.2, -0.5, 0.0), (0.26, 0.5, 0.05)), _PART_DARK))  # handlebar
-    parts.append((_box((-0.18, -0.3, -0.08), (0.06, 0.3, 0.3)), _PART_DARK))  # rider torso
-    parts.append((_box((-0.10, -0.12, 0.3), (0.04, 0.12, 0.5)), _PART_GLASS))  # helmet/head
-    return _assemble(parts)
+def unit_template(vertices: np.ndarray, triangles: np.ndarray, part: np.ndarray, group: np.ndarray,
+                  palette: np.ndarray | None = None, name: str = "") -> ActorTemplate:
+    """A template from a mesh in metres: scaled and centred so that its tight box is the unit box."""
+    v = np.asarray(vertices, np.float64)
+    lo, hi = v.min(0), v.max(0)
+    v = (v - (lo + hi) / 2) / np.maximum(hi - lo, 1e-9)
+    return ActorTemplate(v.astype(np.float32), np.asarray(triangles, np.uint32), np.asarray(part, np.int64),
+                         np.asarray(group, np.int64), palette, name)
 
 
 def _drone() -> ActorTemplate:
@@ -537,21 +545,6 @@ def _drone() -> ActorTemplate:
     return _assemble(parts)
 
 
-def _pedestrian(stride: float = 1.0) -> ActorTemplate:
-    """A walker in the unit box (x forward): legs (``stride`` 1: right leg forward in a full stride, 0: side
-    by side, -1: left leg forward), torso, arms, head."""
-    x = 0.31 * stride  # the right leg's centre along x; the left one's is -x
-    parts = [
-        (_box((x - 0.19, -0.32, -0.5), (x + 0.19, -0.06, -0.02)), _PART_DARK),  # right leg
-        (_box((-x - 0.19, 0.06, -0.5), (-x + 0.19, 0.32, -0.02)), _PART_DARK),  # left leg
-        (_box((-0.25, -0.38, -0.02), (0.25, 0.38, 0.3)), _PART_BODY),  # torso
-        (_box((-0.12, -0.5, -0.05), (0.12, -0.38, 0.28)), _PART_BODY),  # arms
-        (_box((-0.12, 0.38, -0.05), (0.12, 0.5, 0.28)), _PART_BODY),
-        (_box((-0.2, -0.22, 0.3), (0.2, 0.22, 0.5)), _PART_GLASS),  # head
-    ]
-    return _assemble(parts)
-
-
 def _static_obstacle() -> ActorTemplate:
     """A traffic cone / barrier post in the unit box: a base plate and a tapering body in two bands."""
     parts = [
@@ -563,54 +556,155 @@ def _static_obstacle() -> ActorTemplate:
     return _assemble(parts)
 
 
-#: the walker through one gait cycle (two steps): pose k for gait phase in [k / n, (k + 1) / n)
-PEDESTRIAN_POSES: tuple[ActorTemplate, ...] = tuple(_pedestrian(math.cos(2 * math.pi * k / 8)) for k in range(8))
+#: classes drawn with a catalogue model of cosim.sensors.assets.vehicles
+VEHICLE_CLASSES = ("car", "van", "truck", "bus", "motorcycle", "bicycle")
 
-ACTOR_TEMPLATES: dict[str, ActorTemplate] = {
-    "car": _car(),
-    "van": _van(),
-    "truck": _truck(),
-    "bus": _bus(),
-    "motorcycle": _two_wheeler(True),
-    "bicycle": _two_wheeler(False),
-    "drone": _drone(),
-    "pedestrian": _pedestrian(),
-    "static_obstacle": _static_obstacle(),
-}
+#: shapes of the classes that are not procedural models
+ACTOR_TEMPLATES: dict[str, ActorTemplate] = {"drone": _drone(), "static_obstacle": _static_obstacle()}
+
+
+@cache
+def vehicle_template(name: str) -> ActorTemplate:
+    """The unit-box template of vehicle model ``name`` (built once per process)."""
+    from .assets import vehicles
+
+    v, t, part, grp, _ = vehicles.build(name)
+    palette = None
+    if vehicles.BY_NAME[name].cls in ("motorcycle", "bicycle"):  # the rider's skin and clothes
+        from .assets.people import Person
+
+        palette = np.zeros((N_PARTS, 3), np.float32)
+        palette[_PART_SKIN:_PART_SHOES + 1] = Person.from_key(f"rider:{name}").colours
+    return unit_template(v, t, part, grp, palette, name)
+
+
+@cache
+def _models_by_dims() -> dict[tuple, str]:
+    from .assets import vehicles
+
+    return {(m.cls, *vehicles.dims(m.name)): m.name for m in vehicles.MODELS}
+
+
+def vehicle_model(cls: str, size_m, key: str) -> str:
+    """The catalogue model of a vehicle: the one whose dimensions its box has (a SUMO vType made from
+    that model), else one of the class's models picked by ``key`` (scaled into the box)."""
+    from .assets import vehicles
+
+    name = _models_by_dims().get((cls, *(round(float(x), 2) for x in size_m)))
+    if name is not None:
+        return name
+    names = [m.name for m in vehicles.MODELS if m.cls == cls]
+    return names[zlib.crc32(key.encode()) % len(names)]
+
+
+def person_template(key: str, gait_phase: float, speed_mps: float) -> ActorTemplate:
+    """The unit-box template of person ``key`` posed at ``gait_phase`` walking at ``speed_mps`` (at the
+    steps the traffic worker's boxes use, :func:`cosim.sensors.assets.people.posed_box`)."""
+    from .assets import people
+
+    return _person_template(key, *people.quantized(gait_phase, speed_mps))
+
+
+@lru_cache(maxsize=1024)  # about 20 MB (19 kB a posed person)
+def _person_template(key: str, q_phase: int, q_speed: int) -> ActorTemplate:
+    from .assets import people
+
+    p, v, t, part, grp, _, _ = people.posed_steps(key, q_phase, q_speed)
+    palette = np.zeros((N_PARTS, 3), np.float32)
+    palette[_PART_SKIN:_PART_SHOES + 1] = p.colours
+    return unit_template(v, t, part, grp, palette, f"person:{key}")
+
+
+def person_key(actor) -> str:
+    """Which person a pedestrian is: its engine id (the SUMO person id), else its track id."""
+    return actor.source_id or f"track:{actor.track_id}"
+
+
+def actor_template(actor) -> ActorTemplate:
+    """The shape of ``actor`` (a :class:`cosim.snapshot.Actor`) at its tick."""
+    if actor.cls in VEHICLE_CLASSES:
+        return vehicle_template(vehicle_model(actor.cls, actor.size_m, person_key(actor)))
+    if actor.cls == "pedestrian":
+        speed = math.hypot(actor.velocity_mps[0], actor.velocity_mps[1])
+        return person_template(person_key(actor), actor.gait_phase, speed)
+    return template_for(actor.cls)
 
 
 def template_for(cls: str, gait_phase: float = 0.0) -> ActorTemplate:
-    """The class's shape; a pedestrian's legs in the pose of its ``gait_phase`` (0..1)."""
+    """A shape of the class: its first catalogue model, a walking person at ``gait_phase``, a drone..."""
+    if cls in VEHICLE_CLASSES:
+        from .assets import vehicles
+
+        return vehicle_template(next(m.name for m in vehicles.MODELS if m.cls == cls))
     if cls == "pedestrian":
-        return PEDESTRIAN_POSES[int(gait_phase * len(PEDESTRIAN_POSES)) % len(PEDESTRIAN_POSES)]
+        return person_template("pedestrian", gait_phase, 1.4)
     try:
         return ACTOR_TEMPLATES[cls]
     except KeyError:
-        raise CosimError(f"no actor shape for class {cls!r}; known: {', '.join(ACTOR_TEMPLATES)}") from None
+        known = ", ".join([*VEHICLE_CLASSES, "pedestrian", *ACTOR_TEMPLATES])
+        raise CosimError(f"no actor shape for class {cls!r}; known: {known}") from None
 
 
 HAZARD_AMBER = (1.0, 0.5, 0.0)
 
+#: the paints vehicles come in, with the share of each (white, black, grey and silver are three in four
+#: new European cars); a vehicle's paint is one of them, lightened or darkened a little per track id
+_PAINT_SHARES = np.array([0.24, 0.20, 0.17, 0.12, 0.09, 0.07, 0.04, 0.04, 0.03], np.float64)
+_PAINT_TABLE = np.array(
+    [(0.85, 0.85, 0.85), (0.05, 0.05, 0.06), (0.35, 0.36, 0.38), (0.70, 0.71, 0.74), (0.10, 0.20, 0.45),
+     (0.55, 0.05, 0.05), (0.15, 0.35, 0.20), (0.70, 0.55, 0.15), (0.85, 0.40, 0.08)], np.float32,
+)
+_PAINT_CDF = np.cumsum(_PAINT_SHARES) / _PAINT_SHARES.sum()
 
-def actor_material(cls: str, track_id: int, part: np.ndarray, hazard_lamps_on: bool = False
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+#: per part: albedo (linear RGB), diffuse LiDAR reflectivity, emissive, retro-reflectivity, glass
+_PART_ALBEDO = np.array([
+    (0.5, 0.5, 0.5), (0.05, 0.07, 0.09), (0.03, 0.03, 0.03), (0.95, 0.95, 0.9), (0.7, 0.05, 0.05),
+    (0.12, 0.12, 0.13), (0.55, 0.56, 0.58), (0.92, 0.92, 0.86), (0.09, 0.09, 0.10), (0.86, 0.86, 0.84),
+    (0.76, 0.57, 0.43), (0.15, 0.10, 0.07), (0.20, 0.25, 0.40), (0.15, 0.15, 0.20), (0.10, 0.10, 0.10)],
+    np.float32)
+_PART_REFL = np.array([0.0, 0.05, 0.03, 0.3, 0.3, 0.08, 0.45, 0.5, 0.06, 0.6, 0.45, 0.15, 0.4, 0.35, 0.1],
+                      np.float32)
+_PART_EMIS = np.array([0.0, 0.0, 0.0, 1.0, 0.6] + [0.0] * 10, np.float32)
+#: lamp units carry reflectors; licence plates are retro-reflective sheeting (EN 12899 / ECE R 69 class)
+_PART_RETRO = np.array([0.0, 0.0, 0.0, 0.6, 0.6, 0.0, 0.0, 0.9] + [0.0] * 7, np.float32)
+_PART_GLASS_FLAG = np.zeros(N_PARTS, bool)
+_PART_GLASS_FLAG[_PART_GLASS] = True
+
+
+def vehicle_paint(track_id: int) -> np.ndarray:
+    """A vehicle's paint (3,): a colour drawn by the market shares, its brightness varied per track."""
+    k = int(np.searchsorted(_PAINT_CDF, _hash01(track_id, 7), side="right"))
+    shade = 0.88 + 0.24 * _hash01(track_id, 11)
+    return np.clip(_PAINT_TABLE[min(k, len(_PAINT_TABLE) - 1)] * shade, 0.0, 1.0).astype(np.float32)
+
+
+def actor_material(cls: str, track_id: int, part: np.ndarray, hazard_lamps_on: bool = False,
+                   palette: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Albedo (T, 3), reflectivity (T,), emissive (T,) of an actor's triangles from their part ids; with
-    ``hazard_lamps_on`` every lamp unit (front and rear) glows amber (a blinking hazard light, lit)."""
-    paint = _PAINTS[int(_hash01(track_id, 7) * len(_PAINTS)) % len(_PAINTS)]
+    ``hazard_lamps_on`` every lamp unit (front and rear) glows amber (a blinking hazard light, lit);
+    ``palette`` (N_PARTS, 3): colours of the person parts (skin, hair, clothes)."""
+    paint = vehicle_paint(track_id)
     if cls == "bus":
         paint = np.array((0.85, 0.65, 0.10), np.float32) if _hash01(track_id, 3) > 0.5 else paint
     if cls == "drone":
         paint = np.array((0.9, 0.9, 0.92), np.float32)
     if cls == "static_obstacle":
         paint = np.array((0.95, 0.35, 0.02), np.float32)  # safety orange
-    table = np.array([paint, (0.05, 0.07, 0.09), (0.03, 0.03, 0.03), (0.95, 0.95, 0.9), (0.7, 0.05, 0.05),
-                      (0.12, 0.12, 0.13)], np.float32)
+    table = _PART_ALBEDO.copy()
+    table[_PART_BODY] = paint
+    if palette is not None:
+        table[_PART_SKIN:] = palette[_PART_SKIN:]
     # diffuse LiDAR reflectivity: paint by its brightness (dark paint low), glass and tyres low, lamp
     # units middling (their reflectors add a retro-reflective term, see cosim.sensors.lidar)
-    paint_refl = 0.05 + 0.7 * float(paint @ np.array([0.2126, 0.7152, 0.0722], np.float32))
-    refl_t = np.array([paint_refl, 0.05, 0.03, 0.3, 0.3, 0.08], np.float32)
-    emis_t = np.array([0.0, 0.0, 0.0, 1.0, 0.6, 0.0], np.float32)
+    refl_t = _PART_REFL.copy()
+    refl_t[_PART_BODY] = 0.05 + 0.7 * float(paint @ np.array([0.2126, 0.7152, 0.0722], np.float32))
+    emis_t = _PART_EMIS.copy()
     if hazard_lamps_on:
         table[_PART_LAMP_FRONT] = table[_PART_LAMP_REAR] = HAZARD_AMBER
         emis_t[_PART_LAMP_FRONT] = emis_t[_PART_LAMP_REAR] = 0.6
     return table[part], refl_t[part], emis_t[part]
+
+
+def part_optics(part: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Retro-reflectivity (T,) float32 and glass flag (T,) bool of actor triangles from their part ids."""
+    return _PART_RETRO[part], _PART_GLASS_FLAG[part]

@@ -21,7 +21,7 @@ from cosim.classes import semantic_id
 from cosim.geometry import rotation_matrix
 from cosim.snapshot import Actor
 
-from .meshes import TriMesh, actor_material, concat, empty_mesh, template_for
+from .meshes import TriMesh, actor_material, actor_template, concat, empty_mesh, part_optics
 from .rig import rotate
 
 
@@ -65,24 +65,36 @@ class CastTimer:
     rays: int = 0
 
 
-def place_actors(actors: tuple[Actor, ...] | list[Actor]) -> tuple[TriMesh, np.ndarray]:
-    """Actor shapes placed in the map frame: mesh and the track id per triangle (T,) int64."""
+def place_actors(actors: tuple[Actor, ...] | list[Actor], with_faces: bool = False):
+    """Actor shapes placed in the map frame: mesh and the track id per triangle (T,) int64 (and, with
+    ``with_faces``, the face id per triangle (T,) int32 of :meth:`TriMesh.faces`, from the templates'
+    cached ids, and the vertex count per actor)."""
     parts: list[TriMesh] = []
     tracks: list[np.ndarray] = []
+    faces: list[np.ndarray] = []
+    counts: list[int] = []
+    f_off = 0
     for a in actors:
-        tpl = template_for(a.cls, a.gait_phase)
+        tpl = actor_template(a)
         v = tpl.vertices.astype(np.float64) * np.asarray(a.size_m, np.float64)
         v = rotate(v, rotation_matrix(a.rotation)) + np.asarray(a.center_m, np.float64)
-        alb, refl, emis = actor_material(a.cls, a.track_id, tpl.part, a.hazard_lamps_on)
+        alb, refl, emis = actor_material(a.cls, a.track_id, tpl.part, a.hazard_lamps_on, tpl.palette)
+        retro, glass = part_optics(tpl.part)
         t = len(tpl.triangles)
         parts.append(
             TriMesh(v.astype(np.float32), tpl.triangles, np.full(t, semantic_id(a.cls), np.uint8),
-                    np.full(t, a.track_id, np.uint32), alb, refl, emis, tpl.group)
+                    np.full(t, a.track_id, np.uint32), alb, refl, emis, tpl.group, retro, glass)
         )
         tracks.append(np.full(t, a.track_id, np.int64))
-    if not parts:
-        return empty_mesh(), np.zeros(0, np.int64)
-    return concat(parts), np.concatenate(tracks)
+        if with_faces:
+            faces.append(tpl.faces + f_off)
+            f_off += int(tpl.faces.max(initial=-1)) + 1
+            counts.append(len(tpl.vertices))
+    mesh = concat(parts) if parts else empty_mesh()
+    track = np.concatenate(tracks) if tracks else np.zeros(0, np.int64)
+    if not with_faces:
+        return mesh, track
+    return mesh, track, (np.concatenate(faces) if faces else np.zeros(0, np.int32)), counts
 
 
 class StaticScene:
@@ -109,18 +121,20 @@ class TickScene:
     actor_track: np.ndarray  # (Ta,) int64 track id per actor triangle
     actor_velocity: np.ndarray | None = None  # (Va,) x 3 float64 [m/s] map velocity of each actor vertex
     actor_spheres: np.ndarray | None = None  # (A, 8): centre (3), radius, velocity (3), track id per actor
+    actor_faces: np.ndarray | None = None  # (Ta,) int32 face ids of the actor triangles (None: computed)
     timer: CastTimer = field(default_factory=CastTimer)
     _cache: dict = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     @classmethod
     def build(cls, static: StaticScene, actors) -> TickScene:
-        mesh, track = place_actors(actors)
-        vel = [np.broadcast_to(np.asarray(a.velocity_mps, np.float64), (len(template_for(a.cls).vertices), 3))
-               for a in actors]
+        mesh, track, faces, counts = place_actors(actors, with_faces=True)
+        vel = [np.broadcast_to(np.asarray(a.velocity_mps, np.float64), (n, 3)) for a, n in zip(actors, counts,
+                                                                                            strict=True)]
         spheres = np.array([[*a.center_m, 0.5 * float(np.linalg.norm(a.size_m)), *a.velocity_mps, a.track_id]
                             for a in actors], np.float64).reshape(-1, 8)
-        return cls(static, mesh, track, np.concatenate(vel) if vel else np.zeros((0, 3)), spheres)
+        return cls(static, mesh, track, np.concatenate(vel) if vel else np.zeros((0, 3)), spheres,
+                   actor_faces=faces)
 
     def swept_boxes(self, exclude_track: int | None, dt_min_s: float):
         """Open3D scene of one axis-aligned box per actor (without ``exclude_track``) holding it over
@@ -180,7 +194,8 @@ class TickScene:
                 keep = np.arange(self.actors.n_triangles, dtype=np.int32)
                 sub = self.actors if verts is self.actors.vertices else TriMesh(
                     verts, *(getattr(self.actors, f) for f in ("triangles", "semantic", "instance", "albedo",
-                                                                "reflectivity", "emissive", "group")))
+                                                                "reflectivity", "emissive", "group", "retro",
+                                                                "glass")))
             else:
                 keep = np.nonzero(self.actor_track != exclude_track)[0].astype(np.int32)
                 sub = TriMesh(verts, self.actors.triangles[keep], self.actors.semantic[keep],
@@ -205,7 +220,11 @@ class TickScene:
             "albedo": self.table(self.static.mesh.albedo, a.albedo, (0.0, 0.0, 0.0)),
             "emissive": self.table(self.static.mesh.emissive, a.emissive, 0.0),
             "material": self.table(self.static.mesh.material, a.material, 0),
-            "face": self.table(self.static.faces, a.faces() + (int(self.static.faces.max(initial=-1)) + 1), -1),
+            "face": self.table(self.static.faces, (a.faces() if self.actor_faces is None else self.actor_faces)
+                               + (int(self.static.faces.max(initial=-1)) + 1), -1),
+            "retro": self.table(self.static.mesh.retro_values(), a.retro_values(), 0.0),
+            "glass": self.table(self.static.mesh.glass_values(), a.glass_values(), False),
+            "leaf_density": self.table(self.static.mesh.leaf_density_values(), a.leaf_density_values(), 0.0),
         }
 
     def occluded(self, rays: np.ndarray, with_static: bool = True, with_actors: bool = True) -> np.ndarray:

@@ -225,11 +225,13 @@ def test_render_draws_box_edges_through_the_lens():
 
 @pytest.fixture(scope="module")
 def lens_episode(tmp_path_factory) -> Path:
-    """A real 1 s episode: 3 vehicles whose six cameras have a strong lens, 1 RSU with pinhole cameras."""
+    """A real 1 s PNG episode: 3 vehicles whose six cameras have a strong lens, 1 RSU with pinhole cameras."""
     from cosim.scenario import load_scenario
 
     d = tmp_path_factory.mktemp("lens_episode")
-    sc = load_scenario("default", ["duration_s=1", "sensors.image_scale=0.15", "map.size_m=300"]).scenario
+    # PNG: the export keeps a pinhole camera's recorded image bytes, which this test compares.
+    sc = load_scenario("default", ["duration_s=1", "sensors.image_scale=0.15", "map.size_m=300",
+                                   "output.image_format=png"]).scenario
     doc = sc.model_dump(mode="json")
     doc["agents"]["vehicles"]["count"] = 3
     doc["agents"]["rsus"]["count"] = 1

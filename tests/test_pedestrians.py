@@ -320,16 +320,3 @@ def test_hazard_lamps_glow_amber_in_a_night_camera():
     assert np.all((off[:, 0] > 150) & (off[:, 1] < 0.5 * off[:, 0]))  # the tail lights: red
     cols = np.flatnonzero(diff.any(axis=0))
     assert np.any(np.diff(cols) > 5)  # two separate lamp units, left and right
-
-
-def test_walker_legs_swing_with_the_gait_phase():
-    from sensors.meshes import PEDESTRIAN_POSES, template_for
-
-    xs = []
-    for phase in np.linspace(0.0, 1.0, 8, endpoint=False):
-        tpl = template_for("pedestrian", float(phase))
-        right_leg = tpl.vertices[:8]  # the first part: the right leg's box
-        xs.append(float(right_leg[:, 0].mean()))
-    assert len({id(template_for("pedestrian", p)) for p in np.linspace(0, 0.99, 8)}) == len(PEDESTRIAN_POSES)
-    assert max(xs) > 0.25 and min(xs) < -0.25  # forward in one half of the cycle, back in the other
-    assert xs[0] == pytest.approx(-xs[4])

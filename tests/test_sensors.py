@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 from cosim.sensors import SensorSuite
-from cosim.sensors.meshes import ACTOR_TEMPLATES, static_mesh, triangulate_polygon
+from cosim.sensors.meshes import ACTOR_TEMPLATES, VEHICLE_CLASSES, static_mesh, template_for, triangulate_polygon
 from cosim.sensors.rig import sensor_transforms
 from cosim.sensors.synthetic import actor, synthetic_snapshot, synthetic_world
 from PIL import Image
@@ -91,9 +91,9 @@ def test_static_mesh_labels_every_triangle():
     assert np.all(buildings >= 1_000_000)
 
 
-@pytest.mark.parametrize("cls", sorted(ACTOR_TEMPLATES))
+@pytest.mark.parametrize("cls", sorted([*ACTOR_TEMPLATES, *VEHICLE_CLASSES, "pedestrian"]))
 def test_actor_templates_fill_their_box(cls):
-    tpl = ACTOR_TEMPLATES[cls]
+    tpl = template_for(cls)
     lo, hi = tpl.vertices.min(0), tpl.vertices.max(0)
     assert np.all(lo >= -0.5 - 1e-6) and np.all(hi <= 0.5 + 1e-6)
     assert np.all(hi - lo > 0.85), f"{cls} shape does not span its box: {hi - lo}"
@@ -291,7 +291,9 @@ def test_labels_poses_calibration_and_pixels_agree():
 
 
 def _town_lidar_scenario(**env) -> Scenario:
-    rig = RigSpec(lidar=LidarSpec(horizontal_resolution_deg=0.7, range_m=200.0), cameras=[], gnss=None, imu=None)
+    # a long-range unit: the ray drop's energy term would otherwise lose the grazing ground beyond 60 m
+    lidar = LidarSpec(horizontal_resolution_deg=0.7, range_m=200.0, detection_range_10pct_m=1000.0)
+    rig = RigSpec(lidar=lidar, cameras=[], gnss=None, imu=None)
     return Scenario(name="t", environment=env, agents=AgentsSpec(vehicles=VehicleAgents(count=1),
                                                                 rsus=RsuAgents(count=2), drones=[]),
                     sensors=SensorsSpec(vehicle=rig, rsu=rig))

@@ -314,6 +314,12 @@ class LidarSpec(Model):
     range_m: float = Field(120.0, gt=1, le=500)
     range_noise_m: float = Field(0.02, ge=0, le=10.0)
     dropout: float = Field(0.0, ge=0, lt=1)
+    # ray drop (cosim.sensors.lidar, docs/assets.md): CARLA's three parameters in CARLA's meaning, and the
+    # range [m] at which a 10 % Lambertian target at normal incidence is still detected 9 times in 10
+    dropoff_general_rate: float = Field(0.02, ge=0, le=1)
+    dropoff_intensity_limit: float = Field(0.1, ge=0, le=1)
+    dropoff_zero_intensity: float = Field(0.3, ge=0, le=1)
+    detection_range_10pct_m: float = Field(50.0, gt=1, le=5000)
     motion_distortion: bool = True  # each firing at its own time within the sweep (false: one snapshot)
     dual_returns: bool = False  # strongest and last return where a beam partly hits a near object
     mount: Mount = Mount(xyz_m=(0.0, 0.0, 1.9))

@@ -34,11 +34,12 @@ import numpy as np
 
 from cosim.protocol import VehicleState
 from cosim.scenario.model import PedestrianSpec
+from cosim.sensors.assets.people import posed_box
 from cosim.world.layout import ROAD_Z, SIDEWALK_Z
 
 log = logging.getLogger(__name__)
 
-SIZE_M = (0.5, 0.6, 1.75)  # length, width, height: the pedestrian class size (sensors/synthetic.py)
+SIZE_M = (0.5, 0.6, 1.75)  # length, width, height [m]: a walker's footprint for SUMO's blockers and kerb checks
 STRIDE_M = 1.5  # [m] walked per gait cycle (two steps)
 KERB_MARGIN_M = 6.0  # [m] a jaywalker leaves the sidewalk at least this far from either end of the edge
 ROUTE_TRIES = 8
@@ -288,11 +289,15 @@ class Pedestrians:
                 x, y = P.getPosition(pid)
                 yaw, speed = math.radians(90.0 - P.getAngle(pid)), P.getSpeed(pid)
                 ground = SIDEWALK_Z[1] if self.where(pid) == "sidewalk" else ROAD_Z[1]
+            phase = (self._odo.get(pid, 0.0) / STRIDE_M) % 1.0
+            # the label box is the tight box of this person's body in this pose (cosim.sensors.assets.people)
+            size, (bx, by, bz) = posed_box(pid, phase, speed)
+            c, s_ = math.cos(yaw), math.sin(yaw)
             out.append(VehicleState(
-                sumo_id=pid, cls="pedestrian", center_m=(x, y, ground + SIZE_M[2] / 2), size_m=SIZE_M,
-                yaw_rad=math.atan2(math.sin(yaw), math.cos(yaw)), pitch_rad=0.0, speed_mps=speed,
+                sumo_id=pid, cls="pedestrian", center_m=(x + c * bx - s_ * by, y + s_ * bx + c * by, ground + bz),
+                size_m=size, yaw_rad=math.atan2(math.sin(yaw), math.cos(yaw)), pitch_rad=0.0, speed_mps=speed,
                 velocity_mps=(speed * math.cos(yaw), speed * math.sin(yaw), 0.0), accel_mps2=0.0, yaw_rate_radps=0.0,
-                gait_phase=(self._odo.get(pid, 0.0) / STRIDE_M) % 1.0,
+                gait_phase=phase,
             ))
         return out
 

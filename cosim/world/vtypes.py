@@ -1,7 +1,8 @@
 """Vehicle types of the six road-user classes: SUMO vClass, dimensions and driving parameters.
 
-Each class has a few variants so that boxes vary within a class (a hatchback is not an SUV).
-Dimensions are typical European values: length, width, height [m] of the bounding box.
+Each vehicle model of the asset catalogue (:mod:`cosim.sensors.assets.vehicles`, docs/assets.md) is
+one SUMO vType, whose length, width and height [m] are the model's tight box, so traffic and sensors
+agree on every vehicle's size.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ class VehicleVariant:
     accel_mps2: float
     decel_mps2: float
     min_gap_m: float = 2.5
+    model: str = ""  # the catalogue model (cosim.sensors.assets.vehicles)
 
     @property
     def type_id(self) -> str:
@@ -42,50 +44,32 @@ class VehicleVariant:
         return SUMO_VCLASS[self.cls]
 
 
-def _v(
-    cls: str,
-    k: int,
-    length: float,
-    w: float,
-    h: float,
-    vmax: float,
-    acc: float,
-    dec: float,
-    gap: float = 2.5,
-) -> VehicleVariant:
-    return VehicleVariant(cls, k, length, w, h, vmax, acc, dec, gap)
-
-
-#: Variants per class (index k is part of the SUMO type id).
-VARIANTS: dict[str, tuple[VehicleVariant, ...]] = {
-    "car": (
-        _v("car", 0, 4.0, 1.75, 1.50, 45.0, 2.6, 4.5),  # hatchback
-        _v("car", 1, 4.6, 1.82, 1.45, 50.0, 2.6, 4.5),  # saloon
-        _v("car", 2, 4.8, 1.95, 1.75, 50.0, 2.4, 4.5),  # SUV
-        _v("car", 3, 4.3, 1.80, 1.55, 45.0, 2.6, 4.5),  # compact estate
-    ),
-    "van": (
-        _v("van", 0, 5.0, 1.95, 1.95, 40.0, 2.0, 4.0),
-        _v("van", 1, 5.9, 2.05, 2.50, 38.0, 1.8, 4.0),
-    ),
-    "truck": (
-        _v("truck", 0, 7.5, 2.40, 3.20, 27.0, 1.3, 4.0, 3.0),
-        _v("truck", 1, 9.5, 2.50, 3.50, 25.0, 1.1, 4.0, 3.0),
-        _v("truck", 2, 11.5, 2.55, 3.80, 25.0, 1.0, 4.0, 3.0),
-    ),
-    "bus": (
-        _v("bus", 0, 12.0, 2.55, 3.20, 25.0, 1.2, 4.0, 3.0),
-        _v("bus", 1, 10.5, 2.50, 3.10, 25.0, 1.2, 4.0, 3.0),
-    ),
-    "motorcycle": (
-        _v("motorcycle", 0, 2.1, 0.80, 1.50, 45.0, 4.0, 7.0, 2.0),
-        _v("motorcycle", 1, 2.25, 0.90, 1.40, 50.0, 4.5, 7.0, 2.0),
-    ),
-    "bicycle": (
-        _v("bicycle", 0, 1.75, 0.65, 1.70, 6.5, 1.2, 3.0, 1.5),
-        _v("bicycle", 1, 1.85, 0.60, 1.75, 7.5, 1.2, 3.0, 1.5),
-    ),
+#: driving parameters per class: max speed [m/s], acceleration, deceleration [m/s^2], min gap [m]
+_DRIVING: dict[str, tuple[float, float, float, float]] = {
+    "car": (45.0, 2.6, 4.5, 2.5), "van": (40.0, 2.0, 4.0, 2.5), "truck": (25.0, 1.1, 4.0, 3.0),
+    "bus": (25.0, 1.2, 4.0, 3.0), "motorcycle": (45.0, 4.0, 7.0, 2.0), "bicycle": (6.5, 1.2, 3.0, 1.5),
 }
+#: styles that drive unlike their class
+_STYLE_SPEED: dict[str, float] = {"microcar": 25.0, "suv": 50.0, "saloon": 50.0, "coupe": 55.0, "scooter": 25.0,
+                                  "sport": 55.0, "touring": 50.0, "road": 9.0, "cargo": 6.0}
+
+
+def _variants() -> dict[str, tuple[VehicleVariant, ...]]:
+    """One variant per catalogue model (cosim.sensors.assets.vehicles), its box the model's tight box."""
+    from cosim.sensors.assets import vehicles
+
+    out: dict[str, list[VehicleVariant]] = {cls: [] for cls in SUMO_VCLASS}
+    for m in vehicles.MODELS:
+        length, width, height = vehicles.dims(m.name)
+        vmax, acc, dec, gap = _DRIVING[m.cls]
+        k = len(out[m.cls])
+        out[m.cls].append(VehicleVariant(m.cls, k, length, width, height, _STYLE_SPEED.get(m.style, vmax), acc, dec,
+                                         gap, m.name))
+    return {cls: tuple(vs) for cls, vs in out.items()}
+
+
+#: Variants per class (index k is part of the SUMO type id): one per vehicle model of the catalogue.
+VARIANTS: dict[str, tuple[VehicleVariant, ...]] = _variants()
 
 #: Every variant by SUMO type id.
 BY_TYPE_ID: dict[str, VehicleVariant] = {v.type_id: v for vs in VARIANTS.values() for v in vs}
