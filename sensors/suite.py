@@ -41,7 +41,7 @@ from .camera import (
     shading_tables,
     shadow_boxes,
 )
-from .encoding import Encodes, encode_depth, submit, submit_encode
+from .encoding import Encodes, PackedLabels, encode_depth, submit, submit_encode
 from .environment import Atmosphere, atmosphere
 from .imu import ImuFrame, imu_biases, render_imu
 from .kinds import SensorContext, render_kinds
@@ -50,7 +50,7 @@ from .meshes import is_lamp, static_mesh
 from .rig import camera_pose, intrinsics, projection, sensor_pose
 from .scene import StaticHits, StaticScene, TickScene
 from .surface import surface_inputs
-from .visibility import VisibilityFrame, render_visibility
+from .visibility import VisibilityFrame, instance_counts, render_visibility
 
 log = logging.getLogger(__name__)
 
@@ -188,9 +188,10 @@ class SensorSuite:
     start encoding each RGB image (``scenario.output.image_format``) in a thread pool as soon as it
     is shaded, so encoding overlaps with the rest of the tick. ``release_pixels`` (with
     ``encode_images``): also start the compact depth encode (``output.depth_format: compressed``) and
-    leave a camera's ``rgb`` and ``depth`` None, their encodes holding them only until done, so that
-    a rendered tick keeps about 40 % of its camera arrays while it waits for the writer (the
-    episode runner; whoever reads the pixels leaves it off). ``workers``: threads rendering
+    leave a camera's ``rgb`` and ``depth`` None, their encodes holding them only until done, and its
+    ``semantic`` and ``instance`` None, packed losslessly in the encodes (:class:`PackedLabels`), so that
+    a rendered tick keeps a few percent of its camera arrays' bytes while it waits for the writer
+    (the episode runner; whoever reads the pixels leaves it off). ``workers``: threads rendering
     cameras and agents side by side (Open3D holds the GIL while casting, but the numpy work around
     it releases it, so a few threads keep two cores busy); results do not depend on it.
     ``processes``: render processes (:mod:`cosim.sensors.procs`; 0 renders in this process). Each
@@ -320,6 +321,12 @@ class SensorSuite:
             semantic, instance = kernels.gather2(gid, lut["semantic"], lut["instance"])
         else:
             semantic, instance = None, kernels.gather(gid, lut["instance"])
+        if self.release_pixels:  # the label images wait for the writer packed, their counts taken now
+            encoded = dataclasses.replace(
+                encoded, semantic=None if semantic is None else PackedLabels.of(semantic),
+                instance=PackedLabels.of(instance) if "instance" in cam.outputs else None,
+                instance_counts=instance_counts(instance))
+            semantic = instance = None
         frame = CameraFrame(
             agent.agent_id, cam.name, cam.width, cam.height, K, projection(cam), pose, rgb,
             depth if keep_depth else None, semantic, instance, encoded,
@@ -420,7 +427,7 @@ class SensorSuite:
                 timing[k] += v
             t0 = time.perf_counter()
             vis = render_visibility(agent.agent_id, lidar.instance_id if lidar is not None else None,
-                                    {n: c.instance for n, c in cams.items()})
+                                    {n: _instance_or_counts(c) for n, c in cams.items()})
             cams = {n: c if "instance" in rig_cam_outputs(rig, n) else _drop_instance(c) for n, c in cams.items()}
             timing["labels"] += time.perf_counter() - t0
             out[agent.agent_id] = AgentFrames(agent.agent_id, agent.kind, lidar, cams, kinds, imu, bev, vis)
@@ -453,6 +460,13 @@ def rig_cam_outputs(rig: RigSpec, name: str) -> tuple[str, ...]:
         if c.name == name:
             return c.outputs
     return ()
+
+
+def _instance_or_counts(c: CameraFrame) -> np.ndarray | dict[int, int]:
+    """The camera's instance array, or its pixel counts per track when the suite let go of the array."""
+    if c.instance is None and c.encoded is not None and c.encoded.instance_counts is not None:
+        return c.encoded.instance_counts
+    return c.instance
 
 
 def _drop_instance(c: CameraFrame) -> CameraFrame:

@@ -30,7 +30,8 @@ class VisibilityFrame:
     objects: tuple[ObjectVisibility, ...]  # sorted by track id; only objects seen at least once
 
 
-def _counts(instance: np.ndarray) -> dict[int, int]:
+def instance_counts(instance: np.ndarray) -> dict[int, int]:
+    """Pixels (or points) per track id in an instance array (static instances and 0 left out)."""
     ids = instance.ravel()
     ids = ids[(ids > 0) & (ids < STATIC_INSTANCE_MIN)]
     if ids.size == 0:
@@ -41,10 +42,11 @@ def _counts(instance: np.ndarray) -> dict[int, int]:
 
 
 def render_visibility(agent_id: str, lidar_instance: np.ndarray | None,
-                      camera_instance: dict[str, np.ndarray]) -> VisibilityFrame:
-    """``lidar_instance`` (N,) and ``camera_instance`` name -> (H, W) instance arrays of one agent."""
-    lid = _counts(lidar_instance) if lidar_instance is not None else {}
-    cams = {name: _counts(img) for name, img in camera_instance.items()}
+                      camera_instance: dict[str, np.ndarray | dict[int, int]]) -> VisibilityFrame:
+    """``lidar_instance`` (N,) and ``camera_instance`` name -> (H, W) instance array of one agent, or that
+    array's :func:`instance_counts` (a suite that let go of the array counted it as the camera rendered)."""
+    lid = instance_counts(lidar_instance) if lidar_instance is not None else {}
+    cams = {name: img if isinstance(img, dict) else instance_counts(img) for name, img in camera_instance.items()}
     tracks = sorted(set(lid) | {t for c in cams.values() for t in c})
     objs = tuple(
         ObjectVisibility(t, lid.get(t, 0), {name: c.get(t, 0) for name, c in cams.items()}) for t in tracks

@@ -9,7 +9,7 @@ import io
 import numpy as np
 import pytest
 from cosim.sensors import SensorSuite
-from cosim.sensors.encoding import encode_jpeg, encode_png, submit_encode
+from cosim.sensors.encoding import PackedLabels, encode_jpeg, encode_png, submit_encode
 from cosim.sensors.synthetic import synthetic_snapshot, synthetic_world
 from PIL import Image
 
@@ -168,17 +168,20 @@ def test_a_default_tick_is_small_per_camera_pixel_and_the_lossless_option_is_one
     assert got["/vehicle_0/front/depth"].encoding == "cosim-depth"
 
 
-def test_a_suite_that_releases_pixels_writes_the_same_bytes_and_keeps_no_rgb_or_depth(scenario):
-    """The episode runner's suite encodes RGB and depth as each camera is rendered and lets go of those arrays
-    (a waiting tick holds about 40 % of its camera arrays); the records are the same bytes."""
+def test_a_suite_that_releases_pixels_writes_the_same_bytes_and_keeps_no_camera_array(scenario):
+    """The episode runner's suite encodes RGB and depth and packs the label images as each camera is rendered,
+    letting go of every camera array; the records (visibility included) are the same bytes."""
     snap = synthetic_snapshot(n_vehicles=1, n_rsus=1, n_drones=1)
     out = []
     for release in (False, True):
         with SensorSuite(scenario, synthetic_world(), release_pixels=release) as suite:
             fs = suite.render(snap, np.random.default_rng(3))
             cams = _cameras(fs)
-            assert all((c.rgb is None and c.depth is None) == release for c in cams)
-            assert all(c.semantic is not None and c.instance is not None for c in cams)
+            assert all((c.rgb is None and c.depth is None and c.semantic is None and c.instance is None) == release
+                       for c in cams)
+            if release:
+                packed = sum(len(c.encoded.semantic.data) + len(c.encoded.instance.data) for c in cams)
+                assert packed < 0.1 * sum(5 * c.width * c.height for c in cams)
             recs = frame_records(fs, 0, image_format=scenario.output.image_format, depth_format="compressed")
             out.append([(t, bytes(r.data) if hasattr(r, "data") else r.SerializeToString(deterministic=True)
                          if hasattr(r, "SerializeToString") else r) for t, r in recs])
@@ -187,3 +190,19 @@ def test_a_suite_that_releases_pixels_writes_the_same_bytes_and_keeps_no_rgb_or_
         fs = suite.render(snap, np.random.default_rng(3))
         with pytest.raises(CosimError, match="released"):
             list(frame_records(fs, 0, image_format="png"))
+
+
+def test_packed_labels_give_back_the_exact_pixels_in_place_or_cast():
+    rng = np.random.default_rng(5)
+    inst = np.repeat(rng.integers(0, 2**32, (9, 1), dtype=np.uint32), 40, axis=1)
+    inst[3, 7] = 2**31 + 5
+    p = PackedLabels.of(inst)
+    assert np.array_equal(p.unpack(), inst)
+    buf = np.zeros(inst.nbytes + 3, np.uint8)  # a view at an odd offset, as inside a message buffer
+    view = buf[1:1 + inst.nbytes].view(np.uint8)
+    p.into(view.view("<u4").reshape(inst.shape))
+    assert buf[0] == 0 and buf[-2:].tolist() == [0, 0]
+    assert view.tobytes() == inst.astype("<u4").tobytes()
+    as_int32 = np.empty(inst.shape, np.int32)
+    p.into(as_int32)
+    assert np.array_equal(as_int32, inst.astype(np.int32))

@@ -28,7 +28,7 @@ from cosim.depth import DEPTH_FORMAT
 from cosim.errors import CosimError
 from cosim.io.points import encode_points
 from cosim.io.writer import Serialized
-from cosim.sensors.encoding import encode_depth, encode_jpeg, encode_png, submit, submit_encode
+from cosim.sensors.encoding import PackedLabels, encode_depth, encode_jpeg, encode_png, submit, submit_encode
 from cosim.sensors.kinds import SENSOR_KINDS
 from cosim.sensors.suite import SensorFrameSet
 
@@ -231,14 +231,24 @@ def _label_records(fid: str, base: str, cam, t_ns: int, depth_format: str) -> li
     elif cam.depth is not None:
         out.append((f"{base}/depth", raw_image_record(fid, t_ns, cam.depth.shape, "<f4", "32FC1",
                                                       lambda v: quantize_depth(cam.depth, v))))
-    if cam.semantic is not None:
-        out.append((f"{base}/semantic", raw_image_record(fid, t_ns, cam.semantic.shape, "|u1", "mono8",
-                                                         lambda v: np.copyto(v, cam.semantic))))
-    if cam.instance is not None:
+    pre = cam.encoded
+    semantic = cam.semantic if cam.semantic is not None else getattr(pre, "semantic", None)
+    instance = cam.instance if cam.instance is not None else getattr(pre, "instance", None)
+    if semantic is not None:
+        out.append((f"{base}/semantic", raw_image_record(fid, t_ns, semantic.shape, "|u1", "mono8",
+                                                         _filler(semantic))))
+    if instance is not None:
         # stored as int32: the same bytes as uint32 for ids < 2^31
-        out.append((f"{base}/instance", raw_image_record(fid, t_ns, cam.instance.shape, "<u4", "32SC1",
-                                                         lambda v: np.copyto(v, cam.instance, casting="unsafe"))))
+        out.append((f"{base}/instance", raw_image_record(fid, t_ns, instance.shape, "<u4", "32SC1",
+                                                         _filler(instance))))
     return out
+
+
+def _filler(img: np.ndarray | PackedLabels) -> Callable[[np.ndarray], object]:
+    """Writes a label image, an array or one the suite packed (:class:`PackedLabels`), into a message view."""
+    if isinstance(img, PackedLabels):
+        return img.into
+    return lambda v: np.copyto(v, img, casting="unsafe")
 
 
 #: cameras whose depth/semantic/instance messages are built ahead (in the encoder pool) of the one being
