@@ -135,6 +135,16 @@ def lidar_box_excess(tick, objects: dict, keep):
 PAPER = REPO / "scenarios" / "base" / "paper.yaml"
 
 
+def run_sweep(root: Path, sweep_text: str) -> Path:
+    """A real ``cosim batch`` of ``sweep_text`` (a whole sweep file) with one worker; its output folder."""
+    sweep = root / "sweep.yaml"
+    sweep.write_text(sweep_text)
+    out = root / "batch"
+    r = run_cli("batch", str(sweep), "--out", str(out), "--workers", "1", "-q", timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return out
+
+
 def write_sweep(tmp_path: Path, body: str, name: str = "sweep.yaml") -> Path:
     path = tmp_path / name
     path.write_text(f"base: {PAPER}\n" + body)

@@ -23,7 +23,7 @@ from cosim.eval.evaluate import EvalOptions, evaluate
 from cosim.eval.predictions import SETTINGS, read_predictions
 from cosim.io import open_episode
 from cosim.io.synthetic import write_synthetic_episode
-from tests.helpers import REPO, run_cli
+from tests.helpers import REPO, run_cli, run_sweep
 
 pytestmark = pytest.mark.integration
 
@@ -50,13 +50,8 @@ count: 2
 
 @pytest.fixture(scope="session")
 def batch(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("evalbatch")
-    sweep = root / "sweep.yaml"
-    sweep.write_text(SWEEP.format(base=REPO / "scenarios" / "base" / "paper.yaml"))
-    out = root / "batch"
-    r = run_cli("batch", str(sweep), "--out", str(out), "--workers", "1", "-q", timeout=600)
-    assert r.returncode == 0, r.stderr[-3000:]
-    return out
+    sweep = SWEEP.format(base=REPO / "scenarios" / "base" / "paper.yaml")
+    return run_sweep(tmp_path_factory.mktemp("evalbatch"), sweep)
 
 
 @pytest.fixture(scope="session")

@@ -15,7 +15,7 @@ import pytest
 
 from cosim.learn.grid import Grid, decode, targets, voxelise
 from cosim.learn.nms import circle_nms
-from tests.helpers import REPO, run_cli
+from tests.helpers import REPO, run_cli, run_sweep
 
 HAVE_TORCH = importlib.util.find_spec("torch") is not None
 needs_torch = pytest.mark.skipif(not HAVE_TORCH, reason="PyTorch is not installed (pip install -e '.[learn]'; "
@@ -140,13 +140,8 @@ def test_learn_without_torch_says_how_to_install(tmp_path):
 
 @pytest.fixture(scope="module")
 def tiny_batch(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("learnbatch")
-    sweep = root / "sweep.yaml"
-    sweep.write_text(SWEEP.format(base=REPO / "scenarios" / "base" / "paper.yaml"))
-    out = root / "batch"
-    r = run_cli("batch", str(sweep), "--out", str(out), "--workers", "1", "-q", timeout=600)
-    assert r.returncode == 0, r.stderr[-3000:]
-    return out
+    sweep = SWEEP.format(base=REPO / "scenarios" / "base" / "paper.yaml")
+    return run_sweep(tmp_path_factory.mktemp("learnbatch"), sweep)
 
 
 @pytest.fixture(scope="module")
