@@ -32,7 +32,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 DOCS = REPO / "docs"
-MARKER = re.compile(r"^<!-- (/?)docs_numbers:([A-Za-z0-9_]*) -->$", re.M)
+MARKER = re.compile(r"^<!-- (/?)docs_numbers:(\S*) -->$", re.M)
 NAME = re.compile(r"^[a-z0-9_]+$")
 
 EVAL_SWEEP = "sweeps/eval_small.yaml"
@@ -72,6 +72,8 @@ def blocks(text: str, where: str = "") -> list[tuple[str, int, int]]:
         open_ = None
     if open_ is not None:
         raise MarkerError(f"{where}: docs_numbers:{open_[0]} is never closed")
+    if text.count("<!-- docs_numbers:") + text.count("<!-- /docs_numbers:") != len(MARKER.findall(text)):
+        raise MarkerError(f"{where}: a docs_numbers marker is not alone on its line as <!-- docs_numbers:NAME -->")
     return out
 
 
@@ -212,7 +214,8 @@ def check(names: list[str] | None, work: Work, update: bool) -> int:
         if new != old:
             differs = True
             rel = str(path.relative_to(REPO))
-            sys.stdout.writelines(difflib.unified_diff(old.splitlines(True), new.splitlines(True), rel, rel + " (regenerated)"))
+            sys.stdout.writelines(difflib.unified_diff(old.splitlines(True), new.splitlines(True), rel,
+                                                       f"{rel} (regenerated)"))
             if update:
                 path.write_text(new, encoding="utf-8")
     return 1 if differs and not update else 0
