@@ -73,21 +73,36 @@ def test_local_ray_cluster_gives_identical_episode_files(reference, tmp_path):
 
 
 def test_always_failing_episode_is_reported_and_the_others_finish(tmp_path):
-    sweep = tmp_path / "bad.yaml"
-    sweep.write_text(
-        f"name: bad\nbase: {REPO / 'scenarios' / 'base' / 'paper.yaml'}\n"
-        "set: {duration_s: 1, sensors.enabled: false, map.size_m: 300, traffic.density_veh_per_km: 6}\n"
-        "axes:\n  map:\n    levels:\n      - {label: ok}\n"
-        "      - {label: missing, set: {map.kind: net, map.file: does_not_exist.net.xml}}\n"
-        "count: 2\n")
+    """A map file that passes the batch's up-front check (it exists and opens as a SUMO network) but that
+    SUMO cannot use fails its episode alone; a missing map file stops the batch before any episode."""
+    broken = tmp_path / "broken.net.xml"
+    broken.write_text('<?xml version="1.0"?>\n<net version="1.20">\n  <edge id="half" from="nowhere"\n</net>\n')
+
+    def sweep(name: str, file: Path) -> Path:
+        path = tmp_path / f"{name}.yaml"
+        path.write_text(
+            f"name: bad\nbase: {REPO / 'scenarios' / 'base' / 'paper.yaml'}\n"
+            "set: {duration_s: 1, sensors.enabled: false, map.size_m: 300, traffic.density_veh_per_km: 6}\n"
+            "axes:\n  map:\n    levels:\n      - {label: ok}\n"
+            f"      - {{label: {name}, set: {{map.kind: net, map.file: {file}}}}}\n"
+            "count: 2\n")
+        return path
+
     out = tmp_path / "out"
-    r = run_cli("batch", str(sweep), "--out", str(out), "--workers", "2", "--retries", "1", timeout=600)
+    r = run_cli("batch", str(sweep("broken", broken)), "--out", str(out), "--workers", "2", "--retries", "1",
+                timeout=600)
     assert r.returncode == 1
-    assert "FAILED   all-missing-0000" in r.stdout and "does_not_exist.net.xml" in r.stdout
+    assert "FAILED   all-broken-0000" in r.stdout and "broken.net.xml" in r.stdout
     recs = latest_records(out)
     assert recs["all-ok-0000"]["status"] == "done" and verify(out, recs["all-ok-0000"])
-    assert recs["all-missing-0000"]["status"] == "failed"
-    assert recs["all-missing-0000"]["attempts"] == 1  # bad input is not retried
+    assert recs["all-broken-0000"]["status"] == "failed"
+    assert recs["all-broken-0000"]["attempts"] == 1  # bad input is not retried
+
+    missing = tmp_path / "out_missing"
+    r = run_cli("batch", str(sweep("missing", tmp_path / "does_not_exist.net.xml")), "--out", str(missing),
+                "--workers", "2", timeout=600)
+    assert r.returncode == 2 and "does_not_exist.net.xml" in r.stderr and "not found" in r.stderr, r.stderr
+    assert not list(missing.glob("**/*.mcap"))
 
 
 def test_report_counts_match_the_manifest(reference, tmp_path):
