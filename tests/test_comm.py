@@ -364,27 +364,23 @@ def test_bad_comm_key_is_one_clear_message_with_exit_2(tmp_path):
 
 @pytest.mark.integration
 def test_a_higher_drone_has_line_of_sight_more_often_over_a_real_episode(tmp_path):
-    """The same towns, traffic and ground agents (same seeds), one hovering drone at 30 m or at 150 m.
-
-    Two seeds: the ground agents stand at inner junctions among the tallest buildings, where one
-    town alone can hide a few of them from any height."""
+    """The same town, traffic and ground agents (same seed), one hovering drone at 30 m or at 150 m."""
     from cosim.io import open_episode
 
     shares = {}
     for h in (30, 150):
-        los = []
-        for seed in (1, 2):
-            out = tmp_path / f"h{h}_s{seed}"
-            r = run_cli("run", "scenarios/town_urban_day_clear.yaml", "--no-sensors", "--duration", "2", "-q",
-                        "--set", "map.size_m=300", "--set", f"seed={seed}",
-                        "--set", f"agents.drones=[{{strategy: hover, altitude_m: {h}}}]", "--out", str(out))
-            assert r.returncode == 0, r.stderr
-            (path,) = list(out.iterdir())
-            with open_episode(path) as ep:
-                for k in range(ep.n_ticks):
-                    links = ep.tick(k).links()
-                    los += [s == "los" for s, tx, rx in zip(links.los, links.tx, links.rx, strict=True)
-                            if "drone_0" in (tx, rx)]
-        assert len(los) > 100
+        out = tmp_path / f"h{h}"
+        r = run_cli("run", "scenarios/town_urban_day_clear.yaml", "--no-sensors", "--duration", "2", "-q",
+                    "--set", "map.size_m=300", "--set", f"agents.drones=[{{strategy: hover, altitude_m: {h}}}]",
+                    "--out", str(out))
+        assert r.returncode == 0, r.stderr
+        (path,) = list(out.iterdir())
+        with open_episode(path) as ep:
+            los = []
+            for k in range(ep.n_ticks):
+                links = ep.tick(k).links()
+                los += [s == "los" for s, tx, rx in zip(links.los, links.tx, links.rx, strict=True)
+                        if "drone_0" in (tx, rx)]
+        assert len(los) > 50
         shares[h] = float(np.mean(los))
     assert shares[150] > shares[30] + 0.1, shares
