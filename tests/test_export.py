@@ -381,7 +381,9 @@ def test_opv2v_points_land_in_their_boxes_with_the_yaml_lidar_pose(opv2v):
             sel = ids == track
             inside += int(inside_box(doc["cosim"]["objects"][int(track)], world[sel], 0.1).sum())
             checked += int(sel.sum())
-    assert checked > 1000 and inside >= 0.99 * checked
+    # several hundred object points in one tick: the ray-drop model (glass, dark and far surfaces) and the
+    # hulls' windows return fewer points than the old boxes did
+    assert checked > 500 and inside >= 0.99 * checked, (checked, inside)
 
 
 # ------------------------------------------------------------------------------- determinism, options, CLI
