@@ -102,7 +102,7 @@ def wheelhouse() -> Path:
     tmp.mkdir(parents=True)
     try:
         r = subprocess.run(["nice", "-n", "10", sys.executable, "-m", "pip", "wheel", "--quiet", "--wheel-dir",
-                            str(tmp), str(REPO), "setuptools>=68", "wheel"], capture_output=True, text=True,
+                            str(tmp), str(REPO), "setuptools>=77", "wheel"], capture_output=True, text=True,
                            timeout=1800)
         assert r.returncode == 0, f"pip wheel failed: {r.stderr[-3000:]}"
         for w in tmp.glob("cosim-*.whl"):
