@@ -42,6 +42,7 @@ from cosim.batch.manifest import latest_records, sha256_file
 from cosim.errors import CosimError, InputError
 from cosim.io import Episode, Objects, Tick, open_episode
 from cosim.io.decode import parse_proto
+from cosim.io.deskew import deskew_tick
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +69,9 @@ class ExportOptions(BaseModel):
 
     every: int = Field(1, ge=1)  # keep ticks 0, every, 2 every, ...
     masks: bool = False  # semantic and instance images beside the camera images (AirV2X; costs export time)
+    # LiDAR points as fired (each in the sensor frame of its firing time) instead of compensated to the tick's
+    # sensor pose with the recorded motion (cosim.io.deskew; docs/exports.md)
+    raw_lidar: bool = False
 
 
 # ------------------------------------------------------------------------------------- registry
@@ -304,6 +308,7 @@ class AgentView:
     tick: Tick
     agent_id: str
     kind: str
+    raw_lidar: bool
     track_id: int | None
     map_from_base: np.ndarray  # (4, 4)
     velocity_mps: np.ndarray  # (3,)
@@ -323,9 +328,11 @@ class AgentView:
 
     def lidar_files(self) -> tuple[bytes, bytes]:
         """The sweep as an ASCII PCD in the LiDAR's CARLA frame (intensity in red) and its per-point labels
-        (``.npy`` of :data:`LIDAR_LABELS_DTYPE`, same order)."""
+        (``.npy`` of :data:`LIDAR_LABELS_DTYPE`, same order). Points are compensated to the sensor pose at
+        the tick (:func:`cosim.io.deskew.deskew_tick`) unless the export's ``raw_lidar`` asks for them as fired."""
         pts = self.points
-        xyz = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
+        raw = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
+        xyz = raw if self.raw_lidar else deskew_tick(self.tick, self.agent_id)
         labels = np.zeros(len(pts), LIDAR_LABELS_DTYPE)
         for f in LIDAR_LABELS_DTYPE.names or ():
             if f in (pts.dtype.names or ()):
@@ -365,6 +372,7 @@ class TickView:
     seq: SequenceInfo
     tick: Tick
     camera_names: dict[str, list[str]]  # agent -> camera names in the file
+    raw_lidar: bool = False  # ExportOptions.raw_lidar
 
     @property
     def index(self) -> int:
@@ -381,7 +389,7 @@ class TickView:
         for agent_id in self.seq.agents:
             a = by_id.get(agent_id, {})
             out.append(AgentView(
-                self.tick, agent_id, self.seq.kinds[agent_id], self.seq.track_ids[agent_id],
+                self.tick, agent_id, self.seq.kinds[agent_id], self.raw_lidar, self.seq.track_ids[agent_id],
                 self.tick.transforms.to_root(f"{agent_id}/base_link"),
                 np.asarray(a.get("velocity_mps", (0.0, 0.0, 0.0)), np.float64), dict(a.get("extra") or {}),
             ))
@@ -442,7 +450,7 @@ def _static_raster(seq: SequenceInfo) -> Any:
     return _RASTERS[key]
 
 
-def agent_frames(ep: Episode, seq: SequenceInfo, ticks: Sequence[int]) -> Iterator[TickView]:
+def agent_frames(ep: Episode, seq: SequenceInfo, ticks: Sequence[int], raw_lidar: bool = False) -> Iterator[TickView]:
     """A :class:`TickView` per exported tick in ``ticks`` (reads each tick once, in order)."""
     cams = {a: ep.cameras(a) for a in seq.agents}
     wanted = set(ticks)
@@ -450,7 +458,7 @@ def agent_frames(ep: Episode, seq: SequenceInfo, ticks: Sequence[int]) -> Iterat
         return
     for tick in ep.ticks(start=min(wanted), stop=max(wanted) + 1):
         if tick.index in wanted:
-            yield TickView(seq, tick, cams)
+            yield TickView(seq, tick, cams, raw_lidar)
 
 
 # ------------------------------------------------------------------------------------- driver
@@ -485,7 +493,7 @@ def _export_chunk(fmt: str, source: Source, seq_name: str, options: ExportOption
         seq = sequence_info(ep, source, seq_name, options.every)
         writer = cls(seq, options, Path(root))
         n = 0
-        for view in agent_frames(ep, seq, ticks):
+        for view in agent_frames(ep, seq, ticks, options.raw_lidar):
             writer.write_tick(view)
             n += len(seq.agents)
     return n
