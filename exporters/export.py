@@ -60,6 +60,21 @@ LIDAR_LABELS_DTYPE = np.dtype([("class_id", "<u1"), ("instance_id", "<u4"), ("ri
 AGENT_THREADS = min(4, os.cpu_count() or 1)
 #: Agent kinds of cosim episodes (docs/episode_format.md section 2).
 AGENT_KINDS = ("vehicle", "rsu", "drone")
+#: Agents whose clouds are exported in the level frame at the LiDAR (:func:`level_frame`): a drone tilts as it
+#: accelerates and an RSU's LiDAR may be mounted tilted, while the loaders keep a box's yaw only in the LiDAR
+#: frame. A vehicle keeps its LiDAR's frame: it stands on the road like the objects around it.
+LEVEL_CLOUD_KINDS = ("rsu", "drone")
+
+
+def level_frame(map_from_sensor: np.ndarray, map_from_base: np.ndarray) -> np.ndarray:
+    """map <- the frame at the sensor's origin with z up and x along the sensor's heading (the horizontal
+    part of its x axis; of the agent's x axis when the sensor looks straight up or down)."""
+    x = map_from_sensor[:3, 0] if np.hypot(*map_from_sensor[:2, 0]) > 1e-6 else map_from_base[:3, 0]
+    yaw = math.atan2(x[1], x[0])
+    out = np.eye(4)
+    out[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
+    out[:3, 3] = map_from_sensor[:3, 3]
+    return out
 
 
 class ExportOptions(BaseModel):
@@ -316,10 +331,21 @@ class AgentView:
 
     @cached_property
     def map_from_lidar(self) -> np.ndarray | None:
+        """The LiDAR's own frame at the tick (map <- lidar), or None without a LiDAR."""
         if f"/{self.agent_id}/lidar" not in self.tick:
             return None
         pc = self.tick.points(self.agent_id)
         return self.tick.transforms.to_root(pc.frame_id)
+
+    @cached_property
+    def map_from_cloud(self) -> np.ndarray | None:
+        """The frame the exported cloud, ``lidar_pose`` and camera extrinsics are in (map <- cloud): the
+        LiDAR's own for vehicles; for RSUs and drones the level frame at the LiDAR with its heading
+        (:func:`level_frame`), as both loaders turn boxes into yaw-only boxes in this frame."""
+        lidar = self.map_from_lidar
+        if lidar is None or self.kind not in LEVEL_CLOUD_KINDS:
+            return lidar
+        return level_frame(lidar, self.map_from_base)
 
     @cached_property
     def points(self) -> np.ndarray | None:
@@ -327,12 +353,16 @@ class AgentView:
         return self.tick.points(self.agent_id).points if f"/{self.agent_id}/lidar" in self.tick else None
 
     def lidar_files(self) -> tuple[bytes, bytes]:
-        """The sweep as an ASCII PCD in the LiDAR's CARLA frame (intensity in red) and its per-point labels
-        (``.npy`` of :data:`LIDAR_LABELS_DTYPE`, same order). Points are compensated to the sensor pose at
-        the tick (:func:`cosim.io.deskew.deskew_tick`) unless the export's ``raw_lidar`` asks for them as fired."""
+        """The sweep as an ASCII PCD in the CARLA axes of :attr:`map_from_cloud` (intensity in red) and its
+        per-point labels (``.npy`` of :data:`LIDAR_LABELS_DTYPE`, same order). Points are compensated to the
+        sensor pose at the tick (:func:`cosim.io.deskew.deskew_tick`) unless the export's ``raw_lidar`` asks
+        for them as fired."""
         pts = self.points
         raw = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
         xyz = raw if self.raw_lidar else deskew_tick(self.tick, self.agent_id)
+        lidar, cloud = self.map_from_lidar, self.map_from_cloud
+        if cloud is not lidar:
+            xyz = xyz @ (cloud[:3, :3].T @ lidar[:3, :3]).T  # same origin: a rotation into the level frame
         labels = np.zeros(len(pts), LIDAR_LABELS_DTYPE)
         for f in LIDAR_LABELS_DTYPE.names or ():
             if f in (pts.dtype.names or ()):
