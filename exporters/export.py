@@ -42,7 +42,7 @@ from cosim.batch.manifest import latest_records, sha256_file
 from cosim.errors import CosimError, InputError
 from cosim.io import Episode, Objects, Tick, open_episode
 from cosim.io.decode import parse_proto
-from cosim.io.deskew import deskew_tick
+from cosim.io.deskew import deskew_tick, objects_to_tick_of
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +87,9 @@ class ExportOptions(BaseModel):
     # LiDAR points as fired (each in the sensor frame of its firing time) instead of compensated to the tick's
     # sensor pose with the recorded motion (cosim.io.deskew; docs/exports.md)
     raw_lidar: bool = False
+    # also move the points of each moving labelled object to where it is at the tick, with its recorded velocity
+    # (cosim.io.deskew.objects_to_tick; docs/exports.md); not with raw_lidar
+    objects_at_tick: bool = False
 
 
 # ------------------------------------------------------------------------------------- registry
@@ -328,6 +331,7 @@ class AgentView:
     map_from_base: np.ndarray  # (4, 4)
     velocity_mps: np.ndarray  # (3,)
     extra: dict[str, Any]
+    objects_at_tick: bool = False
 
     @cached_property
     def map_from_lidar(self) -> np.ndarray | None:
@@ -360,6 +364,8 @@ class AgentView:
         pts = self.points
         raw = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
         xyz = raw if self.raw_lidar else deskew_tick(self.tick, self.agent_id)
+        if self.objects_at_tick and not self.raw_lidar:
+            xyz = objects_to_tick_of(self.tick, self.agent_id, xyz)
         lidar, cloud = self.map_from_lidar, self.map_from_cloud
         if cloud is not lidar:
             xyz = xyz @ (cloud[:3, :3].T @ lidar[:3, :3]).T  # same origin: a rotation into the level frame
@@ -403,6 +409,7 @@ class TickView:
     tick: Tick
     camera_names: dict[str, list[str]]  # agent -> camera names in the file
     raw_lidar: bool = False  # ExportOptions.raw_lidar
+    objects_at_tick: bool = False  # ExportOptions.objects_at_tick
 
     @property
     def index(self) -> int:
@@ -422,6 +429,7 @@ class TickView:
                 self.tick, agent_id, self.seq.kinds[agent_id], self.raw_lidar, self.seq.track_ids[agent_id],
                 self.tick.transforms.to_root(f"{agent_id}/base_link"),
                 np.asarray(a.get("velocity_mps", (0.0, 0.0, 0.0)), np.float64), dict(a.get("extra") or {}),
+                self.objects_at_tick,
             ))
         return out
 
@@ -480,7 +488,8 @@ def _static_raster(seq: SequenceInfo) -> Any:
     return _RASTERS[key]
 
 
-def agent_frames(ep: Episode, seq: SequenceInfo, ticks: Sequence[int], raw_lidar: bool = False) -> Iterator[TickView]:
+def agent_frames(ep: Episode, seq: SequenceInfo, ticks: Sequence[int], raw_lidar: bool = False,
+                 objects_at_tick: bool = False) -> Iterator[TickView]:
     """A :class:`TickView` per exported tick in ``ticks`` (reads each tick once, in order)."""
     cams = {a: ep.cameras(a) for a in seq.agents}
     wanted = set(ticks)
@@ -488,7 +497,7 @@ def agent_frames(ep: Episode, seq: SequenceInfo, ticks: Sequence[int], raw_lidar
         return
     for tick in ep.ticks(start=min(wanted), stop=max(wanted) + 1):
         if tick.index in wanted:
-            yield TickView(seq, tick, cams, raw_lidar)
+            yield TickView(seq, tick, cams, raw_lidar, objects_at_tick)
 
 
 # ------------------------------------------------------------------------------------- driver
@@ -523,7 +532,7 @@ def _export_chunk(fmt: str, source: Source, seq_name: str, options: ExportOption
         seq = sequence_info(ep, source, seq_name, options.every)
         writer = cls(seq, options, Path(root))
         n = 0
-        for view in agent_frames(ep, seq, ticks, options.raw_lidar):
+        for view in agent_frames(ep, seq, ticks, options.raw_lidar, options.objects_at_tick):
             writer.write_tick(view)
             n += len(seq.agents)
     return n
@@ -552,6 +561,8 @@ def run_export(source: Path, fmt: str, out: Path, options: ExportOptions | None 
     """
     options = options or ExportOptions()
     cls = get_format(fmt)
+    if options.raw_lidar and options.objects_at_tick:
+        raise InputError("--objects-at-tick moves points of a compensated sweep; it cannot go with --raw-lidar")
     if workers < 1:
         raise InputError(f"--workers must be >= 1, got {workers}")
     out = Path(out)
