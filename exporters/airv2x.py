@@ -106,7 +106,7 @@ class AirV2XFormat(ExportFormat):
             "odometry": {"ego_pos": ego_pos, "ego_speed": cf.speed_mps(agent.velocity_mps)},
         }
         cosim_meta: dict[str, Any] = {"agent_id": agent.agent_id, "track_id": agent.track_id, "cameras": {}}
-        lidar_t = agent.map_from_lidar
+        lidar_t = agent.map_from_cloud
         if lidar_t is not None:
             meta["lidar"] = {"lidar_pose": cf.relative_pose(cf.carla_pose_of_matrix(lidar_t), ego_pos)}
             pcd, labels = agent.lidar_files()

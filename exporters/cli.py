@@ -28,7 +28,8 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     try:
         result = run_export(Path(args.source), args.format, Path(args.out),
-                            ExportOptions(every=args.every, masks=args.masks),
+                            ExportOptions(every=args.every, masks=args.masks, raw_lidar=args.raw_lidar,
+                                          objects_at_tick=args.objects_at_tick),
                             split=args.split, workers=args.workers, progress=progress)
     finally:
         if bar:
@@ -52,5 +53,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--every", type=int, default=1, metavar="K", help="keep every K-th tick (default 1)")
     p.add_argument("--workers", type=int, default=1, metavar="N", help="processes writing ticks (default 1)")
     p.add_argument("--masks", action="store_true", help="also semantic and instance images (AirV2X)")
+    p.add_argument("--raw-lidar", action="store_true",
+                   help="LiDAR points as fired (each in its firing's sensor frame), not compensated to the tick pose")
+    p.add_argument("--objects-at-tick", action="store_true",
+                   help="also move each moving object's points to where it is at the tick (its recorded velocity)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_export)

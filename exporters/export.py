@@ -42,6 +42,7 @@ from cosim.batch.manifest import latest_records, sha256_file
 from cosim.errors import CosimError, InputError
 from cosim.io import Episode, Objects, Tick, open_episode
 from cosim.io.decode import parse_proto
+from cosim.io.deskew import deskew_tick, objects_to_tick_of
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +60,21 @@ LIDAR_LABELS_DTYPE = np.dtype([("class_id", "<u1"), ("instance_id", "<u4"), ("ri
 AGENT_THREADS = min(4, os.cpu_count() or 1)
 #: Agent kinds of cosim episodes (docs/episode_format.md section 2).
 AGENT_KINDS = ("vehicle", "rsu", "drone")
+#: Agents whose clouds are exported in the level frame at the LiDAR (:func:`level_frame`): a drone tilts as it
+#: accelerates and an RSU's LiDAR may be mounted tilted, while the loaders keep a box's yaw only in the LiDAR
+#: frame. A vehicle keeps its LiDAR's frame: it stands on the road like the objects around it.
+LEVEL_CLOUD_KINDS = ("rsu", "drone")
+
+
+def level_frame(map_from_sensor: np.ndarray, map_from_base: np.ndarray) -> np.ndarray:
+    """map <- the frame at the sensor's origin with z up and x along the sensor's heading (the horizontal
+    part of its x axis; of the agent's x axis when the sensor looks straight up or down)."""
+    x = map_from_sensor[:3, 0] if np.hypot(*map_from_sensor[:2, 0]) > 1e-6 else map_from_base[:3, 0]
+    yaw = math.atan2(x[1], x[0])
+    out = np.eye(4)
+    out[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
+    out[:3, 3] = map_from_sensor[:3, 3]
+    return out
 
 
 class ExportOptions(BaseModel):
@@ -68,6 +84,12 @@ class ExportOptions(BaseModel):
 
     every: int = Field(1, ge=1)  # keep ticks 0, every, 2 every, ...
     masks: bool = False  # semantic and instance images beside the camera images (AirV2X; costs export time)
+    # LiDAR points as fired (each in the sensor frame of its firing time) instead of compensated to the tick's
+    # sensor pose with the recorded motion (cosim.io.deskew; docs/exports.md)
+    raw_lidar: bool = False
+    # also move the points of each moving labelled object to where it is at the tick, with its recorded velocity
+    # (cosim.io.deskew.objects_to_tick; docs/exports.md); not with raw_lidar
+    objects_at_tick: bool = False
 
 
 # ------------------------------------------------------------------------------------- registry
@@ -304,17 +326,30 @@ class AgentView:
     tick: Tick
     agent_id: str
     kind: str
+    raw_lidar: bool
     track_id: int | None
     map_from_base: np.ndarray  # (4, 4)
     velocity_mps: np.ndarray  # (3,)
     extra: dict[str, Any]
+    objects_at_tick: bool = False
 
     @cached_property
     def map_from_lidar(self) -> np.ndarray | None:
+        """The LiDAR's own frame at the tick (map <- lidar), or None without a LiDAR."""
         if f"/{self.agent_id}/lidar" not in self.tick:
             return None
         pc = self.tick.points(self.agent_id)
         return self.tick.transforms.to_root(pc.frame_id)
+
+    @cached_property
+    def map_from_cloud(self) -> np.ndarray | None:
+        """The frame the exported cloud, ``lidar_pose`` and camera extrinsics are in (map <- cloud): the
+        LiDAR's own for vehicles; for RSUs and drones the level frame at the LiDAR with its heading
+        (:func:`level_frame`), as both loaders turn boxes into yaw-only boxes in this frame."""
+        lidar = self.map_from_lidar
+        if lidar is None or self.kind not in LEVEL_CLOUD_KINDS:
+            return lidar
+        return level_frame(lidar, self.map_from_base)
 
     @cached_property
     def points(self) -> np.ndarray | None:
@@ -322,10 +357,18 @@ class AgentView:
         return self.tick.points(self.agent_id).points if f"/{self.agent_id}/lidar" in self.tick else None
 
     def lidar_files(self) -> tuple[bytes, bytes]:
-        """The sweep as an ASCII PCD in the LiDAR's CARLA frame (intensity in red) and its per-point labels
-        (``.npy`` of :data:`LIDAR_LABELS_DTYPE`, same order)."""
+        """The sweep as an ASCII PCD in the CARLA axes of :attr:`map_from_cloud` (intensity in red) and its
+        per-point labels (``.npy`` of :data:`LIDAR_LABELS_DTYPE`, same order). Points are compensated to the
+        sensor pose at the tick (:func:`cosim.io.deskew.deskew_tick`) unless the export's ``raw_lidar`` asks
+        for them as fired."""
         pts = self.points
-        xyz = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
+        raw = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
+        xyz = raw if self.raw_lidar else deskew_tick(self.tick, self.agent_id)
+        if self.objects_at_tick and not self.raw_lidar:
+            xyz = objects_to_tick_of(self.tick, self.agent_id, xyz)
+        lidar, cloud = self.map_from_lidar, self.map_from_cloud
+        if cloud is not lidar:
+            xyz = xyz @ (cloud[:3, :3].T @ lidar[:3, :3]).T  # same origin: a rotation into the level frame
         labels = np.zeros(len(pts), LIDAR_LABELS_DTYPE)
         for f in LIDAR_LABELS_DTYPE.names or ():
             if f in (pts.dtype.names or ()):
@@ -365,6 +408,8 @@ class TickView:
     seq: SequenceInfo
     tick: Tick
     camera_names: dict[str, list[str]]  # agent -> camera names in the file
+    raw_lidar: bool = False  # ExportOptions.raw_lidar
+    objects_at_tick: bool = False  # ExportOptions.objects_at_tick
 
     @property
     def index(self) -> int:
@@ -381,9 +426,10 @@ class TickView:
         for agent_id in self.seq.agents:
             a = by_id.get(agent_id, {})
             out.append(AgentView(
-                self.tick, agent_id, self.seq.kinds[agent_id], self.seq.track_ids[agent_id],
+                self.tick, agent_id, self.seq.kinds[agent_id], self.raw_lidar, self.seq.track_ids[agent_id],
                 self.tick.transforms.to_root(f"{agent_id}/base_link"),
                 np.asarray(a.get("velocity_mps", (0.0, 0.0, 0.0)), np.float64), dict(a.get("extra") or {}),
+                self.objects_at_tick,
             ))
         return out
 
@@ -442,7 +488,8 @@ def _static_raster(seq: SequenceInfo) -> Any:
     return _RASTERS[key]
 
 
-def agent_frames(ep: Episode, seq: SequenceInfo, ticks: Sequence[int]) -> Iterator[TickView]:
+def agent_frames(ep: Episode, seq: SequenceInfo, ticks: Sequence[int], raw_lidar: bool = False,
+                 objects_at_tick: bool = False) -> Iterator[TickView]:
     """A :class:`TickView` per exported tick in ``ticks`` (reads each tick once, in order)."""
     cams = {a: ep.cameras(a) for a in seq.agents}
     wanted = set(ticks)
@@ -450,7 +497,7 @@ def agent_frames(ep: Episode, seq: SequenceInfo, ticks: Sequence[int]) -> Iterat
         return
     for tick in ep.ticks(start=min(wanted), stop=max(wanted) + 1):
         if tick.index in wanted:
-            yield TickView(seq, tick, cams)
+            yield TickView(seq, tick, cams, raw_lidar, objects_at_tick)
 
 
 # ------------------------------------------------------------------------------------- driver
@@ -485,7 +532,7 @@ def _export_chunk(fmt: str, source: Source, seq_name: str, options: ExportOption
         seq = sequence_info(ep, source, seq_name, options.every)
         writer = cls(seq, options, Path(root))
         n = 0
-        for view in agent_frames(ep, seq, ticks):
+        for view in agent_frames(ep, seq, ticks, options.raw_lidar, options.objects_at_tick):
             writer.write_tick(view)
             n += len(seq.agents)
     return n
@@ -514,6 +561,8 @@ def run_export(source: Path, fmt: str, out: Path, options: ExportOptions | None 
     """
     options = options or ExportOptions()
     cls = get_format(fmt)
+    if options.raw_lidar and options.objects_at_tick:
+        raise InputError("--objects-at-tick moves points of a compensated sweep; it cannot go with --raw-lidar")
     if workers < 1:
         raise InputError(f"--workers must be >= 1, got {workers}")
     out = Path(out)

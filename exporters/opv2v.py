@@ -92,7 +92,7 @@ class Opv2vFormat(ExportFormat):
         folder = self.root / self.folders[agent.agent_id]
         stem = f"{view.index:06d}"
         ego_pos = cf.carla_pose_of_matrix(agent.map_from_base)
-        lidar_t = agent.map_from_lidar
+        lidar_t = agent.map_from_cloud
         seen = agent.visibility()
         doc: dict[str, Any] = {}
         extra_cams: dict[str, Any] = {}

@@ -114,16 +114,20 @@ def test_layout_invariants(kind: str, tmp_path: Path) -> None:
         pts = np.stack([gx.ravel(), gy.ravel()], axis=1)
         pts = pts[geom.points_in_polygon(pts, poly)]
         assert not road.lookup(pts).any(), f"building {p.instance_id} overlaps the road"
-    # RSUs: count, height range, within 15 m of their junction, a pole prism each
+    # RSUs: count, height range, within MAX_OFFSET_M of their junction, inside the urban town (not on the
+    # outer ring, where the map's roads end), a pole prism each
+    from cosim.world.rsu import MAX_OFFSET_M, outer_ring
+
     junctions = {j.junction_id: j.position_m for j in world.junctions}
+    ring = outer_ring([j for j in read_network(world.net_xml).real_junctions()])
     assert [r.agent_id for r in world.rsus] == [f"rsu_{i}" for i in range(sc.agents.rsus.count)]
     lo_h, hi_h = sc.agents.rsus.height_m
     for r in world.rsus:
-        assert math.dist(r.position_m[:2], junctions[r.junction_id]) <= 15.0
+        # positions are rounded to the millimetre
+        assert math.dist(r.position_m[:2], junctions[r.junction_id]) <= MAX_OFFSET_M + 0.01
         assert lo_h <= r.height_m <= hi_h and r.position_m[2] == pytest.approx(r.height_m)
-        jx, jy = junctions[r.junction_id]
-        facing = math.atan2(jy - r.position_m[1], jx - r.position_m[0])
-        assert abs(math.remainder(facing - r.yaw_rad, 2 * math.pi)) < 1e-6
+        if kind == "urban":  # (the small suburban test town has too few feasible inner junctions)
+            assert r.junction_id not in ring
     assert sum(p.cls == "rsu" for p in prisms) == len(world.rsus)
 
 

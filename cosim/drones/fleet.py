@@ -211,10 +211,12 @@ class DroneFleet:
 
     @staticmethod
     def _place(d: _Drone, start: tuple[float, float] | None) -> None:
+        """At the strategy's start, in its steady state (:meth:`Strategy.start_velocity`); a given ``start``
+        point begins at rest."""
         pos, yaw = d.strategy.start()
         if start is not None:
             pos = np.array([start[0], start[1], pos[2]])
-        d.backend.reset(pos, yaw)
+        d.backend.reset(pos, yaw, d.strategy.start_velocity() if start is None else None)
         d.state = d.backend.state()
         d.controller.yaw_setpoint_rad = yaw
         d.controller.vel_integral[:] = 0.0

@@ -85,6 +85,10 @@ class Strategy(ABC):
     def start(self) -> tuple[np.ndarray, float]:
         """Where the drone starts, hovering: position (3,) map ENU [m] and yaw [rad]."""
 
+    def start_velocity(self) -> np.ndarray:
+        """The velocity (3,) map ENU [m/s] the drone starts with: its strategy's steady state (at rest here)."""
+        return np.zeros(3)
+
     @abstractmethod
     def reference(self, t_s: float, s: BodyState) -> Reference:
         """The reference at time ``t_s`` given the drone's state; called once per physics step, in order."""
@@ -166,6 +170,14 @@ class Patrol(Strategy):
     def start(self) -> tuple[np.ndarray, float]:
         d = self._seg_dir[0]
         return self.waypoints_m[0].copy(), math.atan2(d[1], d[0])
+
+    def start_velocity(self) -> np.ndarray:
+        """On the route at the speed allowed there (cruise, or less braking into the first corner); the
+        reference starts at that speed too."""
+        v_c = float(self._v_corner[1 % len(self.waypoints_m)])
+        v = min(self.cruise_mps, math.sqrt(v_c * v_c + 2.0 * self.accel_mps2 * float(self._seg_len[0])))
+        self._s_dot = v
+        return v * self._seg_dir[0]
 
     def _locate(self, s: float) -> tuple[int, float]:
         u = s % self._loop_m
@@ -291,6 +303,10 @@ class Escort(Strategy):
             return self.fallback_start_m.copy(), 0.0
         q, _, _, yaw = self._predict(self._obs[0])
         return q, yaw
+
+    def start_velocity(self) -> np.ndarray:
+        """The offset point's velocity (the target's, and the swing of the offset as it turns)."""
+        return np.zeros(3) if self._obs is None else self._predict(self._obs[0])[1]
 
     def reference(self, t_s: float, s: BodyState) -> Reference:
         self._drone_xy = s.position_m[:2]

@@ -7,6 +7,8 @@ velocity and turns with its body rates, constant over the sweep. :func:`deskew_t
 the episode: the pose from ``/tf``, the velocity from ``/labels/objects``, the body rates from the
 agent's ``/<agent>/imu`` when it has one (an IMU's rates carry its bias and noise; zero without one).
 Points of other moving objects keep their own motion: deskewing corrects the ego motion only.
+:func:`objects_to_tick` also moves the points of each labelled moving object by its recorded velocity
+from the firing time to the sweep's end, as if every object had stood at its tick pose during the sweep.
 """
 
 from __future__ import annotations
@@ -55,3 +57,32 @@ def deskew_tick(tick: Any, agent: str) -> np.ndarray:
     imu_topic = f"/{agent}/imu"
     rates = tick[imu_topic]["angular_velocity_radps"] if imu_topic in tick else (0.0, 0.0, 0.0)
     return deskew(cloud.xyz, cloud.points["t_offset_ns"], base_to_map, lidar_to_base, velocity, rates)
+
+
+def objects_to_tick(xyz: np.ndarray, t_offset_ns: np.ndarray, instance_id: np.ndarray, sensor_to_map: np.ndarray,
+                    velocities_mps: dict[int, Any]) -> np.ndarray:
+    """Points (N, 3) in the sensor frame at the sweep's end (:func:`deskew`'s output), each point of an object
+    in ``velocities_mps`` (track id -> velocity (3,) in map) moved by that velocity x (0 - its ``t_offset_ns``):
+    where that surface is at the sweep's end (the renderer moves actors with their velocity, constant over the
+    sweep, in time slices: what is left is the slice's half width times the speed)."""
+    out = np.array(xyz, np.float64, copy=True)
+    tau = np.asarray(t_offset_ns, np.float64) * 1e-9
+    ids = np.asarray(instance_id)
+    to_sensor = np.asarray(sensor_to_map, np.float64)[:3, :3].T
+    for track, v in velocities_mps.items():
+        sel = ids == track
+        if sel.any() and np.any(v):
+            out[sel] -= tau[sel, None] * (to_sensor @ np.asarray(v, np.float64))[None, :]
+    return out
+
+
+def objects_to_tick_of(tick: Any, agent: str, xyz: np.ndarray) -> np.ndarray:
+    """:func:`objects_to_tick` of ``xyz`` (``tick.points(agent)``, compensated by :func:`deskew_tick`) with the
+    tick's labelled velocities."""
+    cloud = tick.points(agent)
+    if "t_offset_ns" not in cloud.fields:
+        return xyz
+    lab = tick.labels
+    velocities = {int(t): v for t, v in zip(lab.track_ids, lab.velocities_mps, strict=True)}
+    return objects_to_tick(xyz, cloud.points["t_offset_ns"], cloud.points["instance_id"],
+                           tick.transforms.to_root(cloud.frame_id), velocities)

@@ -172,6 +172,9 @@ class TrafficSpec(Model):
         }
     )
     step_hz: float = Field(20.0, gt=0, le=1000.0)  # SUMO sub-step rate; whole multiple of tick_hz
+    # signal plans (cosim/world/signals.py): actuated (gap-based, cycle by junction size, seeded offsets),
+    # fixed (the same plan at fixed times) or as_built (the network's own programs, e.g. a map.file's)
+    signals: Literal["actuated", "fixed", "as_built"] = "actuated"
 
     @field_validator("mix")
     @classmethod

@@ -32,7 +32,7 @@ from cosim.scenario.model import Scenario
 from cosim.traffic.events import Timeline
 from cosim.traffic.pedestrians import Pedestrians
 from cosim.world.netgen import sumo_binary
-from cosim.world.routes import read_sumolib, sources_and_sinks, strong_core
+from cosim.world.routes import inner_edges, read_sumolib, sources_and_sinks, strong_core
 from cosim.world.types import World
 from cosim.world.vtypes import SUMO_VCLASS, VARIANTS, class_of_type
 
@@ -74,7 +74,7 @@ class TrafficSim:
             )
         self._rng = np.random.default_rng([scenario.seed, 10])
         net = read_sumolib(world.net_xml)
-        self._targets = {c: strong_core(net, c) for c in sorted(set(SUMO_VCLASS.values()))}
+        self._targets = {c: inner_edges(net, strong_core(net, c)) for c in sorted(set(SUMO_VCLASS.values()))}
         self._gates = {c: sources_and_sinks(net, c) for c in sorted(set(SUMO_VCLASS.values()))}
         planned = [v.get("id", "") for v in ET.fromstring(world.routes_xml).iter("vehicle")] if world.routes_xml else []
         self._next_bg = 1 + max((int(v[3:]) for v in planned if v.startswith("bg_") and v[3:].isdigit()), default=-1)

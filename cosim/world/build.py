@@ -15,16 +15,17 @@ from cosim.preflight import map_file
 from cosim.scenario.loader import LoadedScenario
 from cosim.world import geom
 from cosim.world.layout import GROUND_Z, build_layout, prism
-from cosim.world.netgen import MapRequest, generate_network
+from cosim.world.netgen import MapRequest, NetworkResult, generate_network
 from cosim.world.network import read_network
 from cosim.world.parking import place_parked
 from cosim.world.routes import plan_vehicles, read_sumolib, routes_xml
 from cosim.world.rsu import place_rsus
+from cosim.world.signals import plan_signals
 from cosim.world.types import Junction, StaticLayout, World
 
 log = logging.getLogger(__name__)
 
-STAGE_NET, STAGE_LAYOUT, STAGE_RSU, STAGE_ROUTES, STAGE_PARKED = 1, 2, 3, 4, 5
+STAGE_NET, STAGE_LAYOUT, STAGE_RSU, STAGE_ROUTES, STAGE_PARKED, STAGE_SIGNALS = 1, 2, 3, 4, 5, 6
 MARGIN_M = {"urban": 30.0, "suburban": 30.0}  # [m] scenery beyond the outermost road; others 20
 RSU_POLE_M = 0.35  # [m] side of an RSU pole
 
@@ -43,6 +44,8 @@ def build_world(loaded: LoadedScenario, workdir: Path) -> World:
         MapRequest(spec.kind, spec.size_m, spec.lanes, file, workdir, sc.pedestrians.density_per_km > 0),
         stage_rng(sc.seed, STAGE_NET),
     )
+    result = NetworkResult(plan_signals(result.net_xml, sc.traffic.signals, stage_rng(sc.seed, STAGE_SIGNALS)),
+                           result.buildings)
     net = read_network(result.net_xml, f"map.file {file}" if file is not None else f"the generated {spec.kind} network")
     margin = MARGIN_M.get(spec.kind, 20.0)
     xmin, ymin, xmax, ymax = net.bounds_m
@@ -60,10 +63,13 @@ def build_world(loaded: LoadedScenario, workdir: Path) -> World:
     junctions = sorted(junctions, key=lambda j: j.junction_id)
     centre = (0.5 * (xmin + xmax), 0.5 * (ymin + ymax))
     degree: dict[str, int] = {}
+    lanes_in: dict[str, int] = {}
     for e in net.road_edges():
         degree[e.to_node] = degree.get(e.to_node, 0) + 1
+        lanes_in[e.to_node] = lanes_in.get(e.to_node, 0) + sum(ln.is_road for ln in e.lanes)
     rsus = place_rsus(
-        junctions, degree, sc.agents.rsus.count, sc.agents.rsus.height_m, road, centre, stage_rng(sc.seed, STAGE_RSU)
+        junctions, degree, sc.agents.rsus.count, sc.agents.rsus.height_m, road, centre, stage_rng(sc.seed, STAGE_RSU),
+        lanes_in,
     )
     next_id = max((p.instance_id for p in prisms), default=999_999) + 1
     for k, r in enumerate(rsus):

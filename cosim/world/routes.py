@@ -2,8 +2,10 @@
 
 Every vehicle departs at SUMO time 0 at a drawn position on a drawn lane, spaced so that no two
 overlap. Connected vehicles get a route inside the part of the network where their class can always
-go on (the strongly connected core for its vClass); the traffic adapter extends their routes before
-they end, so they stay for the whole episode. Background vehicles drive to a sink, a road that ends
+go on (the strongly connected core for its vClass), through the town rather than around it: they
+depart on and head for the core's inner edges (:func:`inner_edges`, not touching a gateway junction
+on the map's outer ring), where the traffic and the scenery are; the traffic adapter extends their
+routes before they end, so they stay for the whole episode. Background vehicles drive to a sink, a road that ends
 at a gateway of the map (:func:`gateways`: a junction on the edge of the network or a dead end), and
 leave there; the adapter sends a new vehicle of the same class in from a source, so traffic changes
 while the density stays as configured.
@@ -129,6 +131,15 @@ def gateways(net: sumolib.net.Net) -> set[str]:
     return out
 
 
+def inner_edges(net: sumolib.net.Net, core: list[str]) -> list[str]:
+    """The edges of ``core`` that neither start nor end at a :func:`gateways` junction (sorted); all of
+    ``core`` when none does (a map that is all fringe)."""
+    gates = gateways(net)
+    inner = [e for e in core
+             if net.getEdge(e).getFromNode().getID() not in gates and net.getEdge(e).getToNode().getID() not in gates]
+    return inner or list(core)
+
+
 def sources_and_sinks(net: sumolib.net.Net, vclass: str) -> tuple[list[str], list[str]]:
     """Edges ``vclass`` may use that leave a gateway (sources) and that end at one (sinks), sorted.
     Sources are at least :data:`MIN_LANE_M` long, so that the longest vehicle enters on its edge
@@ -197,21 +208,23 @@ def plan_vehicles(
     wanted += [(f"bg_{k:04d}", bg_classes[i]) for k, i in enumerate(order)]
 
     cores: dict[str, list[str]] = {}
+    inner: dict[str, list[str]] = {}
     sinks: dict[str, list[str]] = {}
     lanes: dict[str, list[sumolib.net.lane.Lane]] = {}
+    inner_lanes: dict[str, list[sumolib.net.lane.Lane]] = {}
     occ = _LaneOccupancy()
     out: list[PlannedVehicle] = []
     for vid, cls in wanted:
         vclass = SUMO_VCLASS[cls]
         if vclass not in cores:
             cores[vclass] = strong_core(net, vclass)
+            inner[vclass] = inner_edges(net, cores[vclass])
             sinks[vclass] = sources_and_sinks(net, vclass)[1]
-            lanes[vclass] = [
-                ln
-                for eid in cores[vclass]
-                for ln in net.getEdge(eid).getLanes()
-                if ln.allows(vclass) and ln.getLength() >= MIN_LANE_M
-            ]
+            lanes[vclass], inner_lanes[vclass] = (
+                [ln for eid in edges for ln in net.getEdge(eid).getLanes()
+                 if ln.allows(vclass) and ln.getLength() >= MIN_LANE_M]
+                for edges in (cores[vclass], inner[vclass])
+            )
         if not lanes[vclass]:
             if vid.startswith("vehicle_"):
                 raise InputError(f"the map has no road where connected vehicles of class {cls!r} can drive")
@@ -219,7 +232,7 @@ def plan_vehicles(
             continue
         variants = VARIANTS[cls]
         variant = variants[int(rng.integers(len(variants)))]
-        cand = lanes[vclass]
+        cand = inner_lanes[vclass] if vid.startswith("vehicle_") and inner_lanes[vclass] else lanes[vclass]
         weights = np.array([ln.getLength() for ln in cand])
         weights /= weights.sum()
         placed = None
@@ -246,7 +259,8 @@ def plan_vehicles(
         start = ln.getEdge().getID()
         route = None if vid.startswith("vehicle_") else route_to_sink(net, start, sinks[vclass], vclass, rng)
         if route is None:  # connected, or no sink reachable: drive in the core (routes are extended)
-            route = random_route(net, start, cores[vclass], vclass, rng)
+            targets = inner[vclass] if vid.startswith("vehicle_") else cores[vclass]
+            route = random_route(net, start, targets, vclass, rng)
         out.append(PlannedVehicle(vid, variant, ln.getID(), ln.getIndex(), round(pos, 2), tuple(route)))
     return out
 

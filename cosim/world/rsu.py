@@ -1,4 +1,12 @@
-"""Roadside-unit sites: poles at junction corners, heads facing the junction centre."""
+"""Roadside-unit sites: poles at the corners of busy inner junctions, cameras turned onto the roads.
+
+Junctions on the map's outer ring (:data:`RING_M` of the bounds of all junctions, where the roads of a
+generated town run on beyond the map and traffic enters and leaves) see half as many roads and no
+buildings' worth of traffic behind them, so RSUs stand at inner junctions first: signalised before
+unsignalised, more incoming lanes before fewer, spread over the inner area in farthest-point order from
+the junction nearest the centre. The head's yaw turns the rig's four cameras (90 degrees apart) onto the
+roads around the pole (:func:`road_yaw`), so that no camera stares at the building beside it.
+"""
 
 from __future__ import annotations
 
@@ -13,25 +21,44 @@ from cosim.world.types import RsuSite
 
 log = logging.getLogger(__name__)
 
-MAX_OFFSET_M = 14.0  # [m] farthest a pole stands from its junction centre (where the junction allows)
+RING_M = 30.0  # [m] junctions this close to the bounds of all junctions are on the outer ring
+VIEW_M = 40.0  # [m] how far out a camera's view is sampled for road when the head is turned
+MAX_OFFSET_M = 20.0  # [m] farthest a pole stands from its junction centre (where the junction allows): the
+# corner of two three-lane avenues with sidewalks is about 18 m from the centre
 FAR_OFFSET_M = 40.0  # [m] search limit for junctions wider than that
 POLE_CLEARANCE_M = 0.6  # [m] pole to road surface
 
 
+def outer_ring(junctions: list[JunctionGeom]) -> set[str]:
+    """Ids of the junctions within :data:`RING_M` of the bounds of all ``junctions``."""
+    if not junctions:
+        return set()
+    xy = np.array([j.position_m for j in junctions])
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    near = np.minimum(np.minimum(xy[:, 0] - lo[0], hi[0] - xy[:, 0]), np.minimum(xy[:, 1] - lo[1], hi[1] - xy[:, 1]))
+    return {j.junction_id for j, d in zip(junctions, near, strict=True) if d <= RING_M}
+
+
 def choose_junctions(
-    junctions: list[JunctionGeom], degree: dict[str, int], count: int, centre: tuple[float, float]
+    junctions: list[JunctionGeom], degree: dict[str, int], count: int, centre: tuple[float, float],
+    lanes_in: dict[str, int] | None = None,
 ) -> list[JunctionGeom]:
-    """``count`` junctions spread over the map (farthest-point order from the one nearest ``centre``),
-    preferring signalised junctions, then junctions with three or more incoming roads (``degree``:
-    incoming road edges per junction id). Repeats junctions when there are fewer than ``count``."""
+    """``count`` busy junctions spread over the town's inside: inner junctions (not on the
+    :func:`outer_ring`) before outer ones, then signalised, then with three or more incoming roads
+    (``degree``: incoming road edges per junction id), then more incoming lanes (``lanes_in``) first;
+    of the best such group with ``count`` members, farthest-point order from the one nearest ``centre``.
+    Repeats junctions when there are fewer than ``count``."""
     if not junctions or count <= 0:
         return []
+    ring = outer_ring(junctions)
+    lanes_in = lanes_in or {}
 
-    def rank(j: JunctionGeom) -> int:
-        return 0 if j.kind == "traffic_light" else 1 if degree.get(j.junction_id, 0) >= 3 else 2
+    def rank(j: JunctionGeom) -> tuple[int, int]:
+        kind = 0 if j.kind == "traffic_light" else 1 if degree.get(j.junction_id, 0) >= 3 else 2
+        return int(j.junction_id in ring), kind
 
-    pool = sorted(junctions, key=lambda j: (rank(j), j.junction_id))
-    for level in (0, 1):
+    pool = sorted(junctions, key=lambda j: (rank(j), -lanes_in.get(j.junction_id, 0), j.junction_id))
+    for level in sorted({rank(j) for j in pool}):
         n = sum(rank(j) <= level for j in pool)
         if n >= count:
             pool = pool[:n]
@@ -50,6 +77,27 @@ def choose_junctions(
         out.append(out[k % len(chosen)])
         k += 1
     return out
+
+
+def road_yaw(pole_xy: tuple[float, float], road: Raster, fallback: float) -> float:
+    """Head yaw [rad] that turns the rig's four cameras (yaw + k 90 degrees) onto the roads around
+    ``pole_xy``: of yaws 3 degrees apart, the one whose cameras see the most road surface, sampled in
+    each camera's view (5 directions over 80 degrees, 6 to :data:`VIEW_M` m out), counting each
+    camera's share by its square root so that every camera gets some road; ties go to the yaw nearest
+    ``fallback``."""
+    yaws = np.radians(np.arange(0.0, 360.0, 3.0))
+    spread = np.radians(np.array([-40.0, -20.0, 0.0, 20.0, 40.0]))
+    reach = np.array([6.0, 10.0, 15.0, 20.0, 30.0, VIEW_M])
+    best, best_score = fallback, -1.0
+    for yaw in sorted(yaws, key=lambda y: abs(math.remainder(y - fallback, 2 * math.pi))):
+        score = 0.0
+        for k in range(4):
+            a = yaw + k * math.pi / 2 + spread
+            pts = np.array([(pole_xy[0] + r * math.cos(t), pole_xy[1] + r * math.sin(t)) for t in a for r in reach])
+            score += math.sqrt(float(road.lookup(pts).mean()))
+        if score > best_score + 1e-9:
+            best, best_score = float(yaw), score
+    return math.atan2(math.sin(best), math.cos(best))
 
 
 def _spot(
@@ -75,8 +123,11 @@ def place_rsus(
     road: Raster,
     centre: tuple[float, float],
     rng: np.random.Generator,
+    lanes_in: dict[str, int] | None = None,
 ) -> list[RsuSite]:
-    """RSU sites ``rsu_0..``: a pole off the road surface within :data:`MAX_OFFSET_M` of its junction.
+    """RSU sites ``rsu_0..``: a pole off the road surface within :data:`MAX_OFFSET_M` of its junction,
+    at junctions :func:`choose_junctions` picks (``lanes_in``: incoming lanes per junction id), the head
+    turned by :func:`road_yaw` onto the roads around it.
 
     Junctions wider than that all around (two multi-lane avenues crossing) are only used when there
     are not enough others; their pole then stands at the nearest spot off the road, with a warning.
@@ -87,7 +138,7 @@ def place_rsus(
     feasible = [j for j in junctions if _spot(j, near, [], 0.0) is not None]
     pool = feasible if len(feasible) >= min(count, len(junctions)) else junctions
     used: list[tuple[float, float]] = []
-    for i, j in enumerate(choose_junctions(pool, degree, count, centre)):
+    for i, j in enumerate(choose_junctions(pool, degree, count, centre, lanes_in)):
         jx, jy = j.position_m
         phase = float(rng.uniform(0, 2 * math.pi))
         best = _spot(j, (*near, (road, 1.0, FAR_OFFSET_M)), used, phase)
@@ -103,6 +154,6 @@ def place_rsus(
         used.append(best)
         h = round(float(rng.uniform(*height_range_m)), 3)
         x, y = round(float(best[0]), 3), round(float(best[1]), 3)
-        yaw = math.atan2(jy - y, jx - x)
+        yaw = road_yaw((x, y), road, math.atan2(jy - y, jx - x))
         sites.append(RsuSite(f"rsu_{i}", j.junction_id, (x, y, h), yaw, h))
     return sites

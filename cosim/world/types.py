@@ -43,7 +43,7 @@ class RsuSite:
     agent_id: str
     junction_id: str
     position_m: tuple[float, float, float]
-    yaw_rad: float  # the head faces the junction centre
+    yaw_rad: float  # turns the head's four cameras onto the roads around the pole (cosim/world/rsu.py)
     height_m: float
 
 

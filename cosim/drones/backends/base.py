@@ -29,8 +29,9 @@ class DynamicsBackend(ABC):
         self.rotors = RotorBank.hovering(frame, dt_s)
 
     @abstractmethod
-    def reset(self, position_m: np.ndarray, yaw_rad: float) -> None:
-        """Place the drone at ``position_m`` (3,) map ENU [m], level, at rest, rotors at hover thrust."""
+    def reset(self, position_m: np.ndarray, yaw_rad: float, velocity_mps: np.ndarray | None = None) -> None:
+        """Place the drone at ``position_m`` (3,) map ENU [m], level, moving at ``velocity_mps`` (3,) map
+        ENU [m/s] (None: at rest), not turning, rotors at hover thrust."""
 
     @abstractmethod
     def step(self, rotor_command_n: np.ndarray, wind_mps: np.ndarray) -> None:

@@ -140,7 +140,7 @@ class JSBSimBackend(DynamicsBackend):
         fdm["cosim/drag-area-ft2"] = f.drag_area_m2 * M_TO_FT * M_TO_FT
         fdm["cosim/drag-linear-lbs_fps"] = f.drag_linear_nspm * N_TO_LBS * FT_TO_M
 
-    def reset(self, position_m: np.ndarray, yaw_rad: float) -> None:
+    def reset(self, position_m: np.ndarray, yaw_rad: float, velocity_mps: np.ndarray | None = None) -> None:
         fdm = self.fdm
         lat, lon, h = self.local.to_geodetic(np.asarray(position_m, dtype=np.float64))
         fdm["ic/lat-geod-rad"] = lat
@@ -153,6 +153,9 @@ class JSBSimBackend(DynamicsBackend):
         fdm["ic/phi-rad"] = 0.0
         for k in ("ic/u-fps", "ic/v-fps", "ic/w-fps", "ic/p-rad_sec", "ic/q-rad_sec", "ic/r-rad_sec"):
             fdm[k] = 0.0
+        if velocity_mps is not None:  # map ENU -> the local NED frame JSBSim takes
+            ve, vn, vu = (float(v) for v in velocity_mps)
+            fdm["ic/vn-fps"], fdm["ic/ve-fps"], fdm["ic/vd-fps"] = vn * M_TO_FT, ve * M_TO_FT, -vu * M_TO_FT
         self.rotors.thrust_n = np.full(4, self.frame.hover_thrust_n)
         self._push_rotors()
         self._set_wind(np.zeros(3))

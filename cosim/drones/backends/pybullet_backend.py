@@ -138,12 +138,13 @@ class PyBulletBackend(DynamicsBackend):
         d = np.hypot(centres[:, 0] - point[0], centres[:, 1] - point[1])
         return prism_label(part[int(np.argmin(d))])
 
-    def reset(self, position_m: np.ndarray, yaw_rad: float) -> None:
+    def reset(self, position_m: np.ndarray, yaw_rad: float, velocity_mps: np.ndarray | None = None) -> None:
         c = self._client
         pybullet.resetBasePositionAndOrientation(
             self._body, [float(v) for v in position_m], quat_from_rpy(0.0, 0.0, yaw_rad), physicsClientId=c
         )
-        pybullet.resetBaseVelocity(self._body, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], physicsClientId=c)
+        v = [0.0, 0.0, 0.0] if velocity_mps is None else [float(x) for x in velocity_mps]
+        pybullet.resetBaseVelocity(self._body, v, [0.0, 0.0, 0.0], physicsClientId=c)
         self.rotors.thrust_n = np.full(4, self.frame.hover_thrust_n)
         self._specific_force = np.array([0.0, 0.0, G_MPS2])
         self._contact = None
