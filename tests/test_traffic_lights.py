@@ -82,10 +82,11 @@ def _lit_colours(rgb: np.ndarray, mask: np.ndarray) -> set[str]:
 def test_a_traffic_lights_lit_colour_in_a_camera_is_sumos_state(sumo_run, lighting):
     """A camera 14 m in front of a head looks at it at several ticks: the lamp it sees lit has the colour of
     SUMO's state for that head's links, by day, at dusk and at night."""
-    from cosim.assemble import traffic_lights
-    from cosim.geometry import quat_from_rpy
     from cosim.sensors.assets.signals import FIRST_HEAD_INSTANCE
     from cosim.sensors.suite import SensorSuite
+
+    from cosim.assemble import traffic_lights
+    from cosim.geometry import quat_from_rpy
     from cosim.snapshot import AgentState, WorldSnapshot
 
     world, states = sumo_run
