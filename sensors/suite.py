@@ -29,7 +29,7 @@ from cosim.world.traffic_lights import signal_heads
 from cosim.world.types import World
 
 from . import kernels
-from .assets.signals import SignalLamps, signal_mesh, signal_parts
+from .assets.signals import SignalLamps, signal_parts
 from .bev import BevFrame, render_bev, static_raster
 from .camera import (
     CameraFrame,
@@ -51,6 +51,7 @@ from .lidar import LidarFrame, render_lidar
 from .meshes import concat, is_lamp, static_mesh
 from .rig import camera_pose, intrinsics, projection, sensor_pose
 from .scene import StaticHits, StaticScene, TickScene
+from .signals import signal_mesh
 from .surface import surface_inputs
 from .visibility import VisibilityFrame, instance_counts, render_visibility
 

@@ -118,20 +118,6 @@ def signal_parts(heads: tuple[SignalHead, ...]) -> SignalParts:
     )
 
 
-def signal_mesh(parts: SignalParts):
-    """The :class:`cosim.sensors.meshes.TriMesh` of ``parts``: heads and lamps of class ``traffic_light``,
-    poles and arms ``pole``."""
-    from cosim.classes import semantic_id
-
-    from ..meshes import TriMesh
-
-    t = len(parts.triangles)
-    return TriMesh(parts.vertices, parts.triangles,
-                   np.where(parts.pole, semantic_id("pole"), semantic_id("traffic_light")).astype(np.uint8),
-                   parts.instance, parts.albedo, parts.reflectivity, np.zeros(t, np.float32),
-                   np.arange(t, dtype=np.int64) // 2)
-
-
 class SignalLamps:
     """Which static triangles are lamps and how to light them per tick: ``rows`` are the lamp triangles'
     global indices, ``head`` and ``colour`` their head and lamp; ``ids`` the head ids in head order."""
