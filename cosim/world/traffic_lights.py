@@ -54,6 +54,18 @@ def head_colour(state: str, links: tuple[int, ...]) -> str:
     return "off"
 
 
+def first_phases(net_xml: bytes) -> dict[str, str]:
+    """Each traffic light's state in the first phase of its program (pictures and benchmarks without SUMO)."""
+    if b"<tlLogic" not in net_xml:
+        return {}
+    out: dict[str, str] = {}
+    for tl in ET.fromstring(net_xml).iter("tlLogic"):
+        phase = tl.find("phase")
+        if phase is not None:
+            out.setdefault(tl.get("id", ""), phase.get("state", ""))
+    return out
+
+
 @lru_cache(maxsize=4)  # keyed by the network's bytes (their hash is computed once per bytes object)
 def signal_heads(net_xml: bytes) -> tuple[SignalHead, ...]:
     """Every signal head of the network, in a stable order (traffic light id, lane id)."""
