@@ -34,6 +34,7 @@ SEMANTIC_CLASSES: Final[tuple[str, ...]] = (
     "pedestrian",
     "static_obstacle",
     "traffic_light",
+    "traffic_sign",
 )
 
 SEMANTIC_ID: Final[dict[str, int]] = {name: i for i, name in enumerate(SEMANTIC_CLASSES)}
@@ -60,6 +61,7 @@ SEMANTIC_COLOURS: Final[dict[str, tuple[int, int, int]]] = {
     "pedestrian": (220, 20, 60),
     "static_obstacle": (255, 120, 0),
     "traffic_light": (250, 220, 120),
+    "traffic_sign": (255, 255, 140),
 }
 
 

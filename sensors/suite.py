@@ -26,6 +26,7 @@ from cosim.geometry import rotation_matrix
 from cosim.scenario.model import RigSpec, Scenario
 from cosim.snapshot import Actor, AgentState, WorldSnapshot
 from cosim.world.traffic_lights import signal_heads
+from cosim.world.traffic_signs import traffic_signs
 from cosim.world.types import World
 
 from . import kernels
@@ -51,7 +52,7 @@ from .lidar import LidarFrame, render_lidar
 from .meshes import concat, is_lamp, static_mesh
 from .rig import camera_pose, intrinsics, projection, sensor_pose
 from .scene import StaticHits, StaticScene, TickScene
-from .signals import signal_mesh
+from .signals import SIGN_CENTRE_M, sign_mesh, signal_mesh
 from .surface import surface_inputs
 from .visibility import VisibilityFrame, instance_counts, render_visibility
 
@@ -218,7 +219,9 @@ class SensorSuite:
         heads = signal_heads(world.net_xml)  # traffic lights at SUMO's signalised junctions
         signals = signal_parts(heads) if heads else None
         self._signals = SignalLamps(layout_mesh.n_triangles, signals, heads) if signals is not None else None
-        self.static = StaticScene(concat([layout_mesh, signal_mesh(signals)]) if signals is not None else layout_mesh)
+        signs = traffic_signs(world.net_xml)  # stop, give way, speed limits
+        extra = [m for m in (signal_mesh(signals) if signals is not None else None, sign_mesh(signs)) if m is not None]
+        self.static = StaticScene(concat([layout_mesh, *extra]) if extra else layout_mesh)
         m = self.static.mesh
         self._static_rgb = _shaded(m.albedo, self.static.normals, self.atm)
         self._static_rgb_shadow = _shaded(m.albedo, self.static.normals, self.atm, sun=False)
@@ -227,6 +230,9 @@ class SensorSuite:
         self._thin = _thin_segments(world)
         if signals is not None:
             self._thin = np.concatenate([self._thin, signals.segments])
+        if signs:
+            posts = [[[*s.xy, 0.0], [*s.xy, SIGN_CENTRE_M + 0.3]] for s in signs]
+            self._thin = np.concatenate([self._thin, np.asarray(posts, np.float64)])
         if self._sun is not None:  # thin things' shadows on the ground are refined like the things
             self._thin = np.concatenate([self._thin, ground_shadow(self._thin, self._sun, world.layout.ground_z_m)])
         verts = m.vertices.astype(np.float64)

@@ -31,11 +31,11 @@ UNLIT = 0.12
 HOUSING_RGB = (0.03, 0.03, 0.035)
 POLE_RGB = (0.32, 0.33, 0.34)
 
-_BOX_T = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5],
+BOX_TRIANGLES = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5],
                    [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]], np.int64)
 
 
-def _box(center, yaw: float, half) -> np.ndarray:
+def oriented_box(center, yaw: float, half) -> np.ndarray:
     """The 8 corners (8, 3) of a box of half sizes ``half`` turned by ``yaw`` about +z around ``center``."""
     hx, hy, hz = half
     local = np.array([[-hx, -hy, -hz], [hx, -hy, -hz], [hx, hy, -hz], [-hx, hy, -hz],
@@ -82,29 +82,30 @@ def signal_parts(heads: tuple[SignalHead, ...]) -> SignalParts:
         if pkey not in poles:
             poles[pkey] = FIRST_POLE_INSTANCE + len(poles)
             px, py = hd.pole_xy
-            add(_box((px, py, (ROAD_Z[1] + top_z + 0.3) / 2), hd.yaw_rad, (0.1, 0.1, (top_z + 0.3 - ROAD_Z[1]) / 2)),
-                True, poles[pkey], POLE_RGB, 0.5)
+            half_h = (top_z + 0.3 - ROAD_Z[1]) / 2
+            add(oriented_box((px, py, ROAD_Z[1] + half_h), hd.yaw_rad, (0.1, 0.1, half_h)), True, poles[pkey],
+                POLE_RGB, 0.5)
             segments.append([[px, py, ROAD_Z[1]], [px, py, top_z + 0.3]])
         # the arm from the pole over to the head, just above it
         px, py = hd.pole_xy
         ax, ay = cx - px, cy - py
         length = math.hypot(ax, ay)
         if length > 0.05:
-            add(_box(((px + cx) / 2, (py + cy) / 2, top_z + 0.2), math.atan2(ay, ax), (length / 2 + 0.06, 0.06, 0.06)),
-                True, poles[pkey], POLE_RGB, 0.5)
+            add(oriented_box(((px + cx) / 2, (py + cy) / 2, top_z + 0.2), math.atan2(ay, ax),
+                             (length / 2 + 0.06, 0.06, 0.06)), True, poles[pkey], POLE_RGB, 0.5)
             segments.append([[px, py, top_z + 0.2], [cx, cy, top_z + 0.2]])
         inst = FIRST_HEAD_INSTANCE + k
-        add(_box(hd.center_m, hd.yaw_rad, (d / 2, w / 2, h / 2)), False, inst, HOUSING_RGB, 0.08)
+        add(oriented_box(hd.center_m, hd.yaw_rad, (d / 2, w / 2, h / 2)), False, inst, HOUSING_RGB, 0.08)
         fx, fy = math.cos(hd.yaw_rad), math.sin(hd.yaw_rad)
         for j in range(3):  # red on top
             lz = cz + LAMP_PITCH_M * (1 - j)
             centre = (cx + fx * (d / 2 + 0.015), cy + fy * (d / 2 + 0.015), lz)
-            add(_box(centre, hd.yaw_rad, (0.015, LAMP_HALF_M, LAMP_HALF_M)), False, inst,
+            add(oriented_box(centre, hd.yaw_rad, (0.015, LAMP_HALF_M, LAMP_HALF_M)), False, inst,
                 tuple(float(v) for v in LAMP_RGB[j] * UNLIT), 0.3, k, j)
         face = (cx + fx * (d / 2 + 0.03), cy + fy * (d / 2 + 0.03))
         segments.append([[*face, cz - LAMP_PITCH_M], [*face, cz + LAMP_PITCH_M]])
     n = len(verts)
-    tris = (_BOX_T[None] + 8 * np.arange(n)[:, None, None]).reshape(-1, 3) if n else np.zeros((0, 3), np.int64)
+    tris = (BOX_TRIANGLES[None] + 8 * np.arange(n)[:, None, None]).reshape(-1, 3) if n else np.zeros((0, 3), np.int64)
     return SignalParts(
         np.concatenate(verts).astype(np.float32) if n else np.zeros((0, 3), np.float32),
         tris.astype(np.uint32),
