@@ -361,7 +361,7 @@ def test_retro_reflective_signs_outshine_paint_in_lidar_intensity():
     from cosim.sensors.lidar import _surface_intensity
     from cosim.sensors.meshes import concat, static_mesh
     from cosim.sensors.scene import StaticScene, TickScene
-    from cosim.sensors.signals import SIGN_CENTRE_M, sign_mesh
+    from cosim.sensors.signals import sign_mesh
 
     from cosim.classes import SEMANTIC_ID
     from cosim.world.traffic_signs import TrafficSign
