@@ -315,6 +315,13 @@ def test_gallery_pictures_show_the_models(tmp_path):
         assert (np.abs(cell - [237, 240, 245]).sum(axis=2) > 60).mean() > 0.05
     catalogue.lidar_gallery(["saloon_0"], tmp_path / "l.png", px=80)
     assert len(catalogue.lidar_scan("saloon_0", 10.0)) > 10 * len(catalogue.lidar_scan("saloon_0", 40.0)) > 0
+    # the street furniture: a signal head with its green lamp lit, the signs' red faces
+    catalogue.gallery(list(catalogue.FURNITURE), tmp_path / "f.png", px=120, cols=4)
+    img = np.asarray(Image.open(tmp_path / "f.png").convert("RGB")).astype(int)
+    cells = [img[14:, k * 240:(k + 1) * 240] for k in range(4)]
+    assert ((cells[0][..., 1] > 200) & (cells[0][..., 0] < 120)).sum() > 3  # lit green
+    for cell in cells[1:]:
+        assert ((cell[..., 0] > 150) & (cell[..., 1] < 60)).sum() > 20  # red sheeting
 
 
 def test_cosim_assets_refuses_an_unwritable_folder_at_once(capsys):
