@@ -15,9 +15,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from cosim.sensors.assets import people
+
 import cosim.traffic.pedestrians as tp
 from cosim.scenario import load_scenario
-from cosim.sensors.assets import people
 from cosim.traffic import TrafficSim
 from cosim.world import build_world
 
