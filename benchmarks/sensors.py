@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import logging
 import math
@@ -49,8 +50,10 @@ from cosim.sensors.scene import cast, place_actors, static_bare_mesh
 from cosim.sensors.suite import render_processes
 from cosim.sensors.synthetic import world_snapshot
 
+from cosim.assemble import traffic_lights
 from cosim.scenario.loader import load_scenario, load_scenario_data
 from cosim.world.build import build_world
+from cosim.world.traffic_lights import first_phases
 
 log = logging.getLogger("bench")
 ROOT = Path(__file__).resolve().parents[1]
@@ -410,6 +413,8 @@ def pictures(out_dir: Path) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         world = build_world(base, Path(tmp))
         snap = world_snapshot(world, 5, 5, 60, seed=3)
+        # the traffic lights in their programs' first phase (no SUMO here)
+        snap = dataclasses.replace(snap, traffic_lights=traffic_lights(world, first_phases(world.net_xml)))
         tiles = []
         for weather in ("clear", "cloudy", "foggy", "rainy"):
             for lighting in ("day", "dusk", "night"):

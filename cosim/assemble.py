@@ -6,7 +6,8 @@ from collections.abc import Sequence
 
 from cosim.geometry import quat_from_rpy
 from cosim.protocol import DroneState, EscortTarget, VehicleState
-from cosim.snapshot import Actor, AgentState, WorldSnapshot
+from cosim.snapshot import Actor, AgentState, TrafficLight, WorldSnapshot
+from cosim.world.traffic_lights import head_colour, signal_heads
 from cosim.world.types import World
 
 GRAVITY_MPS2 = 9.80665
@@ -105,8 +106,11 @@ def build_snapshot(
     drones: Sequence[DroneState],
     world: World,
     tracks: TrackRegistry,
+    signals: dict[str, str] | None = None,
 ) -> WorldSnapshot:
-    """One tick's snapshot: drones first (stable ids), then vehicles, then the RSUs' static poses."""
+    """One tick's snapshot: drones first (stable ids), then vehicles, then the RSUs' static poses; with
+    ``signals`` (SUMO's state string per traffic-light id, the traffic worker's reply) every signal head
+    of the network and the colour it shows."""
     actors: list[Actor] = []
     agents: list[AgentState] = []
     for d in drones:
@@ -127,7 +131,18 @@ def build_snapshot(
                                  rotation=quat_from_rpy(0.0, 0.0, r.yaw_rad), specific_force_mps2=(0.0, 0.0, 0.0),
                                  extra={"junction_id": r.junction_id, "height_m": r.height_m}))
     agents.sort(key=_agent_order)
-    return WorldSnapshot(tick=tick, t_ns=t_ns, actors=tuple(actors), agents=tuple(agents))
+    return WorldSnapshot(tick=tick, t_ns=t_ns, actors=tuple(actors), agents=tuple(agents),
+                         traffic_lights=traffic_lights(world, signals) if signals else ())
+
+
+def traffic_lights(world: World, signals: dict[str, str]) -> tuple[TrafficLight, ...]:
+    """Every signal head of ``world``'s network showing ``signals`` (tls id -> SUMO state string)."""
+    out = []
+    for h in signal_heads(world.net_xml):
+        state = signals.get(h.tls, "")
+        chars = "".join(state[i] for i in h.links if i < len(state))
+        out.append(TrafficLight(h.head_id, h.center_m, h.yaw_rad, head_colour(state, h.links), chars))
+    return tuple(out)
 
 
 def _agent_order(a: AgentState) -> tuple[int, int]:

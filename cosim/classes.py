@@ -33,6 +33,8 @@ SEMANTIC_CLASSES: Final[tuple[str, ...]] = (
     "drone",
     "pedestrian",
     "static_obstacle",
+    "traffic_light",
+    "traffic_sign",
 )
 
 SEMANTIC_ID: Final[dict[str, int]] = {name: i for i, name in enumerate(SEMANTIC_CLASSES)}
@@ -58,6 +60,8 @@ SEMANTIC_COLOURS: Final[dict[str, tuple[int, int, int]]] = {
     "drone": (255, 0, 0),
     "pedestrian": (220, 20, 60),
     "static_obstacle": (255, 120, 0),
+    "traffic_light": (250, 220, 120),
+    "traffic_sign": (255, 255, 140),
 }
 
 

@@ -179,7 +179,8 @@ def run_episode(
             if loop is None and tick + 1 < s.n_ticks:  # workers compute tick k+1 while tick k is written
                 pending = conductor.send_step(tick + 1, t_ns + s.tick_ns, escort_targets_of(vehicles, escorts))
             drones = [drone_from_dict(d) for d in replies["drones"]["drones"]]
-            snapshot = build_snapshot(tick, t_ns, vehicles, drones, world, tracks)
+            snapshot = build_snapshot(tick, t_ns, vehicles, drones, world, tracks,
+                                      replies["traffic"].get("signals"))
             step_s = time.perf_counter() - t0
             tick_times.append(step_s)
             sync_costs.append(max(r["round_trip_s"] - r.get("compute_ns", 0) / 1e9 for r in replies.values()))

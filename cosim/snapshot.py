@@ -58,6 +58,19 @@ class AgentState:
 
 
 @dataclass(frozen=True, slots=True)
+class TrafficLight:
+    """One signal head at a tick (:mod:`cosim.world.traffic_lights`): its id ``<tls>/<lane>``, the housing's
+    centre, the yaw it faces, the colour it shows (``green``, ``yellow``, ``red`` or ``off``) and SUMO's
+    signal characters of the links it shows (``signal``, e.g. ``"Gg"``)."""
+
+    light_id: str
+    center_m: Vec3
+    yaw_rad: float
+    state: str
+    signal: str
+
+
+@dataclass(frozen=True, slots=True)
 class WorldSnapshot:
     """Everything that moves, at simulation time ``t_ns`` (= tick * tick_ns)."""
 
@@ -65,6 +78,7 @@ class WorldSnapshot:
     t_ns: int
     actors: tuple[Actor, ...]
     agents: tuple[AgentState, ...]
+    traffic_lights: tuple[TrafficLight, ...] = ()  # every signal head and what it shows
 
     def agent(self, agent_id: str) -> AgentState:
         for a in self.agents:

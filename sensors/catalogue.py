@@ -60,10 +60,38 @@ def table(rows: list[dict]) -> str:
 # ------------------------------------------------------------------------------ pictures
 
 
+#: street furniture drawn after the models: a signal head (its green lamp lit) and the three signs
+FURNITURE = ("traffic_light", "sign_stop", "sign_give_way", "sign_speed_limit")
+
+
+def _furniture_mesh(name: str):
+    """(vertices, triangles, albedo, emissive) of a :data:`FURNITURE` item, box-centred."""
+    from cosim.sensors.assets.signals import LAMP_RGB, signal_parts
+    from cosim.sensors.signals import sign_mesh
+
+    from cosim.world.traffic_lights import SignalHead
+    from cosim.world.traffic_signs import TrafficSign
+
+    if name == "traffic_light":
+        head = SignalHead("j/l_0", "j", (0,), (0.0, 0.0, 5.5), 0.0, (0.0, -4.0))
+        p = signal_parts((head,))
+        v, t, alb = p.vertices.astype(np.float64), p.triangles, p.albedo.copy()
+        emis = np.zeros(len(t), np.float32)
+        lit = p.lamp_colour == 2
+        alb[lit] = LAMP_RGB[2] * 2.5  # self-luminous: bright whatever the shading
+    else:
+        m = sign_mesh([TrafficSign("s", name[len("sign_"):], 50, (0.0, 0.0), 0.0)])
+        v, t, alb, emis = m.vertices.astype(np.float64), m.triangles, m.albedo, m.emissive
+    return v - (v.min(0) + v.max(0)) / 2, np.asarray(t), alb, emis
+
+
 def _model_mesh(name: str):
-    """(vertices, triangles, albedo (T, 3)) in metres, box-centred, of a vehicle model or a person key."""
+    """(vertices, triangles, albedo (T, 3)) in metres, box-centred, of a vehicle model, a person key or a
+    :data:`FURNITURE` item."""
     from cosim.sensors.meshes import actor_material, person_template, vehicle_template
 
+    if name in FURNITURE:
+        return _furniture_mesh(name)
     if name in vehicles.BY_NAME:
         tpl = vehicle_template(name)
         v, t, _, _, _ = vehicles.build(name)
@@ -183,7 +211,8 @@ def lidar_gallery(names: list[str], path: Path, px: int = 220) -> None:
 
 
 #: the model per class the LiDAR gallery scans
-LIDAR_GALLERY = ("saloon_1", "panel_van_1", "box_0", "city_bus_1", "sport_0", "city_0", "person_1")
+LIDAR_GALLERY = ("saloon_1", "panel_van_1", "box_0", "city_bus_1", "sport_0", "city_0", "person_1", "traffic_light",
+                 "sign_give_way")
 
 
 def write_catalogue(out: Path, pictures: bool = True) -> list[dict]:
@@ -192,7 +221,7 @@ def write_catalogue(out: Path, pictures: bool = True) -> list[dict]:
     rows = catalogue()
     (out / "catalogue.json").write_text(json.dumps({"models": rows}, indent=1) + "\n")
     if pictures:
-        gallery([r["name"] for r in rows], out / "gallery.png")
+        gallery([r["name"] for r in rows] + list(FURNITURE), out / "gallery.png")
         lidar_gallery(list(LIDAR_GALLERY), out / "lidar_gallery.png")
     return rows
 

@@ -25,9 +25,12 @@ import numpy as np
 from cosim.geometry import rotation_matrix
 from cosim.scenario.model import RigSpec, Scenario
 from cosim.snapshot import Actor, AgentState, WorldSnapshot
+from cosim.world.traffic_lights import signal_heads
+from cosim.world.traffic_signs import traffic_signs
 from cosim.world.types import World
 
 from . import kernels
+from .assets.signals import SignalLamps, signal_parts
 from .bev import BevFrame, render_bev, static_raster
 from .camera import (
     CameraFrame,
@@ -46,9 +49,10 @@ from .environment import Atmosphere, atmosphere
 from .imu import ImuFrame, imu_biases, render_imu
 from .kinds import SensorContext, render_kinds
 from .lidar import LidarFrame, render_lidar
-from .meshes import is_lamp, static_mesh
+from .meshes import concat, is_lamp, static_mesh
 from .rig import camera_pose, intrinsics, projection, sensor_pose
 from .scene import StaticHits, StaticScene, TickScene
+from .signals import SIGN_CENTRE_M, sign_mesh, signal_mesh
 from .surface import surface_inputs
 from .visibility import VisibilityFrame, instance_counts, render_visibility
 
@@ -211,13 +215,24 @@ class SensorSuite:
         self.noise = noise
         self.atm = atmosphere(scenario.environment, scenario.seed)
         t0 = time.perf_counter()
-        self.static = StaticScene(static_mesh(world.layout))
+        layout_mesh = static_mesh(world.layout)
+        heads = signal_heads(world.net_xml)  # traffic lights at SUMO's signalised junctions
+        signals = signal_parts(heads) if heads else None
+        self._signals = SignalLamps(layout_mesh.n_triangles, signals, heads) if signals is not None else None
+        signs = traffic_signs(world.net_xml)  # stop, give way, speed limits
+        extra = [m for m in (signal_mesh(signals) if signals is not None else None, sign_mesh(signs)) if m is not None]
+        self.static = StaticScene(concat([layout_mesh, *extra]) if extra else layout_mesh)
         m = self.static.mesh
         self._static_rgb = _shaded(m.albedo, self.static.normals, self.atm)
         self._static_rgb_shadow = _shaded(m.albedo, self.static.normals, self.atm, sun=False)
         shadows = self.atm.casts_shadows and scenario.sensors.sun_shadows
         self._sun = self.atm.sun_dir.astype(np.float64) if shadows else None
         self._thin = _thin_segments(world)
+        if signals is not None:
+            self._thin = np.concatenate([self._thin, signals.segments])
+        if signs:
+            posts = [[[*s.xy, 0.0], [*s.xy, SIGN_CENTRE_M + 0.3]] for s in signs]
+            self._thin = np.concatenate([self._thin, np.asarray(posts, np.float64)])
         if self._sun is not None:  # thin things' shadows on the ground are refined like the things
             self._thin = np.concatenate([self._thin, ground_shadow(self._thin, self._sun, world.layout.ground_z_m)])
         verts = m.vertices.astype(np.float64)
@@ -342,6 +357,10 @@ class SensorSuite:
         rgb = scene.table(self._static_rgb, _shaded(scene.actors.albedo, n_act, self.atm), (0.0, 0.0, 0.0))
         rgb_shadow = scene.table(self._static_rgb_shadow, _shaded(scene.actors.albedo, n_act, self.atm, sun=False),
                                  (0.0, 0.0, 0.0))
+        if self._signals is not None:  # the lit lamps of the traffic lights, self-luminous
+            rows, lit = self._signals.lit(snapshot.traffic_lights, self.atm.exposure)
+            rgb[rows] = lit
+            rgb_shadow[rows] = lit
         tables = shading_tables(rgb, lut["albedo"], lut["emissive"], scene.miss, self.atm, rgb_shadow,
                                 surface_inputs(scene, self.scenario.sensors.surface_detail))
         light = _add_headlights(self._light, snapshot.actors) if self._light is not None else None

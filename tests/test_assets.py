@@ -126,6 +126,26 @@ def test_a_walking_persons_limbs_move_between_ticks_and_the_box_follows():
     assert people.posed_box(key, 0.3, 0.0)[0][0] < boxes[2][0]
 
 
+def test_the_fast_pedestrian_box_is_the_posed_meshs_box_bit_for_bit():
+    """posed_box builds no mesh (body_points: the same vertices, no triangles); over people of every age
+    and build, all phase steps of a cycle and speeds from standing to running, it equals the posed
+    mesh's tight box exactly."""
+    keys = [f"ped_{k}" for k in range(12)] + ["walker_1"]
+    assert {people.Person.from_key(k).child for k in keys} == {True, False}
+    n = 0
+    for key in keys:
+        for q_phase in range(0, people.PHASE_STEPS, 5):
+            for q_speed in (0, 7, 20, 28, 45, 60):
+                phase, speed = q_phase / people.PHASE_STEPS, q_speed / 20
+                _, v, _, _, _, lo, hi = people.posed(key, phase, speed)
+                assert np.array_equal(v.min(0), lo) and np.array_equal(v.max(0), hi)
+                size, centre = people.posed_box(key, phase, speed)
+                assert size == tuple(float(x) for x in hi - lo)
+                assert centre == tuple(float(x) for x in (lo + hi) / 2)
+                n += 1
+    assert n == len(keys) * 52 * 6
+
+
 def test_people_differ_in_height_build_and_clothes():
     ps = [people.Person.from_key(k) for k in catalogue.people_keys()]
     assert len({(p.height_m, p.build) for p in ps}) == len(ps) >= 12
@@ -295,6 +315,13 @@ def test_gallery_pictures_show_the_models(tmp_path):
         assert (np.abs(cell - [237, 240, 245]).sum(axis=2) > 60).mean() > 0.05
     catalogue.lidar_gallery(["saloon_0"], tmp_path / "l.png", px=80)
     assert len(catalogue.lidar_scan("saloon_0", 10.0)) > 10 * len(catalogue.lidar_scan("saloon_0", 40.0)) > 0
+    # the street furniture: a signal head with its green lamp lit, the signs' red faces
+    catalogue.gallery(list(catalogue.FURNITURE), tmp_path / "f.png", px=120, cols=4)
+    img = np.asarray(Image.open(tmp_path / "f.png").convert("RGB")).astype(int)
+    cells = [img[14:, k * 240:(k + 1) * 240] for k in range(4)]
+    assert ((cells[0][..., 1] > 200) & (cells[0][..., 0] < 120)).sum() > 3  # lit green
+    for cell in cells[1:]:
+        assert ((cell[..., 0] > 150) & (cell[..., 1] < 60)).sum() > 20  # red sheeting
 
 
 def test_cosim_assets_refuses_an_unwritable_folder_at_once(capsys):
@@ -303,3 +330,69 @@ def test_cosim_assets_refuses_an_unwritable_folder_at_once(capsys):
     assert main(["assets", "--out", "/proc/cosim_assets"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "/proc/cosim_assets" in err
+
+
+# ----------------------------------------------------------------------------------- traffic signs
+
+#: a hand-made network: a main road west -> east (50 km/h) crossed at x = 0 by a minor road from the south
+#: that yields (state m) and continues north at 30 km/h
+_SIGN_NET = b"""<net>
+  <edge id="w"><lane id="w_0" index="0" speed="13.89" width="3.2" shape="-100,-1.6 -10,-1.6"/></edge>
+  <edge id="e"><lane id="e_0" index="0" speed="13.89" width="3.2" shape="10,-1.6 100,-1.6"/></edge>
+  <edge id="s"><lane id="s_0" index="0" speed="13.89" width="3.2" shape="1.6,-100 1.6,-10"/></edge>
+  <edge id="n"><lane id="n_0" index="0" speed="8.33" width="3.2" shape="1.6,10 1.6,100"/></edge>
+  <connection from="w" to="e" fromLane="0" toLane="0" state="M"/>
+  <connection from="s" to="n" fromLane="0" toLane="0" state="m"/>
+  <connection from="s" to="e" fromLane="0" toLane="0" state="m"/>
+</net>"""
+
+
+def test_signs_stand_where_the_network_asks_for_them():
+    """A give-way sign at the right kerb of the yielding approach's stop line, facing its traffic, none on
+    the major road; a 30 km/h sign where the road's speed drops."""
+    from cosim.world.traffic_signs import traffic_signs
+
+    signs = {s.sign_id: s for s in traffic_signs(_SIGN_NET)}
+    assert set(signs) == {"give_way/s", "speed_limit/n"}  # e keeps the speed of the roads into it
+    gw = signs["give_way/s"]
+    assert gw.xy == pytest.approx((1.6 + 1.6 + 1.0, -10.0))  # right of the lane's edge, at the stop line
+    assert gw.yaw_rad == pytest.approx(-math.pi / 2)  # traffic comes from the south heading north: face south
+    assert signs["speed_limit/n"].value_kmh == 30
+    x, y = signs["speed_limit/n"].xy
+    assert x > 1.6 + 1.6 and 10 < y < 20  # just past the junction, on the right
+    stop = _SIGN_NET.replace(b'state="m"', b'state="s"')
+    assert {s.kind for s in traffic_signs(stop)} == {"stop", "speed_limit"}
+
+
+def test_retro_reflective_signs_outshine_paint_in_lidar_intensity():
+    from cosim.sensors.lidar import _surface_intensity
+    from cosim.sensors.meshes import concat, static_mesh
+    from cosim.sensors.scene import StaticScene, TickScene
+    from cosim.sensors.signals import sign_mesh
+
+    from cosim.classes import SEMANTIC_ID
+    from cosim.world.traffic_signs import TrafficSign
+    from cosim.world.types import Prism, StaticLayout
+
+    signs = [TrafficSign(f"{k}/x", k, 50, (12.0, 2.5 * i - 2.5), math.pi) for i, k in
+             enumerate(("stop", "give_way", "speed_limit"))]
+    wall = Prism("building", ((60.0, -40.0), (61.0, -40.0), (61.0, 40.0), (60.0, 40.0)), 0.0, 30.0, 1_000_001)
+    size = vehicles.dims("saloon_1")
+    car = Actor(5, "car", (9.0, 6.0, size[2] / 2), size, quat_from_rpy(0, 0, math.pi / 2), (0.0, 0.0, 0.0),
+                source_id="c")
+    scene = TickScene.build(StaticScene(concat([static_mesh(StaticLayout((wall,))), sign_mesh(signs)])), [car])
+    ys, zs = np.meshgrid(np.linspace(-5, 8, 260), np.linspace(0.3, 2.8, 100))
+    d = np.stack([np.where(ys > 4.5, 9.0, 12.0) * np.ones_like(ys), ys, zs - 1.0], -1).reshape(-1, 3)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    rays = np.concatenate([np.broadcast_to([0.0, 0.0, 1.0], d.shape), d], 1).astype(np.float32)
+    t, gid = scene.cast(rays)
+    hit = gid < scene.miss
+    inten, _, _ = _surface_intensity(scene, _atm(), gid[hit], d[hit], t[hit].astype(np.float64))
+    sem = scene.labels["semantic"][gid[hit]]
+    face = inten[(sem == SEMANTIC_ID["traffic_sign"]) & (scene.labels["retro"][gid[hit]] > 0)]
+    part = actor_template(car).part[np.clip(gid[hit] - scene.n_static, 0, None)]
+    paint = inten[(gid[hit] >= scene.n_static) & (part == _PART_BODY)]
+    assert len(face) > 50 and len(paint) > 50
+    assert face.min() > paint.max()
+    assert {int(i) for i in scene.labels["instance"][gid[hit]][sem == SEMANTIC_ID["traffic_sign"]]} == \
+        {4_000_000, 4_000_001, 4_000_002}  # every sign seen

@@ -199,6 +199,7 @@ class Objects:
     velocities_mps: np.ndarray
     agent_ids: tuple[str | None, ...]
     agents: tuple[dict[str, Any], ...]
+    traffic_lights: tuple[dict[str, Any], ...] = ()  # the raw signal heads (format 1.3)
 
     @property
     def yaws_rad(self) -> np.ndarray:
@@ -215,7 +216,7 @@ class Objects:
         Actors and agent poses are exact; what labels do not carry (agents' angular rates, specific
         force, gimbal attitude) keeps the AgentState defaults.
         """
-        from cosim.snapshot import Actor, AgentState, WorldSnapshot
+        from cosim.snapshot import Actor, AgentState, TrafficLight, WorldSnapshot
 
         def t3(v: Any) -> tuple[float, float, float]:
             return (float(v[0]), float(v[1]), float(v[2]))
@@ -245,7 +246,9 @@ class Objects:
             )  # type: ignore[arg-type]
             for a in self.agents
         )
-        return WorldSnapshot(self.tick, self.t_ns, actors, agents)
+        lights = tuple(TrafficLight(t["light_id"], t3(t["center_m"]), float(t["yaw_rad"]), t["state"], t["signal"])
+                       for t in self.traffic_lights)
+        return WorldSnapshot(self.tick, self.t_ns, actors, agents, lights)
 
 
 @dataclass(frozen=True)
@@ -579,6 +582,7 @@ def decode_objects(payload: dict[str, Any]) -> Objects:
             velocities_mps=arr("velocity_mps", 3),
             agent_ids=tuple(o.get("agent_id") for o in objs),
             agents=tuple(payload.get("agents", [])),
+            traffic_lights=tuple(payload.get("traffic_lights", [])),
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise FormatError(

@@ -78,6 +78,22 @@ OBJECT_ARRAY_SCHEMA: dict[str, Any] = {
                 },
             },
         },
+        "traffic_lights": {
+            "type": "array",
+            "description": "every signal head at SUMO's signalised junctions and what it shows (format 1.3); "
+                           "absent when the map has none",
+            "items": {
+                "type": "object",
+                "required": ["light_id", "state", "signal", "center_m", "yaw_rad"],
+                "properties": {
+                    "light_id": {"type": "string", "description": "<SUMO traffic light id>/<SUMO lane id>"},
+                    "state": {"type": "string", "enum": ["green", "yellow", "red", "off"]},
+                    "signal": {"type": "string", "description": "SUMO's signal characters of the head's links"},
+                    "center_m": {**_VEC3, "description": "centre of the head's housing in map [m]"},
+                    "yaw_rad": {"type": "number", "description": "direction the lamps face, about +z from +x"},
+                },
+            },
+        },
     },
 }
 
@@ -136,6 +152,9 @@ def objects_payload(snapshot: WorldSnapshot) -> dict[str, Any]:
             }
             for a in snapshot.agents
         ],
+        **({"traffic_lights": [{"light_id": t.light_id, "state": t.state, "signal": t.signal,
+                                "center_m": list(t.center_m), "yaw_rad": t.yaw_rad}
+                               for t in snapshot.traffic_lights]} if snapshot.traffic_lights else {}),
     }
 
 

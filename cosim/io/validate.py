@@ -20,6 +20,9 @@ file yields a problem report, never an exception. Checks:
   intrinsics, and a lens that is a pinhole or ``plumb_bob`` with 5 coefficients;
 - sensors: LiDAR point records have the fields and types of section 3.4, depth images the encoding
   of section 3.5 (and, with pixels, only NaN or finite distances >= 0);
+- boxes: LiDAR returns with an object's instance id lie inside its box and instance pixels inside its
+  projected box (:mod:`cosim.io.validate_boxes`; not for ``cosim synthetic`` episodes, whose sensor data
+  is not rendered);
 - comm: ``/comm/links`` decodes (columns of one length, known link types and LOS states, finite
   numbers, PER and delivery in [0, 1]) and names only the metadata's agents.
 """
@@ -75,6 +78,14 @@ from cosim.io.format import (
 )
 from cosim.io.points import layout_problems
 from cosim.io.reader import JSON_METADATA, check_format_version, parse_metadata
+from cosim.io.validate_boxes import (
+    LIDAR_TOLERANCE_M,
+    NOISE_SIGMAS,
+    PIXEL_TOLERANCE,
+    lidar_excess,
+    object_boxes,
+    pixel_excess,
+)
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +103,7 @@ class Problem:
     """One way the file departs from the format."""
 
     #: structure | metadata | attachments | topics | completeness | time | labels | transforms | calibration | comm
+    #: | sensors | boxes
     check: str
     message: str
     tick: int | None = None
@@ -190,6 +202,9 @@ class _Validator:
         self.chunk_channels: dict[int, set[int]] = {}  # chunk offset -> channels with messages in it
         self.message_indexes: dict[int, int] = {}  # file offset of a message index -> its channel
         self.records_at: dict[int, tuple[str, str, int]] = {}  # attachments, metadata: offset -> kind, name, length
+        self.fit_calibrations: dict[str, Any] = {}
+        self.fit: dict[str, Any] = {}  # this tick's boxes, /tf and IMU rates for the boxes check
+        self.lidar_fit: list[tuple[int | None, str, int, float, int, int]] = []  # over 0.1 m: judged at the end
 
     # -- reporting --------------------------------------------------------------------------------
 
@@ -459,9 +474,15 @@ class _Validator:
             self.check_agent_poses(tick, tree, small.get("/labels/objects"))
         for topic, value in small.items():
             self.check_frame_ids(tick, topic, value, frames)
+        objs = small.get("/labels/objects")
+        fits = (tree is not None and isinstance(objs, dict)
+                and (self.meta or {}).get("generator") != "cosim synthetic")
+        self.fit = {"tree": tree, "boxes": object_boxes(objs), "objects": objs, "rates": {}} if fits else {}
         images: dict[str, tuple[str, tuple[int, int] | None]] = {}
         calibrations: dict[str, Any] = {}
-        for topic in sorted(by_topic):
+        self.fit_calibrations = calibrations
+        # IMUs and calibrations first: the boxes check of LiDAR sweeps and instance images needs them
+        for topic in sorted(by_topic, key=lambda t: (not t.endswith(("/imu", "/calibration")), t)):
             ch, m = by_topic.pop(topic)[0]
             value = self.parse_checked(tick, t_ns, ch, m)
             del m
@@ -471,6 +492,8 @@ class _Validator:
             self.check_sensor(tick, topic, value, live)
             if topic == "/actions":
                 self.check_actions(tick, value)
+            if topic.endswith("/imu") and self.fit and isinstance(value, dict):
+                self.fit["rates"][topic.split("/")[1]] = value.get("angular_velocity_radps", (0.0, 0.0, 0.0))
             if topic.endswith("/image"):
                 images[topic] = (value.frame_id, _image_size(value))
             elif topic.endswith("/calibration"):
@@ -724,8 +747,27 @@ class _Validator:
             self.problem("sensors", f"point record: {p} (section 3.4)", tick, topic)
         if "instance_id" not in pc.fields:
             return set()
+        if self.fit:
+            self.fit_points(tick, topic, pc)
         ids = np.unique(pc.points["instance_id"])
         return {int(i) for i in ids if 0 < i < STATIC_INSTANCE_MIN}
+
+    def fit_points(self, tick: int | None, topic: str, pc: Any) -> None:
+        """The boxes check of one sweep (:func:`cosim.io.validate_boxes.lidar_excess`); returns more than
+        0.1 m outside are kept and judged at the end against the rig's range noise."""
+        tree, agent = self.fit["tree"], topic.split("/")[1]
+        try:
+            lidar_to_map = tree.to_root(pc.frame_id)
+            base_to_map = tree.to_root(f"{agent}/base_link")
+        except FormatError:
+            return  # reported by the transforms check
+        velocity = next((a.get("velocity_mps", (0.0, 0.0, 0.0)) for a in self.fit["objects"].get("agents", [])
+                         if isinstance(a, dict) and a.get("agent_id") == agent), (0.0, 0.0, 0.0))
+        rates = self.fit["rates"].get(agent, (0.0, 0.0, 0.0))
+        for tid, (excess, n_out, n) in lidar_excess(pc, lidar_to_map, base_to_map, velocity, rates,
+                                                    self.fit["boxes"]).items():
+            if n_out:
+                self.lidar_fit.append((tick, topic, tid, excess, n_out, n))
 
     def check_depth(self, tick: int | None, topic: str, msg: Any) -> None:
         """Depth is ``cosim-depth`` or ``32FC1`` metres (only ``32FC1`` in format 1.1, ``16UC1`` millimetres in
@@ -760,7 +802,23 @@ class _Validator:
             self.problem("structure", str(exc), tick, topic)
             return set()
         ids = np.unique(img.array)
+        calib = self.fit_calibrations.get(topic[: -len("instance")] + "calibration") if self.fit else None
+        if calib is not None:
+            self.fit_pixels(tick, topic, img, calib)
         return {int(i) for i in ids if 0 < i < STATIC_INSTANCE_MIN}
+
+    def fit_pixels(self, tick: int | None, topic: str, img: Any, calib: Any) -> None:
+        """The boxes check of one instance image (:func:`cosim.io.validate_boxes.pixel_excess`)."""
+        try:
+            optical_to_map = self.fit["tree"].to_root(calib.frame_id)
+            calibration = PROTO_DECODERS["foxglove.CameraCalibration"](calib)
+            excess = pixel_excess(img.array, calibration, optical_to_map, self.fit["boxes"])
+        except FormatError:
+            return  # reported by the transforms and calibration checks
+        for tid, px in sorted(excess.items()):
+            if px > PIXEL_TOLERANCE:
+                self.problem("boxes", f"instance pixels of track {tid} reach {px:.1f} px outside its projected box "
+                                      f"(tolerance {PIXEL_TOLERANCE} px)", tick, topic)
 
     def check_calibration(
         self, tick: int | None, topic: str, frame_id: str, size: tuple[int, int] | None, calib: Any
@@ -838,8 +896,28 @@ class _Validator:
 
     # -- whole file -------------------------------------------------------------------------------
 
+    def finish_boxes(self) -> None:
+        """Judge the LiDAR returns kept by :meth:`fit_points` against each rig's range noise (the scenario
+        attachment; the default 2 cm when it is unusable)."""
+        if not self.lidar_fit:
+            return
+        scenario = self.scenario()
+        for tick, topic, tid, excess, n_out, n in self.lidar_fit:
+            noise = 0.02
+            if scenario is not None:
+                try:
+                    lidar = scenario.rig_for(topic.split("/")[1]).lidar
+                    noise = lidar.range_noise_m if lidar is not None else noise
+                except Exception:  # an agent the scenario does not name: the default noise
+                    pass
+            tol = LIDAR_TOLERANCE_M + NOISE_SIGMAS * noise
+            if excess > tol:
+                self.problem("boxes", f"{n_out} of {n} returns of track {tid} lie more than 0.1 m outside its box, "
+                                      f"up to {excess:.2f} m (tolerance {tol:.2f} m)", tick, topic)
+
     def finish(self) -> None:
         r = self.report
+        self.finish_boxes()
         if not self.seen_header:
             self.problem("structure", "no MCAP header")
         if not self.seen_data_end or not self.seen_footer:

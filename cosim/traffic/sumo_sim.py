@@ -243,6 +243,11 @@ class TrafficSim:
         """The scenario's events as they stand (records of the ``/events`` topic, SUMO ids)."""
         return self.timeline.records()
 
+    def signal_states(self) -> dict[str, str]:
+        """SUMO's current state string of every traffic light (one character per link index), by id."""
+        tl = libsumo.trafficlight
+        return {t: tl.getRedYellowGreenState(t) for t in sorted(tl.getIDList())}
+
     def _record_trails(self, res: dict[str, dict[int, object]]) -> None:
         """Append every vehicle's (odometer, road, lane position, lane index) to its trail."""
         for vid, r in res.items():

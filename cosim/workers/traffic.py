@@ -36,7 +36,7 @@ class TrafficEngine:
         failed = [{"action": a, "error": err} for a in request.actions if (err := self._sim.command(a))]
         vehicles = self._sim.step_to(request.t_ns)
         return {"tick": request.tick, "t_ns": request.t_ns, "vehicles": vehicles, "failed": failed,
-                "events": self._sim.events()}
+                "events": self._sim.events(), "signals": self._sim.signal_states()}
 
     def close(self) -> None:
         if self._sim is not None:

@@ -153,35 +153,92 @@ def skeleton(p: Person, pose: Pose) -> dict[str, np.ndarray]:
     return j
 
 
+def _body_parts(p: Person, pose: Pose, offset=(0.0, 0.0, 0.0)) -> tuple[list[tuple], list[tuple]]:
+    """The posed body's primitives: frustums ``(p0, p1, r0, r1, part, n, squash)`` and ellipsoids
+    ``(centre, radii, part, n_lat, n_lon)``, ``part`` one of skin, hair, top, bottom, shoes."""
+    j = {k: v + np.asarray(offset) for k, v in skeleton(p, pose).items() if k != "head_r"}
+    H, g = p.height_m, p.build
+    head_r = (0.082 if p.child else 0.064) * H  # skeleton()'s head radius
+    hip_w = 0.191 * H * (0.9 + 0.1 * g) / 2
+    # pelvis, torso (elliptic: depth about 0.6 of the width), neck, head with hair
+    up = j["neck"] - j["pelvis"]
+    up /= np.linalg.norm(up)
+    fr = [(j["pelvis"] - 0.06 * H * up, j["pelvis"] + 0.05 * H * up, hip_w * 1.05, hip_w * 1.1, "bottom", 8, 0.62),
+          (j["pelvis"] + 0.05 * H * up, j["neck"], hip_w * 1.05 * g ** 0.5, 0.13 * H * g ** 0.3, "top", 8, 0.55),
+          (j["neck"] - 0.01 * H * up, j["neck"] + 0.05 * H * up, 0.03 * H, 0.028 * H, "skin", 6, 1.0)]
+    el = [(j["head"], (head_r * 0.95, head_r * 0.85, head_r * 1.1), "skin", 5, 8),
+          (j["head"] + up * 0.25 * head_r - np.array([0.2 * head_r, 0, 0]),
+           (head_r * 0.9, head_r * 0.88, head_r * 0.9), "hair", 4, 8)]
+    limb = 0.032 * H * g ** 0.5
+    for s in ("r", "l"):
+        fr += [(j[f"hip_{s}"], j[f"knee_{s}"], limb * 1.9, limb * 1.3, "bottom", 6, 1.0),
+               (j[f"knee_{s}"], j[f"ankle_{s}"], limb * 1.25, limb * 0.8, "bottom", 6, 1.0),
+               (j[f"heel_{s}"] + np.array([0, 0, 0.018 * H]), j[f"toe_{s}"] + np.array([0, 0, 0.012 * H]),
+                0.030 * H, 0.026 * H, "shoes", 6, 0.6),
+               (j[f"shoulder_{s}"], j[f"elbow_{s}"], limb * 1.05, limb * 0.85, "top", 6, 1.0),
+               (j[f"elbow_{s}"], j[f"wrist_{s}"], limb * 0.8, limb * 0.6, "skin", 6, 1.0),
+               (j[f"wrist_{s}"], j[f"hand_{s}"], limb * 0.6, limb * 0.45, "skin", 4, 1.0)]
+    return fr, el
+
+
 def build_body(b: Builder, p: Person, pose: Pose, offset=(0.0, 0.0, 0.0), parts: dict | None = None) -> None:
     """Add the posed body's 17 closed parts to ``b`` (shifted by ``offset``); ``parts`` maps skin, hair,
     top, bottom, shoes to material ids (default: the person's own PART_* ids)."""
     P = {"skin": PART_SKIN, "hair": PART_HAIR, "top": PART_TOP, "bottom": PART_BOTTOM, "shoes": PART_SHOES}
     P.update(parts or {})
-    j = {k: v + np.asarray(offset) for k, v in skeleton(p, pose).items() if k != "head_r"}
-    H, g = p.height_m, p.build
-    head_r = float(skeleton(p, Pose())["head_r"][0])
-    hip_w = 0.191 * H * (0.9 + 0.1 * g) / 2
-    # pelvis, torso (elliptic: depth about 0.6 of the width), neck, head with hair
-    up = j["neck"] - j["pelvis"]
-    up /= np.linalg.norm(up)
-    frustum(b, j["pelvis"] - 0.06 * H * up, j["pelvis"] + 0.05 * H * up, hip_w * 1.05, hip_w * 1.1, P["bottom"],
-            8, squash=0.62)
-    frustum(b, j["pelvis"] + 0.05 * H * up, j["neck"], hip_w * 1.05 * g ** 0.5, 0.13 * H * g ** 0.3, P["top"], 8,
-            squash=0.55)
-    frustum(b, j["neck"] - 0.01 * H * up, j["neck"] + 0.05 * H * up, 0.03 * H, 0.028 * H, P["skin"], 6)
-    ellipsoid(b, j["head"], (head_r * 0.95, head_r * 0.85, head_r * 1.1), P["skin"], 5, 8)
-    ellipsoid(b, j["head"] + up * 0.25 * head_r - np.array([0.2 * head_r, 0, 0]),
-              (head_r * 0.9, head_r * 0.88, head_r * 0.9), P["hair"], 4, 8)
-    limb = 0.032 * H * g ** 0.5
-    for s in ("r", "l"):
-        frustum(b, j[f"hip_{s}"], j[f"knee_{s}"], limb * 1.9, limb * 1.3, P["bottom"], 6)
-        frustum(b, j[f"knee_{s}"], j[f"ankle_{s}"], limb * 1.25, limb * 0.8, P["bottom"], 6)
-        frustum(b, j[f"heel_{s}"] + np.array([0, 0, 0.018 * H]), j[f"toe_{s}"] + np.array([0, 0, 0.012 * H]),
-                0.030 * H, 0.026 * H, P["shoes"], 6, squash=0.6)
-        frustum(b, j[f"shoulder_{s}"], j[f"elbow_{s}"], limb * 1.05, limb * 0.85, P["top"], 6)
-        frustum(b, j[f"elbow_{s}"], j[f"wrist_{s}"], limb * 0.8, limb * 0.6, P["skin"], 6)
-        frustum(b, j[f"wrist_{s}"], j[f"hand_{s}"], limb * 0.6, limb * 0.45, P["skin"], 4)
+    fr, el = _body_parts(p, pose, offset)
+    # the mesh's part order (frustums and ellipsoids interleaved as they were first written)
+    for k in (0, 1, 2):
+        frustum(b, *fr[k][:4], P[fr[k][4]], fr[k][5], squash=fr[k][6])
+    for c, r, part, n_lat, n_lon in el:
+        ellipsoid(b, c, r, P[part], n_lat, n_lon)
+    for p0, p1, r0, r1, part, n, squash in fr[3:]:
+        frustum(b, p0, p1, r0, r1, P[part], n, squash=squash)
+
+
+@lru_cache(maxsize=8)
+def _ring_table(layout: tuple[tuple[int, float], ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For frustums of ``(n, squash)``: per ring vertex its frustum, cos and squash * sin of its angle,
+    computed as :func:`cosim.sensors.assets.shapes.frustum` does."""
+    idx, cos, sin = [], [], []
+    for f, (n, squash) in enumerate(layout):
+        ang = (np.arange(n) + 0.5) * (2 * math.pi / n)
+        idx.append(np.full(n, f))
+        cos.append(np.cos(ang))
+        sin.append(squash * np.sin(ang))
+    return np.concatenate(idx), np.concatenate(cos)[:, None], np.concatenate(sin)[:, None]
+
+
+@lru_cache(maxsize=8)
+def _unit_ellipsoid(n_lat: int, n_lon: int) -> np.ndarray:
+    """The unit vertices of :func:`cosim.sensors.assets.shapes.ellipsoid`."""
+    lat = np.linspace(0, math.pi, n_lat + 1)[1:-1]
+    lon = np.arange(n_lon) * (2 * math.pi / n_lon)
+    ring = np.stack([np.sin(lat)[:, None] * np.cos(lon), np.sin(lat)[:, None] * np.sin(lon),
+                     np.cos(lat)[:, None] * np.ones_like(lon)], -1).reshape(-1, 3)
+    return np.concatenate([[[0, 0, 1.0]], ring, [[0, 0, -1.0]]])
+
+
+def body_points(p: Person, pose: Pose) -> np.ndarray:
+    """Every vertex of the posed body (before grounding), without building its triangles: the same
+    points :func:`build_body` makes, by the same arithmetic, in a few array operations."""
+    fr, el = _body_parts(p, pose)
+    p0 = np.array([f[0] for f in fr])
+    p1 = np.array([f[1] for f in fr])
+    r0 = np.array([f[2] for f in fr])[:, None]
+    r1 = np.array([f[3] for f in fr])[:, None]
+    axis = p1 - p0
+    # row by row, as frustum() takes them (np.linalg.norm of a vector is sqrt(v.dot(v)))
+    axis /= np.array([math.sqrt(a.dot(a)) for a in axis])[:, None]
+    ref = np.where((np.abs(axis[:, 2]) < 0.9)[:, None], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
+    u = np.cross(axis, ref)
+    u /= np.array([math.sqrt(a.dot(a)) for a in u])[:, None]
+    w = np.cross(axis, u)
+    idx, cos, sin = _ring_table(tuple((f[5], f[6]) for f in fr))
+    ring = cos * u[idx] + sin * w[idx]
+    pts = [p0[idx] + r0[idx] * ring, p1[idx] + r1[idx] * ring, p0, p1]
+    pts += [_unit_ellipsoid(n_lat, n_lon) * np.asarray(r, np.float64) + c for c, r, _, n_lat, n_lon in el]
+    return np.concatenate(pts)
 
 
 def person_mesh(p: Person, pose: Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -212,10 +269,25 @@ Vec3 = tuple[float, float, float]
 
 def posed_box(key: str, phase: float, speed_mps: float) -> tuple[Vec3, Vec3]:
     """Tight box of person ``key`` walking: size (length, width, height) [m] and the box centre in the
-    body frame (origin on the ground under the pelvis)."""
-    _, _, _, _, _, lo, hi = posed_steps(key, *quantized(phase, speed_mps))
-    size = tuple(float(x) for x in (hi - lo))
-    centre = tuple(float(x) for x in (lo + hi) / 2)
+    body frame (origin on the ground under the pelvis). The box of the mesh :func:`posed` gives, from the
+    body's points alone (:func:`body_points`, no triangles; cached per person and cache step)."""
+    return _posed_box_steps(key, *quantized(phase, speed_mps))
+
+
+@lru_cache(maxsize=256)
+def _person(key: str) -> Person:
+    return Person.from_key(key)
+
+
+@lru_cache(maxsize=16384)  # a few MB: dozens of walkers over all their phase steps
+def _posed_box_steps(key: str, q_phase: int, q_speed: int) -> tuple[Vec3, Vec3]:
+    v = body_points(_person(key), walk_pose(q_phase / PHASE_STEPS, q_speed / 20))
+    lo, hi = v.min(0), v.max(0)
+    # person_mesh grounds the body (z -= min z): the same subtraction, on the extremes only
+    lo_g = np.array([lo[0], lo[1], lo[2] - lo[2]])
+    hi_g = np.array([hi[0], hi[1], hi[2] - lo[2]])
+    size = tuple(float(x) for x in (hi_g - lo_g))
+    centre = tuple(float(x) for x in (lo_g + hi_g) / 2)
     return size, centre  # type: ignore[return-value]
 
 
