@@ -92,6 +92,17 @@ def test_circle_nms_keeps_the_best_of_close_centres():
     assert keep.tolist() == [1, 3]
 
 
+def test_default_grid_covers_the_evaluation_area():
+    from cosim.eval.dataset import AREA_HALF_M
+
+    g = Grid()
+    assert (g.x_range, g.y_range) == ((-AREA_HALF_M[0], AREA_HALF_M[0]), (-AREA_HALF_M[1], AREA_HALF_M[1]))
+    assert g.max_pillars >= g.nx * g.ny  # a dense merged cloud loses no pillar
+    far = np.array([[130.0, -35.0, -1.0, 4.5, 1.9, 1.6, 0.3]])
+    t = targets(far, np.array([0]), g, 1)
+    assert t["mask"].sum() == 1 and t["heatmap"].max() == 1.0  # an object the evaluation counts is a target
+
+
 def test_delivery_draw_is_repeatable():
     from cosim.learn.data import _delivered
 
@@ -277,3 +288,29 @@ def test_bad_input_one_message_exit_2(trained, tiny_batch, tmp_path):
         assert r.returncode == 2, (args, r.stderr[-2000:])
         lines = [line for line in r.stderr.strip().splitlines() if "Warning" not in line]
         assert words in r.stderr and len(lines) == 1, (args, r.stderr[-2000:])
+
+
+@needs_torch
+@pytest.mark.integration
+@pytest.mark.timeout(900)
+def test_early_model_predicts_with_fewer_agents_than_trained(tiny_batch, tmp_path):
+    from cosim.eval.dataset import load_dataset
+    from cosim.eval.predictions import SETTINGS, read_predictions
+    from cosim.learn.data import Samples, Setup
+    from cosim.learn.train import TrainOptions, train
+
+    refs = [r for r in load_dataset(tiny_batch) if r.split == "train"]
+    train(refs, None, Setup(fusion="early", agents="all"), TrainOptions(steps=2, batch_size=2, every=2, threads=1),
+          tmp_path / "early", show_progress=False)
+    for agents in ("vehicles", "vehicles+drones"):
+        preds = tmp_path / f"{agents}.jsonl"
+        r = run_cli("learn", "predict", str(tmp_path / "early"), str(tiny_batch), "--split", "train", "--every", "2",
+                    "--agents", agents, "--out", str(preds), "-q")
+        assert r.returncode == 0, r.stderr[-3000:]
+        assert f"fusion early, agents {agents}" in r.stdout
+        assert {rec.agents for rec in read_predictions(preds)} == {agents}
+        samples = Samples(refs, Setup(fusion="early", agents=agents), every=2)
+        kinds = {src.rsplit("_", 1)[0] for i in range(len(samples)) for src in samples.item(i)["sources"][0]}
+        samples.close()
+        assert kinds <= {"vehicle", *SETTINGS[agents]} and "rsu" not in kinds, kinds
+    assert "drone" in kinds  # the tiny batch's drone is in range: the +drones setting uses it

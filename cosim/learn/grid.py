@@ -11,6 +11,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from cosim.eval.dataset import AREA_HALF_M
+
 #: Point features per point in a pillar: x, y, z, intensity, offsets to the pillar's point mean (3) and to
 #: the pillar's centre (2).
 POINT_FEATURES = 9
@@ -21,14 +23,16 @@ REG_CHANNELS = 8
 @dataclass(frozen=True)
 class Grid:
     """Detection range and pillar size. ``stride``: output cells per pillar side (the head's maps are
-    ``ny / stride`` x ``nx / stride``)."""
+    ``ny / stride`` x ``nx / stride``). The default range is ``cosim eval``'s evaluation area (x +-140.8,
+    y +-40 m): a smaller one leaves the far objects that collaborators see, which the evaluation counts,
+    undetectable. ``max_pillars`` is above the default grid's cell count, so no pillar is dropped."""
 
-    x_range: tuple[float, float] = (-70.4, 70.4)
-    y_range: tuple[float, float] = (-40.0, 40.0)
+    x_range: tuple[float, float] = (-AREA_HALF_M[0], AREA_HALF_M[0])
+    y_range: tuple[float, float] = (-AREA_HALF_M[1], AREA_HALF_M[1])
     z_range: tuple[float, float] = (-3.0, 1.0)
     pillar_m: float = 0.8
     max_points: int = 32
-    max_pillars: int = 16000
+    max_pillars: int = 40000
     stride: int = 2
 
     @property
