@@ -1,7 +1,8 @@
 """Ray casting over the static world (one Open3D scene per episode) plus the actors of one tick.
 
 The static scene's BVH is built once; the actors go into a small second scene rebuilt per tick
-(one per excluded own-actor, cached), and each ray takes the nearer of the two hits. Hits are
+(one per time a LiDAR casts at, cached, shared by every sensor: the rays that meet a sensor's own
+shape first take their nearest other hit), and each ray takes the nearer of the two hits. Hits are
 reported as a *global triangle index*: static triangles first, then the tick's actor triangles,
 then one sentinel row meaning "no hit" (:attr:`TickScene.miss`), so every per-triangle table
 (class, instance, colour...) is a single gather.
@@ -181,30 +182,52 @@ class TickScene:
         miss = np.asarray(miss_value, static_values.dtype).reshape((1, *static_values.shape[1:]))
         return np.concatenate([static_values, actor_values.astype(static_values.dtype), miss])
 
-    def _actor_scene(self, exclude_track: int | None, dt_s: float = 0.0):
-        """Open3D scene of the actors (without ``exclude_track``) moved by their velocity x ``dt_s``."""
-        key = (-1 if exclude_track is None else int(exclude_track), float(dt_s) if self.actors_move else 0.0)
+    def _actor_scene(self, dt_s: float = 0.0):
+        """Open3D scene of all the actors moved by their velocity x ``dt_s`` (one per time, shared by every
+        sensor: a sensor's own shape is skipped by :meth:`_cast_actors`, not left out of the scene, so that a
+        tick builds one BVH of the actors per time rather than one per sensor-carrying actor)."""
+        key = float(dt_s) if self.actors_move else 0.0
         with self._lock:
             if key in self._cache:
                 return self._cache[key]
             verts = self.actors.vertices
             if dt_s and self.actors_move:
                 verts = (verts + self.actor_velocity * dt_s).astype(np.float32)
-            if exclude_track is None or not np.any(self.actor_track == exclude_track):
-                keep = np.arange(self.actors.n_triangles, dtype=np.int32)
-                sub = self.actors if verts is self.actors.vertices else TriMesh(
-                    verts, *(getattr(self.actors, f) for f in ("triangles", "semantic", "instance", "albedo",
-                                                                "reflectivity", "emissive", "group", "retro",
-                                                                "glass")))
-            else:
-                keep = np.nonzero(self.actor_track != exclude_track)[0].astype(np.int32)
-                sub = TriMesh(verts, self.actors.triangles[keep], self.actors.semantic[keep],
-                              self.actors.instance[keep], self.actors.albedo[keep],
-                              self.actors.reflectivity[keep], self.actors.emissive[keep], self.actors.group[keep])
-            entry = (_o3d_scene(sub), keep)
-            _warm(entry[0])
-            self._cache[key] = entry
-            return entry
+            sub = self.actors if verts is self.actors.vertices else TriMesh(
+                verts, *(getattr(self.actors, f) for f in ("triangles", "semantic", "instance", "albedo",
+                                                            "reflectivity", "emissive", "group", "retro", "glass")))
+            scene = _o3d_scene(sub)
+            _warm(scene)
+            self._cache[key] = scene
+            return scene
+
+    def _cast_actors(self, rays: np.ndarray, exclude_track: int | None,
+                     dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest actor hits of ``rays`` at ``dt_s`` (``t``, actor triangle index, -1 on a miss), ignoring
+        ``exclude_track``'s own shape: the rays whose nearest hit is on it take the nearest of all their
+        hits (Open3D ``list_intersections``) that is not, which is what a scene without the own shape gives."""
+        scene = self._actor_scene(dt_s)
+        t, prim = cast(scene, rays)
+        if exclude_track is None or scene is None:
+            return t, prim
+        track = np.concatenate([self.actor_track, [-1]])
+        own = np.nonzero(np.take(track, prim) == exclude_track)[0]
+        if not len(own):
+            return t, prim
+        ans = scene.list_intersections(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays[own], np.float32)))
+        ray = ans["ray_ids"].numpy().astype(np.int64)
+        t_all = ans["t_hit"].numpy()
+        p_all = ans["primitive_ids"].numpy().astype(np.int64)
+        other = np.nonzero(track[p_all] != exclude_track)[0]
+        ray, t_all, p_all = ray[other], t_all[other], p_all[other]
+        order = np.lexsort((t_all, ray))
+        first_ray, first = np.unique(ray[order], return_index=True)
+        t_own = np.full(len(own), np.inf, np.float32)
+        p_own = np.full(len(own), -1, np.int32)
+        t_own[first_ray] = t_all[order[first]]
+        p_own[first_ray] = p_all[order[first]]
+        t[own], prim[own] = t_own, p_own
+        return t, prim
 
     @cached_property
     def labels(self) -> dict[str, np.ndarray]:
@@ -235,7 +258,7 @@ class TickScene:
             if with_static and self.static.scene is not None:
                 out |= self.static.scene.test_occlusions(o3d.core.Tensor.from_numpy(
                     np.ascontiguousarray(rays, np.float32))).numpy()
-            scene = self._actor_scene(None)[0] if with_actors else None
+            scene = self._actor_scene() if with_actors else None
             if scene is not None:
                 rest = np.nonzero(~out)[0]
                 if len(rest):
@@ -266,12 +289,11 @@ class TickScene:
         else:
             t = np.full(rays.shape[0], np.inf, np.float32)
             gid = np.full(rays.shape[0], self.miss, np.int32)
-        scene, keep = self._actor_scene(exclude_track, dt_s) if with_actors else (None, None)
-        if scene is not None and rays.shape[0]:
-            ta, pa = cast(scene, rays)
+        if with_actors and self.actors.n_triangles and rays.shape[0]:
+            ta, pa = self._cast_actors(rays, exclude_track, dt_s)
             nearer = np.nonzero(ta < t)[0]
             t[nearer] = ta[nearer]
-            gid[nearer] = self.n_static + keep[pa[nearer]]
+            gid[nearer] = self.n_static + pa[nearer]
         if near_m > 0:
             t += np.float32(near_m)
         with self._lock:
