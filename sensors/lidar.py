@@ -52,6 +52,7 @@ ACTOR_TIME_BINS = 8  # actors are moved to the centre of one of this many slices
 #: Return kinds (``return`` field): the beam's only return, the strongest and the last of a dual pair.
 RETURN_SINGLE, RETURN_STRONGEST, RETURN_LAST = 0, 1, 2
 DUAL_MIN_SEPARATION_M = 1.0  # [m] a second surface nearer than this behind the first is the same return
+OWN_FACES_MAX = 12  # faces of its own shape a ray may cross (then the rest counts as a hit on nothing)
 
 
 @dataclass(frozen=True)
@@ -275,9 +276,27 @@ def _cast_binned(scene: TickScene, rays: np.ndarray, t_offset_s: np.ndarray, exc
 def _cast_actors_without(scene: TickScene, rays: np.ndarray, exclude: int | None,
                          dt_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Actors alone at ``dt_s`` from the tick, ignoring ``exclude``'s own shape: one scene of all actors
-    per time (shared by every sensor); rays that meet the own shape first take their nearest other hit
-    (:meth:`TickScene.cast`)."""
-    return scene.cast(rays, exclude, MIN_RANGE_M, with_static=False, dt_s=dt_s)
+    per time (shared by every sensor); rays that meet the own shape go on from just past each of its
+    faces (its parts, body, cabin and wheels, are closed boxes and cylinders: a few faces each)."""
+    t, gid = scene.cast(rays, None, MIN_RANGE_M, with_static=False, dt_s=dt_s)
+    if exclude is None:
+        return t, gid
+    track = np.concatenate([scene.actor_track, [-1]])
+    for _ in range(OWN_FACES_MAX):
+        own = np.nonzero(np.take(track, np.clip(gid - scene.n_static, 0, len(track) - 1)) == exclude)[0]
+        own = own[gid[own] < scene.miss]
+        if not len(own):
+            break
+        past = t[own] + np.float32(1e-3)
+        again = rays[own].copy()
+        again[:, :3] += again[:, 3:] * past[:, None]
+        t2, g2 = scene.cast(again, None, 0.0, with_static=False, dt_s=dt_s)
+        t[own] = past + t2
+        gid[own] = g2
+    else:
+        left = np.take(track, np.clip(gid - scene.n_static, 0, len(track) - 1)) == exclude
+        t[left], gid[left] = np.inf, scene.miss
+    return t, gid
 
 
 def render_lidar(

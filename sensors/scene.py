@@ -1,11 +1,11 @@
 """Ray casting over the static world (one Open3D scene per episode) plus the actors of one tick.
 
-The static scene's BVH is built once; the actors go into a small second scene rebuilt per tick
-(one per time a LiDAR casts at, cached, shared by every sensor: the rays that meet a sensor's own
-shape first take their nearest other hit), and each ray takes the nearer of the two hits. Hits are
-reported as a *global triangle index*: static triangles first, then the tick's actor triangles,
-then one sentinel row meaning "no hit" (:attr:`TickScene.miss`), so every per-triangle table
-(class, instance, colour...) is a single gather.
+The static scene's BVH is built once; the actors go into a small second scene rebuilt per tick (one
+per time a LiDAR casts at, cached, shared by every sensor; the few rays that meet a sensor's own
+shape first are cast again in a scene without it, made only for the sensors that need one), and each
+ray takes the nearer of the two hits. Hits are reported as a *global triangle index*: static
+triangles first, then the tick's actor triangles, then one sentinel row meaning "no hit"
+(:attr:`TickScene.miss`), so every per-triangle table (class, instance, colour...) is a single gather.
 """
 
 from __future__ import annotations
@@ -184,8 +184,8 @@ class TickScene:
 
     def _actor_scene(self, dt_s: float = 0.0):
         """Open3D scene of all the actors moved by their velocity x ``dt_s`` (one per time, shared by every
-        sensor: a sensor's own shape is skipped by :meth:`_cast_actors`, not left out of the scene, so that a
-        tick builds one BVH of the actors per time rather than one per sensor-carrying actor)."""
+        sensor: a sensor's own shape is dealt with by :meth:`_cast_actors` for the rays that meet it, so that a
+        tick builds one BVH of all the actors rather than one per sensor-carrying actor)."""
         key = float(dt_s) if self.actors_move else 0.0
         with self._lock:
             if key in self._cache:
@@ -201,11 +201,30 @@ class TickScene:
             self._cache[key] = scene
             return scene
 
+    def _without(self, exclude_track: int, dt_s: float):
+        """Open3D scene of the actors at ``dt_s`` without ``exclude_track``'s shape and the actor triangle index
+        of each of its triangles (made on demand: only sensors whose rays meet their own shape need one)."""
+        key = ("without", int(exclude_track), float(dt_s) if self.actors_move else 0.0)
+        with self._lock:
+            if key in self._cache:
+                return self._cache[key]
+        keep = np.nonzero(self.actor_track != exclude_track)[0].astype(np.int32)
+        verts = self.actors.vertices
+        if dt_s and self.actors_move:
+            verts = (verts + self.actor_velocity * dt_s).astype(np.float32)
+        a = self.actors
+        sub = TriMesh(verts, a.triangles[keep], a.semantic[keep], a.instance[keep], a.albedo[keep],
+                      a.reflectivity[keep], a.emissive[keep], a.group[keep])
+        entry = (_o3d_scene(sub), keep)
+        _warm(entry[0])
+        with self._lock:
+            return self._cache.setdefault(key, entry)
+
     def _cast_actors(self, rays: np.ndarray, exclude_track: int | None,
                      dt_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Nearest actor hits of ``rays`` at ``dt_s`` (``t``, actor triangle index, -1 on a miss), ignoring
-        ``exclude_track``'s own shape: the rays whose nearest hit is on it take the nearest of all their
-        hits (Open3D ``list_intersections``) that is not, which is what a scene without the own shape gives."""
+        ``exclude_track``'s own shape: the rays whose nearest hit is on it are cast again in a scene without
+        it (:meth:`_without`), which gives what that scene gives for every ray."""
         scene = self._actor_scene(dt_s)
         t, prim = cast(scene, rays)
         if exclude_track is None or scene is None:
@@ -214,19 +233,10 @@ class TickScene:
         own = np.nonzero(np.take(track, prim) == exclude_track)[0]
         if not len(own):
             return t, prim
-        ans = scene.list_intersections(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays[own], np.float32)))
-        ray = ans["ray_ids"].numpy().astype(np.int64)
-        t_all = ans["t_hit"].numpy()
-        p_all = ans["primitive_ids"].numpy().astype(np.int64)
-        other = np.nonzero(track[p_all] != exclude_track)[0]
-        ray, t_all, p_all = ray[other], t_all[other], p_all[other]
-        order = np.lexsort((t_all, ray))
-        first_ray, first = np.unique(ray[order], return_index=True)
-        t_own = np.full(len(own), np.inf, np.float32)
-        p_own = np.full(len(own), -1, np.int32)
-        t_own[first_ray] = t_all[order[first]]
-        p_own[first_ray] = p_all[order[first]]
-        t[own], prim[own] = t_own, p_own
+        other, keep = self._without(exclude_track, dt_s)
+        t2, p2 = cast(other, rays[own])
+        t[own] = t2
+        prim[own] = np.where(p2 >= 0, keep[np.maximum(p2, 0)], -1)
         return t, prim
 
     @cached_property
