@@ -44,6 +44,10 @@ def _config(mode: str, *, listen: list[str] | None = None, connect: list[str] | 
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("transport/link/tx/lease", str(LEASE_MS))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    # No shared-memory transport: its default 16 MB pool per session is mapped by both ends of each link
+    # (about 80 MB of the episode's process tree), for messages that are small (the snapshots) or go through
+    # TCP on loopback anyway.
+    conf.insert_json5("transport/shared_memory/enabled", "false")
     if mode != "client":
         conf.insert_json5("scouting/gossip/enabled", "false")
     conf.insert_json5("listen/endpoints", json.dumps(listen or []))

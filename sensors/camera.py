@@ -26,6 +26,7 @@ from cosim.geometry import project_to_image, undistort
 from cosim.scenario.model import CameraSpec
 
 from . import kernels
+from .encoding import PackedLabels
 from .environment import LAMP_RGB, Atmosphere
 from .rig import Pose
 from .scene import TickScene
@@ -267,14 +268,33 @@ def _largest_block(h: int, w: int, block_px: int) -> int:
 
 class StaticImage:
     """What a camera that does not move (an RSU's) keeps across ticks: its image of the static world
-    alone, ``gid`` (H, W) int32 (static triangle index, -1 for a miss) and ``depth`` (H, W) float32,
-    cast once (adaptively) for the pose it was made at."""
+    alone, cast once (adaptively) for the pose it was made at: the static triangle index (H, W) int32
+    (-1 for a miss), planar depth (H, W) float32 and, with a sun, whether it reaches each pixel (H, W)
+    bool. They are kept zstd-packed (:class:`~cosim.sensors.encoding.PackedLabels`, lossless: a
+    1280x720 camera's 8.3 MB keep about 0.2 MB) and unpacked into fresh arrays each tick
+    (:meth:`arrays`, about 3 ms)."""
 
     def __init__(self) -> None:
         self.key: bytes | None = None
-        self.gid = np.zeros((0, 0), np.int32)
-        self.depth = np.zeros((0, 0), np.float32)
-        self.lit: np.ndarray | None = None
+        self.shape: tuple[int, int] = (0, 0)
+        self._packed: tuple[PackedLabels, PackedLabels, PackedLabels | None] | None = None
+
+    def keep(self, key: bytes, gid: np.ndarray, depth: np.ndarray, lit: np.ndarray | None) -> None:
+        self.key, self.shape = key, gid.shape
+        self._packed = (PackedLabels.of(gid), PackedLabels.of(depth), None if lit is None else PackedLabels.of(lit))
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """New (writable) ``gid``, ``depth`` and ``lit`` (None without a sun) arrays of the kept image."""
+        assert self._packed is not None, "StaticImage.arrays before keep"
+        g, d, li = self._packed
+        gid, depth = np.empty(self.shape, np.int32), np.empty(self.shape, np.float32)
+        g.into(gid)
+        d.into(depth)
+        lit = None
+        if li is not None:
+            lit = np.empty(self.shape, bool)
+            li.into(lit)
+        return gid, depth, lit
 
 
 def cast_image(
@@ -306,13 +326,11 @@ def cast_image(
         return _cast_adaptive(cam, K, pose, scene, occ, exclude_track, block_px)
     h, w = cam.height, cam.width
     key = pose.rotation.tobytes() + pose.position_m.tobytes() + K.tobytes()
-    if key != fixed.key or fixed.gid.shape != (h, w):
+    if key != fixed.key or fixed.shape != (h, w):
         g, d, lit = _cast_adaptive(cam, K, pose, scene, occ, exclude_track, block_px, with_actors=False)
-        fixed.key, fixed.gid, fixed.depth = key, np.where(g == scene.miss, np.int32(-1), g), d
-        fixed.lit = lit
-    gid = np.where(fixed.gid < 0, np.int32(scene.miss), fixed.gid)
-    depth = fixed.depth.copy()
-    lit = None if fixed.lit is None else fixed.lit.copy()
+        fixed.keep(key, np.where(g == scene.miss, np.int32(-1), g), d, lit)
+    gid, depth, lit = fixed.arrays()
+    gid[gid < 0] = np.int32(scene.miss)
     xs, ys = _pixel_dirs(cam, K)
     rects, valid = project_boxes(occ.actor_boxes, pose, K)
     under = np.zeros((h, w), bool)

@@ -1,10 +1,11 @@
 """Ray casting over the static world (one Open3D scene per episode) plus the actors of one tick.
 
-The static scene's BVH is built once; the actors go into a small second scene rebuilt per tick
-(one per excluded own-actor, cached), and each ray takes the nearer of the two hits. Hits are
-reported as a *global triangle index*: static triangles first, then the tick's actor triangles,
-then one sentinel row meaning "no hit" (:attr:`TickScene.miss`), so every per-triangle table
-(class, instance, colour...) is a single gather.
+The static scene's BVH is built once; the actors go into a small second scene rebuilt per tick (one
+per time a LiDAR casts at, cached, shared by every sensor; the few rays that meet a sensor's own
+shape first are cast again in a scene without it, made only for the sensors that need one), and each
+ray takes the nearer of the two hits. Hits are reported as a *global triangle index*: static
+triangles first, then the tick's actor triangles, then one sentinel row meaning "no hit"
+(:attr:`TickScene.miss`), so every per-triangle table (class, instance, colour...) is a single gather.
 """
 
 from __future__ import annotations
@@ -181,30 +182,62 @@ class TickScene:
         miss = np.asarray(miss_value, static_values.dtype).reshape((1, *static_values.shape[1:]))
         return np.concatenate([static_values, actor_values.astype(static_values.dtype), miss])
 
-    def _actor_scene(self, exclude_track: int | None, dt_s: float = 0.0):
-        """Open3D scene of the actors (without ``exclude_track``) moved by their velocity x ``dt_s``."""
-        key = (-1 if exclude_track is None else int(exclude_track), float(dt_s) if self.actors_move else 0.0)
+    def _actor_scene(self, dt_s: float = 0.0):
+        """Open3D scene of all the actors moved by their velocity x ``dt_s`` (one per time, shared by every
+        sensor: a sensor's own shape is dealt with by :meth:`_cast_actors` for the rays that meet it, so that a
+        tick builds one BVH of all the actors rather than one per sensor-carrying actor)."""
+        key = float(dt_s) if self.actors_move else 0.0
         with self._lock:
             if key in self._cache:
                 return self._cache[key]
             verts = self.actors.vertices
             if dt_s and self.actors_move:
                 verts = (verts + self.actor_velocity * dt_s).astype(np.float32)
-            if exclude_track is None or not np.any(self.actor_track == exclude_track):
-                keep = np.arange(self.actors.n_triangles, dtype=np.int32)
-                sub = self.actors if verts is self.actors.vertices else TriMesh(
-                    verts, *(getattr(self.actors, f) for f in ("triangles", "semantic", "instance", "albedo",
-                                                                "reflectivity", "emissive", "group", "retro",
-                                                                "glass")))
-            else:
-                keep = np.nonzero(self.actor_track != exclude_track)[0].astype(np.int32)
-                sub = TriMesh(verts, self.actors.triangles[keep], self.actors.semantic[keep],
-                              self.actors.instance[keep], self.actors.albedo[keep],
-                              self.actors.reflectivity[keep], self.actors.emissive[keep], self.actors.group[keep])
-            entry = (_o3d_scene(sub), keep)
-            _warm(entry[0])
-            self._cache[key] = entry
-            return entry
+            sub = self.actors if verts is self.actors.vertices else TriMesh(
+                verts, *(getattr(self.actors, f) for f in ("triangles", "semantic", "instance", "albedo",
+                                                            "reflectivity", "emissive", "group", "retro", "glass")))
+            scene = _o3d_scene(sub)
+            _warm(scene)
+            self._cache[key] = scene
+            return scene
+
+    def _without(self, exclude_track: int, dt_s: float):
+        """Open3D scene of the actors at ``dt_s`` without ``exclude_track``'s shape and the actor triangle index
+        of each of its triangles (made on demand: only sensors whose rays meet their own shape need one)."""
+        key = ("without", int(exclude_track), float(dt_s) if self.actors_move else 0.0)
+        with self._lock:
+            if key in self._cache:
+                return self._cache[key]
+        keep = np.nonzero(self.actor_track != exclude_track)[0].astype(np.int32)
+        verts = self.actors.vertices
+        if dt_s and self.actors_move:
+            verts = (verts + self.actor_velocity * dt_s).astype(np.float32)
+        a = self.actors
+        sub = TriMesh(verts, a.triangles[keep], a.semantic[keep], a.instance[keep], a.albedo[keep],
+                      a.reflectivity[keep], a.emissive[keep], a.group[keep])
+        entry = (_o3d_scene(sub), keep)
+        _warm(entry[0])
+        with self._lock:
+            return self._cache.setdefault(key, entry)
+
+    def _cast_actors(self, rays: np.ndarray, exclude_track: int | None,
+                     dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest actor hits of ``rays`` at ``dt_s`` (``t``, actor triangle index, -1 on a miss), ignoring
+        ``exclude_track``'s own shape: the rays whose nearest hit is on it are cast again in a scene without
+        it (:meth:`_without`), which gives what that scene gives for every ray."""
+        scene = self._actor_scene(dt_s)
+        t, prim = cast(scene, rays)
+        if exclude_track is None or scene is None:
+            return t, prim
+        track = np.concatenate([self.actor_track, [-1]])
+        own = np.nonzero(np.take(track, prim) == exclude_track)[0]
+        if not len(own):
+            return t, prim
+        other, keep = self._without(exclude_track, dt_s)
+        t2, p2 = cast(other, rays[own])
+        t[own] = t2
+        prim[own] = np.where(p2 >= 0, keep[np.maximum(p2, 0)], -1)
+        return t, prim
 
     @cached_property
     def labels(self) -> dict[str, np.ndarray]:
@@ -235,7 +268,7 @@ class TickScene:
             if with_static and self.static.scene is not None:
                 out |= self.static.scene.test_occlusions(o3d.core.Tensor.from_numpy(
                     np.ascontiguousarray(rays, np.float32))).numpy()
-            scene = self._actor_scene(None)[0] if with_actors else None
+            scene = self._actor_scene() if with_actors else None
             if scene is not None:
                 rest = np.nonzero(~out)[0]
                 if len(rest):
@@ -266,12 +299,11 @@ class TickScene:
         else:
             t = np.full(rays.shape[0], np.inf, np.float32)
             gid = np.full(rays.shape[0], self.miss, np.int32)
-        scene, keep = self._actor_scene(exclude_track, dt_s) if with_actors else (None, None)
-        if scene is not None and rays.shape[0]:
-            ta, pa = cast(scene, rays)
+        if with_actors and self.actors.n_triangles and rays.shape[0]:
+            ta, pa = self._cast_actors(rays, exclude_track, dt_s)
             nearer = np.nonzero(ta < t)[0]
             t[nearer] = ta[nearer]
-            gid[nearer] = self.n_static + keep[pa[nearer]]
+            gid[nearer] = self.n_static + pa[nearer]
         if near_m > 0:
             t += np.float32(near_m)
         with self._lock:

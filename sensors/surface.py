@@ -451,7 +451,39 @@ def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, 
     acc_r = np.zeros(w, np.float64)
     acc_g = np.zeros(w, np.float64)
     acc_b = np.zeros(w, np.float64)
+    # the lamp-independent part of each pixel of a row's spans, computed once per pixel rather than per lamp:
+    # whether it can reflect (wet film facing up, seen from its front), its map point, view direction,
+    # normal and film
+    can = np.zeros(w, np.bool_)
+    pt = np.empty((w, 3), np.float64)
+    view = np.empty((w, 3), np.float64)
+    nrm = np.empty((w, 3), np.float64)
+    films = np.empty(w, np.float64)
     for i in range(h):
+        u_lo, u_hi = w, -1
+        for q in range(n_lamps):
+            j0, j1 = max(spans[q, i, 0], 0), min(spans[q, i, 1], w - 1)
+            if j0 <= j1:
+                u_lo, u_hi = min(u_lo, j0), max(u_hi, j1)
+        for j in range(u_lo, u_hi + 1):
+            can[j] = False
+            gi = g[i, j]
+            d = depth[i, j]
+            if gi == miss or not d < np.inf or not wet:
+                continue
+            nxx, nyy, nzz = normal[gi, 0], normal[gi, 1], normal[gi, 2]
+            film = wet_film[material[gi]]
+            if nzz <= 0.7 or film <= 0.0:
+                continue
+            dx, dy, dz, inv_ray = _view_ray(xg[i, j], yg[i, j], r00, r01, r02, r10, r11, r12, r20, r21, r22)
+            vx, vy, vz = -dx * inv_ray, -dy * inv_ray, -dz * inv_ray
+            if nxx * vx + nyy * vy + nzz * vz <= 0.0:
+                continue
+            can[j] = True
+            pt[j, 0], pt[j, 1], pt[j, 2] = o0 + d * dx, o1 + d * dy, o2 + d * dz
+            view[j, 0], view[j, 1], view[j, 2] = vx, vy, vz
+            nrm[j, 0], nrm[j, 1], nrm[j, 2] = nxx, nyy, nzz
+            films[j] = film
         j_lo, j_hi = w, -1
         for q in range(n_lamps):
             j0, j1 = max(spans[q, i, 0], 0), min(spans[q, i, 1], w - 1)
@@ -472,25 +504,15 @@ def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, 
             power = lamps[q, 3] * artificial
             cr, cg, cb = lamps[q, 4], lamps[q, 5], lamps[q, 6]
             for j in range(j0, j1 + 1):
-                gi = g[i, j]
-                d = depth[i, j]
-                if gi == miss or not d < np.inf or not wet:
+                if not can[j]:
                     continue
-                nxx, nyy, nzz = normal[gi, 0], normal[gi, 1], normal[gi, 2]
-                film = wet_film[material[gi]]
-                if nzz <= 0.7 or film <= 0.0:
-                    continue
-                dx, dy, dz, inv_ray = _view_ray(xg[i, j], yg[i, j], r00, r01, r02, r10, r11, r12, r20, r21, r22)
-                vx, vy, vz = -dx * inv_ray, -dy * inv_ray, -dz * inv_ray
-                if nxx * vx + nyy * vy + nzz * vz <= 0.0:
-                    continue
-                lx, ly, lz = lamp_x - (o0 + d * dx), lamp_y - (o1 + d * dy), lamp_z - (o2 + d * dz)
+                lx, ly, lz = lamp_x - pt[j, 0], lamp_y - pt[j, 1], lamp_z - pt[j, 2]
                 d2 = lx * lx + ly * ly + lz * lz
                 if d2 < 0.25:
                     continue
                 inv = 1.0 / math.sqrt(d2)
-                s = film * power * (inv * inv) * _lobe(nxx, nyy, nzz, vx, vy, vz, lx * inv, ly * inv, lz * inv,
-                                                       cos_cut2)
+                s = films[j] * power * (inv * inv) * _lobe(nrm[j, 0], nrm[j, 1], nrm[j, 2], view[j, 0], view[j, 1],
+                                                           view[j, 2], lx * inv, ly * inv, lz * inv, cos_cut2)
                 acc_r[j] += s * cr
                 acc_g[j] += s * cg
                 acc_b[j] += s * cb
