@@ -21,6 +21,8 @@ from cosim.scenario.model import EscortDrone
 from cosim.traffic.sumo_sim import TrafficSim
 from cosim.world import build_world
 
+pytestmark = pytest.mark.integration  # real SUMO, drone backends and episodes throughout
+
 STOPPED_MPS = 0.1  # [m/s]
 TOWNS = ("town_urban_day_clear", "town_suburban_day_cloudy")
 
@@ -98,8 +100,9 @@ def test_signal_plans_are_actuated_by_default_with_cycles_by_size_and_spread_off
 def test_drones_start_steady(name):
     """Every drone of a shipped scenario starts in its strategy's steady state: its first tick tilts at most
     10 degrees (netconvert-era starts: 28-29 degrees, escorts catching up from rest), and no drone tilts more
-    than 35 degrees in the first 2 s (then: 42-50). The issue's 25 degrees over 2 s is not met: escorts
-    follow their vehicles' braking at red lights with up to 34 degrees (see /work/notes/data.md)."""
+    than 25 degrees in the first 2 s (then: 42-50; steady starts alone: up to 34, escorts following their
+    vehicles' braking at red lights and the highway patrol's first corner; the fleet's gentle start,
+    cosim.drones.fleet.START_TILT_DEG, bounds it)."""
     loaded = load_scenario(name)
     sc = loaded.scenario
     escorts = {f"drone_{i}": d.target for i, d in enumerate(sc.agents.drones) if isinstance(d, EscortDrone)}
@@ -121,7 +124,7 @@ def test_drones_start_steady(name):
             finally:
                 fleet.close()
     assert tilts[1] <= 10.0, f"a drone tilted {tilts[1]:.1f} degrees in the first tick"
-    assert max(tilts) <= 35.0, f"a drone tilted {max(tilts):.1f} degrees in the first 2 s"
+    assert max(tilts) <= 25.0, f"a drone tilted {max(tilts):.1f} degrees in the first 2 s"
 
 
 @pytest.mark.parametrize("name", TOWNS)
@@ -129,8 +132,8 @@ def test_rsu_and_vehicle_cameras_see_labelled_objects(name):
     """At most 25 % of RSU and 15 % of connected-vehicle camera frames show no labelled object (pixels of
     ``/<agent>/visibility``), over the first 4 s at a tenth of the image size (a far object under a pixel
     is missed there, so the full-size shares are lower). On main: 45-47 % and 32 % (urban), 28 % and
-    12 % (suburban). The issue's 10 % for RSUs is not reached: one RSU's rear camera still sees nothing
-    (13 % at a quarter size, /work/notes/data.md)."""
+    12 % (suburban). The issue's 10 % for RSUs is not reached: a few RSU cameras face quiet roads or a
+    building (13 % over the shipped 20 s at a quarter size: benchmarks/data_quality.py)."""
     from benchmarks.data_quality import empty_frame_shares
 
     shares = empty_frame_shares(load_scenario(name, ["duration_s=4"]), 0.1)

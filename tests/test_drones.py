@@ -500,6 +500,31 @@ def test_yield_rule_raises_the_lower_priority_drone_and_holds_it_until_clear():
     assert out.position_m[:2] == pytest.approx(ref.position_m[:2]) and out.position_m[2] >= 75.0
 
 
+def test_yield_rule_backs_away_before_climbing_past_a_drone_close_above():
+    """An escort whose vehicle passes under a hovering drone must climb over a building: it does not climb
+    past the hover there (default, before: 5.1 m at tick 141) but backs away, then climbs where it is."""
+    from cosim.drones.control import Reference
+    from cosim.drones.separation import KEEP_OUT_HYSTERESIS_M, KEEP_OUT_M, yield_plan
+
+    hover = np.array([200.0, 200.0, 60.0])
+    vel = np.array([[0.0, 0.0, 0.0], [-8.0, 0.0, 0.0]])
+    for below_m in (5.0, 15.0, 20.0):  # deep inside the band, just inside it, under it
+        pos = np.array([hover, [205.0, 200.0, 60.0 - below_m]])
+        y = yield_plan(pos, vel, ["hover", "escort"], 15.0)[1]
+        climb = Reference(np.array([195.0, 200.0, 70.0]), np.array([-8.0, 0, 0]), np.zeros(3), 0.0)
+        out = y.apply(climb, pos[1])
+        assert out.position_m[0] == pytest.approx(200.0 + KEEP_OUT_M + KEEP_OUT_HYSTERESIS_M)  # away, east
+        assert out.position_m[2] <= max(pos[1, 2], 60.0 - 18.0) + 1e-9  # no closer vertically than it is
+    # Under the band and not climbing (its wanted altitude is lower): it flies on under the hover.
+    level = Reference(np.array([195.0, 200.0, 30.0]), np.array([-8.0, 0, 0]), np.zeros(3), 0.0)
+    assert y.apply(level, np.array([205.0, 200.0, 40.0])).position_m[0] == 195.0
+    # Out at the keep-out radius it holds and climbs over.
+    pos = np.array([hover, [200.0 + KEEP_OUT_M + 1.0, 200.0, 45.0]])
+    y = yield_plan(pos, np.array([[0.0, 0, 0], [-1.0, 0, 0]]), ["hover", "escort"], 15.0)[1]
+    out = y.apply(Reference(np.array([195.0, 200.0, 70.0]), np.zeros(3), np.zeros(3), 0.0), pos[1])
+    assert out.position_m[:2] == pytest.approx(pos[1, :2]) and out.position_m[2] >= 60.0 + 15.0
+
+
 @pytest.mark.integration
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_drones_crossing_at_one_altitude_collide_unless_separated(backend):

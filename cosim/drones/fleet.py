@@ -7,6 +7,7 @@ rate and returns one :class:`cosim.protocol.DroneState` per drone, in drone inde
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -51,6 +52,12 @@ log = logging.getLogger(__name__)
 WIND_STREAM = 0xD12E  # SeedSequence tag of the drones' random streams
 MIN_PHYSICS_HZ = 20.0  # [Hz] the attitude and rate loops need at least this (unstable at 5 Hz)
 LAND_HOLD_M = 0.5  # [m] a landed drone holds this far above the surface under it (no touchdown model)
+#: A gentle start: over the first START_S of an episode every drone's tilt is limited to START_TILT_DEG
+#: (its attitude loop overshoots by a degree or two), so that a drone placed in its strategy's steady state
+#: eases into the manoeuvres it meets at once (an escort whose vehicle brakes at a red light lags a few
+#: metres behind for a moment instead of pitching at 30 degrees or more; a patrol's first corner).
+START_S = 2.0  # [s]
+START_TILT_DEG = 21.0  # [deg]
 
 
 @dataclass
@@ -63,6 +70,7 @@ class _Drone:
     radius_m: float
     size_m: tuple[float, float, float]
     clearance_m: float | None  # None: no altitude planning, no climb-first guard
+    limits: Limits | None = None  # the flight envelope after the start (the controller's during START_S is gentler)
     energy_j: float = 0.0
     state: BodyState | None = None  # the backend's state after the last reset or step
 
@@ -177,16 +185,19 @@ class DroneFleet:
                     raise ScenarioError(str(exc), path=f"agents.drones.{i}") from exc
                 backend = backend_class(a.drone_backend_of(i))(self.frame, self.dt_s, world)
                 limits = Limits.for_speed(spec.max_speed_mps, self.frame)
+                start_limits = dataclasses.replace(
+                    limits, max_tilt_rad=min(limits.max_tilt_rad, math.radians(START_TILT_DEG)))
                 wind = Wind.create(env.wind_mps, wind_dir, env.gust_mps, self.dt_s, np.random.default_rng(seeds[i + 1]))
                 drone = _Drone(
                     f"drone_{i}",
                     backend,
-                    Controller(self.frame, self.dt_s, limits),
+                    Controller(self.frame, self.dt_s, start_limits),
                     wind,
                     strategy,
                     radius_m=float(math.hypot(half[0], half[1])) * 0.75,
                     size_m=(2 * half[0], 2 * half[1], 2 * half[2]),
                     clearance_m=spec.clearance_m if spec.plan_altitude else None,
+                    limits=limits,
                 )
                 self._drones.append(drone)
             layers = plan_layers(
@@ -319,6 +330,8 @@ class DroneFleet:
     def _physics_step(self, d: _Drone, y: Yield, t_s: float, tick: int) -> None:
         """One physics step of ``dt_s`` starting at ``t_s``: guidance, separation, control, dynamics, checks."""
         s = d.state
+        if t_s >= START_S and d.limits is not None:
+            d.controller.limits, d.limits = d.limits, None
         ref = y.apply(d.strategy.reference(t_s, s), s.position_m)
         if d.clearance_m is not None:
             ref = climb_first(ref, s, self.obstacles)

@@ -14,6 +14,10 @@ Two drones stay at least ``agents.drone_separation_m`` apart (centre to centre, 
   the next :data:`LOOKAHEAD_S` (closest approach of straight-line motion); their layers become
   forbidden altitude bands. Its reference is raised out of every band, and while it is still inside
   one it holds its horizontal position (climb first, then go on).
+- **Not climbing past a drone close by**: a drone that would climb toward a drone it yields to, above it
+  and horizontally within :data:`KEEP_OUT_M` (an escort whose vehicle passes under a hovering drone),
+  first backs away horizontally to :data:`KEEP_OUT_M` plus :data:`KEEP_OUT_HYSTERESIS_M`, climbing no
+  higher than the other drone's band (or its present altitude inside it); there it holds and climbs.
 
 Pure functions over numpy arrays; map frame ENU, metres.
 """
@@ -29,6 +33,9 @@ from cosim.drones.control import Reference
 REGION_MARGIN_M = 5.0  # [m] added to the separation when deciding whether two ways can meet
 LAYER_MARGIN_M = 3.0  # [m] added to the separation between layers (altitude tracking, gusts)
 LOOKAHEAD_S = 6.0  # [s] how far ahead the yield rule looks for a closest approach
+KEEP_OUT_M = 20.0  # [m] horizontal radius around a drone inside which a yielding drone does not climb past it
+KEEP_OUT_HYSTERESIS_M = 3.0  # [m] how much farther it backs away before it climbs
+KEEP_OUT_BELOW_M = 5.0  # [m] below a band's lower edge, a drone inside KEEP_OUT_M already counts as close
 #: yield order by strategy: a drone yields to every drone of a lower rank (then of a lower index)
 RANK = {"hover": 0, "patrol": 1, "escort": 2}
 
@@ -89,9 +96,15 @@ class Yield:
 
     bands: list[tuple[float, float]] = field(default_factory=list)
     hold: bool = False  # inside a band now: hold the horizontal position until out of it
+    gap_m: float = 0.0  # the layer gap (half a band's height)
+    #: the nearest drone it yields to that is above it, vertically close and horizontally within
+    #: KEEP_OUT_M + KEEP_OUT_HYSTERESIS_M (see yield_plan): its position (3,) and horizontal distance [m]
+    near: tuple[np.ndarray, float] | None = None
 
     def apply(self, ref: Reference, position_m: np.ndarray) -> Reference:
-        """``ref`` raised out of every band; held horizontally at ``position_m`` when ``hold``."""
+        """``ref`` raised out of every band; held horizontally at ``position_m`` when ``hold``. A drone that
+        would climb while ``near`` is set holds horizontally, or within :data:`KEEP_OUT_M` backs away
+        (climbing no higher than the near drone's band, or its present altitude inside it)."""
         if not self.bands:
             return ref
         z = float(ref.position_m[2])
@@ -101,10 +114,19 @@ class Yield:
             for lo, hi in self.bands:
                 if lo < z < hi:
                     z, moved = hi, True
+        zero = np.zeros(3)
+        if self.near is not None and z > position_m[2]:
+            other, h = self.near
+            if h >= KEEP_OUT_M:
+                return Reference(np.array([position_m[0], position_m[1], z]), zero, zero, ref.yaw_rad)
+            away = position_m[:2] - other[:2]
+            u = away / h if h > 1e-6 else np.array([1.0, 0.0])
+            xy = other[:2] + (KEEP_OUT_M + KEEP_OUT_HYSTERESIS_M) * u
+            z = min(z, max(float(position_m[2]), float(other[2]) - self.gap_m))
+            return Reference(np.array([xy[0], xy[1], z]), zero, zero, ref.yaw_rad)
         if not self.hold and z == ref.position_m[2]:
             return ref
         if self.hold:
-            zero = np.zeros(3)
             return Reference(np.array([position_m[0], position_m[1], z]), zero, zero, ref.yaw_rad)
         pos = ref.position_m.copy()
         pos[2] = z
@@ -142,8 +164,14 @@ def yield_plan(
                 continue
             zj = float(positions_m[j, 2])
             out[i].bands.append((zj - gap, zj + gap))
-            if abs(float(positions_m[i, 2]) - zj) < separation_m + 1.0:
+            dz = float(positions_m[i, 2]) - zj
+            if abs(dz) < separation_m + 1.0:
                 out[i].hold = True
+            h = float(np.hypot(rel_p[0], rel_p[1]))
+            close = h < KEEP_OUT_M + KEEP_OUT_HYSTERESIS_M and -gap - KEEP_OUT_BELOW_M < dz < 0.0
+            if close and (out[i].near is None or h < out[i].near[1]):
+                out[i].near = (positions_m[j].copy(), h)
+                out[i].gap_m = gap
     return out
 
 

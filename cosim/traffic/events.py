@@ -10,8 +10,8 @@ vehicle's route) and acts through libsumo:
 - ``lane_closure`` / ``construction_zone``: a hidden standing SUMO vehicle as long as the span holds
   the lane (so traffic merges or waits, and nothing enters the span), plus a barrier, a sign and
   cones along the open side as ``static_obstacle`` boxes.
-- ``road_block``: every lane of the edge disallowed to all classes, barriers across it, and every
-  vehicle whose remaining route uses the edge rerouted.
+- ``road_block``: every lane of the edge but its sidewalk disallowed to all classes, barriers across
+  them, and every vehicle whose remaining route uses the edge rerouted.
 - ``jaywalk``: a SUMO person put on the kerb at the place, crossing the road straight to the far
   kerb outside any crossing (:class:`cosim.traffic.pedestrians.Crossing`), then walking on.
 - ``cut_in``: a car inserted in the lane beside the connected vehicle, at its speed, that changes
@@ -143,7 +143,8 @@ class Timeline:
             event = _Active(index, spec)
             self._active.append(event)
             try:
-                event.place = self._resolve(spec)
+                place = self._resolve(spec)
+                event.place, event.note = (None, place) if isinstance(place, str) else (place, "")
                 if event.place is not None:
                     {BreakdownEvent: self._breakdown, AccidentEvent: self._accident, LaneClosureEvent: self._closure,
                      RoadBlockEvent: self._block, JaywalkEvent: self._jaywalk, CutInEvent: self._cut_in,
@@ -219,7 +220,8 @@ class Timeline:
         return [out[i] for i in sorted(out)]
 
     # ------------------------------------------------------------------------------- placing
-    def _resolve(self, spec: EventSpec) -> LanePoint | None:
+    def _resolve(self, spec: EventSpec) -> LanePoint | str | None:
+        """The event's place; None when there is no lane for cars there, or why it could not be placed."""
         if spec.position_m is not None:
             edge, pos, lane = libsumo.simulation.convertRoad(spec.position_m[0], spec.position_m[1], False,
                                                              "passenger")
@@ -243,7 +245,7 @@ class Timeline:
             if pos <= length - EDGE_MARGIN_M:
                 return self._car_lane(LanePoint(edge, lane, max(pos, EDGE_MARGIN_M)))
             pos -= length
-        return None
+        return f"not placed: the route of {vid} ends less than {spec.ahead_m:g} m ahead of it"
 
     @staticmethod
     def _car_lane(place: LanePoint) -> LanePoint | None:
@@ -355,30 +357,32 @@ class Timeline:
         log.info("road block: no way around %s for %s; it waits before the block", edge, vid)
 
     def _block(self, e: _Active, t_ns: int) -> None:
+        """Every lane of the edge but its sidewalk closed to all classes (people walk on, as past a closed
+        street; SUMO cannot route a walking person around a closed sidewalk and stops), a barrier across each."""
         assert e.place is not None
         edge = e.place.edge
-        n_lanes = libsumo.edge.getLaneNumber(edge)
-        for i in range(n_lanes):
+        walk = sidewalk_lane(edge)
+        lanes = [i for i in range(libsumo.edge.getLaneNumber(edge)) if f"{edge}_{i}" != walk]
+        for i in lanes:
             libsumo.lane.setDisallowed(f"{edge}_{i}", ["all"])
         for vid in libsumo.vehicle.getIDList():
             route = libsumo.vehicle.getRoute(vid)
             if edge in route[libsumo.vehicle.getRouteIndex(vid) + 1:]:
                 self._reroute_around(vid, edge)
-        z = libsumo.simulation.convert3D(edge, 1.0, 0)[2]
-        for i in range(n_lanes):
+        z = libsumo.simulation.convert3D(edge, 1.0, lanes[0])[2]
+        for i in lanes:
             w = libsumo.lane.getWidth(f"{edge}_{i}")
             x, y, yaw = lane_pose(edge, i, 1.0)
             e.obstacles.append(static_box(f"ev{e.index}_barrier_{i}", x, y, z, yaw, (BARRIER_DEPTH_M, w - 0.2,
                                                                                       BARRIER_HEIGHT_M)))
-        length = libsumo.lane.getLength(f"{edge}_0")
-        e.place = LanePoint(edge, 0, 0.0)
+        length = libsumo.lane.getLength(f"{edge}_{lanes[0]}")
+        e.place = LanePoint(edge, lanes[0], 0.0)
         poly: list[tuple[float, float]] = []
-        for lane, pos, left in ((0, 0.0, -0.5), (0, length, -0.5), (n_lanes - 1, length, 0.5), (n_lanes - 1, 0.0, 0.5)):
+        for lane, pos, left in ((lanes[0], 0.0, -0.5), (lanes[0], length, -0.5), (lanes[-1], length, 0.5),
+                                (lanes[-1], 0.0, 0.5)):
             x, y, yaw = lane_pose(edge, lane, pos)
             poly.append(offset(x, y, yaw, 0.0, left * libsumo.lane.getWidth(f"{edge}_{lane}")))
         e.zone_m = poly
-
-
 
     def _jaywalk(self, e: _Active, t_ns: int) -> None:
         """A person on the ``from_side`` kerb at the place, crossing straight over to the other kerb."""

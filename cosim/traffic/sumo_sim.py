@@ -41,6 +41,8 @@ log = logging.getLogger(__name__)
 WARMUP_S = 4  # [s] SUMO time before episode t = 0 (a whole number of seconds)
 REROUTE_EDGES_LEFT = 2  # extend a route when the vehicle is on one of its last edges
 LANE_CHANGE_S = 1.5  # [s] duration of a lane change (continuous, not a sideways jump)
+IMPATIENCE_S = 20.0  # [s] a driver waiting at a minor link (a left turn across a busy road, say) grows fully
+# impatient in this time and takes a smaller gap (SUMO --time-to-impatience, default 300 s: cars waited 30 s+)
 TRAIL_M = 40.0  # [m] of driven path kept per vehicle (longer than the longest vehicle)
 #: per-vehicle values read every SUMO step (one subscription call instead of one call per value)
 SUBSCRIBED = (tc.VAR_DISTANCE, tc.VAR_ROAD_ID, tc.VAR_LANEPOSITION, tc.VAR_LANE_INDEX, tc.VAR_ROUTE_INDEX)
@@ -108,6 +110,8 @@ class TrafficSim:
             "warn",
             "--lanechange.duration",
             f"{LANE_CHANGE_S}",
+            "--time-to-impatience",
+            f"{IMPATIENCE_S:g}",
         ]
         try:
             libsumo.start(cmd)
