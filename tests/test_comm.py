@@ -364,14 +364,21 @@ def test_bad_comm_key_is_one_clear_message_with_exit_2(tmp_path):
 
 @pytest.mark.integration
 def test_a_higher_drone_has_line_of_sight_more_often_over_a_real_episode(tmp_path):
-    """The same town, traffic and ground agents (same seed), one hovering drone at 30 m or at 150 m."""
+    """The same town, traffic and ground agents (same seed), hovering drones all at 30 m or all at 150 m.
+
+    One hover drone per junction of the 300 m town (the k-th hover drone takes the k-th ranked junction, 16 in
+    all), and only the drone-ground links count. One drone is too small a sample since the connected vehicles
+    and RSUs sit at the inner junctions between the downtown's tall buildings (up to ~65 m): from the single
+    default site (the junction nearest the centre, ~100 m from most of them) the same 5 of 8 links are LOS at
+    both heights. Over every junction, 150 m sees into the street canyons more often (about 0.49 vs 0.32)."""
     from cosim.io import open_episode
 
+    drones = "[" + ", ".join(["{strategy: hover, altitude_m: H}"] * 16) + "]"
     shares = {}
     for h in (30, 150):
         out = tmp_path / f"h{h}"
         r = run_cli("run", "scenarios/town_urban_day_clear.yaml", "--no-sensors", "--duration", "2", "-q",
-                    "--set", "map.size_m=300", "--set", f"agents.drones=[{{strategy: hover, altitude_m: {h}}}]",
+                    "--set", "map.size_m=300", "--set", f"agents.drones={drones.replace('H', str(h))}",
                     "--out", str(out))
         assert r.returncode == 0, r.stderr
         (path,) = list(out.iterdir())
@@ -380,7 +387,7 @@ def test_a_higher_drone_has_line_of_sight_more_often_over_a_real_episode(tmp_pat
             for k in range(ep.n_ticks):
                 links = ep.tick(k).links()
                 los += [s == "los" for s, tx, rx in zip(links.los, links.tx, links.rx, strict=True)
-                        if "drone_0" in (tx, rx)]
+                        if tx.startswith("drone_") != rx.startswith("drone_")]
         assert len(los) > 50
         shares[h] = float(np.mean(los))
     assert shares[150] > shares[30] + 0.1, shares

@@ -15,8 +15,10 @@ from cosim.scenario import load_scenario_data
 
 EVENTS = [
     {"kind": "jaywalk", "at_s": 1.0, "ahead_of": "vehicle_0", "ahead_m": 30},
-    {"kind": "cut_in", "at_s": 1.0, "ahead_of": "vehicle_1", "gap_m": 6},
+    {"kind": "cut_in", "at_s": 1.0, "ahead_of": "vehicle_3", "gap_m": 6},
 ]
+# vehicle_0 and vehicle_1 start on the same inner edge and wait ~13 s at its red light 6 m from the edge's end, where
+# a cut-in has no room ahead (it would stay 'starting'); vehicle_3 drives on a free edge at 1 s
 
 
 def _scenario(**extra):
@@ -24,7 +26,7 @@ def _scenario(**extra):
         "name": "peds", "seed": 5, "duration_s": 16, "map": {"kind": "urban", "size_m": 300},
         "traffic": {"density_veh_per_km": 20},
         "pedestrians": {"density_per_km": 20, "jaywalk_share": 0.3, "jaywalk_every_s": 8},
-        "agents": {"vehicles": {"count": 2}, "rsus": {"count": 0}, "drones": []}, "events": EVENTS, **extra,
+        "agents": {"vehicles": {"count": 4}, "rsus": {"count": 0}, "drones": []}, "events": EVENTS, **extra,
     })
 
 
@@ -52,7 +54,7 @@ def run(tmp_path_factory):
                                   libsumo.person.getLaneID(s.sumo_id)) for s in states if s.cls == "pedestrian"}
             v = libsumo.vehicle
             lanes = {vid: (v.getRoadID(vid), v.getLaneIndex(vid), v.getLanePosition(vid), v.getLength(vid))
-                     for vid in v.getIDList() if vid in ("vehicle_1", "ev1_0")}
+                     for vid in v.getIDList() if vid in ("vehicle_3", "ev1_0")}
             ticks.append((states, {r["id"]: r for r in sim.events()}, places, lanes))
         shapes = {ln: (libsumo.lane.getShape(ln), libsumo.lane.getWidth(ln)) for ln in libsumo.lane.getIDList()
                   if tuple(libsumo.lane.getAllowed(ln)) == ("pedestrian",)}
@@ -193,9 +195,9 @@ def test_cut_in_ends_in_the_connected_vehicles_lane_ahead_at_a_small_gap(run):
     assert rec["state"] == "active" and rec["vehicles"] == ["ev1_0"], rec
     beside = merged = None
     for k, (_, _, _, lanes) in enumerate(run["ticks"]):
-        if "ev1_0" not in lanes or "vehicle_1" not in lanes:
+        if "ev1_0" not in lanes or "vehicle_3" not in lanes:
             continue
-        (r0, l0, p0, _), (r1, l1, p1, len1) = lanes["vehicle_1"], lanes["ev1_0"]
+        (r0, l0, p0, _), (r1, l1, p1, len1) = lanes["vehicle_3"], lanes["ev1_0"]
         if r0 == r1 and l0 != l1 and beside is None:
             beside = k
         if beside is not None and r0 == r1 and l0 == l1:
