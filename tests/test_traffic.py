@@ -15,6 +15,7 @@ from cosim.traffic import FakeTraffic, TrafficSim
 from cosim.traffic.metrics import convex_overlap_area, max_pairwise_overlap
 from cosim.world import build_world
 from cosim.world.layout import road_raster
+from cosim.world.rsu import MAX_OFFSET_M
 from cosim.world.netgen import _run_tool, strip_header
 from cosim.world.network import read_network
 
@@ -174,7 +175,7 @@ def test_episode_acceptance(kind: str, tmp_path: Path) -> None:
     assert on / total >= 0.99, f"{on / total:.4f} of box centres on the road"
     assert {c for c, share in sc.traffic.mix.items() if share > 0} <= seen
     junctions = {j.junction_id: j.position_m for j in world.junctions}
-    assert all(math.dist(r.position_m[:2], junctions[r.junction_id]) <= 15.0 for r in world.rsus)
+    assert all(math.dist(r.position_m[:2], junctions[r.junction_id]) <= MAX_OFFSET_M + 1e-6 for r in world.rsus)
 
 
 @pytest.mark.integration
