@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import math
 import xml.etree.ElementTree as ET
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ from cosim.world import build_world
 from cosim.world.layout import road_raster
 from cosim.world.netgen import _run_tool, strip_header
 from cosim.world.network import read_network
+from cosim.world.rsu import MAX_OFFSET_M
 
 TICK_NS = 200_000_000
 
@@ -174,23 +176,33 @@ def test_episode_acceptance(kind: str, tmp_path: Path) -> None:
     assert on / total >= 0.99, f"{on / total:.4f} of box centres on the road"
     assert {c for c, share in sc.traffic.mix.items() if share > 0} <= seen
     junctions = {j.junction_id: j.position_m for j in world.junctions}
-    assert all(math.dist(r.position_m[:2], junctions[r.junction_id]) <= 15.0 for r in world.rsus)
+    assert all(math.dist(r.position_m[:2], junctions[r.junction_id]) <= MAX_OFFSET_M + 1e-6 for r in world.rsus)
 
 
 @pytest.mark.integration
 @pytest.mark.parametrize("kind", KINDS)
 def test_class_mix_over_episode(kind: str, tmp_path: Path) -> None:
+    """The mix holds for the vehicles on the road: at the start (a systematic sample, so every class within
+    one vehicle of its share), at every tick on average, and a vehicle entering later replaces one of its
+    class that left.
+
+    The share of distinct vehicle ids over the episode is not what the mix sets: the connected vehicles (cars)
+    never leave, so only background vehicles turn over, and their car share is below the mix's (rural, seed 11:
+    10 cars of 18 at the start, 4 of them connected; 13 replacements, 5 cars: 15 of 31 ids, 0.48, while
+    0.56 of the vehicles on the road were cars; seeds 12-14: 0.50, 0.53, 0.55 of distinct ids)."""
     loaded, _world, ticks = _episode(kind, tmp_path)
     mix = loaded.scenario.traffic.mix
-    vehicles = {s.sumo_id: s.cls for states in ticks for s in states}
-    n = len(vehicles)
+    start = Counter(s.cls for s in ticks[0])
+    n0 = len(ticks[0])
     for cls, share in mix.items():
-        got = sum(c == cls for c in vehicles.values()) / n
-        assert abs(got - share) <= 0.10, f"{kind}: {cls} {got:.2f} of {n} vehicles, configured {share:.2f}"
-    # per-tick shares too (every vehicle stays for the whole episode on these maps)
+        assert abs(start[cls] - share * n0) < 1.0 + 1e-9, f"{kind}: {start[cls]} {cls} of {n0}, configured {share:.2f}"
     per_tick = [s.cls for states in ticks for s in states]
     for cls, share in mix.items():
         assert abs(per_tick.count(cls) / len(per_tick) - share) <= 0.10
+    ids = [{s.sumo_id: s.cls for s in states} for states in ticks]
+    left = Counter(c for now, after in itertools.pairwise(ids) for v, c in now.items() if v not in after)
+    entered = Counter(c for v, c in {v: c for now in ids[1:] for v, c in now.items()}.items() if v not in ids[0])
+    assert all(entered[c] <= left[c] for c in entered), f"{kind}: entered {dict(entered)}, left {dict(left)}"
 
 
 @pytest.mark.integration

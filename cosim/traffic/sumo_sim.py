@@ -267,8 +267,13 @@ class TrafficSim:
                 trail.pop(0)
 
     def _heading_deg(self, vid: str, length_m: float) -> float:
-        """Heading [deg clockwise from north] of the chord from the vehicle's back to its front, both
-        on the lane centre lines of the path it drove (its trail).
+        """Heading [deg clockwise from north] of the chord from the vehicle's back to its front (:meth:`_chord`)."""
+        return self._chord(vid, length_m)[0]
+
+    def _chord(self, vid: str, length_m: float) -> tuple[float, float]:
+        """Heading [deg clockwise from north] and length [m] of the chord from the vehicle's back to its
+        front, both on the lane centre lines of the path it drove (its trail); length ``length_m`` when
+        SUMO's angle is used.
 
         SUMO's own angle also turns a vehicle by its lateral motion and keeps that turn when a lane change
         ends standing still, so a long vehicle's box would reach into the next lane; the lane chord does
@@ -282,7 +287,7 @@ class TrafficSim:
         k = bisect.bisect_right(trail, target, key=lambda e: e[0]) - 1  # odometers never decrease
         if k < 0:
             if road.startswith(":") or pos < length_m:
-                return v.getAngle(vid)
+                return v.getAngle(vid), length_m
             back = libsumo.simulation.convert2D(road, pos - length_m, idx)
         else:
             o0, r0, p0, i0 = trail[k]
@@ -295,15 +300,21 @@ class TrafficSim:
             back = libsumo.simulation.convert2D(r0, min(back_pos, lane_len), i0)
         front = libsumo.simulation.convert2D(road, pos, idx)
         dx, dy = front[0] - back[0], front[1] - back[1]
-        if math.hypot(dx, dy) < 0.5 * length_m:
-            return v.getAngle(vid)
-        return math.degrees(math.atan2(dx, dy)) % 360.0
+        chord = math.hypot(dx, dy)
+        if chord < 0.5 * length_m:
+            return v.getAngle(vid), length_m
+        return math.degrees(math.atan2(dx, dy)) % 360.0, chord
 
     def _read(self, vid: str, t_ns: int) -> VehicleState:
         v = libsumo.vehicle
         length, width, height = v.getLength(vid), v.getWidth(vid), v.getHeight(vid)
         fx, fy, fz = v.getPosition3D(vid)
-        cx, cy, yaw = sumo_front_to_center(fx, fy, self._heading_deg(vid, length), length)
+        heading, chord = self._chord(vid, length)
+        # the box's centre is the chord's midpoint: on a curve the chord is shorter than the vehicle, and a
+        # box hung from the front bumper would put all of the difference behind it (a 13 m truck turning
+        # right swung its back 2 m into the next lane, over a car waiting there); centred, the box reaches
+        # past both ends of the chord by half of it
+        cx, cy, yaw = sumo_front_to_center(fx, fy, heading, chord)
         if vid in self.timeline.pinned:  # an incident's pose (e.g. an accident's turned car)
             cx, cy, yaw = self.timeline.pinned[vid]
         slope = math.radians(v.getSlope(vid))
