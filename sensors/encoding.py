@@ -121,10 +121,12 @@ def encode_png(img: np.ndarray, level: int = 1) -> bytes:
 
 
 def encode_jpeg(img: np.ndarray, quality: int = 80) -> bytes:
-    """Baseline JPEG of ``img`` (H, W, 3) uint8 RGB through libjpeg-turbo, 4:2:0 chroma, at ``quality``."""
+    """Baseline JPEG of ``img`` (H, W, 3) uint8 RGB through libjpeg-turbo, 4:2:0 chroma, at ``quality``, with
+    Huffman tables made for the image (``optimize``: the same pixels decode, about 4 % fewer bytes)."""
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
         raise CosimError(f"encode_jpeg takes uint8 (H, W, 3), got {img.dtype} {img.shape}")
-    return bytes(imagecodecs.jpeg8_encode(np.ascontiguousarray(img), level=int(quality), subsampling="420"))
+    return bytes(imagecodecs.jpeg8_encode(np.ascontiguousarray(img), level=int(quality), subsampling="420",
+                                          optimize=True))
 
 
 def encode_depth(depth_m: np.ndarray) -> bytes:
@@ -137,9 +139,10 @@ def encode_depth(depth_m: np.ndarray) -> bytes:
     d = np.ascontiguousarray(depth_m, np.float32)
     if d.ndim != 2:
         raise CosimError(f"encode_depth takes (H, W) float depth, got {d.dtype} {d.shape}")
-    planes = np.empty((4, *d.shape), np.uint8)
-    kernels.depth_planes(d, np.float32(1.0 / DEPTH_QUANTUM_M), planes)
-    return pack_depth(planes)
+    codes = np.zeros((d.size + 3) // 4, np.uint8)
+    escapes = np.empty(d.size, np.uint32)
+    m = kernels.depth_codes(d, np.float32(1.0 / DEPTH_QUANTUM_M), codes, escapes)
+    return pack_depth(d.shape[1], d.shape[0], codes, escapes[:m])
 
 
 def encode_image(img: np.ndarray, image_format: str, jpeg_quality: int = 80) -> bytes:
