@@ -383,6 +383,8 @@ def render_lidar(
     hit |= spur
     kind = np.where(behind, RETURN_STRONGEST, RETURN_SINGLE).astype(np.uint8)
     idx = np.nonzero(hit)[0]
+    if not spec.dual_returns:  # firing order (below) up front: one return per beam needs no second gather
+        idx = idx[np.argsort(beams.t_offset_ns[idx], kind="stable")]
     parts = [(d_sensor[idx] * r[idx, None], intensity[idx], ring[idx], cls[idx], inst[idx], t_off_ns[idx],
               kind[idx], idx)]
     if behind.any():
@@ -396,8 +398,9 @@ def render_lidar(
     # firing order: by the firing time of the beam, the channels of one firing from the lowest ring up (a
     # dual pair's last return after the firing's other returns), as a sensor sends its packets; the records
     # of one firing then share their time, so the stored sweep compresses 4 % smaller than ring by ring
-    order = np.argsort(beams.t_offset_ns[np.concatenate([p[7] for p in parts])], kind="stable")
-    cat = [c[order] for c in cat]
+    if len(parts) > 1:
+        order = np.argsort(beams.t_offset_ns[np.concatenate([p[7] for p in parts])], kind="stable")
+        cat = [c[order] for c in cat]
     return LidarFrame(
         agent_id,
         cat[0].astype(np.float32),
