@@ -38,7 +38,7 @@ from cosim.scenario.model import (
 JPEG_MIN_PSNR_DB = 36.0
 #: [bytes] per camera pixel of a default tick of the small rig below: 0.361 with format 1.4's depth codes,
 #: LiDAR in firing order and JPEG Huffman tables per image (format 1.3: 0.378); the paper rig at 1280x720 of
-#: the default scenario: 0.30 (docs/episode_format.md 7)
+#: the default scenario: 0.31 (15.56 MB per tick, docs/episode_format.md 7)
 MAX_BYTES_PER_CAMERA_PIXEL = 0.375
 
 W, H = 256, 144
