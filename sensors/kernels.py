@@ -256,12 +256,16 @@ def gather2(index, table_a, table_b):
 
 
 @_jit
-def depth_planes(depth, inv_quantum, out):
-    """The byte planes ``out`` (4, H, W) uint8 of ``cosim-depth`` for ``depth`` (H, W) float32 [m]: counts
-    rint(depth * ``inv_quantum``) (float32; 0 where not finite), residuals against left + up - upper left,
-    zigzag-coded, byte k of each in plane k (:func:`cosim.depth.depth_planes` in one pass)."""
+def depth_codes(depth, inv_quantum, codes, escapes):
+    """The 2-bit codes ``codes`` (ceil(H W / 4),) uint8, zeroed by the caller, and the escapes ``escapes``
+    (H W,) uint32 of ``cosim-depth`` for ``depth`` (H, W) float32 [m]: counts rint(depth * ``inv_quantum``)
+    (float32; 0 where not finite), residuals against left + up - upper left, zigzag-coded, then coded
+    (:func:`cosim.depth.depth_codes` of :func:`cosim.depth.depth_residuals` in one pass). Returns the
+    number of escapes written."""
     h, w = depth.shape
     up = np.zeros(w, np.int64)
+    k = 0
+    m = 0
     for i in range(h):
         left = np.int64(0)
         upleft = np.int64(0)
@@ -270,10 +274,13 @@ def depth_planes(depth, inv_quantum, out):
             c = np.int64(v) if np.isfinite(v) else np.int64(0)
             r = c - up[j] - left + upleft
             z = ((r << 1) ^ (r >> 63)) & 0xFFFFFFFF
-            out[0, i, j] = z & 0xFF
-            out[1, i, j] = (z >> 8) & 0xFF
-            out[2, i, j] = (z >> 16) & 0xFF
-            out[3, i, j] = (z >> 24) & 0xFF
+            if z >= 3:
+                escapes[m] = z - 3
+                m += 1
+                z = 3
+            codes[k >> 2] |= np.uint8(z << (2 * (k & 3)))
+            k += 1
             upleft = up[j]
             up[j] = c
             left = c
+    return m

@@ -36,8 +36,10 @@ from cosim.scenario.model import (
 #: [dB] the least PSNR of a default-quality JPEG of a 1280x720 frame against its lossless image
 #: (docs/episode_format.md 3.5)
 JPEG_MIN_PSNR_DB = 36.0
-#: [bytes] per camera pixel of a default tick of the small rig below (the paper rig at 1280x720: 0.25)
-MAX_BYTES_PER_CAMERA_PIXEL = 0.45
+#: [bytes] per camera pixel of a default tick of the small rig below: 0.361 with format 1.4's depth codes,
+#: LiDAR in firing order and JPEG Huffman tables per image (format 1.3: 0.378); the paper rig at 1280x720 of
+#: the default scenario: 0.31 (15.56 MB per tick, docs/episode_format.md 7)
+MAX_BYTES_PER_CAMERA_PIXEL = 0.375
 
 W, H = 256, 144
 
@@ -134,6 +136,39 @@ def test_compact_depth_is_lossless_on_the_stored_grid_and_refuses_bad_bytes(fram
         decode_depth(b"PNG....")
     with pytest.raises(FormatError, match="5x3"):
         decode_depth(encode_depth(far)[:-4])
+
+
+def _cdp1(depth_m: np.ndarray) -> bytes:
+    """Format 1.2 and 1.3's ``cosim-depth`` (``CDP1``), built from its documented layout: the four byte planes of
+    the zigzag-coded residuals under one zstd frame (docs/episode_format.md 3.5)."""
+    import struct
+
+    import zstandard
+
+    c = np.rint(depth_m.astype(np.float32) * np.float32(1024)).astype(np.float64)
+    c[~np.isfinite(c)] = 0
+    c = c.astype(np.int64)
+    p = np.pad(c, ((1, 0), (1, 0)))
+    r = c - p[:-1, 1:] - p[1:, :-1] + p[:-1, :-1]
+    z = ((r << 1) ^ (r >> 63)).astype("<u4")
+    planes = np.moveaxis(z.view(np.uint8).reshape(*c.shape, 4), 2, 0).tobytes()
+    return struct.pack("<4sII", b"CDP1", c.shape[1], c.shape[0]) + zstandard.ZstdCompressor(level=1).compress(planes)
+
+
+def test_compact_depth_codes_small_residuals_in_two_bits_and_older_files_still_decode(frames):
+    """Format 1.4's ``CDP2`` keeps residuals 0, -1 and 1 as 2-bit codes and the rest as escapes; ``CDP1`` images of
+    format 1.2 and 1.3 episodes decode to the same depth."""
+    cam = _cameras(frames)[0]
+    data = encode_depth(cam.depth)
+    assert data[:4] == b"CDP2"
+    old = _cdp1(cam.depth)
+    assert np.array_equal(decode_depth(old), decode_depth(data), equal_nan=True)
+    assert len(data) < 0.9 * len(old)
+    steps = np.array([[0.0, 1.0, 1.0 + 2**-10, 1.0 - 2**-10, 1.0, 70000.0, np.nan]], np.float32)  # escapes both ways
+    for d in (steps, steps.T, np.full((1, 1), 3.0, np.float32)):
+        assert np.array_equal(decode_depth(encode_depth(d)), decode_depth(_cdp1(d)), equal_nan=True)
+    back = decode_depth(encode_depth(steps))[0]
+    assert np.array_equal(back[1:6], steps[0, 1:6]) and np.isnan(back[[0, 6]]).all()  # on the grid: exact
 
 
 def test_a_default_tick_is_small_per_camera_pixel_and_the_lossless_option_is_one_key_away(scenario, frames,

@@ -186,7 +186,7 @@ def test_episode_carries_events_and_validates(tmp_path: Path):
     v = run_cli("validate", str(path))
     assert v.returncode == 0, v.stdout + v.stderr
     with open_episode(path) as ep:
-        assert ep.format_version == "1.3"
+        assert ep.format_version == "1.4"
         assert ep.metadata["events"][0]["kind"] == "construction_zone"
         assert "pedestrian" in ep.metadata["class_table"]["object_classes"]
     from mcap.reader import make_reader

@@ -34,7 +34,7 @@ def test_two_runs_of_one_seed_give_byte_identical_files(tmp_path):
     report = validate_episode(a)
     assert report.ok, report.lines()
     with open_episode(a) as ep:
-        assert ep.n_ticks == 10 and ep.format_version == "1.3"
+        assert ep.n_ticks == 10 and ep.format_version == "1.4"
         assert {t.message_count for t in ep.topics.values()} == {10}
 
 

@@ -252,6 +252,25 @@ def test_dual_returns_at_a_pole_edge_report_the_pole_and_the_wall_behind():
     assert len(pc) == len(single) + last.sum()
 
 
+def test_returns_are_stored_in_firing_order():
+    """By firing time, the returns of one firing from the lowest ring up, a dual pair's last return after the
+    other returns of its firing (docs/episode_format.md 3.4); with motion distortion off the same order."""
+    spec = SPIN.model_copy(update={"dual_returns": True, "horizontal_resolution_deg": 0.2})
+    frame, pc = _cloud(_scenario(spec), _wall_world(pole=True), _vehicle(speed=0.0))
+    t, ring, kind = pc.points["t_offset_ns"].astype(np.int64), pc.points["ring"].astype(np.int64), pc.points["return"]
+    assert (kind == RETURN_LAST).sum() >= 4 and len(np.unique(t)) > 1000
+    assert (np.diff(t) >= 0).all()
+    same = np.diff(t) == 0
+    last = kind == RETURN_LAST
+    # within a firing: rings rise among the first returns; a last return follows only last returns
+    assert (np.diff(ring)[same & ~last[:-1] & ~last[1:]] > 0).all()
+    assert not (same & last[:-1] & ~last[1:]).any()
+    off = spec.model_copy(update={"motion_distortion": False})
+    f_off, pc_off = _cloud(_scenario(off), _wall_world(pole=True), _vehicle(speed=0.0))
+    assert (pc_off.points["t_offset_ns"] == 0).all()
+    assert np.array_equal(pc_off.points["ring"], pc.points["ring"]) and np.array_equal(f_off.points, frame.points)
+
+
 def test_a_standing_sensor_with_a_rosette_casts_each_frames_own_firings():
     """RSUs keep their static hits between ticks; a rosette fires new directions every frame."""
     sc = synthetic_scenario(vehicles=0, rsus=1,

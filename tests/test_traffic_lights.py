@@ -129,7 +129,7 @@ def test_an_episode_labels_sumos_signal_states_every_tick(tmp_path: Path):
     r = run_cli("run", str(path), "--out", str(tmp_path / "out"))
     assert r.returncode == 0, r.stderr
     ep = open_episode(next((tmp_path / "out").rglob("*.mcap")))
-    assert ep.format_version == "1.3"
+    assert ep.format_version == "1.4"
     shown: dict[str, set[str]] = {}
     for tick in ep.ticks():
         for t in json.loads(tick.raw("/labels/objects").data)["traffic_lights"]:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 #: Format version this code writes and reads (major.minor; readers refuse another major).
-FORMAT_VERSION = "1.3"
+FORMAT_VERSION = "1.4"
 
 MAP_FRAME = "map"
 #: Instance ids at or above this are static scene parts (buildings, poles...), not tracks; 0 is "nothing".
