@@ -109,6 +109,8 @@ def _shared_fixtures(item: pytest.Item) -> set[str]:
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """One ``xdist_group`` per set of tests linked by a shared fixture or a ``resource`` mark (union-find);
     a test linked to none stays free: xdist's loadgroup hands it to whichever worker is idle."""
+    if not config.pluginmanager.hasplugin("xdist"):  # -p no:xdist: no such mark to give
+        return
     parent: dict[str, str] = {}
 
     def find(key: str) -> str:
