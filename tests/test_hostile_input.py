@@ -223,7 +223,7 @@ def test_hostile_scenario_files_get_one_message_naming_the_file(tmp_path, capsys
         assert status == 2, (name, err)
         assert "Traceback" not in err and len(err.strip().splitlines()) == 1, (name, err)
         assert str(f) in err and expect in err, (name, err)
-        assert len(err) < 400, (name, err)  # a 10 000-character value is shortened
+        assert len(err.replace(str(f), "F")) < 400, (name, err)  # a 10 000-character value is shortened
 
 
 @pytest.mark.parametrize("net, expect", [
