@@ -1,6 +1,6 @@
 # Two commands for a fresh Debian machine with Python 3.11 (see README):
 #   make run    install into .venv if needed, then generate the default episode
-#   make test   install the test extras if needed, then run the whole suite
+#   make test   install the test extras if needed, then run the whole suite (on TEST_WORKERS xdist workers)
 #   make test-fast  the unit tests only: no engines, no `cosim run` processes (a few minutes)
 #   make image  build the Docker image (README, "Containers")
 SHELL := /bin/bash
@@ -15,6 +15,11 @@ SYSTEM_LIBS := libusb-1.0-0 libgl1 libegl1 libgomp1 libatomic1 libxrender1
 APT_LINE    := apt-get update && apt-get install -y --no-install-recommends $(SYSTEM_LIBS)
 SCENARIO    ?= scenarios/default.yaml
 PYTEST_ARGS ?=
+# pytest-xdist workers (2: the product's machine has two cores); tests/conftest.py keeps tests that share a
+# module or session fixture, or a resource, on one worker, and runs `exclusive` tests alone. PYTEST_ARGS='-n 0'
+# runs one test at a time.
+TEST_WORKERS ?= 2
+XDIST       := -n $(TEST_WORKERS) --dist loadgroup
 # make image: BASE is the image to build on (docker/base.sh makes cosim-base:bookworm without a
 # registry); WHEELHOUSE=1 (default) fills wheelhouse/ on the host first so the build needs no network;
 # WHEELHOUSE=0 leaves wheelhouse/ as it is (empty in a fresh clone: pip in the build uses PyPI);
@@ -30,7 +35,7 @@ WHEEL_STAMP := wheelhouse/.stamp
 
 help:
 	@echo "make run    generate the default episode ($(SCENARIO)) into out/"
-	@echo "make test   run the whole test suite"
+	@echo "make test   run the whole test suite ($(TEST_WORKERS) xdist workers: TEST_WORKERS=N)"
 	@echo "make test-fast  unit tests only (no engines, no cosim run processes)"
 	@echo "make lint   ruff"
 	@echo "make bench  co-simulation overhead benchmark"
@@ -85,14 +90,14 @@ run: sysdeps $(STAMP)
 
 # pytest exits 5 when it collected no test: that is a failure here, never a pass.
 test: sysdeps $(TEST_STAMP)
-	@set +e; $(VPY) -m pytest $(PYTEST_ARGS); rc=$$?; \
+	@set +e; $(VPY) -m pytest $(XDIST) $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc
 
 # The fast lane: tests not marked integration, container or cluster. tests/conftest.py makes a test of this
 # lane fail when it starts SUMO, JSBSim, PyBullet or a `cosim run` process.
 FAST_MARKS := not integration and not container and not cluster
 test-fast: sysdeps $(TEST_STAMP)
-	@set +e; COSIM_TEST_FAST=1 $(VPY) -m pytest -m "$(FAST_MARKS)" $(PYTEST_ARGS); rc=$$?; \
+	@set +e; COSIM_TEST_FAST=1 $(VPY) -m pytest $(XDIST) -m "$(FAST_MARKS)" $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc
 
 lint: $(TEST_STAMP)

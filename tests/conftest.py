@@ -1,7 +1,16 @@
-"""Shared fixtures of the suite (shared helper functions: tests/helpers.py)."""
+"""Shared fixtures of the suite (shared helper functions: tests/helpers.py), and how it runs on several cores.
+
+``make test`` runs the suite on pytest-xdist workers with ``--dist loadgroup``. Before that can be safe and
+cheap, :func:`pytest_collection_modifyitems` gives each test an ``xdist_group``, so that tests which share a
+module- or session-scoped fixture (an episode generated once, the smoke batch) run on one worker (the fixture
+is built once, not once per worker), and so do tests marked ``resource(NAME)`` with the same name (a thing
+two of them must not use at once). Tests marked ``exclusive`` (timing deadlines) run while no other test of
+the run does: :func:`pytest_runtest_protocol` holds a shared or an exclusive file lock around every test.
+"""
 
 from __future__ import annotations
 
+import fcntl
 import os
 import subprocess
 from pathlib import Path
@@ -72,3 +81,116 @@ def smoke_batch(tmp_path_factory) -> Path:
     assert r.returncode == 0, r.stderr[-3000:]
     assert "6 generated, 0 failed" in r.stdout
     return out
+
+
+# ------------------------------------------------------------------------------ running on xdist workers
+
+
+def _shared_fixtures(item: pytest.Item) -> set[str]:
+    """``where::name`` of every module-, package- or session-scoped fixture of this suite that the test uses,
+    directly or through other fixtures (autouse ones it does not ask for are left out: they are cheap)."""
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return set()
+    found, todo, seen = set(), list(info.argnames), set()
+    while todo:
+        name = todo.pop()
+        if name in seen or name not in info.name2fixturedefs:
+            continue
+        seen.add(name)
+        fixturedef = info.name2fixturedefs[name][-1]
+        todo.extend(fixturedef.argnames)
+        if fixturedef.scope != "function" and fixturedef.baseid.startswith("tests"):
+            found.add(f"{fixturedef.baseid}::{name}")  # no "@": xdist splits a group name off at the last one
+    return found
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """One ``xdist_group`` per set of tests linked by a shared fixture or a ``resource`` mark (union-find);
+    a test linked to none stays free: xdist's loadgroup hands it to whichever worker is idle."""
+    if not config.pluginmanager.hasplugin("xdist"):  # -p no:xdist: no such mark to give
+        return
+    parent: dict[str, str] = {}
+
+    def find(key: str) -> str:
+        while parent.setdefault(key, key) != key:
+            parent[key] = parent[parent[key]]
+            key = parent[key]
+        return key
+
+    keys = {}
+    for item in items:
+        own = _shared_fixtures(item) | {f"resource:{m.args[0]}" for m in item.iter_markers("resource")}
+        if _exclusive(item):  # one after the other on one worker: the other worker waits once, not each time
+            own.add("resource:exclusive")
+        keys[item] = sorted(own)
+        for other in keys[item][1:]:
+            parent[find(other)] = find(keys[item][0])
+    for item in items:
+        if keys[item]:
+            item.add_marker(pytest.mark.xdist_group(find(keys[item][0])))
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Fail the run when xdist's loadgroup did not take the groups (it appends ``@group`` to the node id, which
+    pytest 9.2 ignores: pytest-xdist issue 1386): shared fixtures would be built twice and Ray started twice."""
+    if not getattr(session.config.option, "loadgroup", False):
+        return
+    grouped = [item for item in session.items if item.get_closest_marker("xdist_group")]
+    if grouped and "@" not in grouped[0].nodeid:
+        raise pytest.UsageError(f"--dist loadgroup ignores the xdist_group marks with pytest {pytest.__version__} "
+                                "(pytest-xdist issue 1386): install the test extra's pytest (pyproject.toml)")
+
+
+def _exclusive(item: pytest.Item | None) -> bool:
+    return item is not None and item.get_closest_marker("exclusive") is not None
+
+
+class _SuiteLock:
+    """A readers-writer lock shared by the run's workers (two ``flock`` files in the run's temporary folder):
+    every test holds it shared, an ``exclusive`` test alone. A writer waits at a turnstile first, so readers
+    cannot keep it waiting forever; consecutive exclusive tests of one worker keep it (no re-queueing)."""
+
+    def __init__(self) -> None:
+        self.held: bool | None = None  # None: not held; else whether held exclusively
+        self.fds: list[int] = []
+
+    def acquire(self, config: pytest.Config, exclusive: bool) -> None:
+        base = config._tmp_path_factory.getbasetemp().parent  # the run's folder, shared by its workers
+        turnstile, lock = (os.open(base / name, os.O_CREAT | os.O_RDWR, 0o600)
+                           for name in ("suite.turnstile", "suite.lock"))
+        self.fds = [turnstile, lock]
+        fcntl.flock(turnstile, fcntl.LOCK_EX)
+        if not exclusive:
+            fcntl.flock(turnstile, fcntl.LOCK_UN)
+        fcntl.flock(lock, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH)
+        if exclusive:
+            fcntl.flock(turnstile, fcntl.LOCK_UN)
+        self.held = exclusive
+
+    def release(self) -> None:
+        for fd in self.fds:  # unlock before closing: a child forked during the test may share the descriptor
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            os.close(fd)
+        self.fds, self.held = [], None
+
+
+_SUITE_LOCK = _SuiteLock()
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
+    """On an xdist worker, each test (its fixtures' set-up and teardown included) runs under the suite lock."""
+    if not hasattr(item.config, "workerinput"):
+        return (yield)
+    exclusive = _exclusive(item)
+    if _SUITE_LOCK.held is not None and _SUITE_LOCK.held != exclusive:
+        _SUITE_LOCK.release()
+    if _SUITE_LOCK.held is None:
+        _SUITE_LOCK.acquire(item.config, exclusive)
+    try:
+        return (yield)
+    finally:
+        if not (exclusive and _exclusive(nextitem)):
+            _SUITE_LOCK.release()

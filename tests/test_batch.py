@@ -214,6 +214,7 @@ def test_crash_is_retried_and_permanent_failure_is_reported(tmp_path):
 
 
 @pytest.mark.integration  # starts a local Ray
+@pytest.mark.resource("ray")
 def test_ray_executor_retries_a_crashed_worker_and_reports_failures(tmp_path):
     pytest.importorskip("ray")
     body = FAULTS.replace("values: [clear, foggy]", "values: [clear]").replace("      - {label: ok}\n", "")

@@ -63,6 +63,7 @@ def test_killed_batch_resumes_only_the_missing_episodes(reference, tmp_path):
     assert not list(out.rglob("*.partial"))
 
 
+@pytest.mark.resource("ray")
 def test_local_ray_cluster_gives_identical_episode_files(reference, tmp_path):
     pytest.importorskip("ray")
     out = tmp_path / "ray"

@@ -44,6 +44,7 @@ def test_two_conductors_on_one_host_do_not_cross():
             assert ra["traffic"]["tick"] == tick and rb["traffic"]["tick"] == tick * 2
 
 
+@pytest.mark.exclusive
 @pytest.mark.parametrize("role", ["drones", "traffic"])
 def test_sigkilled_worker_is_named_with_the_tick_within_3_s_and_nothing_is_left(role):
     me = os.getpid()
@@ -65,6 +66,7 @@ def test_sigkilled_worker_is_named_with_the_tick_within_3_s_and_nothing_is_left(
     assert children_of(me) == []
 
 
+@pytest.mark.exclusive
 def test_hanging_worker_times_out_naming_worker_and_tick():
     me = os.getpid()
     with conductor("fake-hang-drones-3", tick_timeout_s=1.0) as c:
@@ -96,6 +98,7 @@ def test_worker_exiting_abruptly_reports_its_status():
             c.step(1, TICK_NS, {})
 
 
+@pytest.mark.exclusive
 def test_replies_that_arrived_while_the_caller_was_busy_are_not_timeouts():
     """Pipelining: the conductor renders tick k for longer than the timeout while tick k+1's replies wait."""
     with conductor(tick_timeout_s=0.5) as c:

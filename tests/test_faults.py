@@ -24,7 +24,7 @@ import pytest
 from cosim.io.writer import temporary_path
 from tests.helpers import REPO
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.exclusive]  # deadlines in seconds: no other test beside
 
 WORKER_NAMES = ("cosim-traffic", "cosim-drones")
 SMALL = ["--no-sensors", "--set", "map.size_m=300", "--set", "traffic.density_veh_per_km=6"]

@@ -223,7 +223,7 @@ def test_hostile_scenario_files_get_one_message_naming_the_file(tmp_path, capsys
         assert status == 2, (name, err)
         assert "Traceback" not in err and len(err.strip().splitlines()) == 1, (name, err)
         assert str(f) in err and expect in err, (name, err)
-        assert len(err) < 400, (name, err)  # a 10 000-character value is shortened
+        assert len(err.replace(str(f), "F")) < 400, (name, err)  # a 10 000-character value is shortened
 
 
 @pytest.mark.parametrize("net, expect", [
@@ -369,7 +369,8 @@ def test_a_long_bad_value_is_cut_in_the_message(tmp_path, capsys, no_world):
     assert status == 2 and "Traceback" not in err
     lines = err.strip().splitlines()
     assert lines[0] == f"cosim: error: {f}: 3 problems:"
-    assert all(len(line) < 500 for line in lines), [len(line) for line in lines]
+    # the file's path (longer under an xdist worker's temporary folder) is not the value being cut
+    assert all(len(line.replace(str(f), "F")) < 500 for line in lines), [len(line) for line in lines]
     assert "(10002 characters)" in err and "output.name: " in err and "(1000 characters)" in err
 
 

@@ -28,7 +28,7 @@ from cosim.batch.manifest import deterministic_view, latest_records, read_record
 from tests.helpers import REPO
 
 pytest.importorskip("ray")
-pytestmark = [pytest.mark.cluster, pytest.mark.integration, pytest.mark.timeout(1200)]
+pytestmark = [pytest.mark.cluster, pytest.mark.integration, pytest.mark.resource("ray"), pytest.mark.timeout(1200)]
 
 SMOKE = REPO / "sweeps" / "smoke.yaml"
 HEAD_IP, NODE_IP = "127.0.0.1", "127.0.0.2"

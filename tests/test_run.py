@@ -102,6 +102,7 @@ def _workers(proc: subprocess.Popen, timeout_s: float = 120) -> dict[str, psutil
     raise AssertionError("workers did not start")
 
 
+@pytest.mark.exclusive
 @pytest.mark.parametrize("role", ["drones", "traffic"])
 def test_sigkill_of_a_worker_stops_the_run_within_3_s_naming_it_and_the_tick(tmp_path, role):
     proc = _start(tmp_path)
