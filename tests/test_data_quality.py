@@ -155,10 +155,12 @@ def test_drones_start_steady(name):
 @pytest.mark.parametrize("name", TOWNS)
 def test_rsu_and_vehicle_cameras_see_labelled_objects(name):
     """Issue 27: at most 10 % of RSU and 15 % of connected-vehicle camera frames show no labelled object (pixels
-    of ``/<agent>/visibility``). The window is the shipped 20 s, sampled once a second (tick_hz 1: the same
-    traffic, SUMO steps at 20 Hz either way) at a tenth of the image size (a far object under a pixel is missed,
-    so the full-size shares are lower). benchmarks/data_quality.py measures the shipped 5 Hz at a quarter size."""
+    of ``/<agent>/visibility``), over the shipped 20 s sampled once a second (tick_hz 1: the same traffic, SUMO
+    steps at 20 Hz either way) at a quarter of the image size, as benchmarks/data_quality.py measures at 5 Hz.
+    Both windows give the same shares: main 710633b urban 10.6 % RSU / 3.3 % vehicle here, 10.6 / 3.5 % at
+    5 Hz; suburban 4.7 / 1.5 % and 4.7 / 1.1 %. (At a tenth of the size far objects fall under a pixel:
+    suburban RSUs 12 % empty at 1 Hz.)"""
     from benchmarks.data_quality import empty_frame_shares
 
-    shares = empty_frame_shares(load_scenario(name, ["duration_s=20", "tick_hz=1"]), 0.1)
+    shares = empty_frame_shares(load_scenario(name, ["duration_s=20", "tick_hz=1"]), 0.25)
     assert shares["rsu_empty"] <= 0.10 and shares["vehicle_empty"] <= 0.15, shares
