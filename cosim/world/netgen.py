@@ -193,6 +193,7 @@ class GridStyle:
     minor_disallow: str  # vClasses kept off the minor streets (besides pedestrians, who use sidewalks)
 
 
+ALL_RED_S = 2  # [s] all-red clearance interval after each yellow of a generated town's traffic lights
 # urban: lights along the avenues, priority rules where two side streets cross (as towns sign them; a light at
 # every crossing of the grid stopped 41-44 % of the traffic at once, single cars at reds: benchmarks/data_quality.py)
 URBAN = GridStyle((75.0, 95.0), 3, 2, 13.89, 13.89, 3.2, 3.0, 0.0, 1, "")
@@ -270,7 +271,10 @@ def _grid_network(req: MapRequest, rng: np.random.Generator, style: GridStyle) -
         }
         edges.append({"id": f"{a}_{b}", "from": a, "to": b, **attrs})
         edges.append({"id": f"{b}_{a}", "from": b, "to": a, **attrs})
-    return NetworkResult(_netconvert_plain(nodes, edges, req, ["--tls.default-type", "static"]))
+    # an all-red interval after each yellow lets a vehicle caught inside the junction clear it (left turners
+    # waiting for a gap were passed by the next phase's turners within centimetres)
+    tls = ["--tls.default-type", "static", "--tls.allred.time", str(ALL_RED_S)]
+    return NetworkResult(_netconvert_plain(nodes, edges, req, tls))
 
 
 def _connected(segments: set[tuple[str, int, int]], nx: int, ny: int) -> bool:
