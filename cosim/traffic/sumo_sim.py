@@ -185,7 +185,10 @@ class TrafficSim:
         for _ in range(10 if sources and sinks else 0):
             a = sources[int(self._rng.integers(len(sources)))]
             b = sinks[int(self._rng.integers(len(sinks)))]
-            edges = libsumo.simulation.findRoute(a, b, vType=variant.type_id).edges
+            try:
+                edges = libsumo.simulation.findRoute(a, b, vType=variant.type_id).edges
+            except libsumo.TraCIException:  # an event closed the source edge to this type (a road block)
+                continue
             if not edges:
                 continue
             libsumo.route.add(f"route_{vid}", list(edges))
