@@ -245,8 +245,11 @@ def firing_rays(d_sensor: np.ndarray, t_offset_s: np.ndarray, pose: Pose, agent:
 
 
 def _cast_binned(scene: TickScene, rays: np.ndarray, t_offset_s: np.ndarray, exclude: int | None,
-                 with_static: bool = True, near_m: float = MIN_RANGE_M) -> tuple[np.ndarray, np.ndarray]:
-    """Cast with the actors moved to the time of each firing (in :data:`ACTOR_TIME_BINS` slices)."""
+                 with_static: bool = True, near_m: float = MIN_RANGE_M,
+                 lo_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Cast with the actors moved to the time of each firing (in :data:`ACTOR_TIME_BINS` slices of
+    [``lo_s``, 0], by default from the earliest of ``t_offset_s``: a subset of a sweep's rays given its
+    sweep's ``lo_s`` reuses the actor scenes cached for the sweep's slices)."""
     if not scene.actors_move or not np.any(t_offset_s):
         return scene.cast(rays, exclude, near_m, with_static=with_static)
     if with_static:
@@ -254,7 +257,7 @@ def _cast_binned(scene: TickScene, rays: np.ndarray, t_offset_s: np.ndarray, exc
     else:
         t = np.full(len(rays), np.inf, np.float32)
         gid = np.full(len(rays), scene.miss, np.int32)
-    lo = float(t_offset_s.min())
+    lo = float(t_offset_s.min()) if lo_s is None else lo_s
     width = (0.0 - lo) / ACTOR_TIME_BINS or 1.0
     # only rays that meet an actor's swept box (before the static world, unless they start inside a
     # box, where the first box hit is its far side) can meet the actor at its own time
@@ -453,7 +456,8 @@ def _through_crowns(scene: TickScene, rays: np.ndarray, t: np.ndarray, gid: np.n
         if t_offset_s is None:
             t3, g3 = scene.cast(r3, exclude_track)
         else:
-            t3, g3 = _cast_binned(scene, r3, t_offset_s[idx[out]], exclude_track, near_m=0.0)
+            t3, g3 = _cast_binned(scene, r3, t_offset_s[idx[out]], exclude_track, near_m=0.0,
+                                  lo_s=float(t_offset_s.min()))
         t[idx[out]] = entry[out] + eps + far + t3
         gid[idx[out]] = g3
     return t, gid
