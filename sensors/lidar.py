@@ -246,16 +246,19 @@ def firing_rays(d_sensor: np.ndarray, t_offset_s: np.ndarray, pose: Pose, agent:
 
 
 def _cast_binned(scene: TickScene, rays: np.ndarray, t_offset_s: np.ndarray, exclude: int | None,
-                 with_static: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Cast with the actors moved to the time of each firing (in :data:`ACTOR_TIME_BINS` slices)."""
+                 with_static: bool = True, near_m: float = MIN_RANGE_M,
+                 lo_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Cast with the actors moved to the time of each firing (in :data:`ACTOR_TIME_BINS` slices of
+    [``lo_s``, 0], by default from the earliest of ``t_offset_s``: a subset of a sweep's rays given its
+    sweep's ``lo_s`` reuses the actor scenes cached for the sweep's slices)."""
     if not scene.actors_move or not np.any(t_offset_s):
-        return scene.cast(rays, exclude, MIN_RANGE_M, with_static=with_static)
+        return scene.cast(rays, exclude, near_m, with_static=with_static)
     if with_static:
-        t, gid = scene.cast(rays, exclude, MIN_RANGE_M, with_actors=False)
+        t, gid = scene.cast(rays, exclude, near_m, with_actors=False)
     else:
         t = np.full(len(rays), np.inf, np.float32)
         gid = np.full(len(rays), scene.miss, np.int32)
-    lo = float(t_offset_s.min())
+    lo = float(t_offset_s.min()) if lo_s is None else lo_s
     width = (0.0 - lo) / ACTOR_TIME_BINS or 1.0
     # only rays that meet an actor's swept box (before the static world, unless they start inside a
     # box, where the first box hit is its far side) can meet the actor at its own time
@@ -267,7 +270,7 @@ def _cast_binned(scene: TickScene, rays: np.ndarray, t_offset_s: np.ndarray, exc
     bins = np.minimum(((t_offset_s[near] - lo) / width).astype(np.int64), ACTOR_TIME_BINS - 1)
     for b in np.unique(bins):
         idx = near[bins == b]
-        ta, ga = _cast_actors_without(scene, rays[idx], exclude, lo + (b + 0.5) * width)
+        ta, ga = _cast_actors_without(scene, rays[idx], exclude, lo + (b + 0.5) * width, near_m)
         nearer = ta < t[idx]
         t[idx[nearer]] = ta[nearer]
         gid[idx[nearer]] = ga[nearer]
@@ -275,11 +278,11 @@ def _cast_binned(scene: TickScene, rays: np.ndarray, t_offset_s: np.ndarray, exc
 
 
 def _cast_actors_without(scene: TickScene, rays: np.ndarray, exclude: int | None,
-                         dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+                         dt_s: float, near_m: float = MIN_RANGE_M) -> tuple[np.ndarray, np.ndarray]:
     """Actors alone at ``dt_s`` from the tick, ignoring ``exclude``'s own shape: one scene of all actors
     per time (shared by every sensor); rays that meet the own shape go on from just past each of its
     faces (its parts, body, cabin and wheels, are closed boxes and cylinders: a few faces each)."""
-    t, gid = scene.cast(rays, None, MIN_RANGE_M, with_static=False, dt_s=dt_s)
+    t, gid = scene.cast(rays, None, near_m, with_static=False, dt_s=dt_s)
     if exclude is None:
         return t, gid
     track = np.concatenate([scene.actor_track, [-1]])
@@ -338,7 +341,7 @@ def render_lidar(
     else:
         t, gid = _cast_binned(scene, rays, t_off_s, exclude_track)
     if noise:  # foliage lets part of the beams through (drawn first: the crowns decide what a beam hits)
-        t, gid = _through_crowns(scene, rays, t, gid, rng.random(n), exclude_track)
+        t, gid = _through_crowns(scene, rays, t, gid, rng.random(n), exclude_track, t_off_s)
     hit = t <= spec.range_m
     r = np.where(hit, t, 0.0).astype(np.float64)
 
@@ -429,12 +432,13 @@ def _surface_intensity(scene: TickScene, atm: Atmosphere, gid: np.ndarray, d_map
 
 
 def _through_crowns(scene: TickScene, rays: np.ndarray, t: np.ndarray, gid: np.ndarray, u: np.ndarray,
-                    exclude_track: int | None) -> tuple[np.ndarray, np.ndarray]:
+                    exclude_track: int | None, t_offset_s: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Beams into a porous crown (leaf density mu > 0, :mod:`cosim.sensors.assets.vegetation`): each
     travels a free path -ln(1 - u) / mu into it (Beer-Lambert); shorter than the way to the crown's far
     side (or a branch inside), it returns from the leaves there; else it goes on, to the branch or on
-    through the crown to whatever lies behind. ``rays`` have unit directions; ``t``, ``gid`` are the
-    first hits, returned updated."""
+    through the crown to whatever lies behind, the actors there at each firing's time ``t_offset_s``
+    (s from the tick; None: at the tick). ``rays`` have unit directions; ``t``, ``gid`` are the first
+    hits, returned updated."""
     dens = np.take(scene.labels["leaf_density"], gid)
     idx = np.nonzero((dens > 0) & np.isfinite(t))[0]
     if not len(idx):
@@ -458,7 +462,11 @@ def _through_crowns(scene: TickScene, rays: np.ndarray, t: np.ndarray, gid: np.n
         r3 = r[out].copy()
         far = np.where(np.isfinite(t2[out]), t2[out], 0.0) + eps
         r3[:, :3] += far[:, None] * r3[:, 3:]
-        t3, g3 = scene.cast(r3, exclude_track)
+        if t_offset_s is None:
+            t3, g3 = scene.cast(r3, exclude_track)
+        else:
+            t3, g3 = _cast_binned(scene, r3, t_offset_s[idx[out]], exclude_track, near_m=0.0,
+                                  lo_s=float(t_offset_s.min()))
         t[idx[out]] = entry[out] + eps + far + t3
         gid[idx[out]] = g3
     return t, gid
