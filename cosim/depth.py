@@ -18,7 +18,7 @@ DEPTH_QUANTUM_M = 2.0**-10
 _DEPTH_MAGIC = b"CDP2"  # format 1.4; b"CDP1" (formats 1.2 and 1.3: four byte planes of the residuals) is still read
 _DEPTH_MAGIC_V1 = b"CDP1"
 _DEPTH_HEAD = struct.Struct("<4sII")  # magic, width, height
-_DEPTH_ZSTD_LEVEL = 3
+_DEPTH_ZSTD_LEVEL = 9  # 3.3 % fewer depth bytes than level 3 for about 3 ms more per 1280x720 image (docs 3.5)
 #: Residual codes 0, 1 and 2 (r = 0, -1, 1) are the residual; code 3 says "look in the escapes".
 _ESCAPE = 3
 

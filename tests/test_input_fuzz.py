@@ -37,6 +37,9 @@ EXTREME = [0, -1, 2**31, 2**63, -(2**63), 2**64 + 1, 10**400, 1e308, -1e308, 5e-
 NON_FINITE = [math.nan, math.inf, -math.inf]
 CONTROL = ["\x00", "\x01", "\x07", "\x08", "\x1b", "\x7f", "\x85", "\ufeff", "\u2028", "\x0c"]
 
+# the tests that count what the properties tried read RUNS after them: one worker, in file order
+pytestmark = pytest.mark.resource("input_fuzz")
+
 RUNS: collections.Counter[str] = collections.Counter()
 
 
