@@ -64,6 +64,70 @@ def test_voxelise_puts_points_in_their_pillars_and_caps_them():
     assert sorted(map(tuple, c2.tolist())) == sorted(map(tuple, coords.tolist()))
 
 
+def test_voxelise_keeps_every_agents_share_of_an_overfull_pillar():
+    # a merged cloud lists the ego's points first: 40 of them, then 40 of a collaborator, in one pillar
+    g = Grid(x_range=(-4.0, 4.0), y_range=(-4.0, 4.0), pillar_m=1.0, max_points=8, max_pillars=100)
+    ego = np.tile([[0.2, 0.2, -1.0, 1.0]], (40, 1))
+    other = np.tile([[0.7, 0.7, -1.0, 0.5]], (40, 1))
+    few = np.array([[2.5, 2.5, -1.0, 0.1], [2.5, 2.5, -1.0, 0.2]])
+    feats, coords, counts = voxelise(np.concatenate([ego, other, few]).astype(np.float32), g)
+    by_cell = {tuple(c): (f, n) for c, f, n in zip(coords.tolist(), feats, counts.tolist(), strict=True)}
+    f, n = by_cell[(4, 4)]
+    assert n == 8
+    assert sorted(f[:, 3].tolist()) == [0.5] * 4 + [1.0] * 4  # half the kept points are the collaborator's
+    f, n = by_cell[(6, 6)]
+    assert n == 2 and f[:2, 3].tolist() == pytest.approx([0.1, 0.2])  # a pillar under the cap keeps all, in order
+
+
+def test_inside_box_is_the_rotated_footprint():
+    from cosim.learn.data import inside_box
+
+    box = np.array([[10.0, 0.0, -1.0, 4.0, 2.0, 1.5, np.pi / 2]])  # 4 m long along y, 2 m wide along x
+    xy = np.array([[10.0, 1.9], [10.0, 2.1], [10.9, 0.0], [11.1, 0.0], [11.1, 0.0]])
+    assert inside_box(xy[:4], box)[:, 0].tolist() == [True, False, True, False]
+    assert inside_box(xy[4:], box, margin_m=0.2)[:, 0].tolist() == [True]
+
+
+class _OneSample:
+    """A stand-in for CooperativeDataset: one ego, one collaborator, the ego's own box and one car."""
+
+    def __init__(self):
+        ego_box = [0.0, 0.0, -1.0, 4.6, 1.9, 1.5, 0.0]
+        car = [20.0, 5.0, -1.0, 4.4, 1.8, 1.5, 0.3]
+        on_ego = np.array([[x, y, -0.5, 0.3] for x in (-2.0, 0.0, 2.0) for y in (-0.8, 0.8)], np.float32)
+        on_car = np.array([[20.0 + dx, 5.0, -0.8, 0.4] for dx in (-1.0, 0.0, 1.0)], np.float32)
+        ground = np.array([[8.0, -3.0, -1.9, 0.1]], np.float32)
+        collab_to_ego = np.eye(4)
+        collab_to_ego[:3, 3] = [30.0, 0.0, 0.0]  # the collaborator's LiDAR 30 m ahead of the ego's
+        collab = np.concatenate([on_ego, on_car, ground]) - np.array([30.0, 0.0, 0.0, 0.0], np.float32)
+        self.sample = {
+            "episode": "ep.mcap", "tick": 0, "ego": "vehicle_0", "agents": ["vehicle_0", "vehicle_1"],
+            "lidar": [ground.copy(), collab], "lidar_to_ego": np.stack([np.eye(4), collab_to_ego]),
+            "lidar_instance": [np.zeros(1, np.int64), np.array([7] * 6 + [9] * 3 + [0], np.int64)],
+            "boxes": np.array([ego_box, car], np.float32), "track_ids": np.array([7, 9]), "classes": ["car", "car"],
+        }
+
+    def __getitem__(self, index):
+        return self.sample
+
+
+@pytest.mark.parametrize("fusion", ["early", "late"])
+def test_collaborators_returns_on_the_ego_are_cut_and_the_ego_is_no_target(fusion):
+    from cosim.learn.data import Samples, Setup
+
+    samples = Samples.__new__(Samples)  # the sample logic alone, on a stand-in dataset
+    samples.setup, samples.ds = Setup(fusion=fusion, agents="all"), _OneSample()
+    samples.ids = {Path("ep.mcap").resolve(): "ep"}
+    item = samples.item(0)
+    merged = np.concatenate(item["clouds"])
+    assert len(merged) == 1 + 3 + 1  # ego: 1 ground point; collaborator: 3 on the car, 1 ground, not its 6 on the ego
+    assert not ((np.abs(merged[:, 0]) < 2.6) & (np.abs(merged[:, 1]) < 1.3)).any()
+    collab_boxes = item["targets"][-1][0]
+    assert collab_boxes[:, :2].tolist() == [[20.0, 5.0]]  # the car the collaborator sees; the ego's box is none
+    if fusion == "late":
+        assert len(item["targets"][0][0]) == 0  # the ego's own cloud sees no object
+
+
 def test_voxelise_keeps_the_fullest_pillars_when_too_many():
     g = Grid(x_range=(-4.0, 4.0), y_range=(-4.0, 4.0), pillar_m=1.0, max_points=4, max_pillars=2)
     pts = np.array([[0.5, 0.5, 0, 1]] * 3 + [[1.5, 0.5, 0, 1]] + [[-2.5, -2.5, 0, 1]] * 2, np.float32)

@@ -15,8 +15,10 @@ dataset's defaults: 120 m for vehicles and RSUs, 180 m for drones). With ``deliv
 collaborator's data reaches the ego only if its ``/comm/links`` link to the ego delivers at that tick
 (drawn with the link's ``delivery`` probability, seeded by episode, tick and link, so it is repeatable).
 
-Training targets of a cloud are the boxes of the model's classes with at least ``min_points`` LiDAR returns
-from the agents whose points make that cloud (the "visible" ground truth of ``cosim eval --visible-only``).
+Every cloud loses its points on the ego's own body (inside the ego's box, grown by :data:`EGO_MARGIN_M`):
+collaborators see the ego, which is never ground truth. Training targets of a cloud are the boxes of the
+model's classes with at least ``min_points`` LiDAR returns from the agents whose points make that cloud
+(the "visible" ground truth of ``cosim eval --visible-only``).
 """
 
 from __future__ import annotations
@@ -35,6 +37,9 @@ from cosim.io.dataset import PAPER_COMM_RANGE_M, CooperativeDataset
 from cosim.learn.grid import Grid
 
 FUSIONS: tuple[str, ...] = ("none", "late", "early")
+#: Margin around the ego's own box inside which points are dropped from every cloud (collaborators see the
+#: ego's body; it is never ground truth, so a model would learn a vehicle there that scores as a false positive).
+EGO_MARGIN_M = 0.3
 
 
 @dataclass(frozen=True)
@@ -123,7 +128,9 @@ class Samples:
         kinds = set(SETTINGS[setup.agents])
         # agents out of the setting never take part: a negative range leaves them out of the samples
         comm = {k: (v if k in kinds else -1.0) for k, v in PAPER_COMM_RANGE_M.items()}
-        self.ds = CooperativeDataset([r.path for r in refs], classes=setup.classes, every=every, comm_range_m=comm)
+        # the ego's own box comes with the others so that the ego's body can be cut out of the clouds (item)
+        self.ds = CooperativeDataset([r.path for r in refs], classes=setup.classes, every=every, comm_range_m=comm,
+                                     include_ego_box=True)
         if len(self.ds) == 0:
             raise InputError(f"no samples in {len(refs)} episode(s): they have no connected vehicles to serve as ego")
         self._links: dict[Path, Any] = {}
@@ -166,15 +173,23 @@ class Samples:
         if setup.delivery and len(use) > 1:
             use = self._delivered_agents(path, episode, s["tick"], s["ego"], use)
         idx = [agents.index(a) for a in use]
+        boxes, track_ids, classes = s["boxes"], s["track_ids"], list(s["classes"])
+        own = np.nonzero(inside_box(np.zeros((1, 2)), boxes)[0])[0] if len(boxes) else np.zeros(0, np.int64)
+        ego_box = boxes[own[0]] if len(own) else None
+        if len(own):  # the ego's own box: never a target (nor ground truth in cosim eval)
+            rest = np.setdiff1d(np.arange(len(boxes)), own[:1])
+            boxes, track_ids, classes = boxes[rest], track_ids[rest], [classes[i] for i in rest]
         clouds_by_agent = []
         for i in idx:
             p = s["lidar"][i]
             t = s["lidar_to_ego"][i]
             xyz = p[:, :3] @ t[:3, :3].T.astype(np.float32) + t[:3, 3].astype(np.float32)
-            clouds_by_agent.append(np.concatenate([xyz, p[:, 3:4]], axis=1).astype(np.float32))
+            cloud = np.concatenate([xyz, p[:, 3:4]], axis=1).astype(np.float32)
+            if ego_box is not None:  # the ego knows its own body: collaborators' returns on it are not an object
+                cloud = cloud[~inside_box(cloud[:, :2], ego_box[None], EGO_MARGIN_M)[:, 0]]
+            clouds_by_agent.append(cloud)
         groups = [[k] for k in range(len(idx))] if setup.fusion == "late" else [list(range(len(idx)))]
-        boxes = s["boxes"]
-        labels = np.array([setup.classes.index(c) for c in s["classes"]], np.int64)
+        labels = np.array([setup.classes.index(c) for c in classes], np.int64)
         clouds, sources, targets = [], [], []
         for g in groups:
             clouds.append(setup.grid.crop(np.concatenate([clouds_by_agent[k] for k in g], axis=0)))
@@ -182,12 +197,22 @@ class Samples:
             inst = np.concatenate([s["lidar_instance"][idx[k]] for k in g])
             tracks, counts = np.unique(inst, return_counts=True)
             hits = dict(zip(tracks.tolist(), counts.tolist(), strict=True))
-            seen = np.array([hits.get(int(t), 0) >= setup.min_points for t in s["track_ids"]], bool)
+            seen = np.array([hits.get(int(t), 0) >= setup.min_points for t in track_ids], bool)
             if len(boxes):
                 seen &= setup.grid.box_inside(boxes[:, :2])
             targets.append((boxes[seen].astype(np.float64), labels[seen]))
         return {"episode": episode, "tick": int(s["tick"]), "ego": s["ego"], "clouds": clouds, "sources": sources,
                 "targets": targets}
+
+
+def inside_box(xy: np.ndarray, boxes: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
+    """(N, M) bool: point n (x, y) lies inside the bird's-eye footprint of box m ([x, y, z, l, w, h, yaw]),
+    grown by ``margin_m`` on every side."""
+    d = xy[:, None, :2] - boxes[None, :, :2]
+    c, s = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+    along = d[..., 0] * c + d[..., 1] * s
+    across = -d[..., 0] * s + d[..., 1] * c
+    return (np.abs(along) <= boxes[:, 3] / 2 + margin_m) & (np.abs(across) <= boxes[:, 4] / 2 + margin_m)
 
 
 def augment(cloud: np.ndarray, boxes: np.ndarray, flip_x: bool, flip_y: bool) -> tuple[np.ndarray, np.ndarray]:

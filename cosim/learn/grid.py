@@ -74,9 +74,10 @@ def voxelise(points: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray, np
     """Pillars of a point cloud (N, 4: x, y, z, intensity) in the grid's frame.
 
     Returns ``features`` (P, max_points, 9) float32, ``coords`` (P, 2) int64 (row iy, column ix) and
-    ``counts`` (P,) points per pillar (<= max_points). Points are kept in their given order within a pillar
-    (the first ``max_points``); when more than ``max_pillars`` pillars are occupied, the fullest are kept
-    (ties by grid index), so the result depends only on the points.
+    ``counts`` (P,) points per pillar (<= max_points). Points are kept in their given order within a pillar;
+    a pillar with more than ``max_points`` keeps ``max_points`` of them evenly spaced through that order (so
+    every agent of a merged cloud keeps its share); when more than ``max_pillars`` pillars are occupied, the
+    fullest are kept (ties by grid index), so the result depends only on the points.
     """
     pts = grid.crop(np.asarray(points, np.float32))
     m = grid.max_points
@@ -98,7 +99,13 @@ def voxelise(points: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray, np
         uniq, counts = uniq[sel], counts[sel]
         flat_s, pts_s, rank = flat_s[point_sel], pts_s[point_sel], rank[point_sel]
     pillar = np.repeat(np.arange(len(uniq)), counts)
-    ok = rank < m
+    # a pillar with more than m points keeps m of them evenly spaced through its points' order (the j-th kept
+    # is the floor(j n / m)-th): with the ego's cloud first, the first m would drop every collaborator's point
+    # wherever the ego's fill the pillar
+    total = np.repeat(counts, counts)
+    full = total > m
+    ok = ~full | ((rank * m) % total < m)
+    rank = np.where(full, (rank * m) // total, rank)
     pillar, rank, p = pillar[ok], rank[ok], pts_s[ok]
     n = np.minimum(counts, m)
     feats = np.zeros((len(uniq), m, POINT_FEATURES), np.float32)
