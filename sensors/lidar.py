@@ -432,13 +432,13 @@ def _surface_intensity(scene: TickScene, atm: Atmosphere, gid: np.ndarray, d_map
 
 
 def _through_crowns(scene: TickScene, rays: np.ndarray, t: np.ndarray, gid: np.ndarray, u: np.ndarray,
-                    exclude_track: int | None, t_offset_s: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    exclude_track: int | None, t_offset_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Beams into a porous crown (leaf density mu > 0, :mod:`cosim.sensors.assets.vegetation`): each
     travels a free path -ln(1 - u) / mu into it (Beer-Lambert); shorter than the way to the crown's far
     side (or a branch inside), it returns from the leaves there; else it goes on, to the branch or on
     through the crown to whatever lies behind, the actors there at each firing's time ``t_offset_s``
-    (s from the tick; None: at the tick). ``rays`` have unit directions; ``t``, ``gid`` are the first
-    hits, returned updated."""
+    (N,) [s from the tick; zeros: at the tick]. ``rays`` have unit directions; ``t``, ``gid`` are the
+    first hits, returned updated."""
     dens = np.take(scene.labels["leaf_density"], gid)
     idx = np.nonzero((dens > 0) & np.isfinite(t))[0]
     if not len(idx):
@@ -462,11 +462,8 @@ def _through_crowns(scene: TickScene, rays: np.ndarray, t: np.ndarray, gid: np.n
         r3 = r[out].copy()
         far = np.where(np.isfinite(t2[out]), t2[out], 0.0) + eps
         r3[:, :3] += far[:, None] * r3[:, 3:]
-        if t_offset_s is None:
-            t3, g3 = scene.cast(r3, exclude_track)
-        else:
-            t3, g3 = _cast_binned(scene, r3, t_offset_s[idx[out]], exclude_track, near_m=0.0,
-                                  lo_s=float(t_offset_s.min()))
+        t3, g3 = _cast_binned(scene, r3, t_offset_s[idx[out]], exclude_track, near_m=0.0,
+                              lo_s=float(t_offset_s.min()))
         t[idx[out]] = entry[out] + eps + far + t3
         gid[idx[out]] = g3
     return t, gid

@@ -282,7 +282,8 @@ def test_every_species_crown_passes_10_to_50_percent_of_lidar_rays():
         t, gid = scene.cast(rays)
         crown = np.take(scene.labels["leaf_density"], gid) > 0
         assert crown.sum() > 500
-        t2, g2 = _through_crowns(scene, rays, t, gid, np.random.default_rng(3).random(len(rays)), None)
+        t2, g2 = _through_crowns(scene, rays, t, gid, np.random.default_rng(3).random(len(rays)), None,
+                                 np.zeros(len(rays)))
         behind = np.take(scene.labels["instance"], g2[crown]) == 1_000_001
         assert 0.10 <= behind.mean() <= 0.50, (species, behind.mean())
         assert np.all(t2[crown] >= t[crown])  # never in front of the crown's surface
