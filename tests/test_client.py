@@ -74,7 +74,13 @@ class Loop:
     def finish(self, timeout_s: float = 300, *, read_client: bool = True) -> tuple[int, str]:
         _, err = self.run.communicate(timeout=timeout_s)
         if read_client and self.client.returncode != -signal.SIGKILL:
-            out, _ = self.client.communicate(timeout=30)
+            try:
+                out, _ = self.client.communicate(timeout=30)
+            except subprocess.TimeoutExpired:  # say why the run ended, not only that the client is still waiting
+                self.client.kill()
+                _, client_err = self.client.communicate()
+                raise AssertionError(f"the client did not end within 30 s of the run (exit {self.run.returncode})"
+                                     f"\nrun: {err[-2000:]}\nclient: {client_err[-2000:]}") from None
             self.output = out
             if not self.client_argv:
                 self.lines += [json.loads(x) for x in out.splitlines() if x.strip()]

@@ -7,6 +7,13 @@ cached outside the clone: the base as a Docker image tagged with the hash of ``d
 the wheels in ``$COSIM_CI_CACHE`` (default ``~/.cache/cosim-ci``) keyed by the hash of
 ``pyproject.toml``'s dependency lists. Containers run as the test's own user, so bind-mounted output stays removable.
 Deselect with ``-m "not container"``.
+
+The Docker daemon's storage outlives a CI run, so the fixtures clean up after the runs before them: a
+source change leaves the previous image and its build stage untagged (about 2 GB each), a changed
+``docker/base.sh`` or dependency list a stale base image or wheelhouse. Everything this module builds is
+labelled ``cosim-ci=1``; only untagged images with that label, base images of other hashes and other
+wheelhouses are removed. Then, when the daemon's disk has less room than one build takes, the tests skip
+and say how much is free (a full disk fails every other test running beside the build).
 """
 
 from __future__ import annotations
@@ -37,6 +44,11 @@ CACHE = Path(os.environ.get("COSIM_CI_CACHE", Path.home() / ".cache" / "cosim-ci
 BUILD_CONTEXT = ("Dockerfile", ".dockerignore", "pyproject.toml", "README.md", "cosim", "sensors", "exporters",
                  "scenarios", "sweeps")
 SMOKE = REPO / "sweeps" / "smoke.yaml"
+LABEL = "cosim-ci=1"
+# One build's peak on the daemon's disk: the context's wheels (0.7 GB) copied into the build stage, the
+# environment installed from them (2.1 GB), that environment copied into the final image (2.1 GB), the
+# context itself while it is sent, and room for the episodes the tests write.
+BUILD_NEEDS_BYTES = 8e9
 EPISODE_ARGS = ("scenarios/default.yaml", "--duration", "2", "--no-sensors", "--set", "map.size_m=300",
                 "--set", "traffic.density_veh_per_km=6", "-q")
 
@@ -74,6 +86,10 @@ def base_image() -> str:
     if problem:
         pytest.skip(problem)
     tag = f"cosim-base:bookworm-{_hash(REPO / 'docker' / 'base.sh')}"
+    _remove_stale_images(keep_base=tag)
+    problem = _disk_problem()
+    if problem:
+        pytest.skip(problem)
     if docker("image", "inspect", tag, check=False).returncode == 0:
         return tag
     if os.geteuid() != 0 or shutil.which("debootstrap") is None:
@@ -86,6 +102,30 @@ def base_image() -> str:
     return tag
 
 
+def _remove_stale_images(keep_base: str) -> None:
+    """Untagged images of earlier builds here (superseded final images and build stages), exited
+    containers of earlier runs and base images made from another ``docker/base.sh``."""
+    docker("container", "prune", "-f", "--filter", f"label={LABEL}", check=False)
+    docker("image", "prune", "-f", "--filter", f"label={LABEL}", check=False)  # dangling ones only
+    bases = docker("images", "cosim-base", "--format", "{{.Repository}}:{{.Tag}}", check=False).stdout.split()
+    stale = [b for b in bases if b != keep_base and b.startswith("cosim-base:bookworm-")]
+    if stale:
+        docker("rmi", *stale, check=False)
+        log.warning("removed stale base images %s", stale)
+
+
+def _disk_problem() -> str | None:
+    root = docker("info", "--format", "{{.DockerRootDir}}", check=False).stdout.strip()
+    try:
+        free = shutil.disk_usage(root).free
+    except OSError:  # a remote daemon, or a root directory this user cannot see: nothing to measure
+        return None
+    if free < BUILD_NEEDS_BYTES:
+        return (f"only {free / 1e9:.1f} GB free under Docker's {root}; building the image takes about "
+                f"{BUILD_NEEDS_BYTES / 1e9:.0f} GB")
+    return None
+
+
 def _dependencies_key() -> str:
     project = tomllib.loads((REPO / "pyproject.toml").read_text())
     deps = [project["build-system"]["requires"], project["project"]["dependencies"]]
@@ -96,6 +136,9 @@ def _dependencies_key() -> str:
 def wheelhouse() -> Path:
     """Every dependency as a wheel, built once per dependency list (the network is needed only then)."""
     path = CACHE / f"wheelhouse-{_dependencies_key()}"
+    for old in CACHE.glob("wheelhouse-*"):  # made for another dependency list
+        if old != path:
+            shutil.rmtree(old, ignore_errors=True)
     if (path / ".complete").exists():
         return path
     tmp = CACHE / f".wheelhouse-{uuid.uuid4().hex[:8]}"
@@ -134,9 +177,13 @@ def image(base_image: str, wheelhouse: Path, tmp_path_factory) -> str:
             shutil.copy2(whl, ctx / "wheelhouse" / whl.name)
     tag = "cosim-ci:test"
     started = time.monotonic()
-    r = subprocess.run(["nice", "-n", "10", "docker", "build", "--build-arg", f"BASE={base_image}", "-t", tag,
-                        str(ctx)], capture_output=True, text=True, timeout=1800)
-    assert r.returncode == 0, f"docker build failed:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
+    # The build stage is tagged too, so that only the stages of earlier builds are untagged (and removed
+    # by the next run's clean-up) while this one stays the layer cache of the next build.
+    for target, name in (("build", "cosim-ci:build-stage"), (None, tag)):
+        r = subprocess.run(["nice", "-n", "10", "docker", "build", "--build-arg", f"BASE={base_image}",
+                            "--label", LABEL, "-t", name, *(["--target", target] if target else []), str(ctx)],
+                           capture_output=True, text=True, timeout=1800)
+        assert r.returncode == 0, f"docker build failed:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
     size = docker("image", "inspect", tag, "--format", "{{.Size}}").stdout.strip()
     log.warning("image %s built in %.0f s, %.0f MB", tag, time.monotonic() - started, int(size) / 1e6)
     shutil.rmtree(ctx, ignore_errors=True)
@@ -148,7 +195,7 @@ def run_container(image: str, out: Path, *args: str, detach: bool = False, timeo
 
     A detached container is kept after it exits (for its status and log): remove it with ``docker rm``."""
     out.mkdir(parents=True, exist_ok=True)
-    cmd = ["run", "-u", f"{os.getuid()}:{os.getgid()}", "-v", f"{out}:/out", "--label", "cosim-ci=1"]
+    cmd = ["run", "-u", f"{os.getuid()}:{os.getgid()}", "-v", f"{out}:/out", "--label", LABEL]
     cmd.append("-d" if detach else "--rm")
     r = docker(*cmd, image, *args, timeout=timeout)
     return r.stdout.strip()
