@@ -76,13 +76,17 @@ $(VPY):
 	  fi; \
 	fi
 
+# setuptools announces every editable install of a mapped layout (cosim.sensors from sensors/) with a
+# boxed warning that is not a problem here: EDITABLE_QUIET hides that one message, nothing else.
+EDITABLE_QUIET := PYTHONWARNINGS="ignore:Editable installation"
+
 $(STAMP): pyproject.toml | $(VPY)
 	$(VPY) -m pip install --quiet --upgrade pip
-	$(VPY) -m pip install --quiet -e .
+	$(EDITABLE_QUIET) $(VPY) -m pip install --quiet -e .
 	@touch $@
 
 $(TEST_STAMP): $(STAMP)
-	$(VPY) -m pip install --quiet -e '.[test,learn]'
+	$(EDITABLE_QUIET) $(VPY) -m pip install --quiet -e '.[test,learn]'
 	@touch $@
 
 run: sysdeps $(STAMP)
