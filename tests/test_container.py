@@ -270,3 +270,38 @@ def test_three_shard_containers_fill_one_folder_like_a_local_batch(image, smoke_
     nodes = build_report(out, md_path=tmp_path / "report.md").stats["nodes"]
     assert sorted(n["episodes"] for n in nodes.values()) == [2, 2, 2]
     assert all(n["sim_per_wall"] > 0 for n in nodes.values())
+
+
+FAKE_DOCKER = """#!/bin/sh
+echo "$*" >> "$FAKE_DOCKER_LOG"
+case "$1 $2" in
+  "info --format") echo "$FAKE_DOCKER_ROOT" ;;
+  "images cosim-base") printf 'cosim-base:bookworm-old\\ncosim-base:bookworm-new\\ncosim-base:other\\n' ;;
+esac
+"""
+
+
+def test_clean_up_removes_earlier_builds_only_and_a_full_disk_skips_with_the_free_space(tmp_path, monkeypatch):
+    # A stand-in `docker` on PATH (no daemon needed): the clean-up's calls, and the disk check's answer.
+    bin_dir, calls = tmp_path / "bin", tmp_path / "calls.log"
+    bin_dir.mkdir()
+    (bin_dir / "docker").write_text(FAKE_DOCKER)
+    (bin_dir / "docker").chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    monkeypatch.setenv("FAKE_DOCKER_LOG", str(calls))
+    monkeypatch.setenv("FAKE_DOCKER_ROOT", str(tmp_path))
+
+    _remove_stale_images(keep_base="cosim-base:bookworm-new")
+    assert calls.read_text().splitlines() == [
+        "container prune -f --filter label=cosim-ci=1",
+        "image prune -f --filter label=cosim-ci=1",
+        "images cosim-base --format {{.Repository}}:{{.Tag}}",
+        "rmi cosim-base:bookworm-old",  # neither the base in use nor an image this module did not make
+    ]
+
+    free = shutil.disk_usage(tmp_path).free
+    monkeypatch.setattr(sys.modules[__name__], "BUILD_NEEDS_BYTES", free / 2)
+    assert _disk_problem() is None
+    monkeypatch.setattr(sys.modules[__name__], "BUILD_NEEDS_BYTES", free * 2 + 1e9)
+    problem = _disk_problem()
+    assert problem is not None and f"under Docker's {tmp_path}" in problem and " GB free " in problem
