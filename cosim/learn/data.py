@@ -128,7 +128,7 @@ class Samples:
         kinds = set(SETTINGS[setup.agents])
         # agents out of the setting never take part: a negative range leaves them out of the samples
         comm = {k: (v if k in kinds else -1.0) for k, v in PAPER_COMM_RANGE_M.items()}
-        # the ego's own box comes with the others so that the ego's body can be cut out of the clouds (item)
+        # the ego's own box comes with the others so that the ego's body can be cut out of the clouds
         self.ds = CooperativeDataset([r.path for r in refs], classes=setup.classes, every=every, comm_range_m=comm,
                                      include_ego_box=True)
         if len(self.ds) == 0:
