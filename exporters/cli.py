@@ -55,7 +55,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--masks", action="store_true", help="also semantic and instance images (AirV2X)")
     p.add_argument("--raw-lidar", action="store_true",
                    help="LiDAR points as fired (each in its firing's sensor frame), not compensated to the tick pose")
-    p.add_argument("--objects-at-tick", action="store_true",
-                   help="also move each moving object's points to where it is at the tick (its recorded velocity)")
+    motion = p.add_mutually_exclusive_group()
+    motion.add_argument("--objects-at-tick", dest="objects_at_tick", action="store_true", default=None,
+                        help="move each moving object's points to where it is at the tick, with its recorded "
+                             "velocity, as the datasets were recorded (the default, except with --raw-lidar)")
+    motion.add_argument("--object-motion", dest="objects_at_tick", action="store_false",
+                        help="keep each object's own motion over the sweep (nuScenes-style): a moving object's "
+                             "points trail its box by up to speed x 50 ms")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_export)
