@@ -384,3 +384,24 @@ def test_replay_urls_name_a_reachable_host():
     assert foxglove_url("::1", 9000) == "ws://[::1]:9000"
     assert reachable_endpoint("tcp/0.0.0.0:7447") == f"tcp/{socket.gethostname()}:7447"
     assert reachable_endpoint("tcp/10.0.0.5:7447") == "tcp/10.0.0.5:7447"
+
+
+def test_a_viewer_gone_without_a_clean_close_is_one_log_line(caplog):
+    """The foxglove-sdk logs an error for every message it fails to send to a viewer that went away: the replay
+    shows one warning per viewer, and repeats of any other foxglove-sdk error only once in a while."""
+    import logging
+
+    from cosim.io.replay import _viewer_gone_filtered
+
+    sdk = logging.getLogger("foxglove.websocket.connected_client")
+    with caplog.at_level(logging.INFO), _viewer_gone_filtered():
+        for _ in range(100):
+            sdk.error("Error sending to client 127.0.0.1:40001: IO error: Broken pipe (os error 32)")
+        sdk.error("Error receiving from client 127.0.0.1:40002: IO error: Connection reset by peer (os error 104)")
+        for _ in range(50):
+            sdk.error("some other failure")
+        logging.getLogger("cosim.io.replay").error("some other failure")  # not the SDK's: kept
+    lines = [(r.levelname, r.getMessage()) for r in caplog.records]
+    assert lines == [("WARNING", "Foxglove viewer 127.0.0.1:40001 went away without closing the connection"),
+                     ("WARNING", "Foxglove viewer 127.0.0.1:40002 went away without closing the connection"),
+                     ("ERROR", "some other failure"), ("ERROR", "some other failure")], lines

@@ -24,17 +24,21 @@ Messages are sent reliably with blocking congestion control, in log-time order.
 
 Stopping: ``stop`` is checked between messages and at least every ``STOP_POLL_S`` while waiting, and
 the Foxglove server and the Zenoh session are closed with a time limit each (``CLOSE_TIMEOUT_S``), so
-an interrupted replay ends promptly even when a WebSocket client has just gone away.
+an interrupted replay ends promptly even when a WebSocket client has just gone away. A viewer that
+goes away without a clean WebSocket close is one warning line (:class:`ViewerGoneFilter`), not one
+foxglove-sdk error per message it could not be sent.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import re
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -223,6 +227,68 @@ class _Foxglove:
         _close_within(stop_server, "the Foxglove server")
 
 
+_CLIENT = re.compile(r"client (\S+?):? ")
+_GONE = ("broken pipe", "connection reset", "without closing handshake", "os error 32", "os error 104",
+         "connection closed", "not connected")
+
+
+class ViewerGoneFilter(logging.Filter):
+    """Turns the foxglove-sdk's errors about a viewer that went away without a clean WebSocket close (one per
+    message it then fails to send: "Broken pipe", "Connection reset") into one warning per viewer, and
+    drops repeats of any other foxglove-sdk message within ``REPEAT_S`` (with a count when it comes back)."""
+
+    REPEAT_S = 10.0
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._gone: set[str] = set()
+        self._last: dict[str, tuple[float, int]] = {}  # message -> (when shown, dropped since)
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not record.name.startswith("foxglove") or record.levelno < logging.WARNING:
+            return True
+        decided = getattr(record, "_cosim_shown", None)  # one decision per record, whatever the handlers
+        if decided is None:
+            decided = record._cosim_shown = self._decide(record)
+        return decided
+
+    def _decide(self, record: logging.LogRecord) -> bool:
+        text = record.getMessage()
+        if any(g in text.lower() for g in _GONE):
+            m = _CLIENT.search(text)
+            who = m.group(1) if m else "?"
+            if who in self._gone:
+                return False
+            self._gone.add(who)
+            record.msg, record.args = f"Foxglove viewer {who} went away without closing the connection", None
+            record.levelno, record.levelname = logging.WARNING, "WARNING"
+            return True
+        now = time.monotonic()
+        shown, dropped = self._last.get(text, (-1e9, 0))
+        if now - shown < self.REPEAT_S:
+            self._last[text] = (shown, dropped + 1)
+            return False
+        self._last[text] = (now, 0)
+        if dropped:
+            record.msg, record.args = f"{text} (and {dropped} more like it)", None
+        return True
+
+
+@contextmanager
+def _viewer_gone_filtered() -> Iterator[None]:
+    """:class:`ViewerGoneFilter` on the root logger's handlers (where the foxglove-sdk's records end up:
+    a filter on a parent logger does not see its children's records) while the replay runs."""
+    flt = ViewerGoneFilter()
+    handlers = list(logging.getLogger().handlers)
+    for h in handlers:
+        h.addFilter(flt)
+    try:
+        yield
+    finally:
+        for h in handlers:
+            h.removeFilter(flt)
+
+
 def _close_within(close: Callable[[], None], what: str, timeout_s: float = CLOSE_TIMEOUT_S) -> None:
     """Run ``close`` in a helper thread and wait at most ``timeout_s``: shutting down never hangs the caller."""
     errors: list[BaseException] = []
@@ -256,7 +322,7 @@ def replay_episode(
     import zenoh
 
     stop = stop or threading.Event()
-    with open_episode(path) as ep:
+    with open_episode(path) as ep, _viewer_gone_filtered():
         try:
             topics = ep.select(opts.topics)
         except KeyError as exc:
