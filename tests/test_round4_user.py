@@ -201,3 +201,17 @@ def test_load_bound_scales_a_deadline_by_load_over_cores(monkeypatch):
     assert load_bound(3.0) == pytest.approx(3.0 * 11.7 / 2)  # the 5.9 s of the issue's SIGKILL test passes
     monkeypatch.setattr(os, "getloadavg", lambda: (0.5, 1.0, 1.0))
     assert load_bound(3.0) == 3.0
+
+
+# ---------------------------------------------------------------------------------------------- docs
+
+
+def test_docs_pedestrian_sizes_are_the_labelled_boxes():
+    """docs/events.md's pedestrian sizes are what ``people.posed_box`` labels (issue 37: it said every box was
+    0.5 x 0.6 x 1.75 m while statures vary from child to tall adult)."""
+    from benchmarks.docs_numbers import DOCS, blocks, pedestrian_boxes
+
+    text = (DOCS / "events.md").read_text()
+    [(start, end)] = [(s, e) for name, s, e in blocks(text) if name == "pedestrian_boxes"]
+    assert text[start:end] == pedestrian_boxes()
+    assert "0.5 x 0.6 x 1.75" not in text
