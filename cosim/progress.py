@@ -50,7 +50,8 @@ def progress_display(desc: str, enabled: bool = True, every_s: float = DEFAULT_E
     if enabled and tty:
         return _bar(desc, unit, out)
     first: list[tuple[int, float]] = []  # (step, time) of the first update: the rate counts from there
-    last, final = [clock()], [False]
+    created = clock()
+    last, final = [created], [False]
 
     def update(done: int, total: int) -> None:
         if not enabled or final[0] or done <= 0:
@@ -62,7 +63,8 @@ def progress_display(desc: str, enabled: bool = True, every_s: float = DEFAULT_E
             last[0] = now
             final[0] = done >= total
             d0, t0 = first[0]
-            per = (now - t0) / (done - d0) if done > d0 else None
+            # from the first update on; a first update that is also the last: from the display's creation
+            per = (now - t0) / (done - d0) if done > d0 else (now - created) / done if final[0] else None
             print(progress_line(desc, done, total, per, unit), file=out, flush=True)
 
     return update, lambda: None

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from cosim.errors import InputError
@@ -13,27 +12,21 @@ EXIT_OK = 0
 
 def cmd_export(args: argparse.Namespace) -> int:
     from cosim.exporters.export import ExportOptions, get_format, run_export
-    from tqdm import tqdm
+
+    from cosim.progress import progress_display
 
     get_format(args.format)  # an unknown format fails before any work
     if args.every < 1:
         raise InputError(f"--every must be >= 1, got {args.every}")
-    bar: list[tqdm] = []
-
-    def progress(done: int, total: int) -> None:
-        if not bar:
-            bar.append(tqdm(total=total, desc=f"export {args.format}", unit="agent-frame", file=sys.stderr,
-                            disable=args.quiet or not sys.stderr.isatty(), dynamic_ncols=True, mininterval=0.2))
-        bar[0].update(done - bar[0].n)
-
+    # a bar on a terminal, else a plain line every 10 s (cosim.progress)
+    progress, close = progress_display(f"export {args.format}", enabled=not args.quiet, unit="agent-frame")
     try:
         result = run_export(Path(args.source), args.format, Path(args.out),
                             ExportOptions(every=args.every, masks=args.masks, raw_lidar=args.raw_lidar,
                                           objects_at_tick=args.objects_at_tick),
                             split=args.split, workers=args.workers, progress=progress)
     finally:
-        if bar:
-            bar[0].close()
+        close()
     for p in result.written:
         print(f"exported {p}")
     for p in result.skipped:
