@@ -74,10 +74,11 @@ def children_of(pid: int) -> list[psutil.Process]:
 
 def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600,
             env: dict | None = None) -> subprocess.CompletedProcess:
-    """Run ``cosim`` in a fresh interpreter, as a user would."""
+    """Run ``cosim`` in a fresh interpreter, as a user would; ``timeout`` is for a quiet machine and grows with
+    the load (:func:`load_factor`), as the tests' own time limits do."""
     full_env = {**os.environ, **(env or {})}
     return subprocess.run([sys.executable, "-m", "cosim.cli", *args], cwd=cwd or REPO, capture_output=True,
-                          text=True, timeout=timeout, env=full_env)
+                          text=True, timeout=timeout * load_factor(), env=full_env)
 
 
 # ------------------------------------------------------------------------------ synthetic geometry
