@@ -302,14 +302,16 @@ class _ReplayProcess:
 
 
 def subscribe_with_default_config(endpoint: str, key: str, expected: int, out, timeout_s: float) -> None:
-    """Child process: Zenoh's default configuration plus only ``connect/endpoints``, as the README says."""
+    """Child process: Zenoh's default configuration plus only ``connect/endpoints``, and the payloads decoded with
+    ``decode_payload``, as the README says."""
     import zenoh
 
     conf = zenoh.Config()
     conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
     with zenoh.open(conf) as session:
         sub = session.declare_subscriber(key)
-        got = _collect(sub, expected, timeout_s, lambda sample: (str(sample.key_expr), sample.payload.to_bytes()))
+        got = _collect(sub, expected, timeout_s, lambda sample: (
+            str(sample.key_expr), decode_payload(sample.payload.to_bytes(), json.loads(sample.attachment.to_bytes()))))
     out.put(got)
 
 
