@@ -61,6 +61,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.clients is not None:
         names = [n.strip() for n in args.clients.split(",") if n.strip()]
         overrides.append("clients=" + json.dumps([{"name": n} for n in names]))
+    if args.progress_every < 0:
+        raise InputError(f"--progress-every must be >= 0 seconds, got {args.progress_every:g}")
     loaded = load_scenario(args.scenario, overrides)
     if args.listen:
         check_endpoint(args.listen)

@@ -99,6 +99,8 @@ def test_dry_run_prints_the_output_dir_that_will_be_used(tmp_path, capsys):
     assert yaml.safe_load(body)["output"]["dir"] == str(out)
     status, text, err = cli(capsys, "run", "default", "--dry-run")
     assert status == 0 and yaml.safe_load(text.split("\n", 1)[1])["output"]["dir"] == "out"
+    status, text, err = cli(capsys, "run", "default", "--dry-run", "--progress-every", "-1")
+    assert status == 2 and err == "cosim: error: --progress-every must be >= 0 seconds, got -1\n"
 
 
 # ---------------------------------------------------------------------------------------------- report
