@@ -154,7 +154,7 @@ def test_export_of_a_sweep_without_splits_says_its_folder_is_not_read_and_names_
     with caplog.at_level(logging.WARNING, logger="cosim.exporters.export"):
         status, out, err = cli(capsys, "export", str(root), "--format", "airv2x", "--out", str(tmp_path / "y"),
                                "--split", "train")
-    assert status == 0 and (tmp_path / "y" / "train").is_dir(), err
+    assert status == 0 and (tmp_path / "y" / "train").is_dir() and "1 sequence(s) written" in out, err
     assert not any("neither loader" in m for m in caplog.messages)
     assert "export airv2x: agent-frame 6 of 6 (100 %), " in err, err  # stderr not a terminal: a plain line
 
