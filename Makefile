@@ -31,12 +31,13 @@ EXTRAS      ?=
 DOCKER      ?= docker
 WHEEL_STAMP := wheelhouse/.stamp
 
-.PHONY: help run test test-fast sysdeps lint bench clean image base-image wheelhouse
+.PHONY: help run test test-fast test-under-load sysdeps lint bench clean image base-image wheelhouse
 
 help:
 	@echo "make run    generate the default episode ($(SCENARIO)) into out/"
 	@echo "make test   run the whole test suite ($(TEST_WORKERS) xdist workers: TEST_WORKERS=N)"
 	@echo "make test-fast  unit tests only (no engines, no cosim run processes)"
+	@echo "make test-under-load  the whole suite beside BUSY=2 busy-loop processes (a busy machine)"
 	@echo "make lint   ruff"
 	@echo "make bench  co-simulation overhead benchmark"
 	@echo "make image  Docker image $(IMAGE) (BASE=$(BASE) WHEELHOUSE=$(WHEELHOUSE) EXTRAS=$(EXTRAS))"
@@ -102,6 +103,12 @@ test: sysdeps $(TEST_STAMP)
 FAST_MARKS := not integration and not container and not cluster
 test-fast: sysdeps $(TEST_STAMP)
 	@set +e; COSIM_TEST_FAST=1 $(VPY) -m pytest $(XDIST) -m "$(FAST_MARKS)" $(PYTEST_ARGS); rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc
+
+# The whole suite on a simulated busy machine: BUSY processes spinning beside it (tests/under_load.py).
+BUSY ?= 2
+test-under-load: sysdeps $(TEST_STAMP)
+	@set +e; $(VPY) -m tests.under_load --busy $(BUSY) -- $(XDIST) $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc
 
 lint: $(TEST_STAMP)

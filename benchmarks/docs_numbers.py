@@ -197,6 +197,27 @@ def comm_urban(work: Work) -> str:
     return "```\n" + work.cosim("comm", str(episode)).rstrip("\n") + "\n```\n"
 
 
+PEDESTRIANS = 200  # the keys ped_0000 .. ped_0199, as SUMO names the pedestrians `cosim run` labels
+
+
+@producer("pedestrian_boxes")
+def pedestrian_boxes(work: Work | None = None) -> str:
+    """docs/events.md: the label boxes of pedestrians (``people.posed_box``, the box the traffic worker writes),
+    walking at 1.4 m/s at four gait phases and standing; min / median / max per dimension. Runs nothing."""
+    import numpy as np
+    from cosim.sensors.assets import people
+
+    keys = [f"ped_{i:04d}" for i in range(PEDESTRIANS)]
+    cases = {"walking, 1.4 m/s (4 gait phases)": [(k, ph, 1.4) for k in keys for ph in (0.0, 0.25, 0.5, 0.75)],
+             "standing": [(k, 0.0, 0.0) for k in keys]}
+    rows = []
+    for label, args in cases.items():
+        sizes = np.array([people.posed_box(*a)[0] for a in args])
+        rows.append([label, *(f"{lo:.2f} / {med:.2f} / {hi:.2f}" for lo, med, hi in
+                               zip(sizes.min(0), np.median(sizes, 0), sizes.max(0), strict=True))])
+    return _markdown(["pedestrian", "length [m]", "width [m]", "height [m]"], rows)
+
+
 def check(names: list[str] | None, work: Work, update: bool) -> int:
     """Regenerate the blocks (all, or those named), print the diff, rewrite when ``update``; 1 if they differed."""
     found = doc_blocks()

@@ -10,7 +10,7 @@ import json
 import logging
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import cosim
@@ -38,23 +38,12 @@ def _human_size(n: float) -> str:
     return f"{n:.1f} GiB"
 
 
-def _progress_bar(desc: str, enabled: bool) -> tuple[Callable[[int, int], None], Callable[[], None]]:
-    from tqdm import tqdm
-
-    bar: list[tqdm] = []
-
-    def update(done: int, total: int) -> None:
-        if not bar:
-            bar.append(tqdm(total=total, desc=desc, unit="tick", disable=not enabled or not sys.stderr.isatty(),
-                            file=sys.stderr,
-                            dynamic_ncols=True, mininterval=0.2))
-        bar[0].update(done - bar[0].n)
-
-    def close() -> None:
-        if bar:
-            bar[0].close()
-
-    return update, close
+def _wall_per_sim_s(wall_s: float, sim_s: float) -> str:
+    """The summary's speed: wall seconds per simulated second, and the real-time factor to 3 significant
+    digits (runs with sensors are far slower than real time: 0.00x said nothing)."""
+    if sim_s <= 0 or wall_s <= 0:
+        return "real-time factor n/a"
+    return f"{wall_s / sim_s:.3g} s per simulated second (real-time factor {sim_s / wall_s:.3g}x)"
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -72,6 +61,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.clients is not None:
         names = [n.strip() for n in args.clients.split(",") if n.strip()]
         overrides.append("clients=" + json.dumps([{"name": n} for n in names]))
+    if args.progress_every < 0:
+        raise InputError(f"--progress-every must be >= 0 seconds, got {args.progress_every:g}")
     loaded = load_scenario(args.scenario, overrides)
     if args.listen:
         check_endpoint(args.listen)
@@ -87,10 +78,14 @@ def cmd_run(args: argparse.Namespace) -> int:
         path = episode_path(loaded, out_dir)
         check_output_dir(path.parent, create=False)
         check_scenario_inputs(loaded)
+        resolved = dict(loaded.resolved)  # the YAML shows the output.dir this run would use (--out wins)
+        resolved["output"] = {**resolved.get("output", {}), "dir": str(out_dir)}
         print(f"# {path}: {loaded.scenario.n_ticks} ticks, {len(loaded.scenario.agent_ids())} agents")
-        print(yaml.safe_dump(loaded.resolved, sort_keys=False), end="")
+        print(yaml.safe_dump(resolved, sort_keys=False), end="")
         return EXIT_OK
-    update, close = _progress_bar(loaded.scenario.name, enabled=not args.quiet)
+    from cosim.progress import progress_display
+
+    update, close = progress_display(loaded.scenario.name, enabled=not args.quiet, every_s=args.progress_every)
     try:
         result = run_episode(loaded, out_dir, progress=update, listen=args.listen,
                              external_workers=args.external_workers, prefix=args.prefix,
@@ -104,7 +99,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         f"ticks    {result.ticks} at {s.tick_hz:g} Hz ({result.sim_time_s:g} s simulated)\n"
         f"actors   {result.actors} tracks; agents: {s.agents.vehicles.count} vehicles, "
         f"{s.agents.rsus.count} RSUs, {len(s.agents.drones)} drones\n"
-        f"wall     {result.wall_time_s:.1f} s, real-time factor {result.real_time_factor:.2f}x"
+        f"wall     {result.wall_time_s:.1f} s, {_wall_per_sim_s(result.wall_time_s, result.sim_time_s)}"
     )
     return EXIT_OK
 
@@ -158,6 +153,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--dry-run", action="store_true", help="check the scenario and the output folder and print "
                                                             "the resolved scenario (YAML); build and run nothing")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--progress-every", type=float, default=10.0, metavar="S",
+                     help="without a terminal, one progress line (tick k of n, s/tick, ETA) every S seconds "
+                          "(default 10)")
     run.set_defaults(func=cmd_run)
 
     sc = sub.add_parser("scenarios", help="list the shipped scenarios, one line each")

@@ -111,6 +111,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         wait_subscribers_s=args.wait,
         foxglove_port=args.foxglove,
         foxglove_host=args.foxglove_host or DEFAULT_FOXGLOVE_HOST,
+        compress=not args.raw,
     )
 
     def announce(where: ReplayEndpoints) -> None:
@@ -240,6 +241,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="HOST",
         help="address the Foxglove server listens on (default 127.0.0.1; 0.0.0.0 for other machines)",
     )
+    p.add_argument("--raw", action="store_true",
+                   help="send Zenoh payloads uncompressed (default: compressed as the file's chunks are, where "
+                        "that helps; the attachment's 'compression' says how)")
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser("render", help="PNG contact sheets per agent and a BEV plot for chosen ticks")

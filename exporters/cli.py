@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from cosim.errors import InputError
@@ -13,27 +12,21 @@ EXIT_OK = 0
 
 def cmd_export(args: argparse.Namespace) -> int:
     from cosim.exporters.export import ExportOptions, get_format, run_export
-    from tqdm import tqdm
+
+    from cosim.progress import progress_display
 
     get_format(args.format)  # an unknown format fails before any work
     if args.every < 1:
         raise InputError(f"--every must be >= 1, got {args.every}")
-    bar: list[tqdm] = []
-
-    def progress(done: int, total: int) -> None:
-        if not bar:
-            bar.append(tqdm(total=total, desc=f"export {args.format}", unit="agent-frame", file=sys.stderr,
-                            disable=args.quiet or not sys.stderr.isatty(), dynamic_ncols=True, mininterval=0.2))
-        bar[0].update(done - bar[0].n)
-
+    # a bar on a terminal, else a plain line every 10 s (cosim.progress)
+    progress, close = progress_display(f"export {args.format}", enabled=not args.quiet, unit="agent-frame")
     try:
         result = run_export(Path(args.source), args.format, Path(args.out),
                             ExportOptions(every=args.every, masks=args.masks, raw_lidar=args.raw_lidar,
                                           objects_at_tick=args.objects_at_tick),
                             split=args.split, workers=args.workers, progress=progress)
     finally:
-        if bar:
-            bar[0].close()
+        close()
     for p in result.written:
         print(f"exported {p}")
     for p in result.skipped:
@@ -55,7 +48,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--masks", action="store_true", help="also semantic and instance images (AirV2X)")
     p.add_argument("--raw-lidar", action="store_true",
                    help="LiDAR points as fired (each in its firing's sensor frame), not compensated to the tick pose")
-    p.add_argument("--objects-at-tick", action="store_true",
-                   help="also move each moving object's points to where it is at the tick (its recorded velocity)")
+    motion = p.add_mutually_exclusive_group()
+    motion.add_argument("--objects-at-tick", dest="objects_at_tick", action="store_true", default=None,
+                        help="move each moving object's points to where it is at the tick, with its recorded "
+                             "velocity, as the datasets were recorded (the default, except with --raw-lidar)")
+    motion.add_argument("--object-motion", dest="objects_at_tick", action="store_false",
+                        help="keep each object's own motion over the sweep (nuScenes-style): a moving object's "
+                             "points trail its box by up to speed x 50 ms")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_export)

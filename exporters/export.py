@@ -60,6 +60,8 @@ LIDAR_LABELS_DTYPE = np.dtype([("class_id", "<u1"), ("instance_id", "<u4"), ("ri
 AGENT_THREADS = min(4, os.cpu_count() or 1)
 #: Agent kinds of cosim episodes (docs/episode_format.md section 2).
 AGENT_KINDS = ("vehicle", "rsu", "drone")
+#: cosim split names whose folders the loaders read (each format maps them to its own folder names)
+LOADER_SPLITS = frozenset({"train", "val", "test"})
 #: Agents whose clouds are exported in the level frame at the LiDAR (:func:`level_frame`): a drone tilts as it
 #: accelerates and an RSU's LiDAR may be mounted tilted, while the loaders keep a box's yaw only in the LiDAR
 #: frame. A vehicle keeps its LiDAR's frame: it stands on the road like the objects around it.
@@ -87,9 +89,16 @@ class ExportOptions(BaseModel):
     # LiDAR points as fired (each in the sensor frame of its firing time) instead of compensated to the tick's
     # sensor pose with the recorded motion (cosim.io.deskew; docs/exports.md)
     raw_lidar: bool = False
-    # also move the points of each moving labelled object to where it is at the tick, with its recorded velocity
-    # (cosim.io.deskew.objects_to_tick; docs/exports.md); not with raw_lidar
-    objects_at_tick: bool = False
+    # move the points of each moving labelled object to where it is at the tick, with its recorded velocity
+    # (cosim.io.deskew.objects_to_tick; docs/exports.md), as CARLA's LiDAR (one instant per sweep) recorded both
+    # datasets; False keeps the objects' own motion over the sweep (nuScenes-style); None: True unless raw_lidar
+    objects_at_tick: bool | None = None
+
+    def resolved(self) -> ExportOptions:
+        """These options with the defaults that depend on others filled in (what the marker records)."""
+        if self.objects_at_tick is None:
+            return self.model_copy(update={"objects_at_tick": not self.raw_lidar})
+        return self
 
 
 # ------------------------------------------------------------------------------------- registry
@@ -166,6 +175,8 @@ class Source:
     split: str
     sha256: str
     size_bytes: int
+    sweep: str | None = None  # the batch's sweep name and episode id (from its manifest), None for a file
+    episode: str | None = None
 
 
 def find_sources(source: Path, split: str | None = None) -> list[Source]:
@@ -189,7 +200,8 @@ def find_sources(source: Path, split: str | None = None) -> list[Source]:
             continue
         size = path.stat().st_size
         sha = rec.get("sha256") if rec.get("size_bytes") == size else None
-        out.append(Source(path, split or str(rec.get("split") or "train"), sha or sha256_file(path), size))
+        out.append(Source(path, split or str(rec.get("split") or "train"), sha or sha256_file(path), size,
+                          rec.get("sweep"), rec.get("episode")))
     if not out:
         raise InputError(f"{source}: the manifest lists no finished episode")
     return sorted(out, key=lambda s: str(s.path))
@@ -244,7 +256,11 @@ class SequenceInfo:
             "environment": md.get("environment"),
             "strategies": list(md.get("strategies") or []),
             "agent_counts": counts,
-            "scenario": md.get("scenario"),
+            # the sweep an episode of a batch came from (its base scenario, e.g. ``paper``, is ``base_scenario``)
+            "scenario": self.source.sweep or md.get("scenario"),
+            "base_scenario": md.get("scenario"),
+            "sweep": self.source.sweep,
+            "episode": self.source.episode,
             "seed": md.get("seed"),
             "tick_hz": md.get("tick_hz"),
             "ticks": list(self.ticks),
@@ -563,11 +579,16 @@ def run_export(source: Path, fmt: str, out: Path, options: ExportOptions | None 
     cls = get_format(fmt)
     if options.raw_lidar and options.objects_at_tick:
         raise InputError("--objects-at-tick moves points of a compensated sweep; it cannot go with --raw-lidar")
+    options = options.resolved()
     if workers < 1:
         raise InputError(f"--workers must be >= 1, got {workers}")
     out = Path(out)
     check_output_dir(out)
     sources = find_sources(Path(source), split)
+    for unread in sorted({s.split for s in sources} - LOADER_SPLITS):
+        log.warning("%d episode(s) of split %r are exported into %s, which neither loader reads (a sweep "
+                    "without splits: puts its episodes in 'all'); give --split train, val or test to choose one",
+                    sum(s.split == unread for s in sources), unread, out / cls.split_dir(unread))
     names = sequence_names(sources)
     jobs = []
     skipped: list[Path] = []

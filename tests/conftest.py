@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.helpers import REPO, run_cli
+from tests.helpers import REPO, load_factor, run_cli
 
 #: ``make test-fast`` sets this: the lane of unit tests (``-m "not integration ..."``) must start no engine.
 FAST_LANE = os.environ.get("COSIM_TEST_FAST") == "1"
@@ -179,9 +179,32 @@ class _SuiteLock:
 _SUITE_LOCK = _SuiteLock()
 
 
-@pytest.hookimpl(wrapper=True)
+def _timeout_for_the_load(item: pytest.Item) -> None:
+    """pytest-timeout's limit of ``item`` (its ``timeout`` marker, else ``--timeout`` / the ini's), times the
+    machine's load factor now (:func:`tests.helpers.load_factor`): a limit that fits a quiet machine fits a
+    busy one too, where fixtures that build worlds and episodes take several times as long."""
+    marker = item.get_closest_marker("timeout")
+    if marker is not None:
+        base = marker.args[0] if marker.args else marker.kwargs.get("timeout")
+    else:
+        base = item.config.getoption("timeout", None) or item.config.getini("timeout")
+    try:
+        base = float(base)
+    except (TypeError, ValueError):
+        return
+    factor = load_factor()
+    if base > 0 and factor > 1:
+        kwargs = dict(marker.kwargs) if marker is not None else {}
+        kwargs.pop("timeout", None)
+        item.add_marker(pytest.mark.timeout(round(base * factor), *(marker.args[1:] if marker else ()), **kwargs),
+                        append=False)
+
+
+@pytest.hookimpl(wrapper=True, tryfirst=True)  # outside pytest-timeout's wrapper: its timer starts after this
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
-    """On an xdist worker, each test (its fixtures' set-up and teardown included) runs under the suite lock."""
+    """On an xdist worker, each test (its fixtures' set-up and teardown included) runs under the suite lock;
+    everywhere, its time limit scales with the machine's load (:func:`_timeout_for_the_load`)."""
+    _timeout_for_the_load(item)
     if not hasattr(item.config, "workerinput"):
         return (yield)
     exclusive = _exclusive(item)

@@ -26,6 +26,22 @@ SCENARIOS = REPO / "scenarios"
 SOURCE_ROOTS = {"cosim": REPO / "cosim", "cosim.sensors": REPO / "sensors", "cosim.exporters": REPO / "exporters"}
 
 
+# ------------------------------------------------------------------------------ a busy machine
+
+
+def load_factor() -> float:
+    """How many times busier than its cores this machine is: the larger of the 1- and 5-minute load averages
+    over the CPU count, at least 1. A quiet machine gives 1; two cores at load 12 give 6."""
+    return max(1.0, max(os.getloadavg()[:2]) / (os.cpu_count() or 1))
+
+
+def load_bound(seconds: float) -> float:
+    """A wall-clock bound for a test: ``seconds`` (what a quiet machine must meet; the product's deadline, which
+    benchmarks/fault_exit_times.py holds it to) times :func:`load_factor` measured now, at the check. A test
+    asserts behaviour (status, message, no orphans, no partial file); its bounds only catch a hang."""
+    return seconds * load_factor()
+
+
 def source_modules() -> dict[str, Path]:
     """Every module of the installed package in the checkout: import name -> file."""
     out = {}
@@ -58,10 +74,11 @@ def children_of(pid: int) -> list[psutil.Process]:
 
 def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600,
             env: dict | None = None) -> subprocess.CompletedProcess:
-    """Run ``cosim`` in a fresh interpreter, as a user would."""
+    """Run ``cosim`` in a fresh interpreter, as a user would; ``timeout`` is for a quiet machine and grows with
+    the load (:func:`load_factor`), as the tests' own time limits do."""
     full_env = {**os.environ, **(env or {})}
     return subprocess.run([sys.executable, "-m", "cosim.cli", *args], cwd=cwd or REPO, capture_output=True,
-                          text=True, timeout=timeout, env=full_env)
+                          text=True, timeout=timeout * load_factor(), env=full_env)
 
 
 # ------------------------------------------------------------------------------ synthetic geometry

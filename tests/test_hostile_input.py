@@ -298,7 +298,8 @@ def test_dry_run_prints_the_resolved_scenario_and_builds_nothing(tmp_path, capsy
     assert status == 0
     assert out.splitlines()[0] == f"# {tmp_path / 'default_s0.mcap'}: 15 ticks, 15 agents"
     resolved = yaml.safe_load(out)
-    assert resolved == load_scenario("default", ["sensors.drone.lidar.dropout=0.1"]).resolved
+    expected = load_scenario("default", ["sensors.drone.lidar.dropout=0.1"]).resolved
+    assert resolved == {**expected, "output": {**expected["output"], "dir": str(tmp_path)}}  # the --out used
     assert list(tmp_path.iterdir()) == []
 
 

@@ -91,6 +91,7 @@ def shipped_episodes(tmp_path_factory) -> tuple[dict[str, Path], str]:
     return files, v.stdout + v.stderr
 
 
+@pytest.mark.timeout(900)  # the first one builds the fixture: 19 episodes and their worlds (minutes when busy)
 @pytest.mark.parametrize("scenario", SHIPPED)
 def test_every_shipped_scenario_gives_a_valid_episode(shipped_episodes, scenario):
     files, validated = shipped_episodes

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -15,7 +16,7 @@ import psutil
 import pytest
 from mcap.reader import make_reader
 
-from tests.helpers import REPO, run_cli
+from tests.helpers import REPO, load_bound, run_cli
 
 pytestmark = pytest.mark.integration
 
@@ -118,7 +119,7 @@ def test_sigkill_of_a_worker_stops_the_run_within_3_s_naming_it_and_the_tick(tmp
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert elapsed < 3.0, elapsed
+    assert elapsed < load_bound(3.0), (elapsed, os.getloadavg())  # the 3 s deadline: benchmarks/fault_exit_times.py
     assert proc.returncode == 1
     assert f"{role} worker at tick" in err and "killed by signal 9" in err, err
     assert "Traceback" not in err

@@ -145,3 +145,30 @@ def test_instance_colours():
     assert (rgb[0, 1] == rgb[0, 4]).all() and len({tuple(c) for c in rgb[0, 1:4]}) == 3
     assert (rgb[0, 1:].max(axis=1) > 96).all()
     assert set(BOX_COLOURS) == set(OBJECT_CLASSES)
+
+
+def test_depth_colours_are_not_dark_at_both_ends_and_span_a_drones_range():
+    """A drone's nadir view holds ground 40-60 m away: its colours span that range (not 0 to 60 m), and the map
+    runs from bright (near) to dark (far), not dark at both ends as turbo_r did."""
+    import itertools
+
+    import matplotlib
+
+    from cosim.io.render import DEPTH_CMAP, depth_limits
+
+    rng = np.random.default_rng(0)
+    drone = rng.uniform(40.0, 60.0, (48, 64))
+    drone[:4] = np.inf  # no return
+    lo, hi = depth_limits(drone)
+    assert 40.0 <= lo < 41.0 and 59.0 < hi <= 60.0
+    assert depth_limits(np.full((2, 2), np.nan)) == (0.0, 1.0)
+
+    def lightness(rgba) -> float:
+        r, g, b = rgba[:3]
+        return 0.2126 * r + 0.7152 * g + 0.0722 * b
+
+    cmap = matplotlib.colormaps[DEPTH_CMAP]
+    ends = [lightness(cmap(0.0)), lightness(cmap(1.0))]
+    assert max(ends) > 0.6 and abs(ends[0] - ends[1]) > 0.5, ends
+    values = [lightness(cmap(x)) for x in np.linspace(0, 1, 11)]
+    assert all(a >= b for a, b in itertools.pairwise(values)), values  # brighter near, darker far, no dip

@@ -1,7 +1,8 @@
 """``cosim report DIR``: the dataset statistics the AirV2X-Perception paper shows, for a batch folder.
 
 Hours per split; shares of weather, lighting, environment (by driving time) and drone strategy (by
-drone time); objects per class (unique track ids per episode, summed); agents per scene; throughput
+drone time); bytes on disk, frames and visible objects per split and condition; objects per class
+(unique track ids per episode, summed); agents per scene; throughput
 per node (where each episode ran, from the manifest). Written as Markdown plus PNG plots
 (matplotlib, Agg backend).
 
@@ -39,6 +40,9 @@ class EpisodeStats:
     strategies: tuple[str, ...]
     agents: dict[str, int]  # kind (vehicle, rsu, drone) -> count
     objects: dict[str, int]  # class -> unique track ids
+    size_bytes: int = 0  # the episode file on disk
+    frames: int = 0  # ticks (``/labels/objects`` messages)
+    visible: int = 0  # object-frames: per tick, objects seen by at least one agent (``/<agent>/visibility``)
 
 
 @dataclass
@@ -55,19 +59,29 @@ def episode_stats(path: Path, episode: str = "", split: str = "all", duration_s:
     from mcap.reader import make_reader
 
     tracks: dict[str, set[int]] = defaultdict(set)
+    seen: dict[int, set[int]] = defaultdict(set)  # log time -> track ids some agent sees
+    frames = 0
     try:
         with open(path, "rb") as f:
             reader = make_reader(f)
             meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
-            for _schema, _channel, message in reader.iter_messages(topics=[OBJECTS_TOPIC]):
-                for obj in json.loads(message.data).get("objects", []):
+            ep = meta.get("episode")
+            if ep is None:
+                raise FormatError(f"{path}: no 'episode' metadata record")
+            names = json.loads(ep.get("agents", "[]"))
+            for _schema, channel, message in reader.iter_messages(
+                    topics=[OBJECTS_TOPIC, *(f"/{a}/visibility" for a in names)]):
+                doc = json.loads(message.data)
+                if channel.topic != OBJECTS_TOPIC:
+                    seen[message.log_time].update(int(o["track_id"]) for o in doc.get("objects", []))
+                    continue
+                frames += 1
+                for obj in doc.get("objects", []):
                     tracks[obj["class"]].add(int(obj["track_id"]))
+        size = path.stat().st_size
     except (OSError, ValueError, KeyError) as exc:
         raise FormatError(f"{path}: cannot read episode statistics: {exc}") from exc
-    ep = meta.get("episode")
-    if ep is None:
-        raise FormatError(f"{path}: no 'episode' metadata record")
-    agents = Counter(a.rsplit("_", 1)[0] for a in json.loads(ep.get("agents", "[]")))
+    agents = Counter(a.rsplit("_", 1)[0] for a in names)
     return EpisodeStats(
         episode=episode or path.stem, split=split,
         duration_s=float(duration_s if duration_s is not None else ep.get("duration_s", 0.0)),
@@ -75,6 +89,7 @@ def episode_stats(path: Path, episode: str = "", split: str = "all", duration_s:
         strategies=tuple(json.loads(ep.get("strategies", "[]"))),
         agents={k: agents.get(k, 0) for k in ("vehicle", "rsu", "drone")},
         objects={k: len(v) for k, v in sorted(tracks.items())},
+        size_bytes=size, frames=frames, visible=sum(len(v) for v in seen.values()),
     )
 
 
@@ -156,7 +171,24 @@ def summarize(episodes: list[EpisodeStats]) -> dict[str, Any]:
         "objects_per_class": dict(sorted(objects.items(), key=lambda kv: -kv[1])),
         "agents_per_scene": dict(sorted(agents_per_scene.items())),
         "agents_per_kind": {k: (min(v), sum(v) / len(v), max(v)) for k, v in per_kind.items()},
+        "size_per_split_condition": size_per_split_condition(episodes, order),
     }
+
+
+def size_per_split_condition(episodes: list[EpisodeStats], split_order: list[str]) -> dict[str, dict[str, Any]]:
+    """``"<split> <weather>/<lighting>/<environment>"`` -> episodes, bytes on disk, frames and visible
+    object-frames (per tick, the objects at least one agent sees), splits in ``split_order``."""
+    out: dict[tuple[int, str, str], dict[str, Any]] = {}
+    for e in episodes:
+        cond = "/".join(getattr(e, c) for c in CONDITIONS)
+        row = out.setdefault((split_order.index(e.split), e.split, cond),
+                             {"split": e.split, "condition": cond, "episodes": 0, "bytes": 0, "frames": 0,
+                              "visible": 0})
+        row["episodes"] += 1
+        row["bytes"] += e.size_bytes
+        row["frames"] += e.frames
+        row["visible"] += e.visible
+    return {f"{split} {cond}": row for (_i, split, cond), row in sorted(out.items())}
 
 
 def _fractions(c: Counter[str]) -> dict[str, float]:
@@ -242,6 +274,11 @@ def _markdown(stats: dict[str, Any], status: dict[str, int], images: list[Path],
     out += ["| split | episodes | hours |", "|---|---:|---:|"]
     for s, h in stats["hours_per_split"].items():
         out.append(f"| {s} | {stats['episodes_per_split'][s]} | {h:.4f} |")
+    out.append("")
+    out += ["| split | condition (weather/lighting/environment) | episodes | bytes on disk | frames | "
+            "visible objects (per frame, seen by an agent) |", "|---|---|---:|---:|---:|---:|"]
+    out += [f"| {r['split']} | {r['condition']} | {r['episodes']} | {r['bytes']:,} | {r['frames']} | {r['visible']} |"
+            for r in stats["size_per_split_condition"].values()]
     out.append("")
     for key, title, unit in (("weather", "weather", "hours"), ("lighting", "lighting", "hours"),
                              ("environment", "environment", "hours"), ("strategy", "drone strategy", "drone-hours")):

@@ -35,6 +35,9 @@ log = logging.getLogger(__name__)
 AGENT_STYLE = {"vehicle": ("o", "#1f77b4"), "rsu": ("s", "#d4a000"), "drone": ("^", "#d62728")}
 MAX_BEV_POINTS = 60_000  # per plot, subsampled evenly
 DEPTH_MAX_M = 120.0
+#: Depth colours: bright near, dark far, lightness monotonic (turbo_r, dark red near and dark blue far, made a
+#: drone's nadir view of ground 40-60 m away dark at both ends). No return (the sky) is white.
+DEPTH_CMAP = "viridis_r"
 NEAR_M = 0.1  # [m] box edges are cut where they pass behind this optical z
 #: Box outline colours on camera images: bright, so they stand out on roads, sky and at night.
 BOX_COLOURS: dict[str, tuple[int, int, int]] = {
@@ -217,6 +220,19 @@ def camera_with_boxes(ep: Episode, tick: Tick, agent: str, camera: str) -> np.nd
     return draw_segments(rgb, edges.reshape(-1, 2, 2), np.repeat(colours, edges.shape[1], axis=0), thickness)
 
 
+def depth_limits(depth_m: np.ndarray) -> tuple[float, float]:
+    """The depth range [m] a contact sheet's colours span: the image's own nearest to farthest return (1st and
+    99th percentile; far capped at ``DEPTH_MAX_M``), so a drone's narrow range of ground depths uses the whole
+    colour map instead of its dark end."""
+    d = depth_m[np.isfinite(depth_m) & (depth_m > 0)]
+    if d.size == 0:
+        return 0.0, 1.0
+    lo, hi = (float(v) for v in np.percentile(d, [1, 99]))
+    hi = min(hi, DEPTH_MAX_M)
+    lo = min(lo, hi - 1.0)
+    return max(0.0, lo), max(hi, 1.0)
+
+
 def _save(fig: Any, path: Path, dpi: int) -> Path:
     import io
 
@@ -258,7 +274,9 @@ def contact_sheet(ep: Episode, tick: Tick, agent: str, path: Path, dpi: int = 80
                 ax.imshow(camera_with_boxes(ep, tick, agent, cam))
             elif kind == "depth":
                 d = img.depth_m
-                shown = ax.imshow(d, cmap="turbo_r", vmin=0.0, vmax=min(DEPTH_MAX_M, float(np.nanmax(d, initial=1.0))))
+                cmap = plt.get_cmap(DEPTH_CMAP).with_extremes(bad="white")
+                shown = ax.imshow(np.where(np.isfinite(d), d, np.nan), cmap=cmap, vmin=(lim := depth_limits(d))[0],
+                                  vmax=lim[1])
                 fig.colorbar(shown, ax=ax, fraction=0.03, pad=0.01)
             elif kind == "semantic":
                 ax.imshow(colourise_semantic(img.array if img.array.ndim == 2 else img.array[..., 0], palette))

@@ -8,6 +8,13 @@ attachment is a small JSON object with ``topic``, ``log_time_ns``, ``sequence``,
 queryable at ``<prefix>_schema/<topic without slash>`` (outside ``<prefix>/**``, so a subscriber to
 the whole prefix receives messages only).
 
+Payloads travel as the file stores them: where the episode's chunks are compressed (zstd, the default,
+or lz4), every message that is not already compressed data (JPEG/PNG ``foxglove.CompressedImage``) and
+shrinks is sent compressed the same way, and its attachment names the codec (``"compression": "zstd"``;
+absent: the payload is the message as it is). Raw semantic, instance and BEV arrays, which the file
+holds zstd-compressed, so cost about as many bytes on the wire as on disk instead of 20 to 30 times as
+many. ``compress=False`` (``cosim replay --raw``) sends every payload as it is decoded.
+
 Zenoh follows cosim's conventions (cosim/transport.py): peer mode, multicast scouting off,
 endpoints given explicitly; by default the replayer listens on ``tcp/127.0.0.1:7447``. A subscriber
 therefore finds it only by connecting to that endpoint (``connect/endpoints``); a default Zenoh
@@ -17,17 +24,21 @@ Messages are sent reliably with blocking congestion control, in log-time order.
 
 Stopping: ``stop`` is checked between messages and at least every ``STOP_POLL_S`` while waiting, and
 the Foxglove server and the Zenoh session are closed with a time limit each (``CLOSE_TIMEOUT_S``), so
-an interrupted replay ends promptly even when a WebSocket client has just gone away.
+an interrupted replay ends promptly even when a WebSocket client has just gone away. A viewer that
+goes away without a clean WebSocket close is one warning line (:class:`ViewerGoneFilter`), not one
+foxglove-sdk error per message it could not be sent.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import re
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -57,6 +68,7 @@ class ReplayOptions:
     wait_subscribers_s: float = 5.0  # wait up to this long for a matching subscriber (0 = do not wait)
     foxglove_port: int | None = None
     foxglove_host: str = DEFAULT_FOXGLOVE_HOST
+    compress: bool = True  # Zenoh payloads compressed as the file's chunks are (module docstring)
 
 
 @dataclass(frozen=True)
@@ -114,6 +126,52 @@ def zenoh_encoding(message_encoding: str, schema_name: str) -> str:
     return f"{base};{schema_name}" if schema_name else base
 
 
+#: Payloads smaller than this are sent as they are (compression would not pay for its attachment entry).
+MIN_COMPRESS_BYTES = 256
+#: Schemas whose data is already compressed (JPEG, PNG, cosim-depth): sent as they are.
+PRECOMPRESSED_SCHEMAS = frozenset({"foxglove.CompressedImage"})
+
+
+class PayloadCodec:
+    """Compresses replay payloads with the episode file's chunk compression (``zstd``, ``lz4``; ``""``: none)."""
+
+    def __init__(self, compression: str):
+        self.name = compression if compression in ("zstd", "lz4") else ""
+        self._compress: Callable[[bytes], bytes] | None = None
+        if self.name == "zstd":
+            import zstandard
+
+            self._compress = zstandard.ZstdCompressor(level=1).compress  # smaller and faster than 3 here
+        elif self.name == "lz4":
+            import lz4.frame
+
+            self._compress = lz4.frame.compress
+
+    def encode(self, data: bytes, schema_name: str) -> tuple[bytes, str]:
+        """(payload, codec name or ``""``): ``data`` compressed where that makes it smaller."""
+        if self._compress is None or len(data) < MIN_COMPRESS_BYTES or schema_name in PRECOMPRESSED_SCHEMAS:
+            return data, ""
+        packed = self._compress(data)
+        return (packed, self.name) if len(packed) < 0.9 * len(data) else (data, "")
+
+
+def decode_payload(payload: bytes, attachment: dict[str, Any]) -> bytes:
+    """A replayed message's bytes as the episode stores them, from a Zenoh sample's payload and its decoded
+    JSON attachment (for subscribers: undoes the ``compression`` the replay applied)."""
+    codec = attachment.get("compression", "")
+    if codec == "zstd":
+        import zstandard
+
+        return zstandard.ZstdDecompressor().decompress(payload)
+    if codec == "lz4":
+        import lz4.frame
+
+        return lz4.frame.decompress(payload)
+    if codec:
+        raise ValueError(f"unknown replay payload compression {codec!r}")
+    return bytes(payload)
+
+
 def open_session(connect: list[str], listen: list[str]) -> Any:
     """A Zenoh peer session with multicast scouting off, linked only to the given endpoints."""
     import zenoh
@@ -169,6 +227,68 @@ class _Foxglove:
         _close_within(stop_server, "the Foxglove server")
 
 
+_CLIENT = re.compile(r"client (\S+?):? ")
+_GONE = ("broken pipe", "connection reset", "without closing handshake", "os error 32", "os error 104",
+         "connection closed", "not connected")
+
+
+class ViewerGoneFilter(logging.Filter):
+    """Turns the foxglove-sdk's errors about a viewer that went away without a clean WebSocket close (one per
+    message it then fails to send: "Broken pipe", "Connection reset") into one warning per viewer, and
+    drops repeats of any other foxglove-sdk message within ``REPEAT_S`` (with a count when it comes back)."""
+
+    REPEAT_S = 10.0
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._gone: set[str] = set()
+        self._last: dict[str, tuple[float, int]] = {}  # message -> (when shown, dropped since)
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not record.name.startswith("foxglove") or record.levelno < logging.WARNING:
+            return True
+        decided = getattr(record, "_cosim_shown", None)  # one decision per record, whatever the handlers
+        if decided is None:
+            decided = record._cosim_shown = self._decide(record)
+        return decided
+
+    def _decide(self, record: logging.LogRecord) -> bool:
+        text = record.getMessage()
+        if any(g in text.lower() for g in _GONE):
+            m = _CLIENT.search(text)
+            who = m.group(1) if m else "?"
+            if who in self._gone:
+                return False
+            self._gone.add(who)
+            record.msg, record.args = f"Foxglove viewer {who} went away without closing the connection", None
+            record.levelno, record.levelname = logging.WARNING, "WARNING"
+            return True
+        now = time.monotonic()
+        shown, dropped = self._last.get(text, (-1e9, 0))
+        if now - shown < self.REPEAT_S:
+            self._last[text] = (shown, dropped + 1)
+            return False
+        self._last[text] = (now, 0)
+        if dropped:
+            record.msg, record.args = f"{text} (and {dropped} more like it)", None
+        return True
+
+
+@contextmanager
+def _viewer_gone_filtered() -> Iterator[None]:
+    """:class:`ViewerGoneFilter` on the root logger's handlers (where the foxglove-sdk's records end up:
+    a filter on a parent logger does not see its children's records) while the replay runs."""
+    flt = ViewerGoneFilter()
+    handlers = list(logging.getLogger().handlers)
+    for h in handlers:
+        h.addFilter(flt)
+    try:
+        yield
+    finally:
+        for h in handlers:
+            h.removeFilter(flt)
+
+
 def _close_within(close: Callable[[], None], what: str, timeout_s: float = CLOSE_TIMEOUT_S) -> None:
     """Run ``close`` in a helper thread and wait at most ``timeout_s``: shutting down never hangs the caller."""
     errors: list[BaseException] = []
@@ -202,7 +322,7 @@ def replay_episode(
     import zenoh
 
     stop = stop or threading.Event()
-    with open_episode(path) as ep:
+    with open_episode(path) as ep, _viewer_gone_filtered():
         try:
             topics = ep.select(opts.topics)
         except KeyError as exc:
@@ -235,9 +355,10 @@ def replay_episode(
             if on_ready is not None:
                 on_ready(ReplayEndpoints(listen, list(opts.connect), opts.prefix, fox.url if fox else None))
             _wait_for_subscriber(list(publishers.values()), opts.wait_subscribers_s, stop)
+            codec = PayloadCodec(ep.chunk_compression if opts.compress else "")
             sent, loops, started = 0, 0, time.perf_counter()
             while not stop.is_set():
-                sent += _one_pass(ep, topics, publishers, opts.rate, stop, fox)
+                sent += _one_pass(ep, topics, publishers, opts.rate, stop, fox, codec)
                 loops += 1
                 if not opts.loop:
                     break
@@ -295,6 +416,7 @@ def _one_pass(
     rate: float,
     stop: threading.Event,
     fox: _Foxglove | None,
+    codec: PayloadCodec | None = None,
 ) -> int:
     first: int | None = None
     started = time.perf_counter()
@@ -308,18 +430,19 @@ def _one_pass(
         delay = due - time.perf_counter()
         if delay > 0 and _wait(stop, delay):
             break
-        attachment = json.dumps(
-            {
-                "topic": m.topic,
-                "log_time_ns": m.log_time_ns,
-                "sequence": m.sequence,
-                "schema": m.schema_name,
-                "encoding": m.message_encoding,
-            },
-            separators=(",", ":"),
-        ).encode()
+        payload, compression = codec.encode(m.data, m.schema_name) if codec is not None else (m.data, "")
+        meta = {
+            "topic": m.topic,
+            "log_time_ns": m.log_time_ns,
+            "sequence": m.sequence,
+            "schema": m.schema_name,
+            "encoding": m.message_encoding,
+        }
+        if compression:
+            meta["compression"] = compression
+        attachment = json.dumps(meta, separators=(",", ":")).encode()
         try:
-            publishers[m.topic].put(m.data, attachment=attachment)
+            publishers[m.topic].put(payload, attachment=attachment)
         except Exception as exc:  # zenoh raises its own error types
             raise CosimError(f"replay: publishing {m.topic} at t={m.log_time_ns} ns failed: {exc}") from None
         if fox is not None:

@@ -48,7 +48,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     print(f"run      {args.out}\n"
           f"data     {summary['train_samples']} samples from {summary['train_episodes']} episodes "
           f"(val: {summary['val_episodes']} episodes)\n"
-          f"steps    {summary['steps']}, final loss {summary['final_loss']}\n"
+          f"steps    {summary['steps']}, final loss "
+          f"{'-' if summary['final_loss'] is None else format(summary['final_loss'], '.4g')} "
+          "(summary.json: unrounded)\n"
           f"wall     {summary['train_s']:.1f} s training ({summary['val_s']:.1f} s of it validation) on "
           f"{summary['device']}")
     return EXIT_OK
