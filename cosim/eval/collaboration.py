@@ -67,11 +67,13 @@ def collaborators_in_range(ego: str, positions: dict[str, np.ndarray]) -> dict[s
 def object_split(seen_by_agent: dict[str, np.ndarray], ego: str, mask: np.ndarray) -> dict[str, int]:
     """Objects of ``mask`` (M,) seen by nobody, by ``ego``, only by other agents, only by drones
     (``seen_by_agent``: agent id -> (M,) bool)."""
-    m = len(mask)
-    none = np.zeros(m, bool)
-    anyone = np.logical_or.reduce(list(seen_by_agent.values()), initial=none)
+    none = np.zeros(len(mask), bool)
+    anyone, ground = none.copy(), none.copy()
+    for a, v in seen_by_agent.items():
+        anyone |= v
+        if agent_kind(a) != "drone":
+            ground |= v
     by_ego = seen_by_agent.get(ego, none)
-    ground = np.logical_or.reduce([v for a, v in seen_by_agent.items() if agent_kind(a) != "drone"], initial=none)
     return {"nobody": int(np.count_nonzero(mask & ~anyone)), "ego": int(np.count_nonzero(mask & by_ego)),
             "only collaborators": int(np.count_nonzero(mask & anyone & ~by_ego)),
             "only drones": int(np.count_nonzero(mask & anyone & ~ground))}
