@@ -86,7 +86,7 @@ def choose_on_route(
     """``count`` junctions for the cooperative layout: of the first ``2 * count`` junctions of ``junctions``
     on the group's ``route`` (junction ids in the order the group meets them), the best by
     :func:`choose_junctions`'s rank (inner, then signalised, then three or more incoming roads), in route
-    order; where the route has fewer, :func:`choose_junctions` fills up from the others."""
+    order; where the route has fewer, the other junctions nearest the route's fill up."""
     if count <= 0:
         return []
     by_id = {j.junction_id: j for j in junctions}
@@ -101,7 +101,18 @@ def choose_on_route(
     out = [on[i] for i in sorted(best)]
     if len(out) < count:
         rest = [j for j in junctions if j not in out]
-        out += choose_junctions(rest or out, degree, count - len(out), centre, lanes_in)
+        if not out or not rest:
+            return out + choose_junctions(rest or out, degree, count - len(out), centre, lanes_in)
+        pts = np.array([j.position_m for j in out])
+
+        def near(j: JunctionGeom) -> tuple[float, tuple[int, int], str]:
+            return round(float(np.min(np.linalg.norm(pts - np.array(j.position_m), axis=1))), 3), rank(j), j.junction_id
+
+        out += sorted(rest, key=near)[: count - len(out)]
+        k = 0
+        while len(out) < count:  # fewer junctions than RSUs: a second pole at a junction, as choose_junctions does
+            out.append(out[k])
+            k += 1
     return out
 
 
