@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import sumolib
 
+from cosim.batch.report import collaboration_section
 from cosim.drones.routes import cover_points, focus_junctions, ranked_junctions
 from cosim.errors import InputError
 from cosim.eval.collaboration import (
@@ -151,3 +152,7 @@ def test_a_rural_episode_keeps_two_collaborators_in_range(tmp_path: Path) -> Non
     counts = compute_collaboration(load_dataset(tmp_path))[("overall", "all")]
     assert counts.ego_ticks == 4 * 100
     assert counts.share("any", 2) >= 90.0, counts
+    # cosim report's section of the same numbers (labels only: the objects' table is n/a)
+    section = collaboration_section(tmp_path)
+    row = next(line for line in section.splitlines() if line.startswith("| overall | all | 400 |"))
+    assert f"| {counts.share('any', 2):.1f} |" in row and "| n/a |" in section
