@@ -6,7 +6,7 @@ core, long enough that the group does not reach its end within the episode (warm
 the fastest speed limit of those edges: SUMO's drivers go up to about 20 % over the limit), so the traffic
 adapter never extends it (extensions are drawn per vehicle and would split the group). The vehicles stand
 one behind the other along its first edges, :data:`GAP_M` apart along the road, each on the suffix of the
-route from its own edge; the last one departs first in the route. RSUs stand at the junctions the route
+route from its own edge; vehicle_0 at the back of the queue. RSUs stand at the junctions the route
 passes (:func:`route_junctions`), drones hover and patrol over them (cosim/drones/routes.py).
 
 A map with no inner road long enough for that, or where the vehicles cannot be placed within
