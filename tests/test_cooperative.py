@@ -156,3 +156,21 @@ def test_a_rural_episode_keeps_two_collaborators_in_range(tmp_path: Path) -> Non
     section = collaboration_section(tmp_path)
     row = next(line for line in section.splitlines() if line.startswith("| overall | all | 400 |"))
     assert f"| {counts.share('any', 2):.1f} |" in row and "| n/a |" in section
+
+
+def test_rsus_fill_up_from_the_junctions_nearest_the_route() -> None:
+    from cosim.world.network import JunctionGeom
+    from cosim.world.rsu import choose_on_route
+
+    def j(i: str, x: float, y: float, kind: str = "priority") -> JunctionGeom:
+        return JunctionGeom(i, (x, y), kind, np.zeros((0, 2)))
+
+    # a 5 x 5 grid 100 m apart; the route passes b, c (signalised), d; four RSUs wanted
+    js = [j(f"g{x}{y}", 100.0 * x, 100.0 * y) for x in range(5) for y in range(5)]
+    route = ("g22", "g23", "g33")
+    js = [j(g.junction_id, *g.position_m, "traffic_light" if g.junction_id == "g23" else "priority") for g in js]
+    chosen = [c.junction_id for c in choose_on_route(js, {}, 4, (200.0, 200.0), route)]
+    assert chosen[:3] == list(route)  # inner ones, in route order
+    assert chosen[3] in {"g12", "g21", "g32", "g13", "g24", "g34", "g43"}  # 100 m from the route
+    # one RSU: of the route's first two junctions, the signalised one
+    assert [c.junction_id for c in choose_on_route(js, {}, 1, (200.0, 200.0), route)] == ["g23"]
