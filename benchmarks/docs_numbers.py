@@ -187,6 +187,29 @@ def eval_oracle(work: Work) -> str:
                      [[s, by[s][2], by[s][4], by[s][5], by[s][6]] for s in SETTINGS if s in by])
 
 
+#: docs/evaluation.md "Collaboration": the LiDAR-only part's scenarios and simulated seconds (LiDAR on every
+#: agent costs about 10 s of 2 cores per simulated second, so not all 18 scenarios at their full length)
+COLLAB_LIDAR = (("town_rural_night", "town_rural_day_foggy", "strategy_hover"), 8.0)
+
+
+@producer("collab_range")
+def collab_range(work: Work) -> str:
+    """docs/evaluation.md: ``python -m benchmarks.collaboration`` (labels only, every shipped scenario)."""
+    from benchmarks.collaboration import measure, range_table
+    from cosim.scenario.loader import shipped_scenarios
+
+    return range_table(measure(work.root / "collab", [n for n, _ in shipped_scenarios()], "none", None))
+
+
+@producer("collab_coverage")
+def collab_coverage(work: Work) -> str:
+    """docs/evaluation.md: ``python -m benchmarks.collaboration --sensors lidar --duration 8 --scenarios ...``."""
+    from benchmarks.collaboration import coverage_table, measure
+
+    names, duration = COLLAB_LIDAR
+    return coverage_table(measure(work.root / "collab", list(names), "lidar", duration))
+
+
 @producer("comm_urban")
 def comm_urban(work: Work) -> str:
     """docs/comm.md: ``cosim comm`` on the shipped urban scenario without sensors."""

@@ -9,12 +9,14 @@ from __future__ import annotations
 import argparse
 import logging
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
+from matplotlib.axes import Axes
 from matplotlib.collections import PolyCollection
 from matplotlib.patches import Polygon
 
@@ -45,8 +47,9 @@ COLOURS = {
 }
 
 
-def draw_world(world: World, vehicles: list[VehicleState], path: Path, title: str = "", dpi: int = 110) -> None:
-    """Write a top view of ``world`` with ``vehicles`` to ``path`` (PNG)."""
+def draw_world(world: World, vehicles: list[VehicleState], path: Path, title: str = "", dpi: int = 110,
+               overlay: Callable[[Axes], None] | None = None) -> None:
+    """Write a top view of ``world`` with ``vehicles`` to ``path`` (PNG); ``overlay`` draws more on the axes."""
     from cosim.traffic.metrics import bev_corners
 
     xmin, ymin, xmax, ymax = world.bounds_m
@@ -95,6 +98,8 @@ def draw_world(world: World, vehicles: list[VehicleState], path: Path, title: st
                 fontsize=7,
                 color="red",
             )
+    if overlay is not None:
+        overlay(ax)
     ax.set_xlim(xmin, xmax)
     ax.set_ylim(ymin, ymax)
     ax.set_aspect("equal")

@@ -231,3 +231,19 @@ def test_missing_visibility_or_bev_topics_give_clear_messages(tmp_path, capsys):
     # without BEV fields the same episode scores detection alone
     f.write_text(json.dumps({"episode": "nobev", "tick": 0, "ego": "vehicle_0", "boxes": []}) + "\n")
     assert main(["eval", "--gt", str(no_bev), "--pred", str(f), "--out", str(tmp_path / "ev")]) == 0
+
+
+def test_collaboration_object_split_agrees_with_the_coverage_counts(batch):
+    from cosim.eval.collaboration import compute_collaboration
+
+    refs = load_dataset(batch)
+    cov = compute_coverage(refs).counts
+    collab = compute_collaboration(refs)
+    for key in (("overall", "all"), ("environment", "rural"), ("environment", "urban")):
+        c, k = cov[key], collab[key]
+        assert k.objects == c.objects > 0 and k.ego_ticks == c.frames
+        assert k.object_share("nobody") == pytest.approx(100.0 - c.recall("all"))
+        assert k.object_share("ego") == pytest.approx(c.recall("ego"))
+        assert k.object_share("only collaborators") == pytest.approx(c.recall("all") - c.recall("ego"))
+        assert k.object_share("only drones") == pytest.approx(c.recall("all") - c.recall("vehicles+rsus"))
+    assert {k[1] for k in collab if k[0] == "episode"} == {r.id for r in refs}

@@ -301,6 +301,16 @@ def _markdown(stats: dict[str, Any], status: dict[str, int], images: list[Path],
     return "\n".join(out)
 
 
+def collaboration_section(out_dir: Path) -> str:
+    """The collaboration tables of the batch (cosim/eval/collaboration.py), overall and per condition."""
+    from cosim.eval.collaboration import collaboration_tables, compute_collaboration
+    from cosim.eval.dataset import load_dataset
+
+    counts = compute_collaboration(load_dataset(out_dir))
+    counts = {k: v for k, v in counts.items() if k[0] != "episode"}
+    return "\n## Collaboration\n\n" + "\n".join(t.markdown() for t in collaboration_tables(counts))
+
+
 def build_report(out_dir: Path, *, md_path: Path | None = None, img_dir: Path | None = None,
                  img_prefix: str = "report_") -> Report:
     """Write ``report.md`` (default in ``out_dir``) and the plots; returns what was written."""
@@ -314,5 +324,5 @@ def build_report(out_dir: Path, *, md_path: Path | None = None, img_dir: Path | 
     md = Path(md_path) if md_path else out_dir / "report.md"
     images = _plots(stats, Path(img_dir) if img_dir else md.parent, img_prefix)
     md.parent.mkdir(parents=True, exist_ok=True)
-    md.write_text(_markdown(stats, status, images, md, out_dir.name))
+    md.write_text(_markdown(stats, status, images, md, out_dir.name) + collaboration_section(out_dir))
     return Report(md_path=md, images=images, episodes=stats["episodes"], hours=stats["hours"], stats=stats)

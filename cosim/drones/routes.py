@@ -8,6 +8,7 @@ carriageway.
 
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import itertools
 import math
@@ -17,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import sumolib
 
+from cosim.drones.strategies import polyline_points
 from cosim.world.types import Junction, World
 
 #: SUMO junction types a drone should not be sent to (not a real crossing).
@@ -40,8 +42,20 @@ def ranked_junctions(world: World) -> list[Junction]:
     return sorted(world.junctions, key=key)
 
 
+def focus_junctions(world: World) -> list[Junction]:
+    """:func:`ranked_junctions`, the cooperative group's junctions first (``world.group_junctions``, in the
+    order the group meets them; dead ends left out)."""
+    ranked = ranked_junctions(world)
+    by_id = {j.junction_id: j for j in ranked}
+    first = [by_id[i] for i in world.group_junctions if i in by_id and by_id[i].kind not in _MINOR_KINDS]
+    return first + [j for j in ranked if j not in first]
+
+
 def hover_point(world: World, k: int) -> np.ndarray:
-    """(2,) map x, y [m] of the ``k``-th hover drone: the k-th ranked junction (wrapping), else the centre."""
+    """(2,) map x, y [m] of the ``k``-th hover drone: the k-th ranked junction (wrapping), else the centre;
+    in a cooperative world (``world.group_junctions``), the k-th of :func:`cover_points`."""
+    if world.group_junctions:
+        return cover_points(world, k + 1)[k]
     js = ranked_junctions(world)
     if not js:
         return world_centre(world)
@@ -288,7 +302,8 @@ def patrol_loop(
 ) -> np.ndarray:
     """(N, 2) closed patrol loop (last point not repeated) of about ``loop_length_m`` for patrol drone ``k``.
 
-    Centred on the k-th ranked junction. With a road ``graph`` (:func:`road_graph`): around a city
+    Centred on the k-th of :func:`focus_junctions` (a cooperative group's first). With a road ``graph``
+    (:func:`road_graph`): around a city
     block at one of its corners (the k-th side first) whose perimeter is within 0.4 to 2.5 times
     the requested length and that is not in ``taken`` (vertex sets of loops other drones fly; the
     chosen one is added); otherwise around the junction itself, through one junction per
@@ -298,7 +313,7 @@ def patrol_loop(
     the lane centre lines. Without roads the ring's legs are straight; with fewer than 4 sectors
     filled, a square.
     """
-    js = ranked_junctions(world)
+    js = focus_junctions(world)
     centre = np.array(js[k % len(js)].position_m) if js else world_centre(world)
     pos = {j.junction_id: j.position_m for j in world.junctions}
     roads = {a: [(b, d) for b, d in adj if b in pos] for a, adj in (graph or {}).items() if a in pos}
@@ -342,3 +357,134 @@ def patrol_loop(
             return xy
     half = loop_length_m / 8.0
     return centre + np.array([[-half, -half], [half, -half], [half, half], [-half, half]])
+
+
+# ------------------------------------------------------------------ hover points where the ground sees least
+
+OCCLUDERS = frozenset({"building", "vegetation"})  # prism classes that block a ground sensor's view
+OCCLUDER_MIN_M = 2.0  # [m] lower prisms (hedges, crops) do not hide a vehicle from a sensor
+GROUND_RANGE_M = 120.0  # [m] the paper's range of vehicles and RSUs
+VIEWER_Z_M = 1.8  # [m] a vehicle's LiDAR over the road
+TARGET_Z_M = 1.0  # [m] the middle of a car
+FOCUS_JUNCTIONS = 4  # the group's first junctions whose surroundings hover drones watch ...
+FOCUS_PATH_M = 300.0  # [m] ... as far as the group gets along them in an episode (about 20 s)
+FOCUS_M = 100.0  # [m] road this close to a focus junction is watched
+HOVER_SEES_M = 60.0  # [m] a hovering drone counts road within this horizontal distance as its own
+HOVER_APART_M = 60.0  # [m] hover points stand at least this far apart
+CELL_M = 2.0  # [m] raster cell of the occluder heights and the road surface
+ROAD_CLEAR_M = 3.0  # [m] a hover point is this far off the road surface at least
+
+
+def _height_raster(world: World) -> tuple[np.ndarray, float, float]:
+    """(H, W) top [m] of the occluders (:data:`OCCLUDERS` at least :data:`OCCLUDER_MIN_M` tall) per
+    :data:`CELL_M` cell over the world bounds, with the grid origin x0, y0."""
+    from PIL import Image, ImageDraw
+
+    x0, y0, x1, y1 = world.bounds_m
+    w, h = math.ceil((x1 - x0) / CELL_M) + 1, math.ceil((y1 - y0) / CELL_M) + 1
+    img = Image.new("F", (w, h), 0.0)
+    draw = ImageDraw.Draw(img)
+    tall = [p for p in world.layout.prisms if p.cls in OCCLUDERS and p.z1_m - world.layout.ground_z_m >= OCCLUDER_MIN_M]
+    for p in sorted(tall, key=lambda p: p.z1_m):
+        pix = [((x - x0) / CELL_M, (y - y0) / CELL_M) for x, y in p.footprint]
+        if len(pix) >= 3:
+            draw.polygon(pix, fill=float(p.z1_m - world.layout.ground_z_m))
+    return np.asarray(img, dtype=np.float64), x0, y0
+
+
+def _visible(viewers: np.ndarray, targets: np.ndarray, heights: np.ndarray, x0: float, y0: float) -> np.ndarray:
+    """Bool (T,): whether any viewer (V, 3) within :data:`GROUND_RANGE_M` sees target (T, 3) over the
+    occluder ``heights`` (sight line sampled every cell; its last 2 m, the target's own surroundings, not)."""
+    seen = np.zeros(len(targets), dtype=bool)
+    if not len(viewers) or not len(targets):
+        return seen
+    steps = np.arange(0.0, 1.0, 1.0 / (GROUND_RANGE_M / CELL_M))[1:]
+    hh, ww = heights.shape
+    for v in viewers:
+        d = np.hypot(targets[:, 0] - v[0], targets[:, 1] - v[1])
+        near = np.flatnonzero((d <= GROUND_RANGE_M) & ~seen)
+        if not len(near):
+            continue
+        t = targets[near]
+        pts = v[None, None, :] + (t[:, None, :] - v[None, None, :]) * steps[None, :, None]  # (N, S, 3)
+        col = np.clip(((pts[..., 0] - x0) / CELL_M).astype(int), 0, ww - 1)
+        row = np.clip(((pts[..., 1] - y0) / CELL_M).astype(int), 0, hh - 1)
+        blocked = heights[row, col] > pts[..., 2]
+        blocked &= (steps[None, :] * d[near, None]) < d[near, None] - 2.0
+        seen[near[~blocked.any(axis=1)]] = True
+    return seen
+
+
+def _focus(world: World) -> list[tuple[float, float]]:
+    """Positions of the group's first junctions: the first one, then the next while the way through
+    them (straight legs) stays within :data:`FOCUS_PATH_M`, at most :data:`FOCUS_JUNCTIONS`."""
+    by_id = {j.junction_id: j for j in world.junctions}
+    out: list[tuple[float, float]] = []
+    way = 0.0
+    for i in world.group_junctions:
+        if i not in by_id:
+            continue
+        p = by_id[i].position_m
+        way += math.dist(out[-1], p) if out else 0.0
+        if out and (way > FOCUS_PATH_M or len(out) >= FOCUS_JUNCTIONS):
+            break
+        out.append(p)
+    return out
+
+
+def cover_points(world: World, n: int) -> list[np.ndarray]:
+    """``n`` hover points (2,) map x, y [m] for a cooperative world, where the ground sensors see least.
+
+    The road near the group's first junctions (:func:`_focus`; lane centre lines within
+    :data:`FOCUS_M` of them, every 5 m) is checked against the world's occluders (buildings and trees)
+    for a line of sight from any ground sensor within :data:`GROUND_RANGE_M`: the RSU heads and vehicle
+    LiDARs along the group's route. Candidate points (every 8 m within 80 m of those junctions, at least
+    :data:`ROAD_CLEAR_M` off the road surface) are picked greedily: each next one covers the most road
+    that no ground sensor and no point picked before sees within :data:`HOVER_SEES_M`, at least
+    :data:`HOVER_APART_M` from the others; ties (as where the ground sees everything) go to the point
+    nearest the group's first junction, so a drone is never sent away from the group for nothing."""
+    from cosim.world.geom import Raster
+
+    focus = np.array(_focus(world))
+    if not len(focus):
+        return [hover_point(dataclasses.replace(world, group_junctions=()), k) for k in range(n)]
+    lanes = lane_paths(world.net_xml)
+    road_pts = [polyline_points(xy) for xy in lanes.values()]
+    road_xy = np.concatenate(road_pts) if road_pts else np.zeros((0, 2))
+    d_focus = np.min(np.linalg.norm(road_xy[:, None, :] - focus[None], axis=2), axis=1) if len(road_xy) else np.zeros(0)
+    watched = road_xy[d_focus <= FOCUS_M]
+    gj = list(world.group_junctions)
+    route_legs = [lanes[(a, b)] for a, b in itertools.pairwise(gj) if (a, b) in lanes]
+    route_xy = np.concatenate([polyline_points(xy, 20.0) for xy in route_legs]) if route_legs else focus
+    viewers = np.vstack([
+        np.column_stack([route_xy, np.full(len(route_xy), VIEWER_Z_M)]),
+        np.array([r.position_m for r in world.rsus], dtype=np.float64).reshape(-1, 3),
+    ])
+    heights, x0, y0 = _height_raster(world)
+    seen = _visible(viewers, np.column_stack([watched, np.full(len(watched), TARGET_Z_M)]), heights, x0, y0)
+    hidden = watched[~seen]
+    road = Raster.empty(world.bounds_m, CELL_M).with_polygons(
+        [np.array(p.footprint) for p in world.layout.prisms if p.cls == "road"]).dilated(ROAD_CLEAR_M)
+    g = np.arange(-80.0, 80.01, 8.0)
+    grid = (focus[:, None, None, :] + np.stack(np.meshgrid(g, g), axis=-1)[None]).reshape(-1, 2)
+    grid = np.unique(np.round(grid, 3), axis=0)
+    cand = grid[~road.lookup(grid)]
+    if not len(cand):
+        cand = focus.copy()
+    to_first = np.linalg.norm(cand - focus[0], axis=1)
+    covered = np.zeros(len(hidden), dtype=bool)
+    chosen: list[np.ndarray] = []
+    for _ in range(n):
+        ok = np.ones(len(cand), dtype=bool)
+        for c in chosen:
+            ok &= np.linalg.norm(cand - c, axis=1) >= HOVER_APART_M
+        if not ok.any():
+            ok[:] = True
+        gain = np.array([np.count_nonzero(~covered & (np.linalg.norm(hidden - c, axis=1) <= HOVER_SEES_M))
+                         for c in cand]) if len(hidden) else np.zeros(len(cand))
+        order = np.lexsort((cand[:, 1], cand[:, 0], to_first, -gain))
+        best = next(int(i) for i in order if ok[i])
+        chosen.append(cand[best].astype(np.float64))
+        if len(hidden):
+            covered |= np.linalg.norm(hidden - cand[best], axis=1) <= HOVER_SEES_M
+    return chosen

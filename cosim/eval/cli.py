@@ -62,8 +62,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_coverage(args: argparse.Namespace) -> int:
-    from cosim.eval.coverage import compute_coverage, coverage_tables, write_coverage
+    from cosim.eval.collaboration import collaboration_tables, compute_collaboration
+    from cosim.eval.coverage import compute_coverage, coverage_adds, coverage_tables, write_coverage
     from cosim.eval.dataset import VEHICLE_CLASSES, load_dataset
+    from cosim.eval.tables import write_tables
 
     rule = _rule(args)
     refs = load_dataset(Path(args.dataset), split=args.split)
@@ -76,6 +78,11 @@ def cmd_coverage(args: argparse.Namespace) -> int:
                               progress=_log_progress("coverage"))
     written = write_coverage(result, Path(args.out))
     for t in coverage_tables(result):
+        print(t.markdown())
+    collab = compute_collaboration(refs, rule, classes=tuple(args.classes or VEHICLE_CLASSES))
+    tables = collaboration_tables(collab, *coverage_adds(result))
+    written += write_tables(tables, Path(args.out), "collaboration")
+    for t in tables:
         print(t.markdown())
     for p in written:
         print(p)

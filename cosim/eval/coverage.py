@@ -114,6 +114,15 @@ def coverage_tables(result: CoverageResult) -> list[Table]:
     return tables
 
 
+def coverage_adds(result: CoverageResult) -> tuple[dict[tuple[str, str], float], dict[tuple[str, str], float]]:
+    """``drones add`` and ``RSUs add`` [points] per (breakdown, value), as in :func:`coverage_tables`."""
+    drones, rsus = {}, {}
+    for k, c in result.counts.items():
+        drones[k] = c.recall("all") - c.recall("vehicles+rsus")
+        rsus[k] = c.recall("all") - c.recall("vehicles+drones")
+    return drones, rsus
+
+
 def write_coverage(result: CoverageResult, out_dir: Path) -> list[Path]:
     """coverage.md/.csv/.json, one bar plot per breakdown and the heat maps; returns the paths."""
     tables = coverage_tables(result)

@@ -271,6 +271,10 @@ DRONE_STRATEGIES = union_tags(DroneSpec)
 
 
 class AgentsSpec(Model):
+    #: where the connected agents go (docs/evaluation.md, "Collaboration"): ``cooperative`` departs the
+    #: connected vehicles as a group on one shared route, stands the RSUs at the junctions of that route and
+    #: sends hover and patrol drones over it; ``spread`` draws every agent independently over the map
+    layout: Literal["cooperative", "spread"] = "cooperative"
     vehicles: VehicleAgents = VehicleAgents()
     rsus: RsuAgents = RsuAgents()
     drones: list[DroneSpec] = Field(

@@ -14,6 +14,7 @@ import numpy as np
 from cosim.preflight import map_file
 from cosim.scenario.loader import LoadedScenario
 from cosim.world import geom
+from cosim.world.group import plan_group
 from cosim.world.layout import GROUND_Z, build_layout, prism
 from cosim.world.netgen import MapRequest, NetworkResult, generate_network
 from cosim.world.network import read_network
@@ -25,7 +26,7 @@ from cosim.world.types import Junction, StaticLayout, World
 
 log = logging.getLogger(__name__)
 
-STAGE_NET, STAGE_LAYOUT, STAGE_RSU, STAGE_ROUTES, STAGE_PARKED, STAGE_SIGNALS = 1, 2, 3, 4, 5, 6
+STAGE_NET, STAGE_LAYOUT, STAGE_RSU, STAGE_ROUTES, STAGE_PARKED, STAGE_SIGNALS, STAGE_GROUP = 1, 2, 3, 4, 5, 6, 7
 MARGIN_M = {"urban": 30.0, "suburban": 30.0}  # [m] scenery beyond the outermost road; others 20
 RSU_POLE_M = 0.35  # [m] side of an RSU pole
 
@@ -67,9 +68,11 @@ def build_world(loaded: LoadedScenario, workdir: Path) -> World:
     for e in net.road_edges():
         degree[e.to_node] = degree.get(e.to_node, 0) + 1
         lanes_in[e.to_node] = lanes_in.get(e.to_node, 0) + sum(ln.is_road for ln in e.lanes)
+    sumo_net = read_sumolib(result.net_xml)
+    group = plan_group(sumo_net, sc, stage_rng(sc.seed, STAGE_GROUP)) if sc.agents.layout == "cooperative" else None
     rsus = place_rsus(
         junctions, degree, sc.agents.rsus.count, sc.agents.rsus.height_m, road, centre, stage_rng(sc.seed, STAGE_RSU),
-        lanes_in,
+        lanes_in, group.junctions if group is not None else (),
     )
     next_id = max((p.instance_id for p in prisms), default=999_999) + 1
     for k, r in enumerate(rsus):
@@ -77,7 +80,8 @@ def build_world(loaded: LoadedScenario, workdir: Path) -> World:
         prisms.append(prism("rsu", foot, GROUND_Z, r.height_m, next_id + k))
 
     parked = place_parked(net, prisms, bounds, sc.parked, sc.traffic.mix, stage_rng(sc.seed, STAGE_PARKED))
-    planned = plan_vehicles(read_sumolib(result.net_xml), sc, net.road_length_km(), stage_rng(sc.seed, STAGE_ROUTES))
+    planned = plan_vehicles(sumo_net, sc, net.road_length_km(), stage_rng(sc.seed, STAGE_ROUTES),
+                            group.members if group is not None else None)
     geo = (sc.geo_origin.lat_deg, sc.geo_origin.lon_deg, sc.geo_origin.alt_m)
     if spec.kind in ("net", "osm") and net.geo_origin is not None:
         geo = (net.geo_origin[0], net.geo_origin[1], sc.geo_origin.alt_m)
@@ -102,4 +106,5 @@ def build_world(loaded: LoadedScenario, workdir: Path) -> World:
         layout=StaticLayout(tuple(prisms), 0.0),
         geo_origin=geo,
         parked=tuple(parked),
+        group_junctions=group.junctions if group is not None else (),
     )

@@ -188,11 +188,13 @@ class _LaneOccupancy:
 
 
 def plan_vehicles(
-    net: sumolib.net.Net, scenario: Scenario, road_km: float, rng: np.random.Generator
+    net: sumolib.net.Net, scenario: Scenario, road_km: float, rng: np.random.Generator,
+    group: tuple[PlannedVehicle, ...] | None = None,
 ) -> list[PlannedVehicle]:
     """Connected vehicles first (ids vehicle_<i>), then background (ids bg_<nnnn>).
 
     Connected vehicles' routes stay in the strongly connected core; background routes end at a sink.
+    ``group``: the connected vehicles already planned (cosim/world/group.py); background keeps clear of them.
     """
     n_bg = round(scenario.traffic.density_veh_per_km * road_km)
     n_conn = scenario.agents.vehicles.count
@@ -214,7 +216,12 @@ def plan_vehicles(
     inner_lanes: dict[str, list[sumolib.net.lane.Lane]] = {}
     occ = _LaneOccupancy()
     out: list[PlannedVehicle] = []
+    for p in group or ():
+        occ.take(p.lane_id, p.pos_m - p.variant.length_m - p.variant.min_gap_m - 1.0, p.pos_m + 4.0)
+        out.append(p)
     for vid, cls in wanted:
+        if group is not None and vid.startswith("vehicle_"):
+            continue
         vclass = SUMO_VCLASS[cls]
         if vclass not in cores:
             cores[vclass] = strong_core(net, vclass)

@@ -79,6 +79,43 @@ def choose_junctions(
     return out
 
 
+def choose_on_route(
+    junctions: list[JunctionGeom], degree: dict[str, int], count: int, centre: tuple[float, float],
+    route: tuple[str, ...], lanes_in: dict[str, int] | None = None,
+) -> list[JunctionGeom]:
+    """``count`` junctions for the cooperative layout: of the first ``2 * count`` junctions of ``junctions``
+    on the group's ``route`` (junction ids in the order the group meets them), the best by
+    :func:`choose_junctions`'s rank (inner, then signalised, then three or more incoming roads), in route
+    order; where the route has fewer, the other junctions nearest the route's fill up."""
+    if count <= 0:
+        return []
+    by_id = {j.junction_id: j for j in junctions}
+    on = [by_id[i] for i in route if i in by_id][: 2 * count]
+    ring = outer_ring(junctions)
+
+    def rank(j: JunctionGeom) -> tuple[int, int]:
+        kind = 0 if j.kind == "traffic_light" else 1 if degree.get(j.junction_id, 0) >= 3 else 2
+        return int(j.junction_id in ring), kind
+
+    best = sorted(range(len(on)), key=lambda i: (rank(on[i]), i))[:count]
+    out = [on[i] for i in sorted(best)]
+    if len(out) < count:
+        rest = [j for j in junctions if j not in out]
+        if not out or not rest:
+            return out + choose_junctions(rest or out, degree, count - len(out), centre, lanes_in)
+        pts = np.array([j.position_m for j in out])
+
+        def near(j: JunctionGeom) -> tuple[float, tuple[int, int], str]:
+            return round(float(np.min(np.linalg.norm(pts - np.array(j.position_m), axis=1))), 3), rank(j), j.junction_id
+
+        out += sorted(rest, key=near)[: count - len(out)]
+        k = 0
+        while len(out) < count:  # fewer junctions than RSUs: a second pole at a junction, as choose_junctions does
+            out.append(out[k])
+            k += 1
+    return out
+
+
 def road_yaw(pole_xy: tuple[float, float], road: Raster, fallback: float) -> float:
     """Head yaw [rad] that turns the rig's four cameras (yaw + k 90 degrees) onto the roads around
     ``pole_xy``: of yaws 3 degrees apart, the one whose cameras see the most road surface, sampled in
@@ -124,10 +161,12 @@ def place_rsus(
     centre: tuple[float, float],
     rng: np.random.Generator,
     lanes_in: dict[str, int] | None = None,
+    route: tuple[str, ...] = (),
 ) -> list[RsuSite]:
     """RSU sites ``rsu_0..``: a pole off the road surface within :data:`MAX_OFFSET_M` of its junction,
     at junctions :func:`choose_junctions` picks (``lanes_in``: incoming lanes per junction id), the head
-    turned by :func:`road_yaw` onto the roads around it.
+    turned by :func:`road_yaw` onto the roads around it. With a group ``route`` (junction ids, cooperative
+    layout) the junctions are :func:`choose_on_route`'s.
 
     Junctions wider than that all around (two multi-lane avenues crossing) are only used when there
     are not enough others; their pole then stands at the nearest spot off the road, with a warning.
@@ -138,7 +177,9 @@ def place_rsus(
     feasible = [j for j in junctions if _spot(j, near, [], 0.0) is not None]
     pool = feasible if len(feasible) >= min(count, len(junctions)) else junctions
     used: list[tuple[float, float]] = []
-    for i, j in enumerate(choose_junctions(pool, degree, count, centre, lanes_in)):
+    chosen = (choose_on_route(pool, degree, count, centre, route, lanes_in) if route
+              else choose_junctions(pool, degree, count, centre, lanes_in))
+    for i, j in enumerate(chosen):
         jx, jy = j.position_m
         phase = float(rng.uniform(0, 2 * math.pi))
         best = _spot(j, (*near, (road, 1.0, FAR_OFFSET_M)), used, phase)

@@ -88,9 +88,12 @@ class World:
     layout: StaticLayout
     geo_origin: tuple[float, float, float]  # lat [deg], lon [deg], alt [m] of map (0, 0, 0)
     parked: tuple[ParkedVehicle, ...] = ()
+    #: cooperative layout: the junctions the connected vehicles' shared route passes, in the order the group
+    #: meets them (cosim/world/group.py); empty for ``spread``
+    group_junctions: tuple[str, ...] = ()
 
     def to_wire(self) -> dict[str, Any]:
-        return {
+        wire: dict[str, Any] = {
             "map_kind": self.map_kind,
             "net_xml": self.net_xml,
             "routes_xml": self.routes_xml,
@@ -104,6 +107,9 @@ class World:
             "parked": [[p.parked_id, p.cls, p.type_id, list(p.center_m), list(p.size_m), p.yaw_rad]
                        for p in self.parked],
         }
+        if self.group_junctions:  # only then: a spread world's wire (and episode) stays as it was
+            wire["group_junctions"] = list(self.group_junctions)
+        return wire
 
     @classmethod
     def from_wire(cls, d: dict[str, Any]) -> World:
@@ -120,4 +126,5 @@ class World:
             ),
             geo_origin=tuple(d["geo_origin"]),
             parked=tuple(ParkedVehicle(p[0], p[1], p[2], tuple(p[3]), tuple(p[4]), p[5]) for p in d.get("parked", [])),
+            group_junctions=tuple(d.get("group_junctions", ())),
         )
