@@ -221,7 +221,8 @@ class SensorSuite:
         self._signals = SignalLamps(layout_mesh.n_triangles, signals, heads) if signals is not None else None
         signs = traffic_signs(world.net_xml)  # stop, give way, speed limits
         extra = [m for m in (signal_mesh(signals) if signals is not None else None, sign_mesh(signs)) if m is not None]
-        self.static = StaticScene(concat([layout_mesh, *extra]) if extra else layout_mesh)
+        self.static = StaticScene(concat([layout_mesh, *extra]) if extra else layout_mesh,
+                                  scenario.sensors.ray_backend)
         m = self.static.mesh
         self._static_rgb = _shaded(m.albedo, self.static.normals, self.atm)
         self._static_rgb_shadow = _shaded(m.albedo, self.static.normals, self.atm, sun=False)
