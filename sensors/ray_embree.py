@@ -19,6 +19,7 @@ from __future__ import annotations
 import ctypes
 import importlib.util
 import threading
+import weakref
 from pathlib import Path
 
 import llvmlite.binding as llvm
@@ -93,7 +94,8 @@ def _get_device() -> int:
 
 
 class EmbreeScene:
-    """One committed Embree scene of one triangle geometry (released when garbage collected)."""
+    """One committed Embree scene of one triangle geometry (released when garbage collected); ``handle``
+    is its ``RTCScene`` pointer."""
 
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray, quality: Quality):
         dev = _get_device()
@@ -123,11 +125,7 @@ class EmbreeScene:
             raise CosimError(f"Embree failed to build a scene of {len(t)} triangles (error {err})")
         self.handle = int(scene)
         self.n_triangles = len(t)
-
-    def __del__(self) -> None:
-        if getattr(self, "handle", 0):
-            _lib.rtcReleaseScene(self.handle)
-            self.handle = 0
+        weakref.finalize(self, _lib.rtcReleaseScene, scene)
 
 
 # ----------------------------------------------------------------------------------- kernels
