@@ -225,23 +225,25 @@ class TickScene:
     @cached_property
     def labels(self) -> dict[str, np.ndarray]:
         """Per-global-index tables: ``semantic`` uint8, ``instance`` uint32, ``reflectivity`` float32,
-        ``normal`` (3,) float32, ``albedo`` (3,) float32, ``emissive`` float32, ``face`` int32 (see
-        :meth:`TriMesh.faces`; -1 for the miss row) (each miss + 1 rows)."""
-        a = self.actors
-        return {
-            "semantic": self.table(self.static.mesh.semantic, a.semantic, 0),
-            "instance": self.table(self.static.mesh.instance, a.instance, 0),
-            "reflectivity": self.table(self.static.mesh.reflectivity, a.reflectivity, 0.0),
-            "normal": self.table(self.static.normals, a.normals(), (0.0, 0.0, 1.0)),
-            "albedo": self.table(self.static.mesh.albedo, a.albedo, (0.0, 0.0, 0.0)),
-            "emissive": self.table(self.static.mesh.emissive, a.emissive, 0.0),
-            "material": self.table(self.static.mesh.material, a.material, 0),
-            "face": self.table(self.static.faces, (a.faces() if self.actor_faces is None else self.actor_faces)
-                               + (int(self.static.faces.max(initial=-1)) + 1), -1),
-            "retro": self.table(self.static.mesh.retro_values(), a.retro_values(), 0.0),
-            "glass": self.table(self.static.mesh.glass_values(), a.glass_values(), False),
-            "leaf_density": self.table(self.static.mesh.leaf_density_values(), a.leaf_density_values(), 0.0),
-        }
+        ``normal`` (3,) float32, ``albedo`` (3,) float32, ``emissive`` float32, ``material`` uint8, ``face``
+        int32 (see :meth:`TriMesh.faces`; -1 for the miss row), ``retro`` float32, ``glass`` bool,
+        ``leaf_density`` float32 (each miss + 1 rows). Each is made on first use (a LiDAR-only tick never
+        makes the cameras' ones)."""
+        a, m = self.actors, self.static.mesh
+        return _Tables({
+            "semantic": lambda: self.table(m.semantic, a.semantic, 0),
+            "instance": lambda: self.table(m.instance, a.instance, 0),
+            "reflectivity": lambda: self.table(m.reflectivity, a.reflectivity, 0.0),
+            "normal": lambda: self.table(self.static.normals, a.normals(), (0.0, 0.0, 1.0)),
+            "albedo": lambda: self.table(m.albedo, a.albedo, (0.0, 0.0, 0.0)),
+            "emissive": lambda: self.table(m.emissive, a.emissive, 0.0),
+            "material": lambda: self.table(m.material, a.material, 0),
+            "face": lambda: self.table(self.static.faces, (a.faces() if self.actor_faces is None else self.actor_faces)
+                                       + (int(self.static.faces.max(initial=-1)) + 1), -1),
+            "retro": lambda: self.table(m.retro_values(), a.retro_values(), 0.0),
+            "glass": lambda: self.table(m.glass_values(), a.glass_values(), False),
+            "leaf_density": lambda: self.table(m.leaf_density_values(), a.leaf_density_values(), 0.0),
+        })
 
     def occluded(self, rays: np.ndarray, with_static: bool = True, with_actors: bool = True) -> np.ndarray:
         """(N,) bool: whether each ray (N, 6) float32 meets anything at all (static or any actor; shadow rays)."""
@@ -291,6 +293,22 @@ class TickScene:
             self.timer.seconds += time.perf_counter() - t0
             self.timer.rays += rays.shape[0]
         return t, gid
+
+
+class _Tables(dict):
+    """A dict whose entries are made by their maker on first lookup (once, under a lock: render threads
+    share it)."""
+
+    def __init__(self, makers: dict):
+        super().__init__()
+        self._makers = makers
+        self._lock = threading.Lock()
+
+    def __missing__(self, key: str) -> np.ndarray:
+        with self._lock:
+            if not dict.__contains__(self, key):
+                self[key] = self._makers[key]()  # KeyError for an unknown table
+            return dict.__getitem__(self, key)
 
 
 def _box_mesh(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
