@@ -2,13 +2,13 @@
 
 The library is the ``libembree4`` shipped inside the ``embreex`` wheel (``embreex.libs/``; no system
 package). Scenes are built through ctypes (which releases the GIL): one triangle geometry per scene,
-``RTC_SCENE_FLAG_ROBUST`` (no ray slips between two triangles sharing an edge), build quality from the
-seam's hint (``high`` static world, ``medium`` a tick's actors, ``low`` the actors at a LiDAR firing's
-time). Rays are cast by numba ``nogil`` kernels (compiled on first use, cached on disk) that fill
-64-byte aligned ``RTCRayHit16`` / ``RTCRay16`` packets and call ``rtcIntersect16`` / ``rtcOccluded16``,
-with the ``COHERENT`` query flag on a packet only when its 16 directions share an octant. Callers that
-emit rays in coherent order (image tiles, LiDAR columns: :func:`cosim.sensors.kernels.packet_order`)
-get most of Embree's packet speed; casting threads run in parallel (the GIL is released).
+no scene flags (:data:`SCENE_FLAGS`), build quality from the seam's hint (``high`` the static world,
+``medium`` a tick's actors, ``low`` the actors at a LiDAR firing's time). Rays are cast by numba
+``nogil`` kernels (compiled on first use, cached on disk) that fill 64-byte aligned ``RTCRayHit16`` /
+``RTCRay16`` packets and call ``rtcIntersect16`` / ``rtcOccluded16``, with the ``COHERENT`` query flag
+on a packet only when its 16 directions share an octant. Callers emit rays in coherent order (image
+tiles, :func:`cosim.sensors.kernels.packet_order`; LiDAR columns); casting threads run in parallel (the
+GIL is released).
 
 Embree is the engine inside Open3D's ``RaycastingScene`` too: the two backends hit the same triangles
 but where a ray meets an edge shared by two triangles (then either is the nearest).
@@ -35,7 +35,10 @@ _QUALITY = {"low": 0, "medium": 1, "high": 2}  # RTC_BUILD_QUALITY_*
 _GEOMETRY_TRIANGLE = 0  # RTC_GEOMETRY_TYPE_TRIANGLE
 _BUFFER_INDEX, _BUFFER_VERTEX = 0, 1  # RTC_BUFFER_TYPE_*
 _FORMAT_UINT3, _FORMAT_FLOAT3 = 0x5003, 0x9003  # RTC_FORMAT_*
-_SCENE_ROBUST = 1 << 2  # RTC_SCENE_FLAG_ROBUST
+#: RTCSceneFlags of every scene: none. ``RTC_SCENE_FLAG_ROBUST`` (1 << 2) costs 1.3x the CPU of a tick's
+#: camera casting (2.76 -> 3.51 CPU-s) and closed no hole: on a real tick of the default town neither mode
+#: leaves a pixel empty where Open3D hits (0 of 50.7 M pixels of the 55 cameras; benchmarks/ray_backends.py)
+SCENE_FLAGS = 0
 _QUERY_COHERENT = 1  # RTC_RAY_QUERY_FLAG_COHERENT
 _INVALID = 0xFFFFFFFF  # RTC_INVALID_GEOMETRY_ID
 
@@ -101,7 +104,7 @@ class EmbreeScene:
         dev = _get_device()
         q = _QUALITY[quality]
         scene = _lib.rtcNewScene(dev)
-        _lib.rtcSetSceneFlags(scene, _SCENE_ROBUST)
+        _lib.rtcSetSceneFlags(scene, SCENE_FLAGS)
         _lib.rtcSetSceneBuildQuality(scene, q)
         geom = _lib.rtcNewGeometry(dev, _GEOMETRY_TRIANGLE)
         _lib.rtcSetGeometryBuildQuality(geom, q)
