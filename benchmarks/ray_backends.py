@@ -178,17 +178,20 @@ def main() -> None:
         for k, ga in a["adaptive"].items():
             same += int(np.sum(ga == b["adaptive"][k]))
             total += ga.size
-        lid_same = lid_total = 0
+        lid_same = lid_total = n_equal = n_diff = 0
         for k, fa in a["lidar"].items():
             fb = b["lidar"][k]
+            n_diff += abs(fa.n_points - fb.n_points)
             if fa.n_points == fb.n_points:
+                n_equal += 1
                 lid_same += int(np.sum((fa.instance_id == fb.instance_id) & (fa.class_id == fb.class_id)))
-            lid_total += fa.n_points
+                lid_total += fa.n_points
         print(f"  triangle ids {ref} vs {n}: coherent image {100 * img:.3f} % of pixels (shadow rays "
               f"{100 * shadow:.3f} %); adaptive tick "
               f"{100 * same / total:.3f} % of {total / 1e6:.1f} M pixels ({a['adaptive_rays'] / 1e6:.1f} M / "
               f"{b['adaptive_rays'] / 1e6:.1f} M rays); LiDAR class+instance {100 * lid_same / max(lid_total, 1):.2f} "
-              f"% of {lid_total} returns (sweeps of equal length)")
+              f"% of {lid_total} returns of the {n_equal} of {len(a['lidar'])} sweeps of equal length; the others "
+              f"{n_diff} returns apart in all)")
     for s in suites.values():
         s.close()
 
