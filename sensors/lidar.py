@@ -405,9 +405,9 @@ def render_lidar(
     inst = np.where(spur, 0, inst)
     hit |= spur
     kind = np.where(behind, RETURN_STRONGEST, RETURN_SINGLE).astype(np.uint8)
-    idx = np.nonzero(hit)[0]
-    if not spec.dual_returns:  # firing order (below) up front: one return per beam needs no second gather
-        idx = idx[np.argsort(beams.t_offset_ns[idx], kind="stable")]
+    # without dual returns, firing order (below) up front: one return per beam needs no second gather (the
+    # beams in firing order, kept where they return, are the stable sort of the returns by firing time)
+    idx = np.nonzero(hit)[0] if spec.dual_returns else col[hit[col]]
     parts = [(d_sensor[idx] * r[idx, None], intensity[idx], ring[idx], cls[idx], inst[idx], t_off_ns[idx],
               kind[idx], idx)]
     if behind.any():
