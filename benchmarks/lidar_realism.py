@@ -1,0 +1,324 @@
+"""Sim-to-real check of the vehicle LiDAR (docs/realism.md): cosim episodes against real KITTI scans.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/lidar_realism.py --episode generic.mcap --episode hdl64e.mcap \
+        --kitti /tmp/kitti/training [--reference-hist 10.1,2.5,13.9,26.7,42.7,3.8,0.3] [--picture out.png]
+
+Per source (each cosim episode, every connected vehicle's LiDAR on every tick; the real scans), one column:
+points per scan; the elevation gap between neighbouring rings and the azimuth step (medians over rings); the
+ground spacing of rings (the distance between neighbouring rings' circles on flat ground, near 10 m and
+20 m); points per vehicle (car, van, truck, bus in the front 90 deg, as KITTI labels them) by range bin;
+the intensity histogram over :data:`BINS` and its total-variation distance to the reference histogram
+(``--reference-hist`` in %, else the real scans'). ``--fit-kitti``: the gain and exponent of the ``kitti``
+intensity transfer that bring episodes rendered with ``intensity_transfer: linear`` closest to the reference.
+
+Real scans are read from a KITTI object folder (``velodyne/*.bin``, ``label_2/*.txt``, ``calib/*.txt``) that
+you put in a scratch folder; none ship with cosim. KITTI scans have no ring field: rings are split where the
+azimuth wraps (the scan is stored ring by ring).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import numpy as np
+
+from cosim.io import open_episode
+
+BINS = (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
+RANGE_BINS = ((10.0, 30.0), (30.0, 40.0), (60.0, 80.0))
+VEHICLES = {"car", "van", "truck", "bus"}
+KITTI_VEHICLES = {"Car": "car", "Van": "van", "Truck": "truck", "Tram": "bus"}
+FRONT_HALF_ANGLE_RAD = math.radians(45.0)
+
+
+class Scan:
+    """One sweep in its sensor frame: ``xyz`` (N, 3) [m], ``intensity`` (N,), ``ring`` (N,) int, and the
+    vehicles seen (``boxes``: (M, 7) x, y, z centre, length, width, height, yaw in the sensor frame) with
+    the points on each (``hits`` (M,) int, or None where the points per box are counted from the boxes)."""
+
+    def __init__(self, xyz, intensity, ring, boxes, hits=None):
+        self.xyz, self.intensity, self.ring, self.boxes, self.hits = xyz, intensity, ring, boxes, hits
+
+
+# ------------------------------------------------------------------------------------------ cosim episodes
+
+
+def cosim_scans(path: Path) -> tuple[str, list[Scan]]:
+    """Every connected vehicle's sweep of every tick of an episode, with the vehicles it saw."""
+    import yaml
+
+    scans = []
+    with open_episode(path) as ep:
+        resolved = yaml.safe_load(ep.attachment("scenario.yaml"))
+        lidar = resolved["sensors"]["vehicle"]["lidar"]
+        label = f"{lidar.get('model', 'generic')} at {lidar['mount']['xyz_m'][2]:g} m"
+        vehicles = [a for a in ep.agents if a.startswith("vehicle_")]
+        for tick in ep.ticks():
+            objs, tf = tick.labels, tick.transforms
+            for agent in vehicles:
+                if f"/{agent}/lidar" not in tick:
+                    continue
+                cloud = tick.points(agent)
+                m = np.linalg.inv(tf.to_root(f"{agent}/lidar"))  # sensor <- map
+                keep = [i for i, c in enumerate(objs.classes) if c in VEHICLES and objs.agent_ids[i] != agent]
+                c = objs.centers_m[keep] @ m[:3, :3].T + m[:3, 3]
+                yaw = objs.yaws_rad[keep] + math.atan2(m[1, 0], m[0, 0])
+                boxes = np.column_stack([c, objs.sizes_m[keep], yaw]) if keep else np.zeros((0, 7))
+                inst = cloud.points["instance_id"]
+                ids, counts = np.unique(inst, return_counts=True)
+                per = dict(zip(ids.tolist(), counts.tolist(), strict=True))
+                hits = np.array([per.get(int(objs.track_ids[i]), 0) for i in keep], np.int64)
+                scans.append(Scan(cloud.xyz, cloud.points["intensity"].astype(np.float64),
+                                  cloud.points["ring"].astype(np.int64), boxes, hits))
+    return label, scans
+
+
+# ---------------------------------------------------------------------------------------------- KITTI
+
+
+def _calib(path: Path) -> np.ndarray:
+    """rect camera <- velodyne (4, 4) from a KITTI calib file."""
+    rows = {}
+    for line in path.read_text().splitlines():
+        if ":" in line:
+            k, v = line.split(":", 1)
+            rows[k.strip()] = np.array([float(x) for x in v.split()])
+    r0 = np.eye(4)
+    r0[:3, :3] = rows["R0_rect"].reshape(3, 3)
+    tr = np.eye(4)
+    tr[:3, :] = rows["Tr_velo_to_cam"].reshape(3, 4)
+    return r0 @ tr
+
+
+def _kitti_boxes(label: Path, cam_from_velo: np.ndarray) -> np.ndarray:
+    """Vehicle boxes (M, 7) in the velodyne frame from a KITTI label file (DontCare and others left out)."""
+    velo_from_cam = np.linalg.inv(cam_from_velo)
+    out = []
+    for line in label.read_text().splitlines():
+        f = line.split()
+        if not f or f[0] not in KITTI_VEHICLES:
+            continue
+        h, w, ln, x, y, z, ry = (float(v) for v in f[8:15])
+        c = velo_from_cam @ np.array([x, y - h / 2, z, 1.0])  # KITTI gives the bottom centre, y down
+        out.append([c[0], c[1], c[2], ln, w, h, -ry - math.pi / 2])
+    return np.array(out).reshape(-1, 7)
+
+
+def kitti_rings(xyz: np.ndarray) -> np.ndarray:
+    """Ring (N,) of KITTI points, stored ring by ring, each from azimuth 0 counter-clockwise round to 0: the
+    azimuth wraps from +180 to -180 deg at the back, and the next ring starts at the first point at or past 0
+    deg after that."""
+    az = np.arctan2(xyz[:, 1], xyz[:, 0])
+    back = np.nonzero(np.diff(az) < -math.pi)[0] + 1
+    ahead = np.nonzero(az >= 0.0)[0]
+    k = np.searchsorted(ahead, back)
+    starts = np.unique(ahead[k[k < len(ahead)]])
+    ring = np.zeros(len(xyz), np.int64)
+    ring[starts] = 1
+    return np.cumsum(ring)
+
+
+def kitti_scans(folder: Path) -> list[Scan]:
+    scans = []
+    for binf in sorted((folder / "velodyne").glob("*.bin")):
+        raw = np.fromfile(binf, np.float32).reshape(-1, 4)
+        xyz = raw[:, :3].astype(np.float64)
+        calib, label = folder / "calib" / f"{binf.stem}.txt", folder / "label_2" / f"{binf.stem}.txt"
+        boxes = _kitti_boxes(label, _calib(calib)) if label.exists() and calib.exists() else np.zeros((0, 7))
+        scans.append(Scan(xyz, raw[:, 3].astype(np.float64), kitti_rings(xyz), boxes))
+    return scans
+
+
+# --------------------------------------------------------------------------------------------- measures
+
+
+def in_box(xyz: np.ndarray, box: np.ndarray, margin_m: float = 0.1, ground_m: float = 0.15) -> np.ndarray:
+    """Points (N,) bool inside a box (x, y, z, l, w, h, yaw) grown by ``margin_m``, less its lowest ``ground_m``
+    (the road under a labelled box is not the vehicle: cosim counts a vehicle's points by their instance)."""
+    d = xyz - box[:3]
+    c, s = math.cos(box[6]), math.sin(box[6])
+    u, v = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
+    return ((np.abs(u) <= box[3] / 2 + margin_m) & (np.abs(v) <= box[4] / 2 + margin_m)
+            & (d[:, 2] >= -box[5] / 2 + ground_m) & (d[:, 2] <= box[5] / 2 + margin_m))
+
+
+def points_per_vehicle(scans: list[Scan]) -> dict[tuple[float, float], list[int]]:
+    """Points on each vehicle in the front 90 deg, by range bin of its centre (horizontal distance)."""
+    out: dict[tuple[float, float], list[int]] = {b: [] for b in RANGE_BINS}
+    for s in scans:
+        for k, box in enumerate(s.boxes):
+            if abs(math.atan2(box[1], box[0])) > FRONT_HALF_ANGLE_RAD:
+                continue
+            r = math.hypot(box[0], box[1])
+            for lo, hi in RANGE_BINS:
+                if lo <= r < hi:
+                    n = int(s.hits[k]) if s.hits is not None else int(in_box(s.xyz, box).sum())
+                    out[(lo, hi)].append(n)
+    return out
+
+
+def ring_geometry(scans: list[Scan], height_m: float) -> dict[str, float]:
+    """Median elevation gap between neighbouring rings [deg] (5th, 95th percentile), median azimuth step [deg],
+    and the ground gap between neighbouring rings' circles [m] near 10 and 20 m (from the ring elevations
+    and the mount height: d = h / tan(-elevation))."""
+    s = scans[0]
+    elev, steps = [], []
+    for r in np.unique(s.ring):
+        p = s.xyz[s.ring == r]
+        if len(p) < 50:
+            continue
+        e = np.degrees(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])))
+        elev.append(np.median(e))
+        az = np.sort(np.degrees(np.arctan2(p[:, 1], p[:, 0])))
+        d = np.diff(az)
+        steps.append(np.median(d[d > 1e-4]))
+    elev = np.sort(np.array(elev))
+    gaps = np.diff(elev)
+    gaps = gaps[gaps > 0.05]  # two pieces of one ring
+    down = elev[elev < -0.5]
+    ground = height_m / np.tan(np.radians(-down))
+    order = np.argsort(ground)
+    g = ground[order]
+    spacing = np.diff(g)
+
+    def near(d_m: float) -> float:
+        k = np.nonzero((g[:-1] >= d_m * 0.8) & (g[:-1] <= d_m * 1.2))[0]
+        return float(np.median(spacing[k])) if len(k) else float("nan")
+
+    return {"rings": len(elev), "gap_deg": float(np.median(gaps)), "gap_p5_deg": float(np.percentile(gaps, 5)),
+            "gap_p95_deg": float(np.percentile(gaps, 95)), "az_step_deg": float(np.median(steps)),
+            "ground_gap_10m": near(10.0), "ground_gap_20m": near(20.0)}
+
+
+def histogram(scans: list[Scan]) -> np.ndarray:
+    """Share of points (7,) in % per intensity bin of :data:`BINS`."""
+    i = np.concatenate([s.intensity for s in scans])
+    h = np.histogram(np.clip(i, 0.0, 1.0), BINS)[0]
+    return 100.0 * h / max(1, h.sum())
+
+
+def tv_distance(p_pct: np.ndarray, q_pct: np.ndarray) -> float:
+    """Total-variation distance of two histograms given in %: half the summed absolute difference (0..1)."""
+    p, q = np.asarray(p_pct) / np.sum(p_pct), np.asarray(q_pct) / np.sum(q_pct)
+    return 0.5 * float(np.abs(p - q).sum())
+
+
+def fit_kitti(scans: list[Scan], reference: np.ndarray) -> tuple[float, float, float]:
+    """(gain, exponent, TV distance) of ``gain * I ** exponent`` closest to ``reference`` over a grid."""
+    i = np.clip(np.concatenate([s.intensity for s in scans]), 1e-6, 1.0)
+    best = (1.0, 1.0, 1.0)
+    for gain in np.arange(0.30, 1.01, 0.02):
+        for exp in np.arange(0.10, 1.01, 0.02):
+            h = np.histogram(np.clip(gain * i ** exp, 0, 1), BINS)[0]
+            tv = tv_distance(h, reference)
+            if tv < best[2]:
+                best = (round(float(gain), 2), round(float(exp), 2), tv)
+    return best
+
+
+# -------------------------------------------------------------------------------------------- picture
+
+
+def picture(sources: list[tuple[str, Scan]], out: Path) -> None:
+    """BEV (top row) and range image (bottom row) of one scan per source, side by side."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, len(sources), figsize=(6 * len(sources), 8.5),
+                             gridspec_kw={"height_ratios": [3, 1]})
+    for col, (name, s) in enumerate(sources):
+        ax = axes[0, col]
+        near = np.hypot(s.xyz[:, 0], s.xyz[:, 1]) < 50
+        ax.scatter(s.xyz[near, 0], s.xyz[near, 1], s=0.2, c=np.clip(s.intensity[near], 0, 1), cmap="viridis",
+                   vmin=0, vmax=1, rasterized=True)
+        ax.set_xlim(-50, 50)
+        ax.set_ylim(-50, 50)
+        ax.set_aspect("equal")
+        ax.set_title(f"{name}: {len(s.xyz) / 1000:.0f} k points (colour: intensity)")
+        ax.set_xlabel("x [m] (forward)")
+        ax.set_ylabel("y [m]")
+        ax = axes[1, col]
+        rings = np.unique(s.ring)
+        row = np.searchsorted(rings, s.ring)
+        az = np.degrees(np.arctan2(s.xyz[:, 1], s.xyz[:, 0]))
+        colm = np.clip(((180.0 - az) / 360.0 * 1024).astype(int), 0, 1023)
+        img = np.full((len(rings), 1024), np.nan)
+        img[len(rings) - 1 - row, colm] = np.linalg.norm(s.xyz, axis=1)
+        ax.imshow(img, aspect="auto", cmap="turbo", vmin=0, vmax=60, interpolation="nearest")
+        ax.set_title("range image (rows: rings, top = highest; colour: range 0-60 m)")
+        ax.set_xticks([0, 256, 512, 768, 1023], ["180", "90", "0", "-90", "-180"])
+        ax.set_xlabel("azimuth [deg]")
+    fig.tight_layout()
+    fig.savefig(out, dpi=90)
+
+
+# ------------------------------------------------------------------------------------------------ main
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--episode", type=Path, action="append", default=[], help="a cosim episode (repeatable)")
+    ap.add_argument("--kitti", type=Path, help="a KITTI object folder with velodyne/, label_2/, calib/")
+    ap.add_argument("--kitti-height-m", type=float, default=1.73, help="KITTI's LiDAR height above the road")
+    ap.add_argument("--reference-hist", help="reference intensity histogram, 7 percentages over BINS")
+    ap.add_argument("--fit-kitti", action="store_true", help="fit the kitti transfer to the reference")
+    ap.add_argument("--picture", type=Path, help="write the side-by-side picture here")
+    args = ap.parse_args()
+
+    sources: list[tuple[str, list[Scan], float]] = []
+    for path in args.episode:
+        label, scans = cosim_scans(path)
+        height = float(label.rsplit(" at ", 1)[1].split()[0])
+        sources.append((f"cosim {label} ({path.stem})", scans, height))
+    if args.kitti:
+        sources.append((f"KITTI HDL-64E ({len(kitti_scans(args.kitti))} scans)", kitti_scans(args.kitti),
+                        args.kitti_height_m))
+    reference = None
+    if args.reference_hist:
+        reference = np.array([float(v) for v in args.reference_hist.split(",")])
+    elif args.kitti:
+        reference = histogram(sources[-1][1])
+
+    rows: dict[str, list[str]] = {}
+
+    def put(key: str, value: str) -> None:
+        rows.setdefault(key, []).append(value)
+
+    for _name, scans, height in sources:
+        n = np.array([len(s.xyz) for s in scans])
+        put("points per scan (mean, min-max)", f"{n.mean() / 1000:.1f} k ({n.min() / 1000:.1f}-{n.max() / 1000:.1f})")
+        g = ring_geometry(scans, height)
+        put("rings seen", f"{g['rings']}")
+        put("elevation gap between rings [deg]: median (p5-p95)",
+            f"{g['gap_deg']:.2f} ({g['gap_p5_deg']:.2f}-{g['gap_p95_deg']:.2f})")
+        put("azimuth step [deg]", f"{g['az_step_deg']:.3f}")
+        put("ground gap between rings near 10 m / 20 m [m]", f"{g['ground_gap_10m']:.2f} / {g['ground_gap_20m']:.2f}")
+        ppv = points_per_vehicle(scans)
+        for (lo, hi), counts in ppv.items():
+            cell = f"{np.median(counts):.0f} (n={len(counts)})" if counts else "none (n=0)"
+            put(f"points per vehicle {lo:g}-{hi:g} m: median", cell)
+        h = histogram(scans)
+        put("intensity: mean", f"{np.mean(np.concatenate([s.intensity for s in scans])):.3f}")
+        put("intensity histogram [%]", " / ".join(f"{v:.1f}" for v in h))
+        if reference is not None:
+            put("TV distance to the reference histogram", f"{tv_distance(h, reference):.3f}")
+        if args.fit_kitti and reference is not None and not _name.startswith("KITTI"):
+            gain, exp, tv = fit_kitti(scans, reference)
+            put("kitti transfer fitted: gain, exponent (TV)", f"{gain:g}, {exp:g} ({tv:.3f})")
+    print("| quantity | " + " | ".join(s[0] for s in sources) + " |")
+    print("|---" + "|---:" * len(sources) + "|")
+    for key, values in rows.items():
+        print(f"| {key} | " + " | ".join(values) + " |")
+    if reference is not None:
+        print(f"\nreference histogram [%]: {' / '.join(f'{v:.1f}' for v in reference)}")
+    if args.picture:
+        picture([(name, scans[0]) for name, scans, _ in sources], args.picture)
+        print(f"picture: {args.picture}")
+
+
+if __name__ == "__main__":
+    main()
