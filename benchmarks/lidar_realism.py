@@ -205,13 +205,19 @@ def tv_distance(p_pct: np.ndarray, q_pct: np.ndarray) -> float:
     return 0.5 * float(np.abs(p - q).sum())
 
 
-def fit_kitti(scans: list[Scan], reference: np.ndarray) -> tuple[float, float, float]:
-    """(gain, exponent, TV distance) of ``gain * I ** exponent`` closest to ``reference`` over a grid."""
+def fit_kitti(scans: list[Scan], reference: np.ndarray, sample: int = 100_000) -> tuple[float, float, float]:
+    """(gain, exponent, TV distance) of the ``kitti`` transfer (:mod:`cosim.sensors.lidar_models`) closest to
+    ``reference`` over a grid, on ``sample`` returns drawn from ``scans`` (rendered with the linear transfer)."""
+    from cosim.sensors.lidar_models import KITTI_MIN_RANGE_M, KITTI_REF_RANGE_M
+
     i = np.clip(np.concatenate([s.intensity for s in scans]), 1e-6, 1.0)
+    r = np.concatenate([np.linalg.norm(s.xyz, axis=1) for s in scans])
+    pick = np.random.default_rng(0).choice(len(i), min(sample, len(i)), replace=False)
+    log_power = np.log(i[pick] * (KITTI_REF_RANGE_M / np.maximum(r[pick], KITTI_MIN_RANGE_M)) ** 2)
     best = (1.0, 1.0, 1.0)
     for gain in np.arange(0.30, 1.01, 0.02):
-        for exp in np.arange(0.10, 1.01, 0.02):
-            h = np.histogram(np.clip(gain * i ** exp, 0, 1), BINS)[0]
+        for exp in np.arange(0.10, 0.80, 0.02):
+            h = np.histogram(np.clip(gain * np.exp(exp * log_power), 0, 1), BINS)[0]
             tv = tv_distance(h, reference)
             if tv < best[2]:
                 best = (round(float(gain), 2), round(float(exp), 2), tv)

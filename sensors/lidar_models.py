@@ -14,9 +14,11 @@ the loader expands ``sensors.<kind>.lidar.model`` into :class:`LidarSpec` fields
     0..100 is the diffuse reflectance in percent, 101..255 retro-reflectors; stored as byte / 255, so the
     stored count is the sensor's byte;
   - ``livox_150``: Livox's byte: 0..150 diffuse (0..100 %), 151..255 retro-reflectors; stored as byte / 255;
-  - ``kitti``: KITTI's remission from the HDL-64E S2, which reports gain-adjusted raw return strength,
-    not calibrated reflectivity: a compressive power law ``KITTI_GAIN * I ** KITTI_EXPONENT`` (fitted to
-    KITTI's intensity histogram on a town scene, docs/realism.md), retro-reflectors saturating towards 1.
+  - ``kitti``: KITTI's remission from the HDL-64E S2, which reports the raw return strength, not a
+    range-normalised reflectivity: the received power ``I (R0 / R)^2`` (R0 = :data:`KITTI_REF_RANGE_M`)
+    through a compressive response, ``KITTI_GAIN * (I (R0 / R)^2) ** KITTI_EXPONENT`` (the two numbers fitted
+    to KITTI's intensity histogram on a town scene, docs/realism.md); retro-reflectors from
+    :data:`KITTI_RETRO_FLOOR` up to 1.
 """
 
 from __future__ import annotations
@@ -32,9 +34,12 @@ from cosim.scenario.model import LidarSpec
 Transfer = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 _TRANSFERS: dict[str, Transfer] = {}
 
-#: KITTI remission = KITTI_GAIN * I ** KITTI_EXPONENT (diffuse); fitted on the town scene (docs/realism.md)
-KITTI_GAIN = 0.62
+#: KITTI remission = KITTI_GAIN * (I (KITTI_REF_RANGE_M / R)^2) ** KITTI_EXPONENT (diffuse returns); the gain and
+#: exponent fitted on the town scene (benchmarks/lidar_realism.py --fit-kitti, docs/realism.md)
+KITTI_GAIN = 0.42
 KITTI_EXPONENT = 0.32
+KITTI_REF_RANGE_M = 20.0  # [m]
+KITTI_MIN_RANGE_M = 1.0  # [m] ranges below count as this (the response saturates anyway)
 #: retro-reflectors' remission in KITTI: from this value up to 1 with their return strength
 KITTI_RETRO_FLOOR = 0.7
 
@@ -100,7 +105,8 @@ def livox_150(i: np.ndarray, retro: np.ndarray, range_m: np.ndarray) -> np.ndarr
 
 @register_transfer("kitti")
 def kitti(i: np.ndarray, retro: np.ndarray, range_m: np.ndarray) -> np.ndarray:
-    diffuse = KITTI_GAIN * i ** KITTI_EXPONENT
+    power = i * (KITTI_REF_RANGE_M / np.maximum(range_m, KITTI_MIN_RANGE_M)) ** 2
+    diffuse = KITTI_GAIN * power ** KITTI_EXPONENT
     return np.where(retro, KITTI_RETRO_FLOOR + (1.0 - KITTI_RETRO_FLOOR) * i, diffuse)
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from cosim.sensors import SensorSuite
 from cosim.sensors.lidar import beam_pattern, intensity_model, rosette_pattern
-from cosim.sensors.lidar_models import KITTI_EXPONENT, KITTI_GAIN, report_intensity
+from cosim.sensors.lidar_models import KITTI_EXPONENT, KITTI_GAIN, KITTI_REF_RANGE_M, report_intensity
 from cosim.sensors.synthetic import synthetic_scenario
 
 from cosim.errors import ScenarioError
@@ -143,9 +143,10 @@ def test_calibrated_reflectivity_is_the_sheets_byte():
 
 
 def test_kitti_transfer_and_linear():
-    asphalt = _reported("kitti", 0.12, 0.26)  # road 7 m ahead of a 1.73 m sensor: 15 deg grazing
-    assert asphalt == pytest.approx(KITTI_GAIN * (0.12 * 0.26) ** KITTI_EXPONENT)
-    assert 0.2 < asphalt < 0.3  # where KITTI's road points are
+    asphalt = _reported("kitti", 0.12, 0.26, range_m=7.0)  # road 7 m ahead of a 1.73 m sensor: 15 deg grazing
+    assert asphalt == pytest.approx(KITTI_GAIN * (0.12 * 0.26 * (KITTI_REF_RANGE_M / 7.0) ** 2) ** KITTI_EXPONENT)
+    assert 0.2 < asphalt < 0.5  # where KITTI's road points are
+    assert _reported("kitti", 0.12, 0.26, range_m=30.0) < asphalt  # raw return strength: falls with range
     assert _reported("kitti", 0.5, 1.0, retro=0.9) > 0.9
     assert _reported("linear", 0.12, 0.26) == pytest.approx(0.12 * 0.26)
 
