@@ -8,7 +8,7 @@ points per scan; the elevation gap between neighbouring rings and the azimuth st
 ground spacing of rings (the distance between neighbouring rings' circles on flat ground, near 10 m and
 20 m); points per vehicle (car, van, truck, bus in the front 90 deg, as KITTI labels them) by range bin;
 the intensity histogram over :data:`BINS` and its total-variation distance to the reference histogram
-(``--reference-hist`` in %, else the real scans'). ``--fit-kitti``: the gain and exponent of the ``kitti``
+(``--reference-hist`` in %, else the first real folder's). ``--fit-kitti``: the gain and exponent of the ``kitti``
 intensity transfer that bring episodes rendered with ``intensity_transfer: linear`` closest to the reference.
 
 Real scans are read from a KITTI object folder (``velodyne/*.bin``, ``label_2/*.txt``, ``calib/*.txt``) that
@@ -177,6 +177,10 @@ def ring_geometry(scans: list[Scan], height_m: float) -> dict[str, float]:
     elev = np.sort(np.array(elev))
     gaps = np.diff(elev)
     gaps = gaps[gaps > 0.05]  # two pieces of one ring
+    if len(gaps) < 2:  # a scan cut to the camera's view (the rings cannot be told apart)
+        nan = float("nan")
+        return {"rings": len(elev), "gap_deg": nan, "gap_p5_deg": nan, "gap_p95_deg": nan, "az_step_deg": nan,
+                "ground_gap_10m": nan, "ground_gap_20m": nan}
     down = elev[elev < -0.5]
     ground = height_m / np.tan(np.radians(-down))
     order = np.argsort(ground)
@@ -244,18 +248,20 @@ def picture(sources: list[tuple[str, Scan]], out: Path) -> None:
         ax.set_xlim(-50, 50)
         ax.set_ylim(-50, 50)
         ax.set_aspect("equal")
-        ax.set_title(f"{name}: {len(s.xyz) / 1000:.0f} k points (colour: intensity)")
+        ax.set_title(f"{name}: {len(s.xyz) / 1000:.0f} k points\n(colour: reported intensity 0..1)")
         ax.set_xlabel("x [m] (forward)")
         ax.set_ylabel("y [m]")
         ax = axes[1, col]
-        rings = np.unique(s.ring)
-        row = np.searchsorted(rings, s.ring)
+        rings, inverse = np.unique(s.ring, return_inverse=True)
+        elev = np.arctan2(s.xyz[:, 2], np.hypot(s.xyz[:, 0], s.xyz[:, 1]))
+        ring_elev = np.array([np.median(elev[inverse == k]) for k in range(len(rings))])
+        row = np.argsort(np.argsort(-ring_elev))[inverse]  # row 0: the highest ring (KITTI stores it first)
         az = np.degrees(np.arctan2(s.xyz[:, 1], s.xyz[:, 0]))
         colm = np.clip(((180.0 - az) / 360.0 * 1024).astype(int), 0, 1023)
         img = np.full((len(rings), 1024), np.nan)
-        img[len(rings) - 1 - row, colm] = np.linalg.norm(s.xyz, axis=1)
+        img[row, colm] = np.linalg.norm(s.xyz, axis=1)
         ax.imshow(img, aspect="auto", cmap="turbo", vmin=0, vmax=60, interpolation="nearest")
-        ax.set_title("range image (rows: rings, top = highest; colour: range 0-60 m)")
+        ax.set_title("range image (rows: rings, highest on top; colour: range 0-60 m)", fontsize=9)
         ax.set_xticks([0, 256, 512, 768, 1023], ["180", "90", "0", "-90", "-180"])
         ax.set_xlabel("azimuth [deg]")
     fig.tight_layout()
@@ -268,7 +274,8 @@ def picture(sources: list[tuple[str, Scan]], out: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--episode", type=Path, action="append", default=[], help="a cosim episode (repeatable)")
-    ap.add_argument("--kitti", type=Path, help="a KITTI object folder with velodyne/, label_2/, calib/")
+    ap.add_argument("--kitti", type=Path, action="append", default=[],
+                    help="a KITTI object folder with velodyne/, label_2/, calib/ (repeatable: one column each)")
     ap.add_argument("--kitti-height-m", type=float, default=1.73, help="KITTI's LiDAR height above the road")
     ap.add_argument("--reference-hist", help="reference intensity histogram, 7 percentages over BINS")
     ap.add_argument("--fit-kitti", action="store_true", help="fit the kitti transfer to the reference")
@@ -280,14 +287,15 @@ def main() -> None:
         label, scans = cosim_scans(path)
         height = float(label.rsplit(" at ", 1)[1].split()[0])
         sources.append((f"cosim {label} ({path.stem})", scans, height))
-    if args.kitti:
-        sources.append((f"KITTI HDL-64E ({len(kitti_scans(args.kitti))} scans)", kitti_scans(args.kitti),
-                        args.kitti_height_m))
     reference = None
+    for folder in args.kitti:
+        scans = kitti_scans(folder)
+        sources.append((f"KITTI HDL-64E ({', '.join(p.stem for p in sorted((folder / 'velodyne').glob('*.bin')))})",
+                        scans, args.kitti_height_m))
+        if reference is None:
+            reference = histogram(scans)
     if args.reference_hist:
         reference = np.array([float(v) for v in args.reference_hist.split(",")])
-    elif args.kitti:
-        reference = histogram(sources[-1][1])
 
     rows: dict[str, list[str]] = {}
 
@@ -321,8 +329,11 @@ def main() -> None:
         print(f"| {key} | " + " | ".join(values) + " |")
     if reference is not None:
         print(f"\nreference histogram [%]: {' / '.join(f'{v:.1f}' for v in reference)}")
-    if args.picture:
-        picture([(name, scans[0]) for name, scans, _ in sources], args.picture)
+    if args.picture:  # of each source, the scan with the most vehicles within 60 m
+        def busiest(scans: list[Scan]) -> Scan:
+            return max(scans, key=lambda s: int((np.hypot(s.boxes[:, 0], s.boxes[:, 1]) < 60).sum()))
+
+        picture([(name.split(" (")[0], busiest(scans)) for name, scans, _ in sources[:3]], args.picture)
         print(f"picture: {args.picture}")
 
 
