@@ -10,6 +10,8 @@ ground spacing of rings (the distance between neighbouring rings' circles on fla
 the intensity histogram over :data:`BINS` and its total-variation distance to the reference histogram
 (``--reference-hist`` in %, else the first real folder's). ``--fit-kitti``: the gain and exponent of the ``kitti``
 intensity transfer that bring episodes rendered with ``intensity_transfer: linear`` closest to the reference.
+``--detector RUN[:HEIGHT_M]``: instead, a ``cosim learn`` model (ego only) run on the real frames: vehicles
+found, missed and false positives in the front 90 deg (DontCare regions of the image excluded).
 
 Real scans are read from a KITTI object folder (``velodyne/*.bin``, ``label_2/*.txt``, ``calib/*.txt``) that
 you put in a scratch folder; none ship with cosim. KITTI scans have no ring field: rings are split where the
@@ -228,6 +230,79 @@ def fit_kitti(scans: list[Scan], reference: np.ndarray, sample: int = 100_000) -
     return best
 
 
+# ------------------------------------------------------------------------------------ detector transfer
+
+MATCH_M = 2.0  # [m] a detection within this of a vehicle's centre (bird's eye) finds it
+
+
+def _kitti_frame(folder: Path, stem: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, list, np.ndarray | None]:
+    """Points (N, 4), vehicle boxes (M, 7) and other labelled objects' boxes (K, 7) in the velodyne frame,
+    DontCare image rectangles, and image <- velodyne (3, 4) (None without P2)."""
+    raw = np.fromfile(folder / "velodyne" / f"{stem}.bin", np.float32).reshape(-1, 4)
+    calib_path, label = folder / "calib" / f"{stem}.txt", folder / "label_2" / f"{stem}.txt"
+    cam_from_velo = _calib(calib_path)
+    rows = {k.strip(): v for k, _, v in (ln.partition(":") for ln in calib_path.read_text().splitlines())}
+    p2 = np.array([float(x) for x in rows["P2"].split()]).reshape(3, 4) @ cam_from_velo if "P2" in rows else None
+    velo_from_cam = np.linalg.inv(cam_from_velo)
+    vehicles, others, dontcare = [], [], []
+    for line in label.read_text().splitlines():
+        f = line.split()
+        if not f:
+            continue
+        if f[0] == "DontCare":
+            dontcare.append([float(v) for v in f[4:8]])
+            continue
+        h, w, ln, x, y, z, ry = (float(v) for v in f[8:15])
+        c = velo_from_cam @ np.array([x, y - h / 2, z, 1.0])
+        (vehicles if f[0] in KITTI_VEHICLES else others).append([c[0], c[1], c[2], ln, w, h, -ry - math.pi / 2])
+    return (raw, np.array(vehicles).reshape(-1, 7), np.array(others).reshape(-1, 7), dontcare, p2)
+
+
+def detect_on_kitti(run: Path, folders: list[Path], shift_z_m: float, score_min: float) -> dict[str, object]:
+    """A ``cosim learn`` model (ego only) on real KITTI frames: vehicles (car, van, truck, tram) in the front 90
+    deg and the model's range are found when a detection of score >= ``score_min`` lies within
+    :data:`MATCH_M` (best score first, one detection per vehicle); other detections in the front 90 deg are
+    false positives unless they fall in a DontCare rectangle of the image or on another labelled object.
+    ``shift_z_m`` moves the real points up or down (a model trained at another mount height)."""
+    from cosim.learn.train import device_of, load_run, predict_sample
+
+    device = device_of("cpu")
+    model, setup, _ = load_run(run, device)
+    found = missed = false_pos = 0
+    best_scores = []
+    for folder in folders:
+        for binf in sorted((folder / "velodyne").glob("*.bin")):
+            pts, gt, others, dontcare, p2 = _kitti_frame(folder, binf.stem)
+            cloud = pts.copy()
+            cloud[:, 2] += shift_z_m
+            boxes, scores, _cls = predict_sample(model, {"clouds": [cloud]}, setup, device, score_min=0.01)
+            front = np.abs(np.arctan2(boxes[:, 1], boxes[:, 0])) <= FRONT_HALF_ANGLE_RAD
+            boxes, scores = boxes[front], scores[front]
+            gt_front = gt[(np.abs(np.arctan2(gt[:, 1], gt[:, 0])) <= FRONT_HALF_ANGLE_RAD)
+                          & setup.grid.box_inside(gt[:, :2])]
+            used = np.zeros(len(boxes), bool)
+            for g in gt_front:
+                d = np.hypot(boxes[:, 0] - g[0], boxes[:, 1] - g[1])
+                near = np.nonzero((d <= MATCH_M) & ~used)[0]
+                best_scores.append(round(float(scores[near].max()), 2) if len(near) else 0.0)
+                hit = near[scores[near] >= score_min] if len(near) else near
+                if len(hit):
+                    used[hit[np.argmax(scores[hit])]] = True
+                    found += 1
+                else:
+                    missed += 1
+            for k in np.nonzero(~used & (scores >= score_min))[0]:
+                b = boxes[k]
+                if len(others) and np.min(np.hypot(others[:, 0] - b[0], others[:, 1] - b[1])) <= MATCH_M:
+                    continue
+                if p2 is not None and dontcare:
+                    u, v, w = p2 @ np.array([b[0], b[1], b[2], 1.0])
+                    if w > 0 and any(x0 <= u / w <= x1 and y0 <= v / w <= y1 for x0, y0, x1, y1 in dontcare):
+                        continue
+                false_pos += 1
+    return {"found": found, "missed": missed, "false_positives": false_pos, "best_scores": best_scores}
+
+
 # -------------------------------------------------------------------------------------------- picture
 
 
@@ -280,7 +355,20 @@ def main() -> None:
     ap.add_argument("--reference-hist", help="reference intensity histogram, 7 percentages over BINS")
     ap.add_argument("--fit-kitti", action="store_true", help="fit the kitti transfer to the reference")
     ap.add_argument("--picture", type=Path, help="write the side-by-side picture here")
+    ap.add_argument("--detector", action="append", default=[], metavar="RUN[:HEIGHT_M]",
+                    help="a cosim learn run (ego only) to try on the --kitti frames; HEIGHT_M: the LiDAR height it "
+                         "was trained at (the real points are moved to it; default --kitti-height-m)")
+    ap.add_argument("--score-min", type=float, default=0.3, help="detections below this score are not counted")
     args = ap.parse_args()
+    if args.detector:
+        for spec in args.detector:
+            run, _, height = spec.partition(":")
+            shift = args.kitti_height_m - float(height) if height else 0.0
+            r = detect_on_kitti(Path(run), args.kitti, shift, args.score_min)
+            print(f"{run} (real points moved {shift:+.2f} m): found {r['found']} of {r['found'] + r['missed']}, "
+                  f"missed {r['missed']}, false positives {r['false_positives']} at score >= {args.score_min:g}; "
+                  f"best score near each vehicle {r['best_scores']}")
+        return
 
     sources: list[tuple[str, list[Scan], float]] = []
     for path in args.episode:

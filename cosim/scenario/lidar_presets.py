@@ -36,6 +36,10 @@ class LidarPreset:
     (:mod:`cosim.sensors.lidar_models`); ``mount_height_m`` [m above the ground] in the dataset named by
     ``mount_source``, the suggested vehicle mount (None: no dataset to take it from); ``extra`` further
     :class:`LidarSpec` fields (the rosette's).
+
+    A preset drops returns only by the physical terms of the ray drop (return energy against the sheet's
+    10 % range, glass, wet surfaces, the small random share): CARLA's intensity rule
+    (``dropoff_intensity_limit``) is off, as real scans show no loss of near dark road (docs/realism.md).
     """
 
     sensor: str
@@ -70,6 +74,7 @@ class LidarPreset:
             "detection_range_10pct_m": self.detection_range_10pct_m,
             "dual_returns": False,
             "intensity_transfer": self.intensity_transfer,
+            "dropoff_intensity_limit": 0.0,
         }
         if self.elevations_deg is not None:
             out.update(pattern="spinning", channels=self.channels, elevations_deg=list(self.elevations_deg),

@@ -369,9 +369,9 @@ class LidarSpec(Model):
                 raise RuleError("elevations_deg", f"elevations_deg gives {len(table)} rings but channels is "
                                                   f"{self.channels}")
             if list(table) != sorted(table) or (table[0], table[-1]) != (self.lower_fov_deg, self.upper_fov_deg):
-                raise RuleError("elevations_deg", f"elevations_deg must ascend from lower_fov_deg "
-                                                  f"({self.lower_fov_deg:g}) to upper_fov_deg ({self.upper_fov_deg:g}), "
-                                                  f"got {table[0]:g} .. {table[-1]:g}")
+                raise RuleError("elevations_deg",
+                                f"elevations_deg must ascend from lower_fov_deg ({self.lower_fov_deg:g}) to "
+                                f"upper_fov_deg ({self.upper_fov_deg:g}), got {table[0]:g} .. {table[-1]:g}")
         return self
 
     @model_serializer(mode="wrap")
