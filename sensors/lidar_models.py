@@ -36,7 +36,7 @@ _TRANSFERS: dict[str, Transfer] = {}
 
 #: KITTI remission = KITTI_GAIN * (I (KITTI_REF_RANGE_M / R)^2) ** KITTI_EXPONENT (diffuse returns); the gain and
 #: exponent fitted on the town scene (benchmarks/lidar_realism.py --fit-kitti, docs/realism.md)
-KITTI_GAIN = 0.42
+KITTI_GAIN = 0.44
 KITTI_EXPONENT = 0.32
 KITTI_REF_RANGE_M = 20.0  # [m]
 KITTI_MIN_RANGE_M = 1.0  # [m] ranges below count as this (the response saturates anyway)

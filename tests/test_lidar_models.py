@@ -69,6 +69,13 @@ def test_non_uniform_tables_are_densest_near_the_horizon(model):
     assert near.max() < 0.34 and gaps.max() > 4.0
 
 
+@pytest.mark.parametrize("model", sorted(SHEETS))
+def test_presets_drop_returns_by_physics_only(model):
+    spec = _lidar(model)
+    assert spec.dropoff_intensity_limit == 0.0  # CARLA's intensity rule off: real scans keep their dark near road
+    assert spec.detection_range_10pct_m == LIDAR_PRESETS[model].detection_range_10pct_m
+
+
 def test_vehicle_takes_the_dataset_mount_other_kinds_keep_theirs():
     assert _lidar("hdl64e").mount.xyz_m == (0.0, 0.0, 1.73)  # KITTI
     assert _lidar("vlp32c").mount.xyz_m == (0.0, 0.0, 1.84)  # nuScenes' 32-channel roof LiDAR
