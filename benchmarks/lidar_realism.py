@@ -198,6 +198,23 @@ def ring_geometry(scans: list[Scan], height_m: float) -> dict[str, float]:
             "ground_gap_10m": near(10.0), "ground_gap_20m": near(20.0)}
 
 
+ROAD_BINS = ((0.0, 5.0), (10.0, 15.0), (20.0, 30.0), (30.0, 40.0))
+
+
+def road_intensity(scans: list[Scan], height_m: float) -> list[float]:
+    """Median intensity of ground returns (within 0.25 m of the road plane under the sensor) by horizontal
+    range bin of :data:`ROAD_BINS` (nan where fewer than 20)."""
+    xyz = np.concatenate([s.xyz for s in scans])
+    i = np.concatenate([s.intensity for s in scans])
+    r = np.hypot(xyz[:, 0], xyz[:, 1])
+    ground = xyz[:, 2] < -height_m + 0.25
+    out = []
+    for lo, hi in ROAD_BINS:
+        k = ground & (r >= lo) & (r < hi)
+        out.append(float(np.median(i[k])) if k.sum() >= 20 else float("nan"))
+    return out
+
+
 def histogram(scans: list[Scan]) -> np.ndarray:
     """Share of points (7,) in % per intensity bin of :data:`BINS`."""
     i = np.concatenate([s.intensity for s in scans])
@@ -405,6 +422,8 @@ def main() -> None:
             put(f"points per vehicle {lo:g}-{hi:g} m: median", cell)
         h = histogram(scans)
         put("intensity: mean", f"{np.mean(np.concatenate([s.intensity for s in scans])):.3f}")
+        put("road intensity (median) at " + " / ".join(f"{lo:g}-{hi:g}" for lo, hi in ROAD_BINS) + " m",
+            " / ".join(f"{v:.2f}" for v in road_intensity(scans, height)))
         put("intensity histogram [%]", " / ".join(f"{v:.1f}" for v in h))
         if reference is not None:
             put("TV distance to the reference histogram", f"{tv_distance(h, reference):.3f}")
