@@ -275,48 +275,66 @@ def _kitti_frame(folder: Path, stem: str) -> tuple[np.ndarray, np.ndarray, np.nd
     return (raw, np.array(vehicles).reshape(-1, 7), np.array(others).reshape(-1, 7), dontcare, p2)
 
 
-def detect_on_kitti(run: Path, folders: list[Path], shift_z_m: float, score_min: float) -> dict[str, object]:
-    """A ``cosim learn`` model (ego only) on real KITTI frames: vehicles (car, van, truck, tram) in the front 90
-    deg and the model's range are found when a detection of score >= ``score_min`` lies within
+#: cosim vehicles with fewer LiDAR points than this are not counted as missed (nor their detections as false)
+MIN_POINTS_COSIM = 5
+
+
+def _cosim_frames(episodes: list[Path]):
+    """(cloud (N, 4), vehicles (M, 7), vehicles with too few points (K, 7), [], None) per sweep of episodes."""
+    for path in episodes:
+        for s in cosim_scans(path)[1]:
+            cloud = np.column_stack([s.xyz, s.intensity]).astype(np.float32)
+            seen = s.hits >= MIN_POINTS_COSIM
+            yield cloud, s.boxes[seen], s.boxes[~seen], [], None
+
+
+def _kitti_frames(folders: list[Path]):
+    for folder in folders:
+        for binf in sorted((folder / "velodyne").glob("*.bin")):
+            yield _kitti_frame(folder, binf.stem)
+
+
+def detect(run: Path, frames, shift_z_m: float, score_min: float) -> dict[str, object]:
+    """A ``cosim learn`` model (ego only) on ``frames`` (:func:`_kitti_frames`, :func:`_cosim_frames`): vehicles in
+    the front 90 deg and the model's range are found when a detection of score >= ``score_min`` lies within
     :data:`MATCH_M` (best score first, one detection per vehicle); other detections in the front 90 deg are
-    false positives unless they fall in a DontCare rectangle of the image or on another labelled object.
-    ``shift_z_m`` moves the real points up or down (a model trained at another mount height)."""
+    false positives unless they fall in a DontCare rectangle of the image or on another labelled object (for
+    KITTI: misc, pedestrians, cyclists; for cosim: vehicles with under :data:`MIN_POINTS_COSIM` points).
+    ``shift_z_m`` moves the points up or down (a model trained at another mount height)."""
     from cosim.learn.train import device_of, load_run, predict_sample
 
     device = device_of("cpu")
     model, setup, _ = load_run(run, device)
     found = missed = false_pos = 0
     best_scores = []
-    for folder in folders:
-        for binf in sorted((folder / "velodyne").glob("*.bin")):
-            pts, gt, others, dontcare, p2 = _kitti_frame(folder, binf.stem)
-            cloud = pts.copy()
-            cloud[:, 2] += shift_z_m
-            boxes, scores, _cls = predict_sample(model, {"clouds": [cloud]}, setup, device, score_min=0.01)
-            front = np.abs(np.arctan2(boxes[:, 1], boxes[:, 0])) <= FRONT_HALF_ANGLE_RAD
-            boxes, scores = boxes[front], scores[front]
-            gt_front = gt[(np.abs(np.arctan2(gt[:, 1], gt[:, 0])) <= FRONT_HALF_ANGLE_RAD)
-                          & setup.grid.box_inside(gt[:, :2])]
-            used = np.zeros(len(boxes), bool)
-            for g in gt_front:
-                d = np.hypot(boxes[:, 0] - g[0], boxes[:, 1] - g[1])
-                near = np.nonzero((d <= MATCH_M) & ~used)[0]
-                best_scores.append(round(float(scores[near].max()), 2) if len(near) else 0.0)
-                hit = near[scores[near] >= score_min] if len(near) else near
-                if len(hit):
-                    used[hit[np.argmax(scores[hit])]] = True
-                    found += 1
-                else:
-                    missed += 1
-            for k in np.nonzero(~used & (scores >= score_min))[0]:
-                b = boxes[k]
-                if len(others) and np.min(np.hypot(others[:, 0] - b[0], others[:, 1] - b[1])) <= MATCH_M:
+    for pts, gt, others, dontcare, p2 in frames:
+        cloud = pts.copy()
+        cloud[:, 2] += shift_z_m
+        boxes, scores, _cls = predict_sample(model, {"clouds": [cloud]}, setup, device, score_min=0.01)
+        front = np.abs(np.arctan2(boxes[:, 1], boxes[:, 0])) <= FRONT_HALF_ANGLE_RAD
+        boxes, scores = boxes[front], scores[front]
+        gt_front = gt[(np.abs(np.arctan2(gt[:, 1], gt[:, 0])) <= FRONT_HALF_ANGLE_RAD)
+                      & setup.grid.box_inside(gt[:, :2])]
+        used = np.zeros(len(boxes), bool)
+        for g in gt_front:
+            d = np.hypot(boxes[:, 0] - g[0], boxes[:, 1] - g[1])
+            near = np.nonzero((d <= MATCH_M) & ~used)[0]
+            best_scores.append(round(float(scores[near].max()), 2) if len(near) else 0.0)
+            hit = near[scores[near] >= score_min] if len(near) else near
+            if len(hit):
+                used[hit[np.argmax(scores[hit])]] = True
+                found += 1
+            else:
+                missed += 1
+        for k in np.nonzero(~used & (scores >= score_min))[0]:
+            b = boxes[k]
+            if len(others) and np.min(np.hypot(others[:, 0] - b[0], others[:, 1] - b[1])) <= MATCH_M:
+                continue
+            if p2 is not None and dontcare:
+                u, v, w = p2 @ np.array([b[0], b[1], b[2], 1.0])
+                if w > 0 and any(x0 <= u / w <= x1 and y0 <= v / w <= y1 for x0, y0, x1, y1 in dontcare):
                     continue
-                if p2 is not None and dontcare:
-                    u, v, w = p2 @ np.array([b[0], b[1], b[2], 1.0])
-                    if w > 0 and any(x0 <= u / w <= x1 and y0 <= v / w <= y1 for x0, y0, x1, y1 in dontcare):
-                        continue
-                false_pos += 1
+            false_pos += 1
     return {"found": found, "missed": missed, "false_positives": false_pos, "best_scores": best_scores}
 
 
@@ -381,10 +399,16 @@ def main() -> None:
         for spec in args.detector:
             run, _, height = spec.partition(":")
             shift = args.kitti_height_m - float(height) if height else 0.0
-            r = detect_on_kitti(Path(run), args.kitti, shift, args.score_min)
-            print(f"{run} (real points moved {shift:+.2f} m): found {r['found']} of {r['found'] + r['missed']}, "
-                  f"missed {r['missed']}, false positives {r['false_positives']} at score >= {args.score_min:g}; "
-                  f"best score near each vehicle {r['best_scores']}")
+            if args.kitti:
+                r = detect(Path(run), _kitti_frames(args.kitti), shift, args.score_min)
+                print(f"{run} on KITTI (points moved {shift:+.2f} m): found {r['found']} of "
+                      f"{r['found'] + r['missed']}, missed {r['missed']}, false positives {r['false_positives']} at "
+                      f"score >= {args.score_min:g}; best score near each vehicle {r['best_scores']}")
+            if args.episode:
+                r = detect(Path(run), _cosim_frames(args.episode), 0.0, args.score_min)
+                print(f"{run} on {', '.join(p.stem for p in args.episode)}: found {r['found']} of "
+                      f"{r['found'] + r['missed']}, missed {r['missed']}, false positives {r['false_positives']} at "
+                      f"score >= {args.score_min:g}")
         return
 
     sources: list[tuple[str, list[Scan], float]] = []
