@@ -44,6 +44,7 @@ from cosim.scenario.model import LidarSpec
 from cosim.snapshot import AgentState
 
 from .environment import Atmosphere
+from .lidar_models import needs_retro, report_intensity, ring_elevations_deg
 from .rig import Pose, body_rotation, mount_rotation, rotate
 from .scene import StaticHits, TickScene, cast
 
@@ -128,11 +129,12 @@ def sweep_ns(spec: LidarSpec) -> int:
 def beam_pattern(spec: LidarSpec) -> tuple[np.ndarray, np.ndarray]:
     """Spinning pattern: unit ray directions (C * A, 3) float64 in the sensor frame and ring (C * A,) uint16.
 
-    Channels are evenly spaced from ``lower_fov_deg`` (ring 0) to ``upper_fov_deg``; azimuths cover
-    360 deg counter-clockwise from the sensor's +x at ``horizontal_resolution_deg``.
+    Channels at :func:`ring_elevations_deg` (the sheet's table, or evenly spaced from ``lower_fov_deg``, ring
+    0, to ``upper_fov_deg``); azimuths cover 360 deg counter-clockwise from the sensor's +x at
+    ``horizontal_resolution_deg``.
     """
     n_az = max(1, round(360.0 / spec.horizontal_resolution_deg))
-    elev = np.radians(np.linspace(spec.lower_fov_deg, spec.upper_fov_deg, spec.channels))
+    elev = np.radians(ring_elevations_deg(spec))
     az = np.arange(n_az) * (2 * math.pi / n_az)
     e, a = np.meshgrid(elev, az, indexing="ij")
     d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=-1).reshape(-1, 3)
@@ -417,17 +419,18 @@ def render_lidar(
     if spec.dual_returns:
         parts += _edge_returns(scene, spec, atm, rays, d_sensor, ring, t_off_ns, exclude_track,
                                np.where(hit & ~spur, r, np.inf), hit, parts, rng if noise else None, sigma)
-    cat = [np.concatenate([p[k] for p in parts]) for k in range(7)]
+    cat = [np.concatenate([p[k] for p in parts]) for k in range(8)]
     # firing order: by the firing time of the beam, the channels of one firing from the lowest ring up (a
     # dual pair's last return after the firing's other returns), as a sensor sends its packets; the records
     # of one firing then share their time, so the stored sweep compresses 4 % smaller than ring by ring
     if len(parts) > 1:
         order = np.argsort(beams.t_offset_ns[np.concatenate([p[7] for p in parts])], kind="stable")
         cat = [c[order] for c in cat]
+    retro = _retro_hits(scene, gid)[cat[7]] & (cat[3] != 0) if needs_retro(spec) else None
     return LidarFrame(
         agent_id,
         cat[0].astype(np.float32),
-        np.clip(cat[1], 0.0, 1.0).astype(np.float32),
+        report_intensity(spec, cat[1], retro, np.linalg.norm(cat[0], axis=1)).astype(np.float32),
         cat[2].astype(np.uint16),
         cat[3].astype(np.uint8),
         cat[4].astype(np.uint32),
@@ -449,6 +452,13 @@ def _surface_intensity(scene: TickScene, atm: Atmosphere, gid: np.ndarray, d_map
         wet = np.where(normals[:, 2] > 0.5, wet_factor(atm.rain_rate_mm_h), 1.0)
         rho, retro = rho * wet, retro * wet
     return intensity_model(rho, retro, cos_inc, r, atm.beta), cls, np.take(lab["instance"], gid)
+
+
+def _retro_hits(scene: TickScene, gid: np.ndarray) -> np.ndarray:
+    """Whether each hit ``gid`` (N,) is on a retro-reflective surface (lane markings, plates, lamp units)."""
+    lab = scene.labels
+    cls = np.take(lab["semantic"], gid)
+    return np.maximum(_RETRO_BY_CLASS[cls], np.take(lab["retro"], gid)) > 0
 
 
 def _through_crowns(scene: TickScene, rays: np.ndarray, t: np.ndarray, gid: np.ndarray, u: np.ndarray,

@@ -218,9 +218,10 @@ def parse_yaml(path: Path) -> YamlDoc:
 
 
 def load_with_extends(path: Path) -> YamlDoc:
-    """Parse a scenario file with its ``extends:`` chain merged in, rigs completed (:func:`complete_rigs`)."""
+    """Parse a scenario file with its ``extends:`` chain merged in, rigs but their LiDARs completed
+    (:func:`complete_rigs`: a LiDAR ``model`` is expanded at validation, after any ``--set``)."""
     doc = _load_with_extends(path, ())
-    doc.data["sensors"] = complete_rigs(doc.data.get("sensors", {}))
+    doc.data["sensors"] = complete_rigs(doc.data.get("sensors", {}), lidar=False)
     return doc
 
 

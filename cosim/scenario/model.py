@@ -12,7 +12,9 @@ import types
 from fractions import Fraction
 from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer, model_validator
+
+from .lidar_presets import LIDAR_PRESETS, expand_lidar
 
 TICK_NS_PER_S = 1_000_000_000
 #: What ``output.name`` may be: a file stem that cannot leave the output folder or hide the file.
@@ -23,6 +25,7 @@ Weather = Literal["clear", "cloudy", "foggy", "rainy"]
 Lighting = Literal["day", "dusk", "night"]
 MapKind = Literal["urban", "suburban", "rural", "highway", "net", "osm"]
 DynamicsBackend = Literal["jsbsim", "pybullet"]
+LidarModelName = Literal[tuple(LIDAR_PRESETS)]  # type: ignore[valid-type]  # generic, hdl64e, ... (datasheets)
 
 #: [m] largest map coordinate: networks lie about the origin (generated ones span at most 5 km, netconvert
 #: moves imported ones there); a point farther out is a typo, not a place.
@@ -317,12 +320,22 @@ class Mount(Model):
 class LidarSpec(Model):
     """A LiDAR (docs/episode_format.md 3.4). ``pattern`` names a scan pattern of the registry in
     ``cosim.sensors.lidar``: ``spinning`` (``channels`` rings from ``lower_fov_deg`` to ``upper_fov_deg``,
-    ``horizontal_resolution_deg`` apart, one sweep per 1/``rotation_hz``) or ``rosette`` (a Livox-style
-    non-repetitive pattern: ``point_rate_hz`` points per second over a circular ``rosette_fov_deg`` about
-    the sensor's +x; one frame per 1/``rotation_hz``)."""
+    evenly spaced or at the elevations of ``elevations_deg``, ``horizontal_resolution_deg`` apart, one sweep
+    per 1/``rotation_hz``) or ``rosette`` (a Livox-style non-repetitive pattern: ``point_rate_hz`` points
+    per second over a circular ``rosette_fov_deg`` about the sensor's +x; one frame per 1/``rotation_hz``).
 
+    ``model`` names a datasheet preset (:mod:`cosim.scenario.lidar_presets`, docs/lidar_models.md) that the
+    loader expands into these fields; fields set beside it override it. ``intensity_transfer`` is how the
+    sensor reports intensity (``cosim.sensors.lidar_models``). The three fields that came with the presets
+    are left out of the resolved scenario while they hold their defaults (:meth:`_dump`), so episodes of
+    the generic rig keep their bytes."""
+
+    model: LidarModelName = "generic"
     pattern: Literal["spinning", "rosette"] = "spinning"
     channels: int = Field(64, ge=1, le=256)
+    # [deg] ring elevations, ascending (ring 0 the lowest); null: evenly spaced from lower to upper FOV
+    elevations_deg: tuple[Annotated[float, Field(ge=-90.0, le=90.0)], ...] | None = None
+    intensity_transfer: Literal["linear", "kitti", "calibrated_100", "livox_150"] = "linear"
     upper_fov_deg: float = 10.0
     lower_fov_deg: float = -38.0
     horizontal_resolution_deg: float = Field(0.35, gt=0.01, le=10)
@@ -350,7 +363,24 @@ class LidarSpec(Model):
                 f"lidar vertical FOV must satisfy -90 <= lower < upper <= 90, "
                 f"got lower {self.lower_fov_deg}, upper {self.upper_fov_deg}"
             )
+        table = self.elevations_deg
+        if table is not None:
+            if len(table) != self.channels:
+                raise RuleError("elevations_deg", f"elevations_deg gives {len(table)} rings but channels is "
+                                                  f"{self.channels}")
+            if list(table) != sorted(table) or (table[0], table[-1]) != (self.lower_fov_deg, self.upper_fov_deg):
+                raise RuleError("elevations_deg",
+                                f"elevations_deg must ascend from lower_fov_deg ({self.lower_fov_deg:g}) to "
+                                f"upper_fov_deg ({self.upper_fov_deg:g}), got {table[0]:g} .. {table[-1]:g}")
         return self
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: Any) -> Any:
+        out = handler(self)
+        for name in ("model", "elevations_deg", "intensity_transfer"):
+            if getattr(self, name) == LidarSpec.model_fields[name].default:
+                out.pop(name, None)
+        return out
 
 
 CameraOutput = Literal["rgb", "depth", "semantic", "instance"]
@@ -467,12 +497,15 @@ def merge_fields(base: Any, over: Any) -> Any:
     return over
 
 
-def complete_rigs(sensors: Any) -> Any:
+def complete_rigs(sensors: Any, lidar: bool = True) -> Any:
     """``sensors`` data with every partly given rig completed from its agent kind's default rig, field by field.
 
     A rig's defaults depend on the agent kind (a drone's LiDAR looks down, an RSU has no IMU), so a partial
     ``sensors.drone: {lidar: {range_noise_m: 0}}`` must keep the drone's cameras, IMU and LiDAR field of view
-    and mount rather than fall back to a generic rig. Lists (``cameras``) are replaced as a whole.
+    and mount rather than fall back to a generic rig. Lists (``cameras``) are replaced as a whole. A LiDAR
+    ``model`` (:func:`cosim.scenario.lidar_presets.expand_lidar`) comes between the kind's default and the
+    fields given. ``lidar=False`` leaves every LiDAR as given (the loader completes the rest before ``--set``,
+    and the LiDARs at validation, once every field beside a ``model`` is known).
     """
     if not isinstance(sensors, dict):
         return sensors
@@ -480,7 +513,12 @@ def complete_rigs(sensors: Any) -> Any:
     for kind, default in DEFAULT_RIGS.items():
         given = out.get(kind, {})
         if isinstance(given, dict):
-            out[kind] = merge_fields(default().model_dump(mode="json"), given)
+            rig = default().model_dump(mode="json")
+            if not lidar:
+                rig.pop("lidar")
+            elif "lidar" in given:  # a LiDAR model's preset sits between the kind's default and the given fields
+                given = {**given, "lidar": expand_lidar(kind, rig["lidar"], given["lidar"])}
+            out[kind] = merge_fields(rig, given)
     return out
 
 
