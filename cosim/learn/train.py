@@ -298,6 +298,23 @@ def read_log(run: Path) -> list[dict[str, Any]]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
+class _NoBar:
+    def __init__(self, *args: Any, **kwargs: Any):
+        pass
+
+    def update(self, n: int) -> None:
+        pass
+
+    def set_postfix(self, **kwargs: Any) -> None:
+        pass
+
+    def write(self, text: str) -> None:
+        print(text, file=sys.stderr)
+
+    def close(self) -> None:
+        pass
+
+
 def _cpu_s() -> float:
     import resource
 
@@ -343,7 +360,10 @@ def fit(samples: Any, val_fn: Callable[[PillarDetector], dict[str, float]] | Non
         show_progress: bool = True) -> dict[str, Any]:
     """The training loop: ``samples`` (``len``, ``item(i)``, ``setup``), ``val_fn`` (model -> AP dict, or
     None). Writes the run folder; ``best.pt`` is the checkpoint of the best validation AP50."""
-    from tqdm import tqdm
+    try:
+        from tqdm import tqdm
+    except ModuleNotFoundError:  # a bare machine (benchmarks/learn_device.py): no progress bar
+        tqdm = _NoBar
 
     t0 = time.perf_counter()
     run = Path(run)
