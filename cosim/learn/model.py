@@ -144,15 +144,15 @@ def warp_maps(pillar: torch.Tensor, coords: torch.Tensor, poses: torch.Tensor, p
 def fuse_maps(warped: torch.Tensor, hit: torch.Tensor, how: str) -> torch.Tensor:
     """(B, C, ny, nx): the agents' warped maps (B, J, C, ny, nx) fused per cell, by max over the agents
     (F-Cooper's maxout; features are ReLU outputs, so an agent without a pillar there, at 0, never wins) or
-    by attention: softmax over the agents with a pillar there (and the ego) of <ego feature, agent
-    feature> / sqrt(C), weighting the agents' features (AttFuse)."""
+    by attention: softmax over the agents with a pillar there of <ego feature, agent feature> / sqrt(C),
+    weighting the agents' features (AttFuse)."""
     if how == "max":
         return warped.max(dim=1).values
     c = warped.shape[2]
     ego = warped[:, :1]
     score = (warped * ego).sum(dim=2) / math.sqrt(c)  # (B, J, ny, nx)
     allowed = hit.clone()
-    allowed[:, 0] = True
+    allowed[:, 0] |= ~hit.any(dim=1)  # a cell no agent has a pillar in: the ego's (zero) feature
     score = score.masked_fill(~allowed, float("-inf"))
     w = torch.softmax(score, dim=1)
     return (w[:, :, None] * warped).sum(dim=1)
