@@ -10,7 +10,7 @@ There (a bare copy of the repository tree; the tarball carried beside it):
 
     python benchmarks/learn_device.py run --cache out/learn_cache_dev.tar.xz --out $OUT
 
-``run`` trains every setting of :data:`SETTINGS` (two at a time, each with its own batch-making worker
+``run`` trains every setting of :data:`SETTINGS` (``--parallel`` at a time, each with its own batch-making worker
 processes), validates on the cache's val split every fifth of the steps, keeps the checkpoint of the best
 val AP50, and scores it on the test split. Per setting it writes ``<name>/summary.json``, ``log.jsonl``,
 ``test.json`` (AP30/50/70 of the vehicle group against the setting's own visible objects and against the
@@ -62,18 +62,22 @@ class CacheSamples:
             if e["id"] in ids:
                 self.keys += [(e["id"], t, ego) for t in range(0, e["n_ticks"], every) for ego in e["egos"]]
         self._last = None
+        self._memo: dict[int, dict] = {}
 
     def __len__(self) -> int:
         return len(self.keys)
 
     def __getstate__(self) -> dict:
-        return {**self.__dict__, "_last": None}
+        return {**self.__dict__, "_last": None, "_memo": {}}
 
     def item(self, i: int) -> dict:
+        if i in self._memo:  # a sample is made once per process: epochs repeat on a small cache
+            return self._memo[i]
         episode, tick, ego = self.keys[i]
         if self._last is None or self._last[0] != (episode, tick):
             self._last = ((episode, tick), self.cache.record(episode, tick))
-        return self._make(self._last[1], ego, self.setup, episode)
+        self._memo[i] = self._make(self._last[1], ego, self.setup, episode)
+        return self._memo[i]
 
 
 def score(model, samples, gt_samples, device, lines: list[str] | None = None) -> dict:
