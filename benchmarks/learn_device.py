@@ -3,8 +3,8 @@ cosim's other dependencies (no MCAP reader), from a cache tarball made here (doc
 
 Here (with cosim installed):
 
-    cosim learn cache out/learn16 --out out/learn_cache_dev --every 10
-    python benchmarks/learn_device.py pack out/learn_cache_dev --out out/learn_cache_dev.tar.xz
+    cosim learn cache out/learn16 --out out/cache16_tick --every 2
+    python benchmarks/learn_device.py pack out/cache16_tick --every 10 --out out/learn_cache_dev.tar.xz
 
 There (a bare copy of the repository tree; the tarball carried beside it):
 
@@ -209,13 +209,32 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_pack(args: argparse.Namespace) -> int:
+    """A cache folder as one .tar.xz, keeping every ``--every``-th tick (a multiple of the cache's own)."""
+    import numpy as np
+
     src = Path(args.cache)
     if not (src / "cache.json").is_file():
         print(f"{src}: no cache.json: not a cache folder of cosim learn cache", file=sys.stderr)
         return 2
-    with tarfile.open(args.out, "w:xz", preset=args.preset) as tar:
-        tar.add(src, arcname=src.name)
-    print(f"{args.out}: {Path(args.out).stat().st_size / 1e6:.1f} MB")
+    meta = json.loads((src / "cache.json").read_text())
+    every = args.every or int(meta["every"])
+    if every % int(meta["every"]):
+        print(f"--every {every} is not a multiple of the cache's {meta['every']}", file=sys.stderr)
+        return 2
+    with tempfile.TemporaryDirectory() as tmp:
+        dst = Path(tmp) / src.name
+        for e in meta["episodes"]:
+            (dst / e["file"]).parent.mkdir(parents=True, exist_ok=True)
+            with np.load(src / e["file"]) as z:
+                recs = json.loads(z["meta"].tobytes())
+                keep = [r for r in recs if r["tick"] % every == 0]
+                arrays = {k: z[k] for k in z.files if k != "meta" and int(k.split("/")[0]) % every == 0}
+            arrays["meta"] = np.frombuffer(json.dumps(keep).encode(), np.uint8)
+            np.savez(dst / e["file"], **arrays)
+        (dst / "cache.json").write_text(json.dumps({**meta, "every": every}, indent=1) + "\n")
+        with tarfile.open(args.out, "w:xz", preset=args.preset) as tar:
+            tar.add(dst, arcname=src.name)
+    print(f"{args.out}: {Path(args.out).stat().st_size / 1e6:.1f} MB, every {every} ticks")
     return 0
 
 
@@ -244,6 +263,7 @@ def main(argv: list[str] | None = None) -> int:
     k.add_argument("cache")
     k.add_argument("--out", required=True)
     k.add_argument("--preset", type=int, default=6)
+    k.add_argument("--every", type=int, help="keep ticks 0, every, 2 every... (default: all of the cache's)")
     args = ap.parse_args(argv)
     return {"run": cmd_run, "one": run_one, "pack": cmd_pack}[args.cmd](args)
 
