@@ -528,7 +528,7 @@ def test_compensation_modes_move_points_of_moving_agents(tiny_batch):
              for i in range(len(recs["raw"]["agents"]))]
     kinds = [a.rsplit("_", 1)[0] for a in recs["raw"]["agents"]]
     assert max(m for m, k in zip(moved, kinds, strict=True) if k == "vehicle") > 0.01  # a driving vehicle's sweep
-    assert all(m == 0.0 for m, k in zip(moved, kinds, strict=True) if k == "rsu")  # a fixed RSU: nothing to undo
+    assert all(m < 1e-3 for m, k in zip(moved, kinds, strict=True) if k == "rsu")  # a fixed RSU: float rounding only
     objects = [not np.array_equal(recs["objects"]["lidar"][i], recs["tick"]["lidar"][i]) for i in range(len(moved))]
     assert any(objects)  # some sweep has points on a moving object
 
