@@ -20,7 +20,7 @@ changes hit both alike; then the ratios, and the triangle-id agreement of the ad
 LiDAR sweeps (the same global index per pixel/return).
 
 ``--export PATH`` writes the tick for ``benchmarks/device_probe.py`` instead (a compressed .npz of about
-4 MB): the static + actor triangles, vehicle_0's front camera and its triangle ids per pixel from the
+1.2 MB): the static + actor triangles, vehicle_0's front camera and its triangle ids per pixel from the
 embree backend (one ray per pixel, -1 for a miss).
 """
 

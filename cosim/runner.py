@@ -346,5 +346,5 @@ def _link_model(loaded: LoadedScenario, world: World) -> Any:
     from cosim.comm.links import LinkModel
     from cosim.comm.los import LinkScene
 
-    scene = LinkScene.from_layout(world.layout)
+    scene = LinkScene.from_layout(world.layout, s.sensors.ray_backend)
     return LinkModel(s.comm, scene, world.map_kind, s.seed, s.tick_ns)

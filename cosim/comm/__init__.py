@@ -8,5 +8,5 @@
 - :mod:`cosim.comm.message`: the ``/comm/links`` topic (schema, payload, decoding);
 - :mod:`cosim.io.comm_report`: ``cosim comm``: summary per link type and plots.
 
-Importing this package loads nothing heavy; the link model needs Open3D (through its scene).
+Importing this package loads nothing heavy; the link model needs a ray backend (through its scene).
 """

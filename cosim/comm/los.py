@@ -1,9 +1,10 @@
 """Line of sight between antennas: LOS, NLOSv (an actor in between) or NLOS (the static world).
 
-The static world is an Open3D scene (:class:`LinkScene`: the side walls of the layout's blocking
-prisms, one BVH per episode, whether sensors run or not): the segment between two antennas is
-cast as a ray whose direction is the segment itself (so ``t`` in [0, 1] lies between the ends)
-and every crossing is listed. Thin static parts (poles, street lights, lane markings, the RSU
+The static world is a ray-backend scene (:class:`LinkScene`: the side walls of the layout's blocking
+prisms, one BVH per episode, whether sensors run or not; :mod:`cosim.sensors.raycast`, the episode's
+``sensors.ray_backend``): the segment between two antennas is cast as a ray whose direction is the
+segment itself (so ``t`` in [0, 1] lies between the ends), from just past the first end, and its
+nearest crossing decides. Thin static parts (poles, street lights, lane markings, the RSU
 masts) do not block a radio link and are skipped; anything else (buildings, vegetation, terrain,
 road bodies) makes the link NLOS.
 
@@ -29,10 +30,11 @@ LOS_STATES: tuple[str, ...] = ("los", "nlosv", "nlos")  # index = state code
 #: Static classes a radio link passes: thin (poles, lamps, masts) or flat (markings).
 SEE_THROUGH: frozenset[str] = frozenset({"unlabelled", "pole", "street_light", "lane_marking", "rsu"})
 END_MARGIN_M = 0.05  # [m] crossings this close to an antenna are the antenna's own mount, not a blocker
+_MAX_PASSES = 16  # non-blocking crossings a segment is followed through
 
 
 class LinkScene:
-    """An Open3D scene of the static world for line-of-sight tests and, per triangle, whether it blocks.
+    """A ray-backend scene of the static world for line-of-sight tests and, per triangle, whether it blocks.
 
     :meth:`from_layout` builds only the side walls of the layout's blocking prisms (a segment whose
     ends lie outside a vertical prism can only enter and leave it through its walls: top and bottom
@@ -51,17 +53,14 @@ class LinkScene:
         return len(self.blocks)
 
     @classmethod
-    def from_layout(cls, layout) -> LinkScene:
-        """The walls of a :class:`cosim.world.types.StaticLayout`'s blocking prisms (logs the time)."""
+    def from_layout(cls, layout, backend: str | None = None) -> LinkScene:
+        """The walls of a :class:`cosim.world.types.StaticLayout`'s blocking prisms, built by the ray backend
+        ``backend`` (default: the renderer's; logs the time)."""
+        from cosim.sensors.raycast import DEFAULT_BACKEND, build, ray_backend
+
         t0 = time.perf_counter()
         verts, tris = wall_mesh(layout)
-        scene = None
-        if len(tris):
-            import open3d as o3d
-
-            scene = o3d.t.geometry.RaycastingScene()
-            scene.add_triangles(o3d.core.Tensor(verts), o3d.core.Tensor(tris))
-            scene.cast_rays(o3d.core.Tensor(np.array([[0, 0, 1e4, 0, 0, 1]], np.float32)))  # build the BVH now
+        scene = build(ray_backend(backend or DEFAULT_BACKEND), verts, tris, "high")
         log.info("link scene: %d wall triangles built in %.2f s", len(tris), time.perf_counter() - t0)
         return cls(scene, np.ones(len(tris), bool), layout.ground_z_m)
 
@@ -70,19 +69,23 @@ class LinkScene:
         n = len(a_m)
         if n == 0 or self.scene is None:
             return np.zeros(n, bool)
-        import open3d as o3d
-
         d = b_m - a_m
-        length = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
-        rays = np.ascontiguousarray(np.hstack([a_m, d]), np.float32)
-        ans = self.scene.list_intersections(o3d.core.Tensor(rays))
-        ray_ids = ans["ray_ids"].numpy().astype(np.int64)
-        t = ans["t_hit"].numpy().astype(np.float64)
-        prim = ans["primitive_ids"].numpy().astype(np.int64)
-        margin = END_MARGIN_M / length[ray_ids]
-        hit = (t > margin) & (t < 1.0 - margin) & self.blocks[prim]
+        margin = END_MARGIN_M / np.maximum(np.linalg.norm(d, axis=1), 1e-9)
+        start = margin.copy()  # [segment lengths] where the search goes on from
         out = np.zeros(n, bool)
-        out[ray_ids[hit]] = True
+        todo = np.arange(n)
+        for _ in range(_MAX_PASSES):  # past crossings that do not block, on to the next
+            rays = np.ascontiguousarray(np.hstack([a_m[todo] + start[todo, None] * d[todo], d[todo]]), np.float32)
+            t, prim = self.scene.closest(rays)
+            t_seg = start[todo] + t
+            inside = (prim >= 0) & (t_seg < 1.0 - margin[todo])
+            blocking = inside & self.blocks[np.maximum(prim, 0)]
+            out[todo[blocking]] = True
+            again = inside & ~blocking
+            start[todo[again]] = t_seg[again] + 1e-6
+            todo = todo[again]
+            if not len(todo):
+                break
         return out
 
 
