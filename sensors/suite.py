@@ -221,7 +221,8 @@ class SensorSuite:
         self._signals = SignalLamps(layout_mesh.n_triangles, signals, heads) if signals is not None else None
         signs = traffic_signs(world.net_xml)  # stop, give way, speed limits
         extra = [m for m in (signal_mesh(signals) if signals is not None else None, sign_mesh(signs)) if m is not None]
-        self.static = StaticScene(concat([layout_mesh, *extra]) if extra else layout_mesh)
+        self.static = StaticScene(concat([layout_mesh, *extra]) if extra else layout_mesh,
+                                  scenario.sensors.ray_backend)
         m = self.static.mesh
         self._static_rgb = _shaded(m.albedo, self.static.normals, self.atm)
         self._static_rgb_shadow = _shaded(m.albedo, self.static.normals, self.atm, sun=False)
@@ -349,21 +350,24 @@ class SensorSuite:
         )
         return frame, {"camera_cast": t1 - t0, "shading": t2 - t1, "labels": time.perf_counter() - t2}
 
-    def _prepare(self, snapshot: WorldSnapshot) -> _Tick:
-        """What every agent's sensors share at one tick: the tick scene, shading tables, light, actor boxes."""
+    def _prepare(self, snapshot: WorldSnapshot, cameras: bool = True) -> _Tick:
+        """What every agent's sensors share at one tick: the tick scene, shading tables, light, actor boxes
+        (``cameras=False``: no camera renders this tick, so no shading tables and no light map)."""
         scene = TickScene.build(self.static, snapshot.actors)
         lut = scene.labels
-        n_act = lut["normal"][scene.n_static:scene.miss]
-        rgb = scene.table(self._static_rgb, _shaded(scene.actors.albedo, n_act, self.atm), (0.0, 0.0, 0.0))
-        rgb_shadow = scene.table(self._static_rgb_shadow, _shaded(scene.actors.albedo, n_act, self.atm, sun=False),
-                                 (0.0, 0.0, 0.0))
-        if self._signals is not None:  # the lit lamps of the traffic lights, self-luminous
-            rows, lit = self._signals.lit(snapshot.traffic_lights, self.atm.exposure)
-            rgb[rows] = lit
-            rgb_shadow[rows] = lit
-        tables = shading_tables(rgb, lut["albedo"], lut["emissive"], scene.miss, self.atm, rgb_shadow,
-                                surface_inputs(scene, self.scenario.sensors.surface_detail))
-        light = _add_headlights(self._light, snapshot.actors) if self._light is not None else None
+        tables = light = None
+        if cameras:
+            n_act = lut["normal"][scene.n_static:scene.miss]
+            rgb = scene.table(self._static_rgb, _shaded(scene.actors.albedo, n_act, self.atm), (0.0, 0.0, 0.0))
+            rgb_shadow = scene.table(self._static_rgb_shadow,
+                                     _shaded(scene.actors.albedo, n_act, self.atm, sun=False), (0.0, 0.0, 0.0))
+            if self._signals is not None:  # the lit lamps of the traffic lights, self-luminous
+                rows, lit = self._signals.lit(snapshot.traffic_lights, self.atm.exposure)
+                rgb[rows] = lit
+                rgb_shadow[rows] = lit
+            tables = shading_tables(rgb, lut["albedo"], lut["emissive"], scene.miss, self.atm, rgb_shadow,
+                                    surface_inputs(scene, self.scenario.sensors.surface_detail))
+            light = _add_headlights(self._light, snapshot.actors) if self._light is not None else None
         actors = snapshot.actors
         if actors:
             a_corners = box_corners(np.array([a.center_m for a in actors]), np.array([a.size_m for a in actors]),
@@ -403,7 +407,7 @@ class SensorSuite:
         """The frames of the agents in ``items`` (each with its own generator) and the timings."""
         t_start = time.perf_counter()
         timing = {"scene": 0.0, "lidar": 0.0, "camera_cast": 0.0, "shading": 0.0, "labels": 0.0}
-        tick = self._prepare(snapshot)
+        tick = self._prepare(snapshot, cameras=any(self.rig(agent).cameras for agent, _ in items))
         scene, actors = tick.scene, snapshot.actors
         timing["scene"] += time.perf_counter() - t_start
         jobs: list[tuple[AgentState, object, list]] = []
@@ -504,7 +508,7 @@ def _with_encodes(af: AgentFrames, image_format: str, jpeg_quality: int) -> Agen
 class _Tick:
     scene: TickScene
     lut: dict[str, np.ndarray]
-    tables: object
+    tables: object | None  # None: no camera this tick
     light: LightMap | None
     a_corners: np.ndarray
     a_tracks: np.ndarray

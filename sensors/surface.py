@@ -23,10 +23,12 @@ its material (:attr:`cosim.sensors.meshes.TriMesh.material`), then
   table (:func:`sensor_codes_kernel` alone applies them to a given linear image).
 
 Kernels are compiled lazily and cached on disk (``cache=True``) and release the GIL (``nogil=True``),
-so render threads run them side by side with Open3D casting; each pixel is computed on its own (the
-lamps' reflections row by row), so results do not depend on threads. Arithmetic is IEEE float64 without
-``fastmath`` (which would let the compiler reorder and fuse operations by the CPU it runs on, for a
-few per cent): the same inputs give the same bytes on any x86-64 machine with the same libm.
+so render threads run them side by side with ray casting; each pixel is computed on its own (the
+lamps' reflections row by row), so results do not depend on threads. Arithmetic is float64 with the
+safe ``fastmath`` flags :data:`SAFE_FASTMATH` (fused multiply-adds, reciprocals, no signed-zero care;
+never ``nnan``/``ninf``, so inf and NaN behave as IEEE says): the compiler may fuse operations by the
+CPU it compiles for, so the same inputs give the same bytes on the same machine (docs/architecture.md,
+"Determinism"), not across instruction sets.
 """
 
 from __future__ import annotations
@@ -59,6 +61,10 @@ from .meshes import (
     MAT_PLAIN,
     MAT_ROOF,
 )
+
+#: numba fastmath flags of the shading kernels: fused multiply-adds, reciprocal division, no signed-zero
+#: care; never ``nnan`` or ``ninf`` (the kernels rely on inf for misses and on NaN checks)
+SAFE_FASTMATH = {"contract", "arcp", "nsz"}
 
 #: [m] feature sizes of the procedural detail
 ASPHALT_GRAIN_M = 0.04
@@ -166,7 +172,7 @@ LAMP_PROBE_PX = 4
 # --------------------------------------------------------------------------------- kernels
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=SAFE_FASTMATH, inline="always")
 def _hash01(ix, iy, salt):
     """Deterministic hash of two integers and a salt to [0, 1)."""
     h = (ix * 374761393 + iy * 668265263 + salt * 1442695041) & 0xFFFFFFFF
@@ -181,7 +187,7 @@ _LATTICE = 256
 _LATTICE_VALUES = np.random.default_rng(0x5EED).random((_LATTICE, _LATTICE))
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=SAFE_FASTMATH, inline="always")
 def _noise(x, y, salt):
     """Value noise in [0, 1] (mean 0.5) on a unit lattice, smoothly interpolated."""
     fx, fy = math.floor(x), math.floor(y)
@@ -198,7 +204,7 @@ def _noise(x, y, salt):
     return ab + (cd - ab) * ty
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=SAFE_FASTMATH, inline="always")
 def _octave(x, y, inv_cell, fp, salt):
     """Zero-mean noise in [-1, 1] of feature size 1 / ``inv_cell`` [m] at (x, y) [m], faded out as the
     footprint ``fp`` [m] grows from half a cell to 1.5 cells (0 beyond: nothing to alias). (Reciprocals
@@ -211,7 +217,7 @@ def _octave(x, y, inv_cell, fp, salt):
     return att * (2.0 * _noise(x * inv_cell, y * inv_cell, salt) - 1.0)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=SAFE_FASTMATH, inline="always")
 def _pulse_integral(x, a, w):
     """Integral over [0, x] of the period-1 pulse train that is 1 on [a, a + w) of each period."""
     fl = math.floor(x)
@@ -219,7 +225,7 @@ def _pulse_integral(x, a, w):
     return fl * w + min(max(r, 0.0), w)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=SAFE_FASTMATH, inline="always")
 def _pulse(x, fw, inv_fw, a, w):
     """The pulse train of :func:`_pulse_integral` box-filtered over width ``fw`` (periods, 1 / ``inv_fw``)
     about x."""
@@ -229,13 +235,13 @@ def _pulse(x, fw, inv_fw, a, w):
     return (_pulse_integral(x + 0.5 * fw, a, w) - _pulse_integral(x - 0.5 * fw, a, w)) * inv_fw
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=SAFE_FASTMATH, inline="always")
 def _smooth(e0, e1, x):
     t = min(max((x - e0) * (1.0 / (e1 - e0)), 0.0), 1.0)
     return t * t * (3.0 - 2.0 * t)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=SAFE_FASTMATH, inline="always")
 def _detail(m, px, py, pz, nx, ny, fp, inst, artificial):
     """Albedo factor (r, g, b) and emitted radiance (r, g, b) of material ``m`` at map point (px, py,
     pz) with unit normal (nx, ny) (horizontal part) and footprint ``fp`` [m]. (Inlined into the pixel
@@ -314,7 +320,7 @@ def _detail(m, px, py, pz, nx, ny, fp, inst, artificial):
     return fr, fg, fb, er, eg, eb
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=SAFE_FASTMATH, inline="always")
 def _pow_int(x, n):
     """x ** n for an integer n >= 1 by repeated squaring (exp(n log x) costs several times more)."""
     out = 1.0
@@ -326,7 +332,7 @@ def _pow_int(x, n):
     return out
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=SAFE_FASTMATH, inline="always")
 def _view_ray(x, y, r00, r01, r02, r10, r11, r12, r20, r21, r22):
     """Map direction (dx, dy, dz) of the optical-frame ray (x, y, 1) (rotation rows r0*, r1*, r2*) and the
     reciprocal of its length."""
@@ -336,7 +342,7 @@ def _view_ray(x, y, r00, r01, r02, r10, r11, r12, r20, r21, r22):
     return dx, dy, dz, 1.0 / math.sqrt(x * x + y * y + 1.0)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=SAFE_FASTMATH, inline="always")
 def _lobe(nx, ny, nz, vx, vy, vz, lx, ly, lz, cos_cut2):
     """Specular reflection of a unit irradiance from unit direction (lx, ly, lz) towards the unit view
     direction (vx, vy, vz) on a water film with unit normal (nx, ny, nz): normalised Blinn-Phong
@@ -357,7 +363,7 @@ def _lobe(nx, ny, nz, vx, vy, vz, lx, ly, lz, cos_cut2):
     return fres * ((WET_SHININESS + 8.0) / 8.0) * _pow_int(ndh2, _SHININESS // 2) * ndl
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=SAFE_FASTMATH)
 def lamp_spans(g, depth, xg, yg, rot, origin, miss, material, normal, wet_film, lamps, artificial, stride):
     """Column span (E, H, 2) int32 (first, last, inclusive; empty when first > last) of each image row
     where each lamp's specular lobe on a wet surface may reach (above ``_LOBE_CUT`` of its peak and
@@ -404,7 +410,7 @@ def lamp_spans(g, depth, xg, yg, rot, origin, miss, material, normal, wet_film, 
     return out
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=SAFE_FASTMATH)
 def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, miss, sky_levels, material, normal,
                  instance, detail, fx_px, wet, wet_albedo, wet_film, sun_dir, sun_rgb, sky_zenith, sky_horizon,
                  light, light_x0, light_y0, light_res, artificial, beta, fog_rgb, dim, lamps, spans, streaks, out,
@@ -614,7 +620,7 @@ def shade_linear(g, depth, lit, xg, yg, rot, origin, linear, albedo_lamp, rows, 
                     out8[i, j, c] = gamma[int(v)]
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=SAFE_FASTMATH)
 def sensor_codes_kernel(rgb, scale, vignette, noise, oy, ox, std_lut, gamma, out):
     """The camera model in place on linear ``rgb`` (H, W, 3) float32: times ``scale`` (exposure x full
     scale) and ``vignette`` (H, W) (or (0, 0): none), clipped to [0, 4095], plus with ``noise`` (a

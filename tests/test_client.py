@@ -32,6 +32,7 @@ duration_s: 12
 map: {{size_m: 300}}
 traffic: {{density_veh_per_km: 6}}
 agents:
+  layout: spread  # one connected vehicle on a route of its own (no group to keep together)
   vehicles: {{count: 1}}
   rsus: {{count: 0}}
   drones:

@@ -26,17 +26,22 @@ EVENTS = [
 def run(tmp_path_factory):
     """12 s of a small town with the four events and people on the sidewalks: per tick the states, event
     records, every vehicle's SUMO lane, lane position and remaining route, and every person's SUMO edge."""
+    # spread: each event has a connected vehicle of its own (in the cooperative queue they stand in one lane)
+    return _events_run(tmp_path_factory.mktemp("events"), "spread")
+
+
+def _events_run(tmp: Path, layout: str) -> list:
     import libsumo
 
     from cosim.traffic import TrafficSim
     from cosim.world import build_world
 
-    tmp = tmp_path_factory.mktemp("events")
     loaded = load_scenario_data({
         "name": "events", "seed": 5, "duration_s": 12, "map": {"kind": "urban", "size_m": 300},
         "environment": {"lighting": "night"}, "traffic": {"density_veh_per_km": 30},
         "pedestrians": {"density_per_km": 20},
-        "agents": {"vehicles": {"count": 4}, "rsus": {"count": 0}, "drones": []}, "events": EVENTS,
+        "agents": {"layout": layout, "vehicles": {"count": 4}, "rsus": {"count": 0}, "drones": []},
+        "events": EVENTS,
     })
     sc = loaded.scenario
     sim = TrafficSim(sc, build_world(loaded, tmp / "w"), tmp / "s")
@@ -75,6 +80,21 @@ def test_broken_down_vehicle_stays_put(run):
                       if s.sumo_id == "ev0_0"])
     assert len(poses) == len(active)
     assert np.ptp(poses[:, :4], axis=0).max() < 1e-6 and np.all(poses[:, 4] == 0.0)
+
+
+@pytest.mark.integration
+def test_events_in_the_cooperative_queue_wait_for_room_and_never_crash_sumo(tmp_path: Path):
+    """In the cooperative queue the accident ahead of vehicle_1 lands where the vehicle ahead of it drives, so
+    SUMO keeps its cars waiting to enter until there is room; the road block reaches that edge meanwhile.
+    Closing lanes under a vehicle SUMO has yet to insert is a fatal SUMO error: the block is not placed and
+    says why, and the run goes on."""
+    ticks = _events_run(tmp_path, "cooperative")
+    assert len(ticks) == 60
+    last = ticks[-1][2]
+    assert last["event_0"]["state"] == "active"  # vehicle_0 leads the queue: open road ahead of it
+    assert last["event_1"]["state"] == "active" and last["event_1"]["active_from_ns"] > BLOCK_AT_S * 1e9  # waited
+    assert last["event_3"]["state"] == "failed", last["event_3"]
+    assert "ev1_0" in last["event_3"]["note"] and "wait" in last["event_3"]["note"]
 
 
 @pytest.mark.integration

@@ -88,42 +88,44 @@ def test_inside_box_is_the_rotated_footprint():
     assert inside_box(xy[4:], box, margin_m=0.2)[:, 0].tolist() == [True]
 
 
-class _OneSample:
-    """A stand-in for CooperativeDataset: one ego, one collaborator, the ego's own box and one car."""
+def _one_record() -> dict:
+    """A learn record: one ego, one collaborator 30 m ahead, the ego's own box and one car."""
+    from cosim.learn.samples import quantise
 
-    def __init__(self):
-        ego_box = [0.0, 0.0, -1.0, 4.6, 1.9, 1.5, 0.0]
-        car = [20.0, 5.0, -1.0, 4.4, 1.8, 1.5, 0.3]
-        on_ego = np.array([[x, y, -0.5, 0.3] for x in (-2.0, 0.0, 2.0) for y in (-0.8, 0.8)], np.float32)
-        on_car = np.array([[20.0 + dx, 5.0, -0.8, 0.4] for dx in (-1.0, 0.0, 1.0)], np.float32)
-        ground = np.array([[8.0, -3.0, -1.9, 0.1]], np.float32)
-        collab_to_ego = np.eye(4)
-        collab_to_ego[:3, 3] = [30.0, 0.0, 0.0]  # the collaborator's LiDAR 30 m ahead of the ego's
-        collab = np.concatenate([on_ego, on_car, ground]) - np.array([30.0, 0.0, 0.0, 0.0], np.float32)
-        self.sample = {
-            "episode": "ep.mcap", "tick": 0, "ego": "vehicle_0", "agents": ["vehicle_0", "vehicle_1"],
-            "lidar": [ground.copy(), collab], "lidar_to_ego": np.stack([np.eye(4), collab_to_ego]),
-            "lidar_instance": [np.zeros(1, np.int64), np.array([7] * 6 + [9] * 3 + [0], np.int64)],
-            "boxes": np.array([ego_box, car], np.float32), "track_ids": np.array([7, 9]), "classes": ["car", "car"],
-        }
+    on_ego = np.array([[x, y, -0.5] for x in (-2.0, 0.0, 2.0) for y in (-0.8, 0.8)])
+    on_car = np.array([[20.0 + dx, 5.0, -0.8] for dx in (-1.0, 0.0, 1.0)])
+    ground = np.array([[8.0, -3.0, -1.9]])
+    collab_to_ego = np.eye(4)
+    collab_to_ego[:3, 3] = [30.0, 0.0, 0.0]  # the collaborator's LiDAR 30 m ahead of the ego's
+    collab = np.concatenate([on_ego, on_car, ground]) - [30.0, 0.0, 0.0]
+    yaw = 0.3
+    return {"tick": 0, "t_ns": 0, "agents": ["vehicle_0", "vehicle_1"],
+            "map_from": np.stack([np.eye(4), collab_to_ego]),
+            "points": [quantise(ground)[0], quantise(collab)[0]],
+            "intensity": [np.full(1, 25, np.uint8), np.full(10, 100, np.uint8)],
+            "hits": [np.array([[0], [1]]), np.array([[0, 7, 9], [1, 6, 3]])],
+            "label_track_ids": np.array([7, 9]), "label_classes": ["car", "car"],
+            "label_centers": np.array([[0.0, 0.0, -1.0], [20.0, 5.0, -1.0]]),
+            "label_rotations": np.array([[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)]]),
+            "label_sizes": np.array([[4.6, 1.9, 1.5], [4.4, 1.8, 1.5]]), "agent_tracks": {"vehicle_0": 7},
+            "links": None}
 
-    def __getitem__(self, index):
-        return self.sample
 
-
-@pytest.mark.parametrize("fusion", ["early", "late"])
+@pytest.mark.parametrize("fusion", ["early", "late", "intermediate"])
 def test_collaborators_returns_on_the_ego_are_cut_and_the_ego_is_no_target(fusion):
-    from cosim.learn.data import Samples, Setup
+    from cosim.learn.samples import Setup, make_item
 
-    samples = Samples.__new__(Samples)  # the sample logic alone, on a stand-in dataset
-    samples.setup, samples.ds = Setup(fusion=fusion, agents="all"), _OneSample()
-    samples.ids = {Path("ep.mcap").resolve(): "ep"}
-    item = samples.item(0)
-    merged = np.concatenate(item["clouds"])
+    item = make_item(_one_record(), "vehicle_0", Setup(fusion=fusion, agents="all"), "ep")
+    if fusion == "intermediate":  # clouds in each agent's own frame (here only shifted along x): into the ego's
+        assert (item["poses"][:, 0] == 0).all()
+        merged = np.concatenate([c + np.array([p[1], p[2], 0.0, 0.0], np.float32)
+                                 for c, p in zip(item["clouds"], item["poses"], strict=True)])
+    else:
+        merged = np.concatenate(item["clouds"])
     assert len(merged) == 1 + 3 + 1  # ego: 1 ground point; collaborator: 3 on the car, 1 ground, not its 6 on the ego
     assert not ((np.abs(merged[:, 0]) < 2.6) & (np.abs(merged[:, 1]) < 1.3)).any()
     collab_boxes = item["targets"][-1][0]
-    assert collab_boxes[:, :2].tolist() == [[20.0, 5.0]]  # the car the collaborator sees; the ego's box is none
+    np.testing.assert_allclose(collab_boxes[:, :2], [[20.0, 5.0]])  # the car the collaborator sees; never the ego
     if fusion == "late":
         assert len(item["targets"][0][0]) == 0  # the ego's own cloud sees no object
 
@@ -347,6 +349,14 @@ def test_bad_input_one_message_exit_2(trained, tiny_batch, tmp_path):
     torch.save(ckpt, other / "checkpoint.pt")
     cases.append((["learn", "predict", str(other), str(tiny_batch), "--out", str(tmp_path / "p.jsonl")],
                   "no class zeppelin"))
+    cases += [
+        (["learn", "train", str(tiny_batch), "--out", str(tmp_path / "r5"), "--cache", str(empty)], "no cache.json"),
+        (["learn", "predict", str(trained), str(tiny_batch), "--out", str(tmp_path / "p.jsonl"), "--fusion",
+          "intermediate", "--agents", "all"], "needs a model trained for it"),
+        (["learn", "recall", str(tiny_batch), str(tmp_path / "none.jsonl"), "--out", str(tmp_path / "rc")],
+         "no such prediction file"),
+        (["learn", "cache", str(tiny_batch), "--out", str(tmp_path / "c"), "--split", "nope"], "no episode in split"),
+    ]
     for args, words in cases:
         r = run_cli(*args)
         assert r.returncode == 2, (args, r.stderr[-2000:])
@@ -378,3 +388,222 @@ def test_early_model_predicts_with_fewer_agents_than_trained(tiny_batch, tmp_pat
         samples.close()
         assert kinds <= {"vehicle", *SETTINGS[agents]} and "rsu" not in kinds, kinds
     assert "drone" in kinds  # the tiny batch's drone is in range: the +drones setting uses it
+
+
+# ------------------------------------------------------------------------------------------ issue 35
+
+
+def test_numpy_only_modules_agree_with_the_ones_they_mirror():
+    from cosim.eval.dataset import AREA_HALF_M, VEHICLE_CLASSES
+    from cosim.io.dataset import LIDAR_MODES, PAPER_COMM_RANGE_M
+    from cosim.learn import grid, samples
+
+    assert grid.AREA_HALF_M == AREA_HALF_M and samples.VEHICLE_CLASSES == VEHICLE_CLASSES
+    assert samples.COMM_RANGE_M == PAPER_COMM_RANGE_M and samples.LIDAR_MODES == LIDAR_MODES
+
+
+def test_training_modules_import_no_mcap_reader():
+    code = ("import sys\nimport cosim.learn.train, cosim.learn.model, cosim.learn.samples\n"
+            "bad = [m for m in sys.modules if m.split('.')[0] in ('mcap', 'lz4', 'zstandard', 'pydantic', 'yaml') "
+            "or m.startswith('cosim.io')]\nassert not bad, bad\nprint('ok')\n")
+    if not HAVE_TORCH:
+        pytest.skip("PyTorch is not installed")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-2000:]
+
+
+def _record(collab_pose: tuple[float, float, float], obj_xy: tuple[float, float]) -> dict:
+    """A learn record: ego vehicle_0 at the map origin, collaborator rsu_0 at (x, y, yaw) in map (= ego frame),
+    a car at obj_xy that only the collaborator has returns on (a 3 x 3 block of points on it)."""
+    from cosim.learn.samples import quantise
+
+    x, y, yaw = collab_pose
+    pose = np.eye(4)
+    pose[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    pose[:2, 3] = [x, y]
+    obj = np.array([[obj_xy[0] + dx, obj_xy[1] + dy, -1.0] for dx in (-0.3, 0.0, 0.3) for dy in (-0.3, 0.0, 0.3)])
+    local = (obj - pose[:3, 3]) @ pose[:3, :3]  # the car's points in the collaborator's LiDAR frame
+    ego_pts, _ = quantise(np.array([[-30.3, 20.3, -1.9]]))
+    col_pts, _ = quantise(local)
+    return {"tick": 0, "t_ns": 0, "agents": ["vehicle_0", "rsu_0"], "map_from": np.stack([np.eye(4), pose]),
+            "points": [ego_pts, col_pts], "intensity": [np.full(1, 50, np.uint8), np.full(9, 200, np.uint8)],
+            "hits": [np.zeros((2, 0), np.int64), np.array([[9], [9]], np.int64)],
+            "label_track_ids": np.array([9]), "label_classes": ["car"],
+            "label_centers": np.array([[obj_xy[0], obj_xy[1], -1.0]]),
+            "label_rotations": np.array([[0.0, 0.0, 0.0, 1.0]]), "label_sizes": np.array([[4.4, 1.8, 1.5]]),
+            "agent_tracks": {}, "links": None}
+
+
+@needs_torch
+@pytest.mark.parametrize("yaw_deg", [0.0, 37.0, 90.0, 180.0, -135.0, 271.5])
+def test_intermediate_fusion_puts_a_collaborators_object_in_its_ego_cell(yaw_deg):
+    import torch
+
+    from cosim.learn.model import fuse_maps, warp_maps
+    from cosim.learn.samples import Setup, agent_grid, make_item
+    from cosim.learn.train import batch_arrays
+
+    setup = Setup(fusion="intermediate", agents="all")
+    g = setup.grid
+    obj = (33.3, -12.7)
+    item = make_item(_record((61.0, 17.0, np.radians(yaw_deg)), obj), "vehicle_0", setup, "ep")
+    assert [s[0] for s in item["sources"]] == ["vehicle_0", "rsu_0"] and len(item["clouds"][1]) == 9
+    assert len(item["targets"][0][0]) == 1  # the car: a target, seen by the collaborator alone
+    b = batch_arrays(item["clouds"], setup, [2], [item["poses"]], [item["kinds"]])
+    # each pillar's feature: 1 in channel 0 for the ego's pillars, channel 1 for the collaborator's
+    agent_of = b["coords"][:, 0] % 2
+    feats = torch.zeros(len(agent_of), 2)
+    feats[torch.arange(len(agent_of)), torch.from_numpy(agent_of)] = 1.0
+    warped, hit = warp_maps(feats, torch.from_numpy(b["coords"]), torch.from_numpy(b["poses"]),
+                            torch.from_numpy(b["present"]), g, agent_grid(g))
+    fused = fuse_maps(warped, hit, "max")[0]
+    col = int((obj[0] - g.x_range[0]) // g.pillar_m)
+    row = int((obj[1] - g.y_range[0]) // g.pillar_m)
+    ys, xs = np.nonzero(fused[1].numpy())
+    assert len(ys) >= 1
+    assert (abs(ys - row) <= 1).all() and (abs(xs - col) <= 1).all(), (ys, xs, row, col)  # the car's cell
+    assert fused[1, row, col] == 1.0  # the cell under the car's centre point holds the collaborator's feature
+    ego_cell = (int((20.3 - g.y_range[0]) // g.pillar_m), int((-30.3 - g.x_range[0]) // g.pillar_m))
+    assert fused[0, ego_cell[0], ego_cell[1]] == 1.0 and fused[0].sum() == 1.0  # the ego's own map: unwarped
+    attn = fuse_maps(warped, hit, "attention")[0]
+    assert attn[1, row, col] == 1.0  # attention: the only agent with a pillar there takes the cell
+
+
+def test_agent_poses_follow_the_flips():
+    from cosim.learn.samples import augment, augment_poses, bev_pose, to_bev_frame
+
+    rng = np.random.default_rng(1)
+    ego_cloud = rng.uniform(-30, 30, (50, 4)).astype(np.float32)
+    t = np.eye(4)
+    yaw = 0.7
+    t[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    t[:2, 3] = [12.0, -4.0]
+    pose = bev_pose(t)
+    local = to_bev_frame(ego_cloud, pose)
+    for fx, fy in ((True, False), (False, True), (True, True)):
+        flipped_ego, _ = augment(ego_cloud, np.zeros((0, 7)), fx, fy)
+        flipped_local, _ = augment(local, np.zeros((0, 7)), fx, fy)
+        np.testing.assert_allclose(to_bev_frame(flipped_ego, augment_poses(pose[None], fx, fy)[0]), flipped_local,
+                                   atol=1e-4)
+
+
+@needs_torch
+@pytest.mark.integration
+@pytest.mark.timeout(900)
+def test_cache_gives_the_uncached_samples_bit_for_bit(tiny_batch, tmp_path):
+    from cosim.eval.dataset import load_dataset
+    from cosim.learn.data import Samples, Setup, write_cache
+
+    refs = load_dataset(tiny_batch)
+    out = write_cache(refs, tmp_path / "cache", "tick", 1)
+    assert out["episodes"] == 2
+    for fusion, agents in (("none", "ego"), ("early", "all"), ("late", "vehicles+drones"), ("intermediate", "all")):
+        setup = Setup(fusion=fusion, agents=agents)
+        a, b = Samples(refs, setup), Samples(refs, setup, cache=tmp_path / "cache")
+        assert len(a) == len(b) > 0
+        for i in range(len(a)):
+            x, y = a.item(i), b.item(i)
+            assert [x[k] for k in ("episode", "tick", "ego", "sources")] == [y[k] for k in ("episode", "tick", "ego",
+                                                                                         "sources")]
+            assert all(p.dtype == q.dtype and np.array_equal(p, q)
+                       for p, q in zip(x["clouds"], y["clouds"], strict=True))
+            for (bp, lp), (bq, lq) in zip(x["targets"], y["targets"], strict=True):
+                assert np.array_equal(bp, bq) and np.array_equal(lp, lq)
+            if fusion == "intermediate":
+                assert np.array_equal(x["poses"], y["poses"]) and np.array_equal(x["kinds"], y["kinds"])
+        a.close()
+        b.close()
+
+
+@needs_torch
+@pytest.mark.integration
+@pytest.mark.timeout(900)
+def test_compensation_modes_move_points_of_moving_agents(tiny_batch):
+    from cosim.eval.dataset import load_dataset
+    from cosim.io.dataset import CooperativeDataset
+
+    ref = load_dataset(tiny_batch)[0]
+    recs = {m: CooperativeDataset([ref.path], lidar=m).read_tick(ref.path, 3) for m in ("raw", "tick", "objects")}
+    moved = [float(np.abs(recs["tick"]["lidar"][i][:, :3] - recs["raw"]["lidar"][i][:, :3]).max())
+             for i in range(len(recs["raw"]["agents"]))]
+    kinds = [a.rsplit("_", 1)[0] for a in recs["raw"]["agents"]]
+    assert max(m for m, k in zip(moved, kinds, strict=True) if k == "vehicle") > 0.01  # a driving vehicle's sweep
+    assert all(m < 1e-3 for m, k in zip(moved, kinds, strict=True) if k == "rsu")  # a fixed RSU: float rounding only
+    objects = [not np.array_equal(recs["objects"]["lidar"][i], recs["tick"]["lidar"][i]) for i in range(len(moved))]
+    assert any(objects)  # some sweep has points on a moving object
+
+
+@pytest.fixture(scope="module")
+def tiny_cache(tiny_batch, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("learncache") / "cache"
+    r = run_cli("learn", "cache", str(tiny_batch), "--out", str(out), "-q")
+    assert r.returncode == 0, r.stderr[-3000:]
+    return out
+
+
+@needs_torch
+@pytest.mark.integration
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("fusion", ["early", "late", "intermediate"])
+def test_thirty_steps_of_each_fusion_lower_the_loss(tiny_batch, tiny_cache, fusion, tmp_path):
+    from cosim.eval.dataset import load_dataset
+    from cosim.learn.data import Setup
+    from cosim.learn.train import TrainOptions, train
+
+    refs = [r for r in load_dataset(tiny_batch) if r.split == "train"]
+    setup = Setup(fusion=fusion, agents="all", fuse="attention" if fusion == "intermediate" else "max")
+    train(refs, None, setup, TrainOptions(steps=30, batch_size=2, lr=5e-3, threads=1, seed=1), tmp_path / "run",
+          show_progress=False, cache=tiny_cache)
+    loss = [json.loads(line)["loss"] for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert len(loss) == 30
+    assert np.mean(loss[-5:]) < 0.5 * np.mean(loss[:5]), loss
+
+
+@needs_torch
+@pytest.mark.integration
+@pytest.mark.timeout(900)
+def test_intermediate_training_is_deterministic_with_workers_and_keeps_the_best(tiny_batch, tiny_cache, tmp_path):
+    import torch
+
+    from cosim.eval.dataset import load_dataset
+    from cosim.learn.data import Setup
+    from cosim.learn.train import BEST, CHECKPOINT, TrainOptions, train
+
+    refs = load_dataset(tiny_batch)
+    train_refs = [r for r in refs if r.split == "train"]
+    test_refs = [r for r in refs if r.split == "test"]
+    setup = Setup(fusion="intermediate", agents="all", encoders="kind")
+    for name, workers in (("a", 0), ("b", 2)):
+        train(train_refs, test_refs, setup, TrainOptions(steps=4, batch_size=2, seed=3, threads=1, workers=workers,
+                                                         val_steps=2, val_every_tick=2),
+              tmp_path / name, show_progress=False, cache=tiny_cache)
+    a, b = (torch.load(tmp_path / n / CHECKPOINT, weights_only=False)["model"] for n in "ab")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert any(k.startswith("kind_pfn") for k in a)  # one encoder per agent kind
+    assert (tmp_path / "a" / BEST).is_file()
+    vals = [json.loads(line) for line in (tmp_path / "a" / "log.jsonl").read_text().splitlines() if "val" in line]
+    assert [v["step"] for v in vals] == [2, 4]
+    best = torch.load(tmp_path / "a" / BEST, weights_only=False)
+    assert best["best_ap50"] == max(v["val"]["AP50"] for v in vals)
+
+
+@needs_torch
+@pytest.mark.integration
+@pytest.mark.timeout(900)
+def test_recall_counts_the_objects_the_ego_does_not_see(trained, tiny_batch, tmp_path):
+    preds = []
+    for agents in ("ego", "all"):
+        p = tmp_path / f"{agents}.jsonl"
+        args = ["--fusion", "late", "--agents", "all"] if agents == "all" else []
+        r = run_cli("learn", "predict", str(trained), str(tiny_batch), "--split", "train", "--out", str(p), "-q", *args)
+        assert r.returncode == 0, r.stderr[-3000:]
+        preds.append(str(p))
+    r = run_cli("learn", "recall", str(tiny_batch), *preds, "--split", "train", "--out", str(tmp_path / "recall"),
+                "--min-score", "0.0")
+    assert r.returncode == 0, r.stderr[-3000:]
+    rows = json.loads((tmp_path / "recall" / "recall.json").read_text())["rows"]
+    assert [row["agents"] for row in rows] == ["ego", "all"]
+    ego, allr = rows
+    assert ego["frames"] == allr["frames"] == 10 and ego["ego-blind"] == allr["ego-blind"]
+    assert ego["ego-blind seen by setting"] == 0  # the ego alone sees none of its blind objects
+    assert allr["ego-blind seen by setting"] >= allr["found (ego-blind)"] >= 0

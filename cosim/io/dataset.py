@@ -12,6 +12,11 @@ With ``cameras=True`` also, per agent i: ``images[i]`` (one array per camera), `
 ``distortions[i]`` (n, 5) Brown-Conrady D (zeros: pinhole; project points with
 ``cosim.geometry.project_to_image(points_optical, K, D)``) and ``camera_to_ego[i]`` (n, 4, 4, optical frames).
 
+LiDAR motion compensation (``lidar``), as the exports do (docs/exports.md, :mod:`cosim.io.deskew`):
+``"tick"`` (default) moves every point of a sweep into the sensor frame at the tick with the recorded
+motion; ``"objects"`` also moves the points of each moving labelled object to where it is at the tick;
+``"raw"`` gives the points as fired (each in the sensor frame of its firing time).
+
 It is a plain sequence (``__len__``, ``__getitem__``) returning numpy arrays, so
 ``torch.utils.data.DataLoader(ds, batch_size=..., collate_fn=...)`` takes it as it is (samples hold
 lists of different lengths: give a ``collate_fn``, see examples/train_loop.py). Episodes are opened
@@ -35,10 +40,13 @@ import numpy as np
 
 from cosim.errors import InputError
 from cosim.io.decode import quat_to_matrix
+from cosim.io.deskew import deskew_tick, objects_to_tick_of
 from cosim.io.reader import Episode, open_episode
 
 PAPER_LIDAR_RANGE_M = (-140.8, -40.0, -3.0, 140.8, 40.0, 1.0)
 PAPER_COMM_RANGE_M = {"vehicle": 120.0, "rsu": 120.0, "drone": 180.0}
+#: LiDAR motion compensation of a sample's sweeps (module docstring).
+LIDAR_MODES: tuple[str, ...] = ("tick", "objects", "raw")
 
 
 @dataclass(frozen=True)
@@ -55,13 +63,18 @@ class CooperativeDataset:
 
     ``ego_kinds``: agent kinds that serve as ego (default vehicles). ``classes``: object classes kept as
     boxes (default every object class of the episode). ``cameras``: also load every agent's images,
-    intrinsics and camera poses. ``every``: keep ticks 0, every, 2 every...
+    intrinsics and camera poses. ``every``: keep ticks 0, every, 2 every... ``lidar``: motion compensation
+    (:data:`LIDAR_MODES`). A sample is :meth:`assemble` of :meth:`read_tick` (the tick's record, the same
+    for every ego), which lets a cache of records give the same samples without reading MCAP.
     """
 
     def __init__(self, episodes: Sequence[str | Path], *, ego_kinds: Sequence[str] = ("vehicle",),
                  classes: Sequence[str] | None = None, cameras: bool = False, every: int = 1,
                  lidar_range_m: Sequence[float] = PAPER_LIDAR_RANGE_M,
-                 comm_range_m: dict[str, float] | None = None, include_ego_box: bool = False):
+                 comm_range_m: dict[str, float] | None = None, include_ego_box: bool = False,
+                 lidar: str = "tick"):
+        if lidar not in LIDAR_MODES:
+            raise InputError(f"unknown lidar compensation {lidar!r}; choose one of {', '.join(LIDAR_MODES)}")
         if every < 1:
             raise InputError(f"every must be >= 1, got {every}")
         if len(lidar_range_m) != 6:
@@ -73,6 +86,7 @@ class CooperativeDataset:
         self.lidar_range_m = tuple(float(v) for v in lidar_range_m)
         self.comm_range_m = dict(comm_range_m or PAPER_COMM_RANGE_M)
         self.include_ego_box = include_ego_box
+        self.lidar = lidar
         self.keys: list[SampleKey] = []
         self._agents: dict[Path, list[str]] = {}
         self._open: dict[Path, Episode] = {}
@@ -108,62 +122,108 @@ class CooperativeDataset:
         if not -len(self) <= index < len(self):
             raise IndexError(f"sample {index} out of range: {len(self)} samples")
         key = self.keys[index]
-        ep = self._episode(key.episode)
-        agents = self._agents[key.episode]
-        topics = ["/tf", "/labels/objects"] + [t for a in agents for t in (f"/{a}/lidar",) if t in ep.topics]
+        sample = self.assemble(self.read_tick(key.episode, key.tick), key.ego)
         if self.cameras:
-            topics += [f"/{a}/{c}/{what}" for a in agents for c in ep.cameras(a) for what in ("image", "calibration")]
-        tick = ep.tick(key.tick, topics=topics)
-        tf = tick.transforms
-        lidar_frame = {a: f"{a}/lidar" if f"/{a}/lidar" in tick else f"{a}/base_link" for a in agents}
-        map_from = {a: tf.to_root(lidar_frame[a]) for a in agents}
-        ego_from_map = np.linalg.inv(map_from[key.ego])
-        ego_xyz = map_from[key.ego][:3, 3]
-        chosen = [key.ego] + [
-            a for a in agents if a != key.ego
-            and np.linalg.norm(map_from[a][:3, 3] - ego_xyz) <= self.comm_range_m.get(a.rsplit("_", 1)[0], np.inf)
-        ]
-        sample: dict[str, Any] = {
-            "episode": str(key.episode), "tick": key.tick, "t_ns": tick.t_ns, "ego": key.ego, "agents": chosen,
-            "lidar_to_ego": np.stack([ego_from_map @ map_from[a] for a in chosen]),
-            "lidar": [], "lidar_class": [], "lidar_instance": [],
-        }
-        for a in chosen:
-            if f"/{a}/lidar" in tick:
-                p = tick.points(a).points
-                sample["lidar"].append(np.stack([p["x"], p["y"], p["z"], p["intensity"]], axis=1).astype(np.float32))
-                sample["lidar_class"].append(np.asarray(p["class_id"], np.uint8))
-                sample["lidar_instance"].append(np.asarray(p["instance_id"], np.int64))
-            else:
-                sample["lidar"].append(np.zeros((0, 4), np.float32))
-                sample["lidar_class"].append(np.zeros(0, np.uint8))
-                sample["lidar_instance"].append(np.zeros(0, np.int64))
-        sample.update(self._boxes(tick, ego_from_map, key.ego))
-        if self.cameras:
-            sample.update(self._images(ep, tick, chosen, ego_from_map))
+            ep = self._episode(key.episode)
+            topics = ["/tf"] + [f"/{a}/{c}/{what}" for a in sample["agents"] for c in ep.cameras(a)
+                                for what in ("image", "calibration")]
+            tick = ep.tick(key.tick, topics=topics)
+            ego_from_map = np.linalg.inv(tick.transforms.to_root(self._lidar_frame(tick, key.ego)))
+            sample.update(self._images(ep, tick, sample["agents"], ego_from_map))
         return sample
 
-    def _boxes(self, tick: Any, ego_from_map: np.ndarray, ego: str) -> dict[str, np.ndarray]:
+    @staticmethod
+    def _lidar_frame(tick: Any, agent: str) -> str:
+        return f"{agent}/lidar" if f"/{agent}/lidar" in tick else f"{agent}/base_link"
+
+    def read_tick(self, episode: str | Path, tick_index: int) -> dict[str, Any]:
+        """Everything the samples of one tick need, for every ego alike: ``agents``, ``map_from`` (A, 4, 4)
+        ``map <- <agent>/lidar`` (or base_link without a LiDAR), per agent ``lidar`` (N, 4) float32 (x, y, z
+        compensated per :attr:`lidar`, intensity), ``lidar_class`` and ``lidar_instance``, and the labels
+        (``label_*``: track ids, classes, centres, quaternions and sizes in map; ``agent_tracks``)."""
+        path = Path(episode)
+        ep = self._episode(path)
+        agents = self._agents[path]
+        topics = ["/tf", "/labels/objects"] + [f"/{a}/lidar" for a in agents if f"/{a}/lidar" in ep.topics]
+        if self.lidar != "raw":  # the body rates of deskew_tick
+            topics += [f"/{a}/imu" for a in agents if f"/{a}/imu" in ep.topics]
+        tick = ep.tick(tick_index, topics=topics)
+        tf = tick.transforms
+        rec: dict[str, Any] = {
+            "episode": str(path), "tick": int(tick_index), "t_ns": int(tick.t_ns), "agents": list(agents),
+            "map_from": np.stack([tf.to_root(self._lidar_frame(tick, a)) for a in agents]),
+            "lidar": [], "lidar_class": [], "lidar_instance": [],
+        }
+        for a in agents:
+            if f"/{a}/lidar" in tick:
+                p = tick.points(a).points
+                if self.lidar == "raw":
+                    xyz = np.stack([p["x"], p["y"], p["z"]], axis=1)
+                else:
+                    xyz = deskew_tick(tick, a)
+                    if self.lidar == "objects":
+                        xyz = objects_to_tick_of(tick, a, xyz)
+                cloud = np.empty((len(p), 4), np.float32)
+                cloud[:, :3] = xyz
+                cloud[:, 3] = p["intensity"]
+                rec["lidar"].append(cloud)
+                rec["lidar_class"].append(np.asarray(p["class_id"], np.uint8))
+                rec["lidar_instance"].append(np.asarray(p["instance_id"], np.int64))
+            else:
+                rec["lidar"].append(np.zeros((0, 4), np.float32))
+                rec["lidar_class"].append(np.zeros(0, np.uint8))
+                rec["lidar_instance"].append(np.zeros(0, np.int64))
         labels = tick.labels
-        ego_track = next((a.get("track_id") for a in labels.agents if a["agent_id"] == ego), None)
+        rec.update({
+            "label_track_ids": np.asarray(labels.track_ids, np.int64), "label_classes": list(labels.classes),
+            "label_centers": np.asarray(labels.centers_m, np.float64).reshape(-1, 3),
+            "label_rotations": np.asarray(labels.rotations, np.float64).reshape(-1, 4),
+            "label_sizes": np.asarray(labels.sizes_m, np.float64).reshape(-1, 3),
+            "agent_tracks": {a["agent_id"]: int(a["track_id"]) for a in labels.agents
+                             if a.get("track_id") is not None},
+        })
+        return rec
+
+    def assemble(self, rec: dict[str, Any], ego: str) -> dict[str, Any]:
+        """The sample of ego ``ego`` from a tick's record (:meth:`read_tick`)."""
+        agents = rec["agents"]
+        map_from = dict(zip(agents, rec["map_from"], strict=True))
+        ego_from_map = np.linalg.inv(map_from[ego])
+        ego_xyz = map_from[ego][:3, 3]
+        chosen = [ego] + [
+            a for a in agents if a != ego
+            and np.linalg.norm(map_from[a][:3, 3] - ego_xyz) <= self.comm_range_m.get(a.rsplit("_", 1)[0], np.inf)
+        ]
+        at = [agents.index(a) for a in chosen]
+        sample: dict[str, Any] = {
+            "episode": rec["episode"], "tick": rec["tick"], "t_ns": rec["t_ns"], "ego": ego, "agents": chosen,
+            "lidar_to_ego": np.stack([ego_from_map @ map_from[a] for a in chosen]),
+            "lidar": [rec["lidar"][i] for i in at], "lidar_class": [rec["lidar_class"][i] for i in at],
+            "lidar_instance": [rec["lidar_instance"][i] for i in at],
+        }
+        sample.update(self._boxes(rec, ego_from_map, ego))
+        return sample
+
+    def _boxes(self, rec: dict[str, Any], ego_from_map: np.ndarray, ego: str) -> dict[str, np.ndarray]:
+        ego_track = rec["agent_tracks"].get(ego)
         keep = []
         boxes = []
-        for i, track in enumerate(labels.track_ids):
-            if self.classes is not None and labels.classes[i] not in self.classes:
+        lo, hi = np.array(self.lidar_range_m[:3]), np.array(self.lidar_range_m[3:])
+        for i, track in enumerate(rec["label_track_ids"]):
+            if self.classes is not None and rec["label_classes"][i] not in self.classes:
                 continue
             if not self.include_ego_box and ego_track is not None and int(track) == int(ego_track):
                 continue
-            c = ego_from_map[:3, :3] @ labels.centers_m[i] + ego_from_map[:3, 3]
-            lo, hi = np.array(self.lidar_range_m[:3]), np.array(self.lidar_range_m[3:])
+            c = ego_from_map[:3, :3] @ rec["label_centers"][i] + ego_from_map[:3, 3]
             if not ((c >= lo) & (c <= hi)).all():
                 continue
-            r = ego_from_map[:3, :3] @ quat_to_matrix(labels.rotations[i])
-            boxes.append([*c, *labels.sizes_m[i], np.arctan2(r[1, 0], r[0, 0])])
+            r = ego_from_map[:3, :3] @ quat_to_matrix(rec["label_rotations"][i])
+            boxes.append([*c, *rec["label_sizes"][i], np.arctan2(r[1, 0], r[0, 0])])
             keep.append(i)
         return {
             "boxes": np.asarray(boxes, np.float32).reshape(-1, 7),
-            "track_ids": np.asarray([int(labels.track_ids[i]) for i in keep], np.int64),
-            "classes": [labels.classes[i] for i in keep],
+            "track_ids": np.asarray([int(rec["label_track_ids"][i]) for i in keep], np.int64),
+            "classes": [rec["label_classes"][i] for i in keep],
         }
 
     def _images(self, ep: Episode, tick: Any, agents: list[str], ego_from_map: np.ndarray) -> dict[str, Any]:

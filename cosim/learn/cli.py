@@ -1,5 +1,6 @@
-"""``cosim learn train|predict|curves``: train the detector on a dataset, write predictions for ``cosim eval``,
-plot learning curves (docs/learnability.md). Torch is imported only when a command runs."""
+"""``cosim learn cache|train|predict|validate|curves|recall``: cache a dataset's samples, train the detector,
+write predictions for ``cosim eval``, plot learning curves, count what collaboration finds
+(docs/learnability.md). Torch is imported only when a command that needs it runs."""
 
 from __future__ import annotations
 
@@ -33,7 +34,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     from cosim.learn.train import TrainOptions, device_of, train
 
     setup = Setup(fusion=args.fusion, agents=args.agents or ("ego" if args.fusion == "none" else "all"),
-                  classes=tuple(args.classes or VEHICLE_CLASSES), delivery=args.delivery)
+                  classes=tuple(args.classes or VEHICLE_CLASSES), delivery=args.delivery, lidar=args.lidar,
+                  fuse=args.fuse, encoders=args.encoders)
     refs = load_dataset(Path(args.dataset))
     train_refs = split_episodes(refs, args.split, "train", args.dataset)
     val_refs = None
@@ -42,9 +44,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     opts = TrainOptions(epochs=args.epochs, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                         every=args.every, val_every_tick=args.val_every_tick, val_steps=args.val_steps,
                         save_every=args.save_every, keep_every=args.keep_every, seed=args.seed, width=args.width,
-                        threads=args.threads)
+                        threads=args.threads, schedule=args.schedule, workers=args.workers)
     summary = train(train_refs, val_refs, setup, opts, Path(args.out), resume=args.resume,
-                    device=device_of(args.device), show_progress=not args.quiet)
+                    device=device_of(args.device), show_progress=not args.quiet,
+                    cache=Path(args.cache) if args.cache else None)
     print(f"run      {args.out}\n"
           f"data     {summary['train_samples']} samples from {summary['train_episodes']} episodes "
           f"(val: {summary['val_episodes']} episodes)\n"
@@ -52,7 +55,7 @@ def cmd_train(args: argparse.Namespace) -> int:
           f"{'-' if summary['final_loss'] is None else format(summary['final_loss'], '.4g')} "
           "(summary.json: unrounded)\n"
           f"wall     {summary['train_s']:.1f} s training ({summary['val_s']:.1f} s of it validation) on "
-          f"{summary['device']}")
+          f"{summary['device']}, {summary['cpu_s']:.0f} CPU-s (workers included)")
     return EXIT_OK
 
 
@@ -63,7 +66,7 @@ def cmd_predict(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from cosim.eval.dataset import load_dataset
-    from cosim.learn.data import Samples, Setup, check_classes, split_episodes
+    from cosim.learn.data import Samples, check_classes, split_episodes
     from cosim.learn.train import device_of, load_run, record_lines
 
     if not args.out.endswith(".jsonl"):
@@ -73,14 +76,17 @@ def cmd_predict(args: argparse.Namespace) -> int:
         require_torch().set_num_threads(args.threads)
     model, setup, _ = load_run(Path(args.run), device)
     if args.fusion or args.agents:
-        fusion = args.fusion or setup.fusion
-        setup = Setup(fusion=fusion, agents=args.agents or ("ego" if fusion == "none" else setup.agents),
-                      classes=setup.classes, grid=setup.grid, delivery=setup.delivery, min_points=setup.min_points)
+        if (args.fusion == "intermediate") != (setup.fusion == "intermediate"):
+            raise InputError(f"the model in {args.run} was trained for fusion {setup.fusion}: intermediate fusion "
+                             "needs a model trained for it (and such a model predicts with intermediate only)")
+        setup = setup.with_agents(args.fusion, args.agents)
     if args.delivery:
         setup = dataclasses.replace(setup, delivery=True)
+    if args.lidar:
+        setup = dataclasses.replace(setup, lidar=args.lidar)
     refs = split_episodes(load_dataset(Path(args.dataset)), args.split, "test", args.dataset)
     check_classes(refs, setup.classes, f"the model in {args.run}")
-    samples = Samples(refs, setup, every=args.every)
+    samples = Samples(refs, setup, every=args.every, cache=Path(args.cache) if args.cache else None)
     t0 = time.perf_counter()
     bar = tqdm(total=len(samples), desc="predict", unit="sample", file=sys.stderr,
                disable=args.quiet or not sys.stderr.isatty(), dynamic_ncols=True)
@@ -93,7 +99,7 @@ def cmd_predict(args: argparse.Namespace) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("".join(line + "\n" for line in lines))
     print(f"predictions {out}: {len(lines)} records from {len(refs)} episodes, fusion {setup.fusion}, agents "
-          f"{setup.agents} ({time.perf_counter() - t0:.1f} s)")
+          f"{setup.agents}, lidar {setup.lidar} ({time.perf_counter() - t0:.1f} s)")
     return EXIT_OK
 
 
@@ -114,6 +120,37 @@ def cmd_validate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_cache(args: argparse.Namespace) -> int:
+    from cosim.eval.dataset import load_dataset
+    from cosim.learn.data import split_episodes, write_cache
+
+    refs = load_dataset(Path(args.dataset))
+    if args.split:
+        refs = split_episodes(refs, args.split, args.split, args.dataset)
+    out = write_cache(refs, Path(args.out), args.lidar, args.every,
+                      progress=None if args.quiet else lambda n, total, eid: print(f"cached {n}/{total} {eid}",
+                                                                                   file=sys.stderr))
+    print(f"cache    {args.out}: {out['episodes']} episodes, every {args.every} ticks, lidar {args.lidar}, "
+          f"{out['bytes'] / 1e6:.0f} MB ({out['s']:.0f} s)")
+    return EXIT_OK
+
+
+def cmd_recall(args: argparse.Namespace) -> int:
+    from cosim.eval.dataset import load_dataset
+    from cosim.learn.data import split_episodes
+    from cosim.learn.recall import recall_rows, write_recall
+
+    refs = split_episodes(load_dataset(Path(args.dataset)), args.split, "test", args.dataset)
+    files = [Path(f) for f in args.pred]
+    for f in files:
+        if not f.is_file():
+            raise InputError(f"{f}: no such prediction file")
+    rows = recall_rows(refs, files, iou=args.iou, min_score=args.min_score)
+    md, _js = write_recall(rows, Path(args.out), args.iou, args.min_score)
+    print(md.read_text(), end="")
+    return EXIT_OK
+
+
 def cmd_curves(args: argparse.Namespace) -> int:
     from cosim.learn.curves import plot_curves
 
@@ -124,7 +161,10 @@ def cmd_curves(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     from cosim.eval.predictions import SETTINGS
-    from cosim.learn.data import FUSIONS
+    from cosim.learn.samples import ENCODERS, FUSES, FUSIONS, LIDAR_MODES, SCHEDULES
+
+    lidar_help = ("LiDAR motion compensation: tick (every sweep moved to the sensor pose at the tick, as the "
+                  "exports; default), objects (also moving objects' points to the tick), raw (as fired)")
 
     lp = sub.add_parser("learn", help="train the LiDAR detector on a dataset and predict (needs the 'learn' extra)")
     lsub = lp.add_subparsers(dest="learn_command", metavar="ACTION", parser_class=type(lp))
@@ -134,8 +174,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("dataset", help="batch folder (its train split, or every episode when it has no splits), a "
                                     "folder of episodes or one episode")
     tr.add_argument("--out", required=True, help="run folder: checkpoint.pt, log.jsonl, summary.json")
-    tr.add_argument("--fusion", choices=FUSIONS, default="none", help="none (ego only), late (boxes merged), "
-                                                                      "early (points merged); default none")
+    tr.add_argument("--fusion", choices=FUSIONS, default="none",
+                    help="none (ego only), late (boxes merged), early (points merged), intermediate (BEV features "
+                         "warped into the ego frame and fused); default none")
+    tr.add_argument("--fuse", choices=FUSES, default="max", help="intermediate fusion per cell: max (F-Cooper) or "
+                                                                 "attention (AttFuse); default max")
+    tr.add_argument("--encoders", choices=ENCODERS, default="shared",
+                    help="intermediate fusion: one pillar encoder for all agents, or one per agent kind")
+    tr.add_argument("--lidar", choices=LIDAR_MODES, default="tick", help=lidar_help)
+    tr.add_argument("--cache", help="a folder of cosim learn cache: read the samples from it, not from MCAP")
+    tr.add_argument("--workers", type=int, default=0, help="processes that make the batches (default 0: none)")
+    tr.add_argument("--schedule", choices=SCHEDULES, default="cosine",
+                    help="learning rate: cosine (warm-up, cosine to 0; default) or onecycle")
     tr.add_argument("--agents", choices=list(SETTINGS), help="collaborating agent kinds (default: ego for "
                                                                     "fusion none, all otherwise)")
     tr.add_argument("--classes", nargs="+", metavar="CLASS", help="object classes to detect (default: the six "
@@ -144,7 +194,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                             "a tick when its link to the ego does not deliver")
     tr.add_argument("--epochs", type=_positive, default=1, help="passes over the training samples (default 1)")
     tr.add_argument("--steps", type=_positive, help="optimiser steps in total (overrides --epochs)")
-    tr.add_argument("--batch-size", type=_positive, default=2)
+    tr.add_argument("--batch-size", type=_positive, default=8)
     tr.add_argument("--lr", type=float, default=2e-3)
     tr.add_argument("--every", type=_positive, default=1, help="train on ticks 0, every, 2 every... (default 1)")
     tr.add_argument("--split", help="training split (default: train, or all episodes of a dataset without splits)")
@@ -175,6 +225,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     pr.add_argument("--agents", choices=list(SETTINGS), help="collaborating agent kinds at prediction time "
                                                              "(default: the model's)")
     pr.add_argument("--delivery", action="store_true", help="apply /comm/links delivery (see train)")
+    pr.add_argument("--lidar", choices=LIDAR_MODES, help="LiDAR compensation (default: the model's)")
+    pr.add_argument("--cache", help="a folder of cosim learn cache to read the samples from")
     pr.add_argument("--device", help="torch device (default: cuda when present, else cpu)")
     pr.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's)")
     pr.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -188,6 +240,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     va.add_argument("--every", type=_positive, default=10, help="ticks 0, every, 2 every... (default 10)")
     va.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's)")
     va.set_defaults(func=cmd_validate)
+
+    ca = lsub.add_parser("cache", help="cache a dataset's samples (one .npz per episode): cosim learn cache "
+                                       "DATASET --out DIR")
+    ca.add_argument("dataset", help="batch folder, a folder of episodes or one episode")
+    ca.add_argument("--out", required=True, help="cache folder (cache.json and <split>/<episode>.npz)")
+    ca.add_argument("--lidar", choices=LIDAR_MODES, default="tick", help=lidar_help)
+    ca.add_argument("--every", type=_positive, default=1, help="cache ticks 0, every, 2 every... (default 1)")
+    ca.add_argument("--split", help="cache only this split (default: every episode)")
+    ca.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    ca.set_defaults(func=cmd_cache)
+
+    rc = lsub.add_parser("recall", help="objects the ego has no return on, found by each model (one prediction "
+                                        "file per setting)")
+    rc.add_argument("dataset", help="batch folder")
+    rc.add_argument("pred", nargs="+", help="prediction files of cosim learn predict (.jsonl)")
+    rc.add_argument("--out", required=True, help="folder for recall.md and recall.json")
+    rc.add_argument("--split", help="split of the predictions (default test)")
+    rc.add_argument("--iou", type=float, default=0.3, help="BEV IoU of a match (default 0.3)")
+    rc.add_argument("--min-score", type=float, default=0.3, help="predictions of at least this score (default 0.3)")
+    rc.set_defaults(func=cmd_recall)
 
     cu = lsub.add_parser("curves", help="plot validation AP against steps of one or more runs (PNG)")
     cu.add_argument("runs", nargs="+", help="run folders")

@@ -11,8 +11,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from cosim.eval.dataset import AREA_HALF_M
-
+#: ``cosim eval``'s evaluation area, half extents x, y [m] (cosim.eval.dataset.AREA_HALF_M, which a test checks;
+#: not imported, so that this module needs numpy alone).
+AREA_HALF_M: tuple[float, float] = (140.8, 40.0)
 #: Point features per point in a pillar: x, y, z, intensity, offsets to the pillar's point mean (3) and to
 #: the pillar's centre (2).
 POINT_FEATURES = 9
@@ -60,10 +61,13 @@ class Grid:
 
     def crop(self, points: np.ndarray) -> np.ndarray:
         """The points (N, >=3) inside the range."""
+        return points[self.in_range(points)]
+
+    def in_range(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: points (N, >=3) inside the range."""
         x, y, z = points[:, 0], points[:, 1], points[:, 2]
-        keep = ((x >= self.x_range[0]) & (x < self.x_range[1]) & (y >= self.y_range[0]) & (y < self.y_range[1])
+        return ((x >= self.x_range[0]) & (x < self.x_range[1]) & (y >= self.y_range[0]) & (y < self.y_range[1])
                 & (z >= self.z_range[0]) & (z < self.z_range[1]))
-        return points[keep]
 
     def box_inside(self, centers: np.ndarray) -> np.ndarray:
         return ((centers[:, 0] >= self.x_range[0]) & (centers[:, 0] < self.x_range[1])

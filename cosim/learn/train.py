@@ -1,11 +1,15 @@
 """Training, checkpoints, validation and prediction of the ``cosim learn`` detector (PyTorch).
 
-A RUN folder holds ``checkpoint.pt`` (weights, optimiser, step, the :class:`~cosim.learn.data.Setup` and the
-training options; written every ``save_every`` steps and at the end), ``log.jsonl`` (one line per step with
-the loss, one per validation with AP30/AP50/AP70 of the vehicle group in percent) and ``summary.json``
-(sizes and wall times). Training is deterministic on CPU: the same data, options and seed give the same
-weights (the sample order and the augmentation of step k are drawn from (seed, epoch) and (seed, k), so a
-resumed run continues exactly as an uninterrupted one would).
+A RUN folder holds ``checkpoint.pt`` (weights, optimiser, step, the :class:`~cosim.learn.samples.Setup` and
+the training options; written every ``save_every`` steps and at the end), ``best.pt`` (the checkpoint of the
+best validation AP50 so far, which ``predict`` uses when present), ``log.jsonl`` (one line per step with the
+loss, one per validation with AP30/AP50/AP70 of the vehicle group in percent) and ``summary.json`` (sizes and
+wall times). Training is deterministic on CPU: the same data, options and seed give the same weights (the
+sample order and the augmentation of step k are drawn from (seed, epoch) and (seed, k), and each step's batch
+is made from those alone, so worker processes and a resumed run change nothing).
+
+Only numpy, torch and the numpy-only parts of cosim learn are imported at module import (no MCAP reader),
+so that benchmarks/learn_device.py trains from a cache on a machine without cosim's dependencies.
 """
 
 from __future__ import annotations
@@ -19,22 +23,26 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from cosim.errors import InputError
-from cosim.eval.dataset import EpisodeRef
 from cosim.eval.predictions import parse_record, record_json
-from cosim.learn.data import Samples, Setup, augment, check_classes
 from cosim.learn.grid import decode, targets, voxelise
 from cosim.learn.model import PillarDetector, focal_loss, peaks, regression_loss
 from cosim.learn.nms import circle_nms
+from cosim.learn.samples import SCHEDULES, Setup, agent_grid, augment, augment_poses  # noqa: F401 (SCHEDULES: here too)
+
+if TYPE_CHECKING:
+    from cosim.eval.dataset import EpisodeRef
+    from cosim.learn.data import Samples
 
 log = logging.getLogger(__name__)
 
 CHECKPOINT = "checkpoint.pt"
+BEST = "best.pt"
 FORMAT = 1  # checkpoint layout version
 
 
@@ -42,7 +50,7 @@ FORMAT = 1  # checkpoint layout version
 class TrainOptions:
     epochs: int = 1
     steps: int | None = None  # stop after this many steps in total (None: epochs x samples / batch)
-    batch_size: int = 2
+    batch_size: int = 8
     lr: float = 2e-3
     weight_decay: float = 1e-2
     every: int = 1  # training ticks: 0, every, 2 every...
@@ -53,9 +61,15 @@ class TrainOptions:
     seed: int = 0
     width: int = 16  # channels of the pillar features (the backbone has 2x, 3x and 4x)
     threads: int | None = None  # torch CPU threads (None: torch's default)
+    schedule: str = "cosine"  # warm-up then cosine decay to 0, or one-cycle (30 % rise from lr/25, then cosine)
+    workers: int = 0  # worker processes making the batches (0: in the training process)
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TrainOptions:
+        return cls(**{k: v for k, v in d.items() if k in cls.__dataclass_fields__})
 
 
 def device_of(name: str | None) -> torch.device:
@@ -64,20 +78,55 @@ def device_of(name: str | None) -> torch.device:
     return torch.device("cuda" if torch.cuda.is_available() else "cpu")
 
 
-def batch_tensors(clouds: Sequence[np.ndarray], setup: Setup, device: torch.device
-                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Voxelise clouds into one batch: features (P, M, 9), mask (P, M), coords (P, 3) [batch, row, col]."""
+def batch_arrays(clouds: Sequence[np.ndarray], setup: Setup, per_sample: Sequence[int] | None = None,
+                 poses: Sequence[np.ndarray] | None = None, kinds: Sequence[np.ndarray] | None = None
+                 ) -> dict[str, np.ndarray]:
+    """Voxelise clouds into one batch (numpy): ``feats`` (P, M, 9), ``mask`` (P, M), ``coords`` (P, 3)
+    [batch, row, column]. Intermediate fusion (``per_sample``: clouds of each sample, in order; ``poses``,
+    ``kinds`` per sample): coords [b x J + j, row, column] in the agents' grid, and ``poses`` (B, J, 3),
+    ``kinds`` (B, J), ``present`` (B, J) with J the most agents of a sample."""
+    inter = per_sample is not None
+    grid = agent_grid(setup.grid) if inter else setup.grid
+    if inter:
+        j_max = max(per_sample)
+        slot = [(b, j) for b, n in enumerate(per_sample) for j in range(n)]
     feats, coords, masks = [], [], []
-    for b, cloud in enumerate(clouds):
-        f, c, n = voxelise(cloud, setup.grid)
+    for n, cloud in enumerate(clouds):
+        f, c, k = voxelise(cloud, grid)
+        m = slot[n][0] * j_max + slot[n][1] if inter else n
         feats.append(f)
-        coords.append(np.concatenate([np.full((len(c), 1), b, np.int64), c], axis=1))
-        masks.append(np.arange(setup.grid.max_points)[None, :] < n[:, None])
-    return (torch.from_numpy(np.concatenate(feats)).to(device), torch.from_numpy(np.concatenate(masks)).to(device),
-            torch.from_numpy(np.concatenate(coords)).to(device))
+        coords.append(np.concatenate([np.full((len(c), 1), m, np.int64), c], axis=1))
+        masks.append(np.arange(grid.max_points)[None, :] < k[:, None])
+    out = {"feats": np.concatenate(feats), "mask": np.concatenate(masks), "coords": np.concatenate(coords)}
+    if inter:
+        b = len(per_sample)
+        out["poses"] = np.zeros((b, j_max, 3), np.float64)
+        out["kinds"] = np.zeros((b, j_max), np.int64)
+        out["present"] = np.zeros((b, j_max), bool)
+        for i, n in enumerate(per_sample):
+            out["poses"][i, :n] = poses[i]
+            out["kinds"][i, :n] = kinds[i]
+            out["present"][i, :n] = True
+    return out
+
+
+def to_device(arrays: dict[str, Any], device: torch.device) -> dict[str, torch.Tensor]:
+    return {k: (v if isinstance(v, torch.Tensor) else torch.from_numpy(np.asarray(v))).to(device)
+            for k, v in arrays.items()}
+
+
+def run_model(model: PillarDetector, batch: dict[str, torch.Tensor], batch_size: int
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    maps = {k: batch[k] for k in ("poses", "kinds", "present")} if "poses" in batch else None
+    return model(batch["feats"], batch["mask"], batch["coords"], batch_size, maps)
 
 
 def _lr(opts: TrainOptions, step: int, total: int) -> float:
+    if opts.schedule == "onecycle":
+        rise = max(1, int(0.3 * total))
+        if step < rise:
+            return opts.lr / 25 + (opts.lr - opts.lr / 25) * 0.5 * (1 - math.cos(math.pi * step / rise))
+        return opts.lr * 0.5 * (1 + math.cos(math.pi * (step - rise) / max(1, total - rise)))
     warm = min(50, max(1, total // 10))
     if step < warm:
         return opts.lr * (step + 1) / warm
@@ -91,13 +140,19 @@ def _set_seed(seed: int) -> None:
 
 def new_model(setup: Setup, opts: TrainOptions, device: torch.device) -> PillarDetector:
     _set_seed(opts.seed)
-    return PillarDetector(setup.grid, len(setup.classes), width=opts.width).to(device)
+    return model_for(setup, opts).to(device)
+
+
+def model_for(setup: Setup, opts: TrainOptions) -> PillarDetector:
+    return PillarDetector(setup.grid, len(setup.classes), width=opts.width, fusion=setup.fusion, fuse=setup.fuse,
+                          encoders=setup.encoders)
 
 
 def load_run(run: Path, device: torch.device | None = None) -> tuple[PillarDetector, Setup, dict[str, Any]]:
-    """The model of a RUN folder (its last checkpoint) or of one checkpoint file, its setup and the checkpoint."""
+    """The model of a RUN folder (its ``best.pt``, chosen on validation, else its last checkpoint) or of one
+    checkpoint file, its setup and the checkpoint."""
     run = Path(run)
-    path = run if run.is_file() else run / CHECKPOINT
+    path = run if run.is_file() else (run / BEST if (run / BEST).is_file() else run / CHECKPOINT)
     if not path.is_file():
         raise InputError(f"{run}: no {CHECKPOINT}: not a training run of cosim learn train")
     device = device or device_of(None)
@@ -108,8 +163,8 @@ def load_run(run: Path, device: torch.device | None = None) -> tuple[PillarDetec
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise InputError(f"{path}: not a cosim learn checkpoint of format {FORMAT}")
     setup = Setup.from_dict(ckpt["setup"])
-    opts = TrainOptions(**ckpt["options"])
-    model = PillarDetector(setup.grid, len(setup.classes), width=opts.width).to(device)
+    opts = TrainOptions.from_dict(ckpt["options"])
+    model = model_for(setup, opts).to(device)
     try:
         model.load_state_dict(ckpt["model"])
     except RuntimeError as exc:
@@ -125,11 +180,16 @@ def predict_sample(model: PillarDetector, item: dict[str, Any], setup: Setup, de
     """Boxes (N, 7), scores (N,), class indices (N,) of one sample in the ego LiDAR frame. Late fusion:
     each agent's cloud is detected alone and the boxes of all of them merged by circle NMS."""
     clouds = item["clouds"]
-    feats, mask, coords = batch_tensors(clouds, setup, device)
-    heat, reg = model(feats, mask, coords, len(clouds))
+    if setup.fusion == "intermediate":
+        batch = to_device(batch_arrays(clouds, setup, [len(clouds)], [item["poses"]], [item["kinds"]]), device)
+        n = 1
+    else:
+        batch = to_device(batch_arrays(clouds, setup), device)
+        n = len(clouds)
+    heat, reg = run_model(model, batch, n)
     heat = peaks(heat).cpu().numpy()
     reg = reg.cpu().numpy()
-    parts = [decode(heat[b], reg[b], setup.grid, score_min=score_min) for b in range(len(clouds))]
+    parts = [decode(heat[b], reg[b], setup.grid, score_min=score_min) for b in range(n)]
     boxes = np.concatenate([p[0] for p in parts])
     scores = np.concatenate([p[1] for p in parts])
     cls = np.concatenate([p[2] for p in parts])
@@ -137,7 +197,7 @@ def predict_sample(model: PillarDetector, item: dict[str, Any], setup: Setup, de
     return boxes[keep], scores[keep], cls[keep]
 
 
-def record_lines(model: PillarDetector, samples: Samples, device: torch.device,
+def record_lines(model: PillarDetector, samples: Any, device: torch.device,
                  progress: Callable[[int, int], None] | None = None) -> list[str]:
     """One prediction record (docs/evaluation.md) per sample."""
     setup = samples.setup
@@ -167,23 +227,63 @@ def validate(model: PillarDetector, samples: Samples, device: torch.device) -> d
     return {k: round(float(det.get(k, float("nan"))), 2) for k in ("AP30", "AP50", "AP70")}
 
 
-def _step_batch(samples: Samples, order: np.ndarray, start: int, opts: TrainOptions, step: int
-                ) -> tuple[list[np.ndarray], list[dict[str, np.ndarray]]]:
+def step_batch(samples: Any, order: np.ndarray, start: int, opts: TrainOptions, step: int) -> dict[str, Any]:
+    """The batch of training step ``step`` (numpy): samples ``order[start:start + batch]`` (wrapping),
+    flipped as drawn from (seed, step); late fusion takes one agent's cloud of each sample (also drawn)."""
     rng = np.random.default_rng([opts.seed, step])
-    clouds, tgts = [], []
     setup = samples.setup
+    clouds, tgts, per_sample, poses, kinds = [], [], [], [], []
     for j in range(opts.batch_size):
         item = samples.item(int(order[(start + j) % len(order)]))
         k = int(rng.integers(len(item["clouds"])))  # late fusion: one agent's cloud of the sample
         flip = rng.random(2) < 0.5
+        if setup.fusion == "intermediate":
+            boxes = item["targets"][0][0]
+            for cloud in item["clouds"]:
+                c, boxes_f = augment(cloud, boxes, bool(flip[0]), bool(flip[1]))
+                clouds.append(c)
+            per_sample.append(len(item["clouds"]))
+            poses.append(augment_poses(item["poses"], bool(flip[0]), bool(flip[1])))
+            kinds.append(item["kinds"])
+            tgts.append(targets(boxes_f, item["targets"][0][1], setup.grid, len(setup.classes)))
+            continue
         cloud, boxes = augment(item["clouds"][k], item["targets"][k][0], bool(flip[0]), bool(flip[1]))
         clouds.append(cloud)
         tgts.append(targets(boxes, item["targets"][k][1], setup.grid, len(setup.classes)))
-    return clouds, tgts
+    if setup.fusion == "intermediate":
+        batch = batch_arrays(clouds, setup, per_sample, poses, kinds)
+    else:
+        batch = batch_arrays(clouds, setup)
+    batch.update({f"t_{k}": np.stack([t[k] for t in tgts]) for k in tgts[0]})
+    return batch
 
 
-def _stack(tgts: list[dict[str, np.ndarray]], device: torch.device) -> dict[str, torch.Tensor]:
-    return {k: torch.from_numpy(np.stack([t[k] for t in tgts])).to(device) for k in tgts[0]}
+class StepBatches:
+    """Map-style dataset of training batches by step number, for torch's DataLoader: worker processes
+    make the batches (reading, voxelising, targets) while the model trains; batch k depends on k alone."""
+
+    def __init__(self, samples: Any, opts: TrainOptions, per_epoch: int):
+        self.samples, self.opts, self.per_epoch = samples, opts, per_epoch
+
+    def __len__(self) -> int:
+        return 1 << 40
+
+    def __getitem__(self, step: int) -> dict[str, Any]:
+        epoch, pos = divmod(step, self.per_epoch)
+        order = np.random.default_rng([self.opts.seed, 1_000_003 + epoch]).permutation(len(self.samples))
+        return step_batch(self.samples, order, pos * self.opts.batch_size, self.opts, step)
+
+
+def batches(samples: Any, opts: TrainOptions, per_epoch: int, first: int, total: int):
+    """The batches of steps first..total-1, made in ``opts.workers`` worker processes (0: here)."""
+    data = StepBatches(samples, opts, per_epoch)
+    if opts.workers <= 0:
+        for step in range(first, total):
+            yield data[step]
+        return
+    loader = torch.utils.data.DataLoader(data, batch_size=None, sampler=range(first, total),
+                                         num_workers=opts.workers, prefetch_factor=2, persistent_workers=False)
+    yield from loader
 
 
 def _append_log(path: Path, rec: dict[str, Any]) -> None:
@@ -198,12 +298,74 @@ def read_log(run: Path) -> list[dict[str, Any]]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-def train(train_refs: list[EpisodeRef], val_refs: list[EpisodeRef] | None, setup: Setup, opts: TrainOptions,
-          run: Path, resume: bool = False, device: torch.device | None = None, show_progress: bool = True
-          ) -> dict[str, Any]:
-    """Train (or resume) a detector into ``run``; returns the summary (also written to summary.json)."""
-    from tqdm import tqdm
+class _NoBar:
+    def __init__(self, *args: Any, **kwargs: Any):
+        pass
 
+    def update(self, n: int) -> None:
+        pass
+
+    def set_postfix(self, **kwargs: Any) -> None:
+        pass
+
+    def write(self, text: str) -> None:
+        print(text, file=sys.stderr)
+
+    def close(self) -> None:
+        pass
+
+
+def _cpu_s() -> float:
+    import resource
+
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+def train(train_refs: list[EpisodeRef], val_refs: list[EpisodeRef] | None, setup: Setup, opts: TrainOptions,
+          run: Path, resume: bool = False, device: torch.device | None = None, show_progress: bool = True,
+          cache: Path | None = None) -> dict[str, Any]:
+    """Train (or resume) a detector into ``run`` on the episodes ``train_refs`` (from MCAP, or from the
+    ``cosim learn cache`` folder ``cache``), validating on ``val_refs``; returns the summary (also written to
+    summary.json)."""
+    from cosim.learn.data import Samples, check_classes
+
+    run = Path(run)
+    if (run / CHECKPOINT).exists() and not resume:
+        raise InputError(f"{run} already holds a training run: --resume continues it, or choose another --out")
+    if resume and not (run / CHECKPOINT).exists():
+        raise InputError(f"{run}: nothing to resume (no {CHECKPOINT})")
+    check_classes(train_refs, setup.classes, "the model")
+    t0 = time.perf_counter()
+    samples = Samples(train_refs, setup, every=opts.every, cache=cache)
+    val = Samples(val_refs, setup, every=opts.val_every_tick, cache=cache) if val_refs else None
+    device = device or device_of(None)
+    try:
+        summary = fit(samples, (lambda model: validate(model, val, device)) if val is not None else None, setup,
+                      opts, run, resume=resume, device=device, show_progress=show_progress)
+    finally:
+        samples.close()
+        if val is not None:
+            val.close()
+    summary.update({"train_episodes": len(train_refs), "val_episodes": len(val_refs or []),
+                    "setup_s": round(summary["setup_s"] + time.perf_counter() - t0 - summary["wall_s"], 1),
+                    "cache": str(cache) if cache else None})
+    (run / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def fit(samples: Any, val_fn: Callable[[PillarDetector], dict[str, float]] | None, setup: Setup,
+        opts: TrainOptions, run: Path, resume: bool = False, device: torch.device | None = None,
+        show_progress: bool = True) -> dict[str, Any]:
+    """The training loop: ``samples`` (``len``, ``item(i)``, ``setup``), ``val_fn`` (model -> AP dict, or
+    None). Writes the run folder; ``best.pt`` is the checkpoint of the best validation AP50."""
+    try:
+        from tqdm import tqdm
+    except ModuleNotFoundError:  # a bare machine (benchmarks/learn_device.py): no progress bar
+        tqdm = _NoBar
+
+    t0 = time.perf_counter()
     run = Path(run)
     ckpt_path = run / CHECKPOINT
     device = device or device_of(None)
@@ -211,14 +373,6 @@ def train(train_refs: list[EpisodeRef], val_refs: list[EpisodeRef] | None, setup
         torch.use_deterministic_algorithms(True)
         if opts.threads:
             torch.set_num_threads(opts.threads)
-    if ckpt_path.exists() and not resume:
-        raise InputError(f"{run} already holds a training run: --resume continues it, or choose another --out")
-    if resume and not ckpt_path.exists():
-        raise InputError(f"{run}: nothing to resume (no {CHECKPOINT})")
-    check_classes(train_refs, setup.classes, "the model")
-    t0 = time.perf_counter()
-    samples = Samples(train_refs, setup, every=opts.every)
-    val = Samples(val_refs, setup, every=opts.val_every_tick) if val_refs else None
     per_epoch = math.ceil(len(samples) / opts.batch_size)
     total = opts.steps if opts.steps is not None else opts.epochs * per_epoch
     if total < 1:
@@ -228,16 +382,18 @@ def train(train_refs: list[EpisodeRef], val_refs: list[EpisodeRef] | None, setup
     step = 0
     log_path = run / "log.jsonl"
     prior_s = 0.0
+    best = -1.0
     if resume:
         ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
         old = Setup.from_dict(ckpt["setup"])
         if old != setup:
             raise InputError(f"{run} was trained with fusion {old.fusion}, agents {old.agents}, classes "
-                             f"{', '.join(old.classes)}: resume it with the same options")
+                             f"{', '.join(old.classes)}, lidar {old.lidar}: resume it with the same options")
         model.load_state_dict(ckpt["model"])
         optim.load_state_dict(ckpt["optimizer"])
         step = int(ckpt["step"])
         prior_s = float(ckpt.get("train_s", 0.0))
+        best = float(ckpt.get("best_ap50", -1.0))
         kept = [r for r in read_log(run) if r["step"] <= step]
         log_path.write_text("".join(json.dumps(r) + "\n" for r in kept))
     else:
@@ -245,29 +401,28 @@ def train(train_refs: list[EpisodeRef], val_refs: list[EpisodeRef] | None, setup
         log_path.write_text("")
     setup_s = time.perf_counter() - t0
 
-    def save(step: int, train_s: float) -> None:
-        tmp = ckpt_path.with_suffix(".tmp")
+    def save(path: Path, step: int, train_s: float) -> None:
+        tmp = path.with_suffix(".tmp")
         torch.save({"format": FORMAT, "setup": setup.to_dict(), "options": opts.to_dict(), "step": step,
-                    "model": model.state_dict(), "optimizer": optim.state_dict(), "train_s": train_s}, tmp)
-        tmp.replace(ckpt_path)
+                    "model": model.state_dict(), "optimizer": optim.state_dict(), "train_s": train_s,
+                    "best_ap50": best}, tmp)
+        tmp.replace(path)
 
     val_s = 0.0
+    cpu0 = _cpu_s()
     t_train = time.perf_counter()
     model.train()
     bar = tqdm(total=total, initial=step, desc=f"train {setup.fusion}/{setup.agents}", unit="step", file=sys.stderr,
                disable=not show_progress or not sys.stderr.isatty(), dynamic_ncols=True, mininterval=0.5)
     last = None
-    while step < total:
-        epoch, pos = divmod(step, per_epoch)
-        order = np.random.default_rng([opts.seed, 1_000_003 + epoch]).permutation(len(samples))
-        clouds, tgts = _step_batch(samples, order, pos * opts.batch_size, opts, step)
-        feats, mask, coords = batch_tensors(clouds, setup, device)
-        tg = _stack(tgts, device)
+    for batch in batches(samples, opts, per_epoch, step, total):
+        epoch = step // per_epoch
+        b = to_device(batch, device)
         for group in optim.param_groups:
             group["lr"] = _lr(opts, step, total)
-        heat, reg = model(feats, mask, coords, len(clouds))
-        l_heat = focal_loss(heat, tg["heatmap"])
-        l_reg = regression_loss(reg, tg["reg"], tg["index"], tg["mask"])
+        heat, reg = run_model(model, b, opts.batch_size)
+        l_heat = focal_loss(heat, b["t_heatmap"])
+        l_reg = regression_loss(reg, b["t_reg"], b["t_index"], b["t_mask"])
         loss = l_heat + 2.0 * l_reg
         optim.zero_grad(set_to_none=True)
         loss.backward()
@@ -279,27 +434,31 @@ def train(train_refs: list[EpisodeRef], val_refs: list[EpisodeRef] | None, setup
                                "heat": round(float(l_heat.detach()), 5), "reg": round(float(l_reg.detach()), 5)})
         bar.update(1)
         bar.set_postfix(loss=f"{last:.3f}", epoch=epoch)
-        do_val = val is not None and ((opts.val_steps and step % opts.val_steps == 0) or step == total)
+        do_val = val_fn is not None and ((opts.val_steps and step % opts.val_steps == 0) or step == total)
+        new_best = False
         if do_val:
             tv = time.perf_counter()
-            ap = validate(model, val, device)
+            ap = val_fn(model)
+            model.train()
             val_s += time.perf_counter() - tv
             _append_log(log_path, {"step": step, "val": ap})
             bar.write(f"step {step}: val AP30 {ap['AP30']:.1f}  AP50 {ap['AP50']:.1f}  AP70 {ap['AP70']:.1f}")
+            if ap["AP50"] == ap["AP50"] and ap["AP50"] > best:
+                best, new_best = float(ap["AP50"]), True
         kept = bool(opts.keep_every) and step % opts.keep_every == 0
-        if kept or step % opts.save_every == 0 or step == total:
-            save(step, prior_s + time.perf_counter() - t_train)
+        if kept or new_best or step % opts.save_every == 0 or step == total:
+            save(ckpt_path, step, prior_s + time.perf_counter() - t_train)
+        if new_best:
+            shutil.copyfile(ckpt_path, run / BEST)
         if kept:
             shutil.copyfile(ckpt_path, run / f"checkpoint_{step:06d}.pt")
     bar.close()
-    train_s = prior_s + time.perf_counter() - t_train
-    samples.close()
-    if val is not None:
-        val.close()
-    summary = {"setup": setup.to_dict(), "options": opts.to_dict(), "train_samples": len(samples),
-               "train_episodes": len(train_refs), "val_episodes": len(val_refs or []), "steps": step,
-               "final_loss": last, "device": str(device), "setup_s": round(setup_s, 1),
-               "train_s": round(train_s, 1), "val_s": round(val_s, 1)}
+    wall = time.perf_counter() - t_train
+    train_s = prior_s + wall
+    summary = {"setup": setup.to_dict(), "options": opts.to_dict(), "train_samples": len(samples), "steps": step,
+               "final_loss": last, "best_val_ap50": best if best >= 0 else None, "device": str(device),
+               "setup_s": round(setup_s, 1), "train_s": round(train_s, 1), "val_s": round(val_s, 1),
+               "wall_s": round(wall, 1), "cpu_s": round(_cpu_s() - cpu0, 1)}
     (run / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
@@ -326,6 +485,8 @@ def validate_checkpoints(run: Path, refs: list[EpisodeRef], every: int, split: s
             continue
         done.add(step)
         if samples is None:
+            from cosim.learn.data import Samples, check_classes
+
             check_classes(refs, setup.classes, f"the model in {run}")
             samples = Samples(refs, setup, every=every)
         ap = validate(model, samples, device)

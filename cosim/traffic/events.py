@@ -361,6 +361,12 @@ class Timeline:
         street; SUMO cannot route a walking person around a closed sidewalk and stops), a barrier across each."""
         assert e.place is not None
         edge = e.place.edge
+        pending = set(libsumo.simulation.getPendingVehicles())
+        waiting = [vid for other in self._active if other is not e and other.place is not None
+                   and other.place.edge == edge for vid in other.vehicles + other.hidden if vid in pending]
+        if waiting:  # closing the lanes under a vehicle SUMO has yet to insert is a fatal SUMO error
+            e.place, e.note = None, f"not placed: {', '.join(waiting)} of another event wait(s) to enter edge {edge}"
+            return
         walk = sidewalk_lane(edge)
         lanes = [i for i in range(libsumo.edge.getLaneNumber(edge)) if f"{edge}_{i}" != walk]
         for i in lanes:

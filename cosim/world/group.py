@@ -6,7 +6,8 @@ core, long enough that the group does not reach its end within the episode (warm
 the fastest speed limit of those edges: SUMO's drivers go up to about 20 % over the limit), so the traffic
 adapter never extends it (extensions are drawn per vehicle and would split the group). The vehicles stand
 one behind the other along its first edges, :data:`GAP_M` apart along the road, each on the suffix of the
-route from its own edge; vehicle_0 at the back of the queue. RSUs stand at the junctions the route
+route from its own edge; vehicle_0 leads the queue (events placed ``ahead_of: vehicle_0`` find open road,
+the collaborators follow it). RSUs stand at the junctions the route
 passes (:func:`route_junctions`), drones hover and patrol over them (cosim/drones/routes.py).
 
 A map with no inner road long enough for that, or where the vehicles cannot be placed within
@@ -103,11 +104,12 @@ def _place_members(
             return None
         placed.append(found)
         s_next = slots[found[0]][0] + found[3] + float(rng.uniform(*GAP_M))
-    # vehicle_0 is the first one placed: the last in the queue, the others drive ahead of it
-    return [
-        PlannedVehicle(f"vehicle_{k}", variants[k], lane_id, lane_index, round(pos, 2), tuple(route[idx:]))
+    # the first one placed is the last in the queue: vehicle_0 is the last placed, at the front
+    members = [
+        PlannedVehicle(f"vehicle_{n - 1 - k}", variants[k], lane_id, lane_index, round(pos, 2), tuple(route[idx:]))
         for k, (idx, lane_id, lane_index, pos, _xy) in enumerate(placed)
     ]
+    return members[::-1]
 
 
 def plan_group(net: sumolib.net.Net, scenario: Scenario, rng: np.random.Generator) -> GroupPlan | None:

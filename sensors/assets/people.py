@@ -255,13 +255,48 @@ def quantized(phase: float, speed: float) -> tuple[int, int]:
     return round((phase % 1.0) * PHASE_STEPS) % PHASE_STEPS, round(min(max(speed, 0.0), 3.0) * 20)
 
 
-@lru_cache(maxsize=1024)  # about 25 MB (25 kB a posed body)
 def posed_steps(key: str, q_phase: int, q_speed: int):
-    """:func:`posed` at cache steps (:func:`quantized`)."""
-    p = Person.from_key(key)
-    v, t, part, grp, _ = person_mesh(p, walk_pose(q_phase / PHASE_STEPS, q_speed / 20))
+    """:func:`posed` at cache steps (:func:`quantized`): the mesh :func:`person_mesh` builds, its
+    vertices from :func:`body_points` (the same arithmetic) in the builder's order, the triangles, parts
+    and groups (the same at every pose) made once per person. Not cached: a walker is at a new phase
+    step nearly every tick, so a cache of posed meshes missed nearly always (0.5 ms a body instead of 3)."""
+    p = _person(key)
+    t, part, grp, order = _topology(key)
+    v = body_points(p, walk_pose(q_phase / PHASE_STEPS, q_speed / 20))[order]
+    v[:, 2] -= v[:, 2].min()
     lo, hi = v.min(0), v.max(0)
     return p, v, t, part, grp, lo, hi
+
+
+@lru_cache(maxsize=256)
+def _topology(key: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Triangles, part and group of person ``key``'s body (:func:`build_body`; the same at every pose) and
+    the row of :func:`body_points` of each of its vertices (the builder's order: frustums 0-2, the
+    ellipsoids, the other frustums; per frustum its two rings, then its two axis ends)."""
+    p = _person(key)
+    b = Builder()
+    build_body(b, p, Pose())
+    _, t, part, grp, _ = b.arrays()
+    fr, el = _body_parts(p, Pose())
+    ns = np.array([f[5] for f in fr])
+    first = np.concatenate([[0], np.cumsum(ns)[:-1]])
+    rings, nf = int(ns.sum()), len(fr)
+
+    def frustum_rows(f: int) -> list[np.ndarray]:
+        ring = first[f] + np.arange(ns[f])
+        return [ring, rings + ring, [2 * rings + f], [2 * rings + nf + f]]
+
+    rows = [r for f in (0, 1, 2) for r in frustum_rows(f)]
+    start = 2 * rings + 2 * nf
+    for _, _, _, n_lat, n_lon in el:
+        size = 2 + (n_lat - 1) * n_lon
+        rows.append(start + np.arange(size))
+        start += size
+    rows += [r for f in range(3, nf) for r in frustum_rows(f)]
+    order = np.concatenate(rows).astype(np.int64)
+    for a in (t, part, grp, order):
+        a.flags.writeable = False
+    return t, part, grp, order
 
 
 Vec3 = tuple[float, float, float]
