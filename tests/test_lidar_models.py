@@ -7,7 +7,7 @@ import pytest
 from cosim.sensors import SensorSuite
 from cosim.sensors.lidar import beam_pattern, intensity_model, rosette_pattern
 from cosim.sensors.lidar_models import KITTI_EXPONENT, KITTI_GAIN, KITTI_REF_RANGE_M, report_intensity
-from cosim.sensors.synthetic import synthetic_scenario
+from cosim.sensors.synthetic import actor, synthetic_scenario
 
 from cosim.errors import ScenarioError
 from cosim.scenario.lidar_presets import LIDAR_PRESETS
@@ -171,3 +171,18 @@ def test_rendered_wall_reads_its_reflectivity_in_calibrated_bytes():
     # the building's reflectivity 0.35 at (nearly) normal incidence, 30 m of clear air: byte 35
     assert np.all(np.rint(lf.intensity[ahead] * 255) == 35)
     assert len(np.unique(lf.ring)) == 16
+
+
+@pytest.mark.parametrize(("model", "diffuse_max"), [("vlp32c", 100), ("avia", 150)])
+def test_rendered_car_reflectors_read_above_the_diffuse_scale(model, diffuse_max):
+    """A car's licence plate and lamp reflectors are retro-reflective: above the sheet's diffuse range."""
+    lidar = _lidar(model, motion_distortion=False, mount=Mount(xyz_m=(0.0, 0.0, 1.0)))
+    sc = synthetic_scenario(vehicles=1, sensors=SensorsSpec(vehicle=RigSpec(lidar=lidar, cameras=[], gnss=None,
+                                                                            imu=None)))
+    suite = SensorSuite(sc, _wall_world(60.0), noise=False)
+    car = actor(7, "car", 12.0, 0.0, 0.0, z_ground=0.0)  # its back to the sensor: plate and rear lamps
+    ego = AgentState("vehicle_0", "vehicle", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    lf = suite.render(WorldSnapshot(0, 0, (car,), (ego,)), np.random.default_rng(0)).agents["vehicle_0"].lidar
+    byte = np.rint(lf.intensity[lf.instance_id == 7] * 255)
+    assert (byte > diffuse_max).any() and (byte <= diffuse_max).any()
+
