@@ -53,8 +53,7 @@ def run(args: argparse.Namespace) -> None:
 
     suite = SensorSuite(sc, world)
     try:
-        model = LinkModel(sc.comm, LinkScene.of_static(suite.static, world.layout.ground_z_m), world.map_kind, sc.seed,
-                          sc.tick_ns)
+        model = LinkModel(sc.comm, own_scene, world.map_kind, sc.seed, sc.tick_ns)
         model.message(snaps[0])  # warm-up (imports)
         link_s = []
         for k in range(args.ticks):
