@@ -8,7 +8,7 @@ Here (with cosim installed):
 
 There (a bare copy of the repository tree; the tarball carried beside it):
 
-    python benchmarks/learn_device.py run --cache out/learn_cache_dev.tar.xz --out $OUT
+    python3 benchmarks/learn_device.py run --cache out/learn_cache_dev.tar.xz --out $OUT --steps 500 --parallel 3
 
 ``run`` trains every setting of :data:`SETTINGS` (``--parallel`` at a time, each with its own batch-making worker
 processes), validates on the cache's val split every fifth of the steps, keeps the checkpoint of the best
@@ -182,7 +182,19 @@ def cmd_run(args: argparse.Namespace) -> int:
     running: list[tuple[str, subprocess.Popen]] = []
     queue = list(names)
     failed = []
+    def write_results() -> dict:
+        results = {n: json.loads((out / n / "test.json").read_text()) for n in names
+                   if (out / n / "test.json").is_file()}
+        (out / "results.json").write_text(json.dumps({"wall_s": round(time.perf_counter() - t0, 1),
+                                                      "steps": args.steps, "batch_size": args.batch_size,
+                                                      "skipped": skipped, "results": results}, indent=1) + "\n")
+        return results
+
+    skipped: list[str] = []
     while queue or running:
+        if queue and time.perf_counter() - t0 > args.start_before_s:  # no time left to train another
+            skipped += queue
+            queue = []
         while queue and len(running) < args.parallel:
             n = queue.pop(0)
             cmd = [sys.executable, __file__, "one", n, "--root", str(root), "--out", str(out), "--steps",
@@ -197,14 +209,10 @@ def cmd_run(args: argparse.Namespace) -> int:
                 running.remove((n, p))
                 if p.returncode:
                     failed.append(n)
-    results = {}
-    for n in names:
-        f = out / n / "test.json"
-        if f.is_file():
-            results[n] = json.loads(f.read_text())
-    (out / "results.json").write_text(json.dumps({"wall_s": round(time.perf_counter() - t0, 1), "steps": args.steps,
-                                                  "batch_size": args.batch_size, "results": results}, indent=1) + "\n")
-    print(f"{len(results)} settings in {time.perf_counter() - t0:.0f} s; failed: {', '.join(failed) or 'none'}")
+                write_results()
+    results = write_results()
+    print(f"{len(results)} settings in {time.perf_counter() - t0:.0f} s; failed: {', '.join(failed) or 'none'}; "
+          f"not started for time: {', '.join(skipped) or 'none'}")
     return 1 if failed else 0
 
 
@@ -247,6 +255,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--settings", nargs="+", help=f"default: all of {', '.join(SETTINGS)}")
     r.add_argument("--parallel", type=int, default=3, help="settings trained at once (default 3)")
     r.add_argument("--workers", type=int, help="batch-making processes per setting (default: the CPUs shared)")
+    r.add_argument("--start-before-s", type=float, default=300.0,
+                   help="start no setting later than this many seconds after the start (default 300)")
     o = sub.add_parser("one", help="(internal) one setting")
     o.add_argument("name")
     o.add_argument("--root", required=True)

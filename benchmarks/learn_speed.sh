@@ -21,6 +21,9 @@ CACHE=${CACHE:-$OUT/cache}
 REPO=$(cd "$(dirname "$0")/.." && pwd)
 PY=${PY:-$REPO/.venv/bin/python}
 mkdir -p "$OUT"
+OUT=$(cd "$OUT" && pwd)
+DATA=$(cd "$DATA" && pwd)
+case $CACHE in /*) ;; *) CACHE=$PWD/$CACHE ;; esac
 BEFORE=$OUT/before_src
 if [ ! -d "$BEFORE" ]; then
   mkdir -p "$BEFORE"
@@ -43,7 +46,7 @@ before=$(cd "$BEFORE" && PYTHONPATH="$BEFORE" cpu before "$PY" -c "
 import sys, cosim.learn.train as t
 assert t.__file__.startswith('$BEFORE'), t.__file__
 from cosim.cli import main
-sys.exit(main(['learn', 'train', '$REPO/$DATA', '--out', '$REPO/$OUT/run_before', '--fusion', '$FUSION',
+sys.exit(main(['learn', 'train', '$DATA', '--out', '$OUT/run_before', '--fusion', '$FUSION',
                '--agents', '$AGENTS', '--steps', '$STEPS', '--every', '$EVERY', '--batch-size', '2', '--threads', '1', '--no-val', '-q']))")
 after0=$(cpu after0 "$PY" -m cosim.cli learn train "$DATA" --out "$OUT/run_after0" --fusion "$FUSION" --agents "$AGENTS" \
   --steps "$STEPS" --every "$EVERY" --batch-size 8 --threads 1 --no-val --cache "$CACHE" -q)
