@@ -72,6 +72,18 @@ def children_of(pid: int) -> list[psutil.Process]:
     return out
 
 
+def cli_in_process(capsys, *args: str) -> tuple[int, str, str]:
+    """``cosim ARGS`` in this process (pytest's ``capsys`` captures): (exit status, stdout, stderr)."""
+    from cosim.cli import main
+
+    try:
+        status = main(list(args))
+    except SystemExit as exc:  # argparse
+        status = exc.code
+    out = capsys.readouterr()
+    return status, out.out, out.err
+
+
 def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600,
             env: dict | None = None) -> subprocess.CompletedProcess:
     """Run ``cosim`` in a fresh interpreter, as a user would; ``timeout`` is for a quiet machine and grows with

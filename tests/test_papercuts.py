@@ -12,20 +12,10 @@ from pathlib import Path
 
 import pytest
 
-from cosim.cli import main
 from cosim.errors import ScenarioError
 from cosim.scenario import load_scenario
 from tests.helpers import SCENARIOS
-
-
-def cli(capsys, *args: str) -> tuple[int, str, str]:
-    """``cosim ARGS`` in this process: (exit status, stdout, stderr)."""
-    try:
-        status = main(list(args))
-    except SystemExit as exc:  # argparse
-        status = exc.code
-    out = capsys.readouterr()
-    return status, out.out, out.err
+from tests.helpers import cli_in_process as cli
 
 
 def write(folder: Path, name: str, text: str) -> Path:

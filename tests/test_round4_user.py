@@ -14,18 +14,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from cosim.cli import main
 from cosim.progress import progress_display, progress_line
 from tests.helpers import REPO
-
-
-def cli(capsys, *args: str) -> tuple[int, str, str]:
-    try:
-        status = main(list(args))
-    except SystemExit as exc:  # argparse
-        status = exc.code
-    out = capsys.readouterr()
-    return status, out.out, out.err
+from tests.helpers import cli_in_process as cli
 
 
 @pytest.fixture(scope="module")
