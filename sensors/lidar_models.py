@@ -27,12 +27,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from cosim.errors import CosimError
+from cosim.registry import Registry
 from cosim.scenario.model import LidarSpec
 
 #: ``(intensity (N,) float64 in [0, 1], retro (N,) bool, range_m (N,) float64) -> reported (N,) in [0, 1]``
 Transfer = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
-_TRANSFERS: dict[str, Transfer] = {}
 
 #: KITTI remission = KITTI_GAIN * (I (KITTI_REF_RANGE_M / R)^2) ** KITTI_EXPONENT (diffuse returns); the gain and
 #: exponent fitted on the town scene (benchmarks/lidar_realism.py --fit-kitti, docs/realism.md)
@@ -44,23 +43,13 @@ KITTI_MIN_RANGE_M = 1.0  # [m] ranges below count as this (the response saturate
 KITTI_RETRO_FLOOR = 0.7
 
 
-def register_transfer(name: str) -> Callable[[Transfer], Transfer]:
-    """Decorator: add an intensity transfer under ``name`` (one of ``LidarSpec.intensity_transfer``)."""
-
-    def add(fn: Transfer) -> Transfer:
-        if name in _TRANSFERS:
-            raise CosimError(f"intensity transfer {name!r} is already registered")
-        _TRANSFERS[name] = fn
-        return fn
-
-    return add
+#: intensity transfers by name (one of ``LidarSpec.intensity_transfer``); add one with ``@register_transfer(name)``
+TRANSFERS: Registry[Transfer] = Registry("intensity transfer")
+register_transfer = TRANSFERS.register
 
 
 def transfer(name: str) -> Transfer:
-    try:
-        return _TRANSFERS[name]
-    except KeyError:
-        raise CosimError(f"unknown intensity transfer {name!r}; known: {', '.join(sorted(_TRANSFERS))}") from None
+    return TRANSFERS.get(name)
 
 
 def needs_retro(spec: LidarSpec) -> bool:
