@@ -90,18 +90,38 @@ def decode_depth(data: bytes) -> np.ndarray:
         if len(b) != 4 * n:
             raise FormatError(f"{DEPTH_FORMAT} {w}x{h}: {len(b)} bytes of residuals, expected {4 * n}")
         z = b.reshape(4, -1).T.copy().view("<u4").reshape(h, w).astype(np.int64)
-    else:
-        if len(b) < n_codes:
-            raise FormatError(f"{DEPTH_FORMAT} {w}x{h}: {len(b)} bytes, fewer than the {n_codes} bytes of codes")
-        code = ((b[:n_codes, None] >> np.array([0, 2, 4, 6], np.uint8)) & 3).reshape(-1)[:n]
-        z = code.astype(np.int64)
-        esc = code == _ESCAPE
-        m = int(np.count_nonzero(esc))
-        if len(b) != n_codes + 4 * m:
-            raise FormatError(f"{DEPTH_FORMAT} {w}x{h}: {len(b) - n_codes} bytes of escapes, expected {4 * m}")
-        z[esc] = b[n_codes:].reshape(4, m).T.copy().view("<u4").reshape(-1).astype(np.int64) + _ESCAPE
-        z = z.reshape(h, w)
-    r = (z >> 1) ^ -(z & 1)
+        return depth_from_residuals((z >> 1) ^ -(z & 1))
+    from cosim.pixel_kernels import count_escapes, depth_from_codes
+
+    if len(b) < n_codes:
+        raise FormatError(f"{DEPTH_FORMAT} {w}x{h}: {len(b)} bytes, fewer than the {n_codes} bytes of codes")
+    m = count_escapes(b, n)
+    if len(b) != n_codes + 4 * m:
+        raise FormatError(f"{DEPTH_FORMAT} {w}x{h}: {len(b) - n_codes} bytes of escapes, expected {4 * m}")
+    out = np.empty((h, w), np.float32)
+    depth_from_codes(b, n_codes, m, DEPTH_QUANTUM_M, out)
+    return out
+
+
+def decode_codes_reference(data: bytes) -> np.ndarray:
+    """:func:`decode_depth` of ``CDP2`` bytes in numpy (the reference the one-pass kernel
+    :func:`cosim.pixel_kernels.depth_from_codes` must equal, bit for bit)."""
+    _, w, h = _DEPTH_HEAD.unpack_from(data)
+    n = w * h
+    n_codes = (n + 3) // 4
+    b = np.frombuffer(zstandard.ZstdDecompressor().decompress(bytes(data[_DEPTH_HEAD.size:]),
+                                                              max_output_size=n_codes + 4 * n), np.uint8)
+    code = ((b[:n_codes, None] >> np.array([0, 2, 4, 6], np.uint8)) & 3).reshape(-1)[:n]
+    z = code.astype(np.int64)
+    esc = code == _ESCAPE
+    m = int(np.count_nonzero(esc))
+    z[esc] = b[n_codes:].reshape(4, m).T.copy().view("<u4").reshape(-1).astype(np.int64) + _ESCAPE
+    z = z.reshape(h, w)
+    return depth_from_residuals((z >> 1) ^ -(z & 1))
+
+
+def depth_from_residuals(r: np.ndarray) -> np.ndarray:
+    """Depth (H, W) float32 [m], NaN for no hit, of the decoded residuals ``r`` (H, W) int64."""
     # undo the predictor: c[i, j] = r[i, j] + c[i - 1, j] + c[i, j - 1] - c[i - 1, j - 1] is a 2D prefix sum
     c = np.cumsum(np.cumsum(r, axis=0), axis=1)
     out = (c * DEPTH_QUANTUM_M).astype(np.float32)

@@ -33,8 +33,9 @@ def episode(tmp_path_factory) -> Path:
     return next((tmp / "out").glob("*.mcap"))
 
 
-def _rewrite(src: Path, dst: Path, edit) -> None:
-    """A copy of episode ``src`` with each ``/labels/objects`` payload passed through ``edit(tick, payload)``."""
+def _rewrite(src: Path, dst: Path, edit, raw=None) -> None:
+    """A copy of episode ``src`` with each ``/labels/objects`` payload passed through ``edit(tick, payload)`` and
+    every other message's bytes through ``raw(topic, data)`` when given."""
     from mcap.reader import make_reader
     from mcap.writer import Writer
 
@@ -54,6 +55,8 @@ def _rewrite(src: Path, dst: Path, edit) -> None:
             if ch.topic == "/labels/objects":
                 payload = json.loads(data)
                 data = json.dumps(edit(payload["tick"], payload)).encode()
+            elif raw is not None:
+                data = raw(ch.topic, data)
             w.add_message(channels[ch.id], m.log_time, data, m.publish_time, m.sequence)
         for a in reader.iter_attachments():
             w.add_attachment(a.create_time, a.log_time, a.name, a.media_type, a.data)
@@ -90,3 +93,29 @@ def test_a_moved_box_is_named_for_its_lidar_returns_and_pixels(episode, tmp_path
     assert any(p.topic.endswith("/instance") and "px outside its projected box" in p.message for p in found)
     r = run_cli("validate", str(bad))
     assert r.returncode != 0 and "[boxes]" in r.stdout + r.stderr
+
+
+def test_negative_depth_is_named(episode, tmp_path):
+    """The depth check decodes every pixel (the one-pass kernel of cosim.pixel_kernels): three negative pixels
+    in one image are counted."""
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+
+    from cosim.depth import decode_depth, encode_depth
+
+    done = []
+
+    def negate(topic: str, data: bytes) -> bytes:
+        if done or not topic.endswith("/depth"):
+            return data
+        msg = CompressedImage.FromString(data)
+        d = decode_depth(msg.data)
+        d[5, 7:10] = -2.0
+        msg.data = encode_depth(d)
+        done.append(topic)
+        return msg.SerializeToString()
+
+    bad = tmp_path / "negative.mcap"
+    _rewrite(episode, bad, lambda tick, p: p, negate)
+    problems = [p for p in validate_episode(bad).problems if p.check == "sensors"]
+    assert [(p.topic, p.message) for p in problems] == [(done[0], "3 depth pixels are infinite or negative "
+                                                                   "(no hit is NaN)")]

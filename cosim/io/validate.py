@@ -82,6 +82,7 @@ from cosim.io.validate_boxes import (
     LIDAR_TOLERANCE_M,
     NOISE_SIGMAS,
     PIXEL_TOLERANCE,
+    instance_ids,
     lidar_excess,
     object_boxes,
     pixel_excess,
@@ -786,7 +787,7 @@ class _Validator:
         except FormatError as exc:
             self.problem("structure", str(exc), tick, topic)
             return
-        bad = int(np.count_nonzero(~(np.isnan(a) | (np.isfinite(a) & (a >= 0)))))
+        bad = int(np.count_nonzero(a < 0)) + int(np.count_nonzero(a == np.inf))  # NaN is neither
         if bad:
             self.problem("sensors", f"{bad} depth pixels are infinite or negative (no hit is NaN)", tick, topic)
 
@@ -801,18 +802,19 @@ class _Validator:
         except (FormatError, KeyError) as exc:
             self.problem("structure", str(exc), tick, topic)
             return set()
-        ids = np.unique(img.array)
+        extents = instance_ids(img.array)
         calib = self.fit_calibrations.get(topic[: -len("instance")] + "calibration") if self.fit else None
         if calib is not None:
-            self.fit_pixels(tick, topic, img, calib)
-        return {int(i) for i in ids if 0 < i < STATIC_INSTANCE_MIN}
+            self.fit_pixels(tick, topic, extents, calib)
+        return {int(i) for i in extents[0]}
 
-    def fit_pixels(self, tick: int | None, topic: str, img: Any, calib: Any) -> None:
-        """The boxes check of one instance image (:func:`cosim.io.validate_boxes.pixel_excess`)."""
+    def fit_pixels(self, tick: int | None, topic: str, extents: tuple, calib: Any) -> None:
+        """The boxes check of one instance image's :func:`cosim.io.validate_boxes.instance_ids`
+        (:func:`cosim.io.validate_boxes.pixel_excess`)."""
         try:
             optical_to_map = self.fit["tree"].to_root(calib.frame_id)
             calibration = PROTO_DECODERS["foxglove.CameraCalibration"](calib)
-            excess = pixel_excess(img.array, calibration, optical_to_map, self.fit["boxes"])
+            excess = pixel_excess(extents, calibration, optical_to_map, self.fit["boxes"])
         except FormatError:
             return  # reported by the transforms and calibration checks
         for tid, px in sorted(excess.items()):

@@ -77,34 +77,40 @@ def lidar_excess(cloud: Any, lidar_to_map: np.ndarray, base_to_map: np.ndarray, 
     return out
 
 
-def _box_samples(c: np.ndarray, half: np.ndarray, rot: np.ndarray) -> np.ndarray:
-    """Points (12 x EDGE_SAMPLES + 8, 3) along the edges of a box, in map."""
+def _unit_box_samples() -> np.ndarray:
+    """Points (12 x EDGE_SAMPLES, 3) along the edges of the box [-1, 1]^3 (its corners among them)."""
     corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
     edges = [(i, j) for i in range(8) for j in range(i + 1, 8) if np.abs(corners[i] - corners[j]).sum() == 2]
     s = np.linspace(0.0, 1.0, EDGE_SAMPLES)[:, None]
-    pts = np.concatenate([corners[i] + s * (corners[j] - corners[i]) for i, j in edges])
-    return (pts * half) @ rot.T + c
+    return np.concatenate([corners[i] + s * (corners[j] - corners[i]) for i, j in edges])
 
 
-def pixel_excess(instance: np.ndarray, calib: Any, optical_to_map: np.ndarray, boxes: dict) -> dict[int, float]:
-    """Per object in the instance image (H, W): how many pixels its pixels reach outside its projected box at
-    most (objects not wholly in front of the camera are left out)."""
+_UNIT_BOX_SAMPLES = _unit_box_samples()
+
+
+def _box_samples(c: np.ndarray, half: np.ndarray, rot: np.ndarray) -> np.ndarray:
+    """Points (12 x EDGE_SAMPLES, 3) along the edges of a box, in map."""
+    return (_UNIT_BOX_SAMPLES * half) @ rot.T + c
+
+
+def instance_ids(instance: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The object ids (0 < id < ``STATIC_INSTANCE_MIN``) of an instance image (H, W) or (H, W, C), sorted, and
+    their pixel extents: first column, last column + 1, first row, last row + 1 (one pass,
+    :func:`cosim.pixel_kernels.instance_extents`)."""
+    from cosim.pixel_kernels import instance_extents
+
     img = np.asarray(instance)
     if img.ndim == 3:
         img = img[..., 0]
-    flat = img.astype(np.int64).ravel()
-    sel = np.nonzero((flat > 0) & (flat < STATIC_INSTANCE_MIN))[0]
-    if not len(sel):
+    return instance_extents(img, 0, STATIC_INSTANCE_MIN)
+
+
+def pixel_excess(instance: np.ndarray | tuple, calib: Any, optical_to_map: np.ndarray, boxes: dict) -> dict[int, float]:
+    """Per object in the instance image (H, W) (or its :func:`instance_ids`): how many pixels its pixels reach
+    outside its projected box at most (objects not wholly in front of the camera are left out)."""
+    ids, lo_u, hi_u, lo_v, hi_v = instance if isinstance(instance, tuple) else instance_ids(instance)
+    if not len(ids):
         return {}
-    ids, inv = np.unique(flat[sel], return_inverse=True)
-    rows, cols = np.divmod(sel, img.shape[1])
-    n = len(ids)
-    lo_u, hi_u = np.full(n, np.inf), np.full(n, -np.inf)
-    lo_v, hi_v = np.full(n, np.inf), np.full(n, -np.inf)
-    np.minimum.at(lo_u, inv, cols)
-    np.maximum.at(hi_u, inv, cols + 1.0)
-    np.minimum.at(lo_v, inv, rows)
-    np.maximum.at(hi_v, inv, rows + 1.0)
     map_to_optical = np.linalg.inv(optical_to_map)
     out = {}
     for k, tid in enumerate(ids):
