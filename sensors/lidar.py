@@ -45,11 +45,13 @@ from cosim.snapshot import AgentState
 
 from .environment import Atmosphere
 from .lidar_models import needs_retro, report_intensity, ring_elevations_deg
-from .rig import Pose, body_rotation, mount_rotation, rotate
+from .rig import Pose, body_rotation, mount_rotation, rotate, sensor_pose
 from .scene import StaticHits, TickScene, cast
 
 MIN_RANGE_M = 0.3  # [m] returns closer than this are not reported (housing, mount)
 ACTOR_TIME_BINS = 8  # actors are moved to the centre of one of this many slices of a sweep
+#: [m] slack of :func:`actors_in_reach` beyond its bound (an actor's mesh lies in its box within 1 cm)
+REACH_SLACK_M = 1.0
 #: Return kinds (``return`` field): the beam's only return, the strongest and the last of a dual pair.
 RETURN_SINGLE, RETURN_STRONGEST, RETURN_LAST = 0, 1, 2
 DUAL_MIN_SEPARATION_M = 1.0  # [m] a second surface nearer than this behind the first is the same return
@@ -245,6 +247,34 @@ def firing_rays(d_sensor: np.ndarray, t_offset_s: np.ndarray, pose: Pose, agent:
     m_body = _rotate_about(np.broadcast_to(np.asarray(spec.mount.xyz_m, np.float64), d_sensor.shape), turn)
     origin = np.asarray(agent.position_m, np.float64) + v * t_offset_s[:, None] + rotate(m_body, rb)
     return origin, rotate(d_body, rb)
+
+
+def reach_ball(agent: AgentState, spec: LidarSpec) -> tuple[np.ndarray, float, float]:
+    """Centre (3,) [m, map], radius [m] and sweep length [s] of a ball holding every point a sweep of ``spec``
+    on ``agent`` can return: each firing's origin lies within |v| T + 2 |mount| of the sensor's position at
+    the tick (T = 1 / ``rotation_hz``, the longest a sweep or rosette frame lasts; 0 without motion
+    distortion), and a return lies at most ``range_m`` from its origin."""
+    sweep_s = 1.0 / spec.rotation_hz if spec.motion_distortion else 0.0
+    radius = (spec.range_m + float(np.linalg.norm(agent.velocity_mps)) * sweep_s
+              + 2.0 * float(np.linalg.norm(spec.mount.xyz_m)))
+    return sensor_pose(agent, spec.mount).position_m, radius, sweep_s
+
+
+def actors_in_reach(actors: tuple, balls: list[tuple[np.ndarray, float, float]]) -> tuple:
+    """The actors some LiDAR can return a point from this tick (``balls`` of :func:`reach_ball`): an actor's
+    box, moved by its velocity over the sweep, meets one of the balls (with :data:`REACH_SLACK_M`). Leaving
+    the others out of a tick's scene changes no return: a ray's hit on them lies beyond ``range_m``, so it
+    is no return, and whatever the ray meets behind them lies farther still."""
+    if not actors or not balls:
+        return ()
+    centre = np.array([a.center_m for a in actors], np.float64)
+    bound = (0.5 * np.linalg.norm(np.array([a.size_m for a in actors], np.float64), axis=1)
+             + REACH_SLACK_M)
+    speed = np.linalg.norm(np.array([a.velocity_mps for a in actors], np.float64), axis=1)
+    keep = np.zeros(len(actors), bool)
+    for pos, radius, sweep_s in balls:
+        keep |= np.linalg.norm(centre - pos, axis=1) <= radius + bound + speed * sweep_s
+    return tuple(a for a, k in zip(actors, keep, strict=True) if k)
 
 
 def _cast_binned(scene: TickScene, rays: np.ndarray, t_offset_s: np.ndarray, exclude: int | None,

@@ -48,7 +48,7 @@ from .encoding import Encodes, PackedLabels, encode_depth, submit, submit_encode
 from .environment import Atmosphere, atmosphere
 from .imu import ImuFrame, imu_biases, render_imu
 from .kinds import SensorContext, render_kinds
-from .lidar import LidarFrame, render_lidar
+from .lidar import LidarFrame, actors_in_reach, reach_ball, render_lidar
 from .meshes import concat, is_lamp, static_mesh
 from .rig import camera_pose, intrinsics, projection, sensor_pose
 from .scene import StaticHits, StaticScene, TickScene
@@ -202,11 +202,15 @@ class SensorSuite:
     holds its own copy of the static scene, built once, and renders a fixed share of the agents
     from the snapshot; the images come back through shared memory. The output bytes do not depend
     on the number of processes.
+    ``cull_actors``: a tick no camera renders places only the actors its LiDARs can reach (the same returns,
+    :func:`cosim.sensors.lidar.actors_in_reach`; off for comparisons).
     """
 
     def __init__(self, scenario: Scenario, world: World, *, block_px: int = 8, noise: bool = True,
-                 encode_images: bool = True, workers: int = 3, processes: int = 0, release_pixels: bool = False):
+                 encode_images: bool = True, workers: int = 3, processes: int = 0, release_pixels: bool = False,
+                 cull_actors: bool = True):
         self.scenario = scenario
+        self.cull_actors = cull_actors
         self.encode_images = encode_images
         self.release_pixels = release_pixels and encode_images
         self._pool = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="cosim-render")
@@ -350,10 +354,17 @@ class SensorSuite:
         )
         return frame, {"camera_cast": t1 - t0, "shading": t2 - t1, "labels": time.perf_counter() - t2}
 
-    def _prepare(self, snapshot: WorldSnapshot, cameras: bool = True) -> _Tick:
+    def _prepare(self, snapshot: WorldSnapshot, cameras: bool = True,
+                 lidar_agents: list[AgentState] | None = None) -> _Tick:
         """What every agent's sensors share at one tick: the tick scene, shading tables, light, actor boxes
-        (``cameras=False``: no camera renders this tick, so no shading tables and no light map)."""
-        scene = TickScene.build(self.static, snapshot.actors)
+        (``cameras=False``: no camera renders this tick, so no shading tables and no light map, and with
+        ``lidar_agents``, the agents whose LiDARs render it, the scene holds only the actors those LiDARs can
+        reach, :func:`cosim.sensors.lidar.actors_in_reach`)."""
+        placed = snapshot.actors
+        if not cameras and lidar_agents is not None:
+            placed = actors_in_reach(placed, [reach_ball(a, self.rig(a).lidar) for a in lidar_agents
+                                              if self.rig(a).lidar is not None])
+        scene = TickScene.build(self.static, placed)
         lut = scene.labels
         tables = light = None
         if cameras:
@@ -407,7 +418,8 @@ class SensorSuite:
         """The frames of the agents in ``items`` (each with its own generator) and the timings."""
         t_start = time.perf_counter()
         timing = {"scene": 0.0, "lidar": 0.0, "camera_cast": 0.0, "shading": 0.0, "labels": 0.0}
-        tick = self._prepare(snapshot, cameras=any(self.rig(agent).cameras for agent, _ in items))
+        tick = self._prepare(snapshot, cameras=any(self.rig(agent).cameras for agent, _ in items),
+                             lidar_agents=[agent for agent, _ in items] if self.cull_actors else None)
         scene, actors = tick.scene, snapshot.actors
         timing["scene"] += time.perf_counter() - t_start
         jobs: list[tuple[AgentState, object, list]] = []
