@@ -172,3 +172,100 @@ def test_depth_colours_are_not_dark_at_both_ends_and_span_a_drones_range():
     assert max(ends) > 0.6 and abs(ends[0] - ends[1]) > 0.5, ends
     values = [lightness(cmap(x)) for x in np.linspace(0, 1, 11)]
     assert all(a >= b for a, b in itertools.pairwise(values)), values  # brighter near, darker far, no dip
+
+
+def _sheet_edits(tick, topic, msg):
+    """vehicle_0's rear instance image holds every track (so the truck's box is drawn there), and every depth
+    image has no return in its top quarter."""
+    if topic.endswith("/depth"):
+        depth = np.frombuffer(msg.data, np.float32).reshape(msg.height, msg.width).copy()
+        depth[: msg.height // 4] = np.inf
+        msg.data = depth.tobytes()
+        return msg
+    return _fill_instance_with_every_track(tick, topic, msg)
+
+
+@pytest.fixture(scope="module")
+def sheet_episode(tmp_path_factory):
+    return write_synthetic_episode(
+        tmp_path_factory.mktemp("sheet") / "ep.mcap", ticks=2, width=320, height=240, edit=_sheet_edits
+    )
+
+
+def test_contact_sheet_panels_hold_the_data(sheet_episode, tmp_path):
+    """The panels are the camera data shrunk into the sheet: exact instance and semantic label colours, depth
+    in the colour map's colours with white where nothing was hit, box edges in their exact colour."""
+    import matplotlib
+
+    from cosim.io.render import (
+        BOX_COLOURS,
+        DEPTH_CMAP,
+        colourise_instance,
+        contact_sheet,
+        contact_sheet_image,
+    )
+
+    with open_episode(sheet_episode) as ep:
+        tick = ep.tick(1)
+        ids = tick["/vehicle_0/front/instance"].array
+        im, boxes = contact_sheet_image(ep, tick, "vehicle_0", dpi=50)  # the camera's 320 px into 200: 1.6 : 1
+        assert contact_sheet(ep, tick, "vehicle_0", tmp_path / "sheet.png", dpi=50) == tmp_path / "sheet.png"
+    sheet = np.asarray(im)
+
+    def panel(cam, kind):
+        x0, y0, x1, y1 = boxes[cam, kind]
+        return sheet[y0:y1, x0:x1]
+
+    def colours(a):
+        return {tuple(int(v) for v in c) for c in np.unique(a.reshape(-1, 3), axis=0)}
+
+    assert set(boxes) == {(c, k) for c in ("front", "rear") for k in ("image", "depth", "semantic", "instance",
+                                                                      "depth_bar")}
+    assert panel("front", "image").shape == (150, 200, 3)  # panel width 4 in x 50 dpi, the camera's aspect ratio
+
+    # labels are picked, not averaged: only exact label colours, even where a region's edge falls inside a pixel
+    track = int(ids.max())  # the synthetic instance image: one live track in its top-left quarter, else 0
+    assert set(np.unique(ids)) == {0, track}
+    colour = tuple(int(v) for v in colourise_instance(np.array([[track]]))[0, 0])
+    inst = panel("front", "instance")
+    assert colours(inst) == {(0, 0, 0), colour}
+    is_track = (inst == colour).all(axis=2)
+    assert is_track[:36, :49].all() and not is_track[38:].any() and not is_track[:, 51:].any()
+    sem = panel("front", "semantic")  # class 0 above, road (1) in the bottom half
+    assert colours(sem) == {tuple(int(v) for v in semantic_palette()[i]) for i in (0, 1)}
+    assert (sem[:74] == semantic_palette()[0]).all() and (sem[76:] == semantic_palette()[1]).all()
+
+    depth = panel("front", "depth")  # no return in the top quarter: white; below it 12.345 m, the far end
+    far = np.array(matplotlib.colormaps[DEPTH_CMAP](1.0, bytes=True)[:3])
+    assert (depth[:37] == 255).all() and (depth[38:] == far).all()
+    assert (far < depth[37]).all() and (depth[37] < 255).all()  # the row across the edge: an area mean
+    bar = panel("front", "depth_bar")
+    assert (bar[0] == far).all() and (bar[-1] == matplotlib.colormaps[DEPTH_CMAP](0.0, bytes=True)[:3]).all()
+
+    truck = (panel("rear", "image") == BOX_COLOURS["truck"]).all(axis=2)  # the truck's box, 1 px thick
+    assert truck.sum() > 50
+    assert not (panel("front", "image") == BOX_COLOURS["truck"]).all(axis=2).any()
+
+    with Image.open(tmp_path / "sheet.png") as png:  # the palette PNG keeps the label colours
+        assert png.mode == "P" and png.size == im.size
+        written = np.asarray(png.convert("RGB"))
+    x0, y0 = boxes["front", "instance"][:2]
+    assert (written[y0 : y0 + 36, x0 : x0 + 49] == colour).all()
+
+
+def test_contact_sheet_width_scales_with_dpi(sheet_episode, tmp_path):
+    from cosim.io.render import contact_sheet_image
+
+    widths = {}
+    for dpi in (50, 80, 100):
+        assert main(["render", str(sheet_episode), "--out", str(tmp_path / str(dpi)), "--ticks", "0",
+                     "--agents", "rsu_0", "--dpi", str(dpi)]) == 0
+        with Image.open(tmp_path / str(dpi) / "contact_rsu_0_t0000.png") as im:
+            widths[dpi] = im.size[0]
+        with open_episode(sheet_episode) as ep:
+            _, boxes = contact_sheet_image(ep, ep.tick(0), "rsu_0", dpi=dpi)
+        x0, _, x1, _ = boxes["front", "instance"]
+        assert x1 - x0 == round(4 * dpi)
+    assert widths[50] < widths[80] < widths[100]
+    for dpi, w in widths.items():
+        assert 16 * dpi <= w <= 18 * dpi, widths  # about 16 in of panels plus labels and a colour bar

@@ -1,4 +1,4 @@
-"""``cosim render``: PNG previews of chosen ticks (matplotlib, Agg backend, no display needed).
+"""``cosim render``: PNG previews of chosen ticks (no display needed).
 
 - ``contact_<agent>_t<tick>.png``: one row per camera of the agent: RGB with the labelled 3D boxes
   projected onto it, depth, semantic classes, instance ids. A box is drawn (its 12 edges, in its
@@ -8,16 +8,31 @@
   ``calibration`` gives K and the lens D (``cosim.geometry.project_to_image``; through a distorting
   lens each edge is drawn as a curve of short pieces); pixel (col, row) covers u in [col, col + 1),
   v in [row, row + 1) (docs/episode_format.md 3.6).
-- ``bev_t<tick>.png``: top view of the map frame: the static layout (roads, buildings... from the
-  ``world.json`` attachment), every agent, every labelled box, and every agent's LiDAR points moved
-  into ``map`` through ``/tf`` (coloured by semantic class when the cloud has a ``class_id`` field,
-  else by height).
 
-Pictures are palette-quantised PNGs (256 colours) so they stay small enough for documentation.
+  The sheet is built with numpy and PIL, not as a matplotlib figure (which spent about 2 s a sheet
+  resampling full-resolution images and drawing axes): every panel is ``PANEL_IN * dpi`` pixels wide
+  (320 at the default 80 dpi, so four panels span the 16 in of the former figure), its height from
+  the camera's aspect ratio. RGB and coloured depth are shrunk by area means (PIL's box filter);
+  semantic and instance ids are picked at each panel pixel's centre (nearest) before they are
+  coloured, so those panels hold exact label colours. Depth is coloured through :data:`DEPTH_CMAP`
+  as a 256-entry table (the colours matplotlib gives) over :func:`depth_limits`, white where there
+  is no return, with a colour bar of its far, middle and near metres beside each depth panel. Boxes
+  are drawn after the RGB image is shrunk, with their full-resolution edges scaled to the panel, 1 px
+  thick per 320 px of panel width (:func:`camera_with_boxes` draws the same edges on the full image):
+  drawn before, an edge about 1 px wide in the sheet would be averaged with its surroundings into a
+  faint smear. Titles, camera names and colour-bar values use PIL's default font, sized in points at
+  ``dpi``.
+- ``bev_t<tick>.png``: top view of the map frame (matplotlib, Agg backend): the static layout (roads,
+  buildings... from the ``world.json`` attachment), every agent, every labelled box, and every agent's
+  LiDAR points moved into ``map`` through ``/tf`` (coloured by semantic class when the cloud has a
+  ``class_id`` field, else by height).
+
+Pictures are palette-quantised PNGs (256 colours, median cut) so they stay small enough for documentation.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Sequence
 from pathlib import Path
@@ -78,10 +93,12 @@ def colourise_semantic(ids: np.ndarray, palette: np.ndarray) -> np.ndarray:
 
 def colourise_instance(ids: np.ndarray) -> np.ndarray:
     """Instance ids (H, W) -> RGB (H, W, 3) uint8: a fixed bright colour per id, black for 0 (no actor)."""
-    ids = ids.astype(np.uint64)
-    h = (ids * np.uint64(2654435761)) & np.uint64(0xFFFFFF)  # Knuth's multiplicative hash: neighbours differ
-    rgb = np.stack([(h >> np.uint64(s)) & np.uint64(0xFF) for s in (16, 8, 0)], axis=-1).astype(np.uint8)
-    rgb = (rgb // 2 + 96).astype(np.uint8)  # 96..223: never black, never white
+    ids = np.asarray(ids)
+    if ids.dtype.kind not in "iub":
+        ids = ids.astype(np.uint64)
+    # Knuth's multiplicative hash (neighbours differ), low 24 bits: they depend only on the id's low 32 bits
+    h = (ids.astype(np.uint32) * np.uint32(2654435761)) & np.uint32(0xFFFFFF)
+    rgb = h.astype("<u4").view(np.uint8).reshape(*h.shape, 4)[..., 2::-1] // 2 + 96  # 96..223: never black/white
     rgb[ids == 0] = 0
     return rgb
 
@@ -186,38 +203,70 @@ def draw_segments(rgb: np.ndarray, segments: np.ndarray, colours: np.ndarray, th
     return out
 
 
-def camera_with_boxes(ep: Episode, tick: Tick, agent: str, camera: str) -> np.ndarray:
-    """The camera's RGB image (H, W, 3) uint8 with the labelled boxes it sees drawn (module docstring)."""
-    img = tick.image(agent, camera).array
-    rgb = np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else img[..., :3]
+def _present(ids: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+    """Which of the (non-zero) ``candidates`` (N,) appear in ``ids``: ``np.isin(candidates, unique(ids) - {0})``,
+    by counting the pixels within the candidates' range instead of sorting the whole image."""
+    cand = np.asarray(candidates, np.int64)
+    if cand.size == 0 or ids.size == 0:
+        return np.zeros(cand.shape, bool)
+    lo, hi = int(cand.min()), int(cand.max())
+    flat = ids.ravel()
+    if flat.dtype.kind not in "iu" or hi - lo > 1 << 22:
+        seen = np.unique(flat)
+        return np.isin(cand, seen[seen != 0])
+    flat = flat[(flat >= lo) & (flat <= hi)].astype(np.int64)
+    counts = np.bincount(flat - lo, minlength=hi - lo + 1)
+    return (counts[cand - lo] > 0) & (cand != 0)
+
+
+def _box_segments(ep: Episode, tick: Tick, agent: str, camera: str, width: int,
+                  height: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """The labelled boxes the camera sees (module docstring) as pixel segments (M, 2, 2) [u, v] on its
+    ``width`` x ``height`` image (NaN where none) and their colours (M, 3); None when there is nothing to draw."""
     needed = ("/labels/objects", "/tf", f"/{agent}/{camera}/calibration")
     if not all(t in tick for t in needed):
-        return rgb
+        return None
     labels = tick.labels
     keep = np.array([aid != agent for aid in labels.agent_ids], bool)
     inst_topic = f"/{agent}/{camera}/instance"
     if inst_topic in tick:
-        seen = np.unique(tick[inst_topic].array)
-        keep &= np.isin(labels.track_ids, seen[seen != 0])
+        keep &= _present(tick[inst_topic].array, labels.track_ids)
     if not keep.any():
-        return rgb
+        return None
     frame = tick.image(agent, camera).frame_id
     try:
         map_from_optical = tick.transforms.to_root(frame)
     except CosimError as exc:
         log.warning("tick %d: %s; no boxes on %s %s", tick.index, exc, agent, camera)
-        return rgb
+        return None
     calib = tick.calibration(agent, camera)
     if calib.distorted and calib.distortion_model != "plumb_bob":
         log.warning("tick %d: %s %s has lens model %r; no boxes drawn", tick.index, agent, camera,
                     calib.distortion_model)
-        return rgb
+        return None
     corners = box_corners(labels.centers_m[keep], labels.sizes_m[keep], labels.rotations[keep])
     edges = project_box_edges(corners, map_from_optical, calib.K, calib.D if calib.distorted else None,
-                              (rgb.shape[1], rgb.shape[0]))  # (N, E, 2, 2)
+                              (width, height))  # (N, E, 2, 2)
     colours = np.array([BOX_COLOURS.get(labels.classes[i], (255, 255, 255)) for i in np.flatnonzero(keep)])
-    thickness = max(1, round(rgb.shape[1] / 320))  # about 1 px in the sheet, whatever the camera's width
-    return draw_segments(rgb, edges.reshape(-1, 2, 2), np.repeat(colours, edges.shape[1], axis=0), thickness)
+    return edges.reshape(-1, 2, 2), np.repeat(colours, edges.shape[1], axis=0)
+
+
+def _rgb(img: np.ndarray) -> np.ndarray:
+    return np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else img[..., :3]
+
+
+def camera_with_boxes(ep: Episode, tick: Tick, agent: str, camera: str) -> np.ndarray:
+    """The camera's RGB image (H, W, 3) uint8 with the labelled boxes it sees drawn (module docstring)."""
+    rgb = _rgb(tick.image(agent, camera).array)
+    boxes = _box_segments(ep, tick, agent, camera, rgb.shape[1], rgb.shape[0])
+    if boxes is None:
+        return rgb
+    return draw_segments(rgb, *boxes, _box_thickness(rgb.shape[1]))
+
+
+def _box_thickness(width_px: int) -> int:
+    """Box edge thickness [px] on an image ``width_px`` wide: about 1 px per 320 px (1 px in a default sheet)."""
+    return max(1, round(width_px / 320))
 
 
 def depth_limits(depth_m: np.ndarray) -> tuple[float, float]:
@@ -233,7 +282,39 @@ def depth_limits(depth_m: np.ndarray) -> tuple[float, float]:
     return max(0.0, lo), max(hi, 1.0)
 
 
+@functools.cache
+def depth_lut() -> np.ndarray:
+    """(257, 3) uint8: the 256 colours of :data:`DEPTH_CMAP` (as matplotlib turns it into bytes), then white."""
+    import matplotlib
+
+    lut = matplotlib.colormaps[DEPTH_CMAP].resampled(256)(np.arange(256), bytes=True)[:, :3]
+    return np.concatenate([lut, [[255, 255, 255]]]).astype(np.uint8)
+
+
+def colourise_depth(depth_m: np.ndarray, limits: tuple[float, float]) -> np.ndarray:
+    """Depth (H, W) [m] -> RGB (H, W, 3) uint8 through :data:`DEPTH_CMAP` from ``limits`` = (near, far) [m],
+    values outside clamped to its ends, as matplotlib maps them (``Normalize`` then 256 entries); white where the
+    depth is NaN (no return)."""
+    lo, hi = limits
+    t = np.asarray(depth_m, np.float32) - np.float32(lo)
+    t *= np.float32(256.0 / (hi - lo) if hi > lo else 0.0)
+    np.clip(t, 0, 255, out=t)
+    np.nan_to_num(t, copy=False, nan=256)
+    return np.take(depth_lut(), t.astype(np.uint16), axis=0)
+
+
+def _save_image(im: Any, path: Path, optimize: bool = True) -> Path:
+    """Write a PIL image as a palette-quantised PNG (at most 256 colours); ``optimize``: smallest file (zlib level
+    9 and more tries: a few % smaller, four times the encoding time), else zlib's default level."""
+    from PIL import Image
+
+    q = im.convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT)
+    q.save(path, **({"optimize": True} if optimize else {"compress_level": 6}))
+    return path
+
+
 def _save(fig: Any, path: Path, dpi: int) -> Path:
+    """Write a matplotlib figure as a palette-quantised PNG (at most 256 colours)."""
     import io
 
     from PIL import Image
@@ -242,55 +323,173 @@ def _save(fig: Any, path: Path, dpi: int) -> Path:
     fig.savefig(buf, format="png", dpi=dpi)
     buf.seek(0)
     with Image.open(buf) as im:
-        im.convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT).save(path, optimize=True)
-    return path
+        return _save_image(im, path)
 
 
-def contact_sheet(ep: Episode, tick: Tick, agent: str, path: Path, dpi: int = 80) -> Path | None:
-    """One agent's cameras at one tick: RGB with boxes | depth | semantic | instance per row (None: no camera)."""
-    import matplotlib.pyplot as plt
+# ------------------------------------------------------------------------------------------ contact sheets
+
+#: Width of one contact-sheet panel [in]; x ``dpi`` = pixels (4 panels: the 16 in of the former matplotlib figure).
+PANEL_IN = 4.0
+#: The panels of a camera row: topic kind and column title.
+SHEET_COLUMNS = (("image", "RGB + 3D boxes"), ("depth", "depth [m]"), ("semantic", "semantic"),
+                 ("instance", "instance"))
+
+
+@functools.cache
+def _font(size_px: int) -> Any:
+    from PIL import ImageFont
+
+    return ImageFont.load_default(size=size_px)
+
+
+def area_resize(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
+    """RGB (H, W, 3) uint8 resized to ``width`` x ``height``, each output pixel the mean of the input area it
+    covers (PIL's box filter), so thin details fade instead of flickering in and out."""
+    from PIL import Image
+
+    h, w = rgb.shape[:2]
+    if (h, w) == (height, width):
+        return rgb
+    im = Image.fromarray(np.ascontiguousarray(rgb))
+    if w % width == 0 and h % height == 0:  # whole blocks (1280 x 720 into 320 x 180): the same, twice as fast
+        return np.asarray(im.reduce((w // width, h // height)))
+    return np.asarray(im.resize((width, height), Image.Resampling.BOX))
+
+
+def nearest_resize(labels: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Label image (H, W) resized to ``width`` x ``height`` by picking the input pixel under each output
+    pixel's centre: values stay exact labels (no averaging)."""
+    h, w = labels.shape[:2]
+    rows = np.minimum(((np.arange(height) + 0.5) * (h / height)).astype(np.intp), h - 1)
+    cols = np.minimum(((np.arange(width) + 0.5) * (w / width)).astype(np.intp), w - 1)
+    return labels[rows[:, None], cols[None, :]]
+
+
+def _label_ids(img: Any) -> np.ndarray:
+    return img.array if img.array.ndim == 2 else img.array[..., 0]
+
+
+def _depth_label(metres: float) -> str:
+    return f"{metres:.0f} m" if metres >= 10 else f"{metres:.1f} m"
+
+
+def contact_sheet_image(
+    ep: Episode, tick: Tick, agent: str, dpi: int = 80
+) -> tuple[Any, dict[tuple[str, str], tuple[int, int, int, int]]] | None:
+    """One agent's cameras at one tick as an RGB PIL image (None: no camera), and where its pieces are:
+    (camera, kind) -> (x0, y0, x1, y1) pixel box (end exclusive) for kind in ``image``, ``depth``,
+    ``semantic``, ``instance`` (:data:`SHEET_COLUMNS`) and ``depth_bar`` (that row's colour bar).
+
+    Built with numpy and PIL, no matplotlib figure (see the module docstring): every panel is
+    ``round(PANEL_IN * dpi)`` px wide, its height from the camera's aspect ratio.
+    """
+    from PIL import Image, ImageDraw
 
     cams = [c for c in ep.cameras(agent) if f"/{agent}/{c}/image" in tick]
     if not cams:
         return None
     palette = semantic_palette(ep.class_table)
-    kinds = [("image", "RGB + 3D boxes"), ("depth", "depth [m]"), ("semantic", "semantic"), ("instance", "instance")]
-    aspect = 9 / 16
-    first = tick.image(agent, cams[0]).array
-    if first.ndim >= 2 and first.shape[1]:
-        aspect = first.shape[0] / first.shape[1]
-    fig, axes = plt.subplots(len(cams), 4, figsize=(16, 4 * aspect * len(cams) + 0.6), squeeze=False)
-    for r, cam in enumerate(cams):
-        for c, (kind, title) in enumerate(kinds):
-            ax = axes[r][c]
-            ax.set_xticks([])
-            ax.set_yticks([])
+    pw = max(16, round(PANEL_IN * dpi))
+
+    def pt(points: float) -> int:  # a font size [pt] in pixels at this dpi
+        return max(6, round(points * dpi / 72))
+
+    f_title, f_label, f_small = _font(pt(11)), _font(pt(10)), _font(pt(8))
+
+    def height(font: Any) -> int:
+        _, top, _, bottom = font.getbbox("Ag")
+        return bottom - top
+
+    margin, gap = max(4, round(0.1 * dpi)), max(6, round(0.15 * dpi))
+    bar_w, bar_gap = max(4, round(0.1 * dpi)), max(2, round(0.05 * dpi))
+    label_w = max(f_small.getbbox(s)[2] for s in ("888 m", "8.8 m"))
+    xs = [margin + height(f_label) + bar_gap]
+    xs.append(xs[0] + pw + gap)
+    x_bar = xs[1] + pw + bar_gap
+    xs.append(x_bar + bar_w + bar_gap + label_w + gap)
+    xs.append(xs[2] + pw + gap)
+    width = xs[3] + pw + margin
+
+    rows = []  # (camera, panel height, y)
+    y = margin + height(f_title) + gap + height(f_label) + bar_gap
+    for cam in cams:
+        h, w = tick.image(agent, cam).array.shape[:2]
+        ph = max(1, round(pw * h / max(w, 1)))
+        rows.append((cam, ph, y))
+        y += ph + gap
+    sheet = np.full((y - gap + margin, width, 3), 255, np.uint8)
+    boxes: dict[tuple[str, str], tuple[int, int, int, int]] = {}
+    missing: list[tuple[int, int, int]] = []
+    bars: list[tuple[int, int, float, float]] = []  # y, height, near, far
+    lut = depth_lut()
+    for cam, ph, y in rows:
+        for x, (kind, _) in zip(xs, SHEET_COLUMNS, strict=True):
+            boxes[cam, kind] = (x, y, x + pw, y + ph)
             topic = f"/{agent}/{cam}/{kind}"
             if topic not in tick:
-                ax.text(0.5, 0.5, "not recorded", ha="center", va="center", transform=ax.transAxes)
+                missing.append((x, y, ph))
                 continue
-            img = tick[topic]
             if kind == "image":
-                ax.imshow(camera_with_boxes(ep, tick, agent, cam))
+                raw = tick.image(agent, cam).array
+                panel = area_resize(_rgb(raw), pw, ph)
+                segments = _box_segments(ep, tick, agent, cam, raw.shape[1], raw.shape[0])
+                if segments is not None:  # drawn after downsampling: a crisp edge in its exact colour
+                    scale = np.array([pw / raw.shape[1], ph / raw.shape[0]])
+                    panel = draw_segments(panel, segments[0] * scale, segments[1], _box_thickness(pw))
             elif kind == "depth":
-                d = img.depth_m
-                cmap = plt.get_cmap(DEPTH_CMAP).with_extremes(bad="white")
-                shown = ax.imshow(np.where(np.isfinite(d), d, np.nan), cmap=cmap, vmin=(lim := depth_limits(d))[0],
-                                  vmax=lim[1])
-                fig.colorbar(shown, ax=ax, fraction=0.03, pad=0.01)
+                d = tick[topic].depth_m
+                lim = depth_limits(d)
+                panel = area_resize(colourise_depth(d, lim), pw, ph)
+                bars.append((y, ph, *lim))
+                boxes[cam, "depth_bar"] = (x_bar, y, x_bar + bar_w, y + ph)
+                ramp = np.linspace(255, 0, ph).round().astype(np.intp)  # far (dark) at the top, as matplotlib does
+                sheet[y : y + ph, x_bar : x_bar + bar_w] = lut[ramp][:, None, :]
             elif kind == "semantic":
-                ax.imshow(colourise_semantic(img.array if img.array.ndim == 2 else img.array[..., 0], palette))
+                panel = colourise_semantic(nearest_resize(_label_ids(tick[topic]), pw, ph), palette)
             else:
-                ax.imshow(colourise_instance(img.array if img.array.ndim == 2 else img.array[..., 0]))
-            if r == 0:
-                ax.set_title(title, fontsize=10)
-            if c == 0:
-                ax.set_ylabel(cam, fontsize=10)
-    fig.suptitle(f"{ep.scenario}  {agent}  tick {tick.index} (t = {tick.t_ns / 1e9:.1f} s)", fontsize=11)
-    fig.tight_layout()
-    out = _save(fig, path, dpi)
-    plt.close(fig)
-    return out
+                panel = colourise_instance(nearest_resize(_label_ids(tick[topic]), pw, ph))
+            sheet[y : y + ph, x : x + pw] = panel
+
+    im = Image.fromarray(sheet)
+    draw = ImageDraw.Draw(im)
+
+    def text(x: float, y: float, s: str, font: Any, align: str = "left") -> None:
+        """``s`` with its top (of the font's "Ag") at ``y``, starting at / centred on / ending at ``x``."""
+        left, _, right, _ = font.getbbox(s)
+        dx = {"left": -left, "centre": -(left + right) / 2, "right": -right}[align]
+        draw.text((round(x + dx), y - font.getbbox("Ag")[1]), s, fill=(0, 0, 0), font=font)
+
+    text(width / 2, margin, f"{ep.scenario}  {agent}  tick {tick.index} (t = {tick.t_ns / 1e9:.1f} s)", f_title,
+         "centre")
+    y_titles = margin + height(f_title) + gap
+    for x, (_, title) in zip(xs, SHEET_COLUMNS, strict=True):
+        text(x + pw / 2, y_titles, title, f_label, "centre")
+    for x, y, ph in missing:
+        text(x + pw / 2, y + (ph - height(f_label)) / 2, "not recorded", f_label, "centre")
+    for (_, ph, y), x in ((r, x) for r in rows for x in xs):
+        draw.rectangle((x - 1, y - 1, x + pw, y + ph), outline=(0, 0, 0))
+    for y, ph, near, far in bars:
+        draw.rectangle((x_bar - 1, y - 1, x_bar + bar_w, y + ph), outline=(0, 0, 0))
+        text(x_bar + bar_w + bar_gap, y, _depth_label(far), f_small)
+        if ph >= 4 * height(f_small):  # room for the middle value too
+            text(x_bar + bar_w + bar_gap, y + (ph - height(f_small)) / 2, _depth_label((near + far) / 2), f_small)
+        text(x_bar + bar_w + bar_gap, y + ph - height(f_small), _depth_label(near), f_small)
+    for cam, ph, y in rows:  # the camera's name along the left of its row, read bottom to top
+        left, _, right, _ = f_label.getbbox(cam)
+        tag = Image.new("RGB", (right - left, height(f_label)), (255, 255, 255))
+        ImageDraw.Draw(tag).text((-left, -f_label.getbbox("Ag")[1]), cam, fill=(0, 0, 0), font=f_label)
+        tag = tag.rotate(90, expand=True)
+        if tag.height > ph:  # a name longer than the row is tall: its start (at the bottom) is kept
+            tag = tag.crop((0, tag.height - ph, tag.width, tag.height))
+        im.paste(tag, (margin, y + (ph - tag.height) // 2))
+    return im, boxes
+
+
+def contact_sheet(ep: Episode, tick: Tick, agent: str, path: Path, dpi: int = 80) -> Path | None:
+    """One agent's cameras at one tick: RGB with boxes | depth | semantic | instance per row (None: no camera),
+    written to ``path`` (:func:`contact_sheet_image`)."""
+    built = contact_sheet_image(ep, tick, agent, dpi)
+    return None if built is None else _save_image(built[0], path, optimize=False)
 
 
 def _box_corners_xy(center: np.ndarray, size: np.ndarray, yaw: float) -> np.ndarray:
@@ -353,13 +552,13 @@ def bev_plot(
     """Top view of one tick (see the module docstring); ``layout`` from :func:`layout_polygons`;
     ``window_m`` (centre x, y, half width [m]) zooms onto a square of the map instead of fitting the data."""
     import matplotlib.pyplot as plt
-    from matplotlib.collections import PolyCollection
+    from matplotlib.collections import LineCollection, PolyCollection
     from matplotlib.lines import Line2D
 
     palette = semantic_palette(ep.class_table)
     fig, ax = plt.subplots(figsize=(10, 10))
     if layout:
-        colours = [np.array(SEMANTIC_COLOURS.get(c, (200, 200, 200))) / 255.0 for c, _ in layout]
+        colours = np.array([SEMANTIC_COLOURS.get(c, (200, 200, 200)) for c, _ in layout]) / 255.0
         ax.add_collection(
             PolyCollection([p for _, p in layout], facecolors=colours, edgecolors="none", alpha=0.35, zorder=0)
         )
@@ -373,34 +572,35 @@ def bev_plot(
             ax.scatter(p[:, 0], p[:, 1], s=dot, c=colours, linewidths=0, rasterized=True)
         else:
             ax.scatter(p[:, 0], p[:, 1], s=dot, c=p[:, 2], cmap="viridis", linewidths=0, rasterized=True)
-    extent = [p for p in xyz[:, :2]] if len(xyz) else []
+    extent = [xyz[:, :2]]
     if "/labels/objects" in tick:
         labels = tick.labels
+        segments, colours, widths = [], [], []  # one collection for every box (one draw call, not two per box)
         for center, size, yaw, name in zip(
             labels.centers_m, labels.sizes_m, labels.yaws_rad, labels.classes, strict=True
         ):
             colour = np.array(SEMANTIC_COLOURS.get(name, (0, 0, 0))) / 255.0
             corners = _box_corners_xy(center, size, yaw)
-            ax.plot(corners[:, 0], corners[:, 1], color=colour, lw=1.2)
-            ax.plot(
-                [center[0], (corners[0, 0] + corners[1, 0]) / 2],
-                [center[1], (corners[0, 1] + corners[1, 1]) / 2],
-                color=colour,
-                lw=0.8,
-            )
-        extent += list(labels.centers_m[:, :2])
+            segments += [corners, np.array([center[:2], (corners[0] + corners[1]) / 2])]  # outline, heading
+            colours += [colour, colour]
+            widths += [1.2, 0.8]
+        if segments:
+            ax.add_collection(LineCollection(segments, colors=np.array(colours), linewidths=widths, zorder=2))
+        extent.append(labels.centers_m[:, :2])
+        by_kind: dict[str, list[tuple[float, float]]] = {}
         for a in labels.agents:
-            kind = a.get("kind", "vehicle")
-            marker, colour = AGENT_STYLE.get(kind, ("x", "k"))
             x, y = a["position_m"][0], a["position_m"][1]
-            ax.scatter([x], [y], marker=marker, s=60, c=colour, edgecolors="k", zorder=5)
+            by_kind.setdefault(a.get("kind", "vehicle"), []).append((x, y))
             ax.annotate(a["agent_id"], (x, y), textcoords="offset points", xytext=(5, 5), fontsize=8, zorder=6)
-            extent.append(np.array([x, y]))
+        for kind, xy in by_kind.items():
+            marker, colour = AGENT_STYLE.get(kind, ("x", "k"))
+            pos = np.array(xy, float)
+            ax.scatter(pos[:, 0], pos[:, 1], marker=marker, s=60, c=colour, edgecolors="k", zorder=5)
+            extent.append(pos)
     if window_m is not None:
         ax.set_xlim(window_m[0] - window_m[2], window_m[0] + window_m[2])
         ax.set_ylim(window_m[1] - window_m[2], window_m[1] + window_m[2])
-    elif extent:
-        e = np.asarray(extent)
+    elif len(e := np.concatenate(extent)):
         lo, hi = np.percentile(e, 1, axis=0) - 20, np.percentile(e, 99, axis=0) + 20
         centre, half = (lo + hi) / 2, max(hi - lo) / 2
         ax.set_xlim(centre[0] - half, centre[0] + half)
