@@ -18,6 +18,31 @@ _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
 
 @_jit
+def origin_bounds(rays):
+    """The smallest and largest x, y, z (3,) each of the origins of ``rays`` (N, 6) (N > 0), in one pass."""
+    lo = rays[0, :3].copy()
+    hi = rays[0, :3].copy()
+    for i in range(1, rays.shape[0]):
+        for j in range(3):
+            v = rays[i, j]
+            if v < lo[j]:
+                lo[j] = v
+            elif v > hi[j]:
+                hi[j] = v
+    return lo, hi
+
+
+@_jit
+def rotate_rows(v, rot, out):
+    """``out[i] = rot @ v[i]`` for each row of ``v`` (N, 3), the sums in the order of
+    :func:`cosim.sensors.rig.rotate`'s numpy expression (the same float64 results)."""
+    for i in range(v.shape[0]):
+        a, b, c = v[i, 0], v[i, 1], v[i, 2]
+        for j in range(3):
+            out[i, j] = a * rot[j, 0] + b * rot[j, 1] + c * rot[j, 2]
+
+
+@_jit
 def rays(xs, ys, rotation, position, near):
     """Rays (N, 6) float32 through optical-frame points (xs, ys, 1) (each (N,) float64) of a camera at
     ``position`` (3,) with ``rotation`` (3, 3) map <- optical (float64), starting ``near`` (planar

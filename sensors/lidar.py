@@ -43,6 +43,7 @@ from cosim.errors import CosimError
 from cosim.scenario.model import LidarSpec
 from cosim.snapshot import AgentState
 
+from . import kernels
 from .environment import Atmosphere
 from .lidar_models import needs_retro, report_intensity, ring_elevations_deg
 from .rig import Pose, body_rotation, mount_rotation, rotate, sensor_pose
@@ -296,7 +297,7 @@ def _cast_binned(scene: TickScene, rays: np.ndarray, t_offset_s: np.ndarray, exc
     # box, where the first box hit is its far side) can meet the actor at its own time
     boxes, b_lo, b_hi = scene.swept_boxes(exclude, lo)
     t_box, _ = cast(boxes, rays)
-    o_lo, o_hi = rays[:, :3].min(0), rays[:, :3].max(0)
+    o_lo, o_hi = kernels.origin_bounds(rays)
     inside = bool(np.any(np.all((o_hi >= b_lo) & (o_lo <= b_hi), axis=1)))
     near = np.nonzero(np.isfinite(t_box) if inside else t_box < t)[0]
     bins = np.minimum(((t_offset_s[near] - lo) / width).astype(np.int64), ACTOR_TIME_BINS - 1)
@@ -397,7 +398,13 @@ def render_lidar(
     hit = t <= spec.range_m
     r = np.where(hit, t, 0.0).astype(np.float64)
 
-    intensity, cls, inst = _surface_intensity(scene, atm, gid, rays[:, 3:], r)
+    # what the hits are (misses are no return, whatever their values): gathered once, for the hits only
+    at = np.nonzero(hit)[0]
+    surface = _Surface.of(scene, gid[at], rays[at, 3:])
+    intensity = np.zeros(n)
+    cls = np.zeros(n, surface.cls.dtype)
+    inst = np.zeros(n, surface.inst.dtype)
+    intensity[at], cls[at], inst[at] = _surface_intensity(scene, atm, gid[at], rays[at, 3:], r[at], surface)
 
     spur = np.zeros(n, bool)
     spur_r = spur_i = np.zeros(n)
@@ -414,7 +421,9 @@ def render_lidar(
         r = np.where(hit, r + sigma * u_noise, r)
         p_drop = spec.dropout + min(0.5, 0.004 * rain)
         hit &= u_drop >= p_drop
-        hit &= u_ray_drop >= _ray_drop(spec, scene, atm, gid, rays[:, 3:], r, intensity)
+        p_ray_drop = np.zeros(n)
+        p_ray_drop[at] = _ray_drop(spec, atm, surface, r[at], intensity[at])
+        hit &= u_ray_drop >= p_ray_drop
         if atm.beta_fog > 0:
             vis = atm.visibility_m
             # detection probability falls towards the visibility distance, zero beyond
@@ -460,7 +469,8 @@ def render_lidar(
     return LidarFrame(
         agent_id,
         cat[0].astype(np.float32),
-        report_intensity(spec, cat[1], retro, np.linalg.norm(cat[0], axis=1)).astype(np.float32),
+        report_intensity(spec, cat[1], retro, None if spec.intensity_transfer == "linear"  # (range unused)
+                         else np.linalg.norm(cat[0], axis=1)).astype(np.float32),
         cat[2].astype(np.uint16),
         cat[3].astype(np.uint8),
         cat[4].astype(np.uint32),
@@ -469,19 +479,41 @@ def render_lidar(
     )
 
 
+@dataclass(frozen=True)
+class _Surface:
+    """What the label tables say about hits ``gid`` seen along ``d_map`` (gathered once for the intensity and
+    the ray drop): normals (N, 3), incidence cosines (N,), class, instance, reflectivity, retro-reflection
+    (the class's and the surface's, the larger) and glass."""
+
+    normals: np.ndarray
+    cos_inc: np.ndarray
+    cls: np.ndarray
+    inst: np.ndarray
+    rho: np.ndarray
+    retro: np.ndarray
+    glass: np.ndarray
+
+    @classmethod
+    def of(cls, scene: TickScene, gid: np.ndarray, d_map: np.ndarray) -> _Surface:
+        lab = scene.labels
+        normals = np.take(lab["normal"], gid, axis=0)
+        sem = np.take(lab["semantic"], gid)
+        return cls(normals, np.abs((normals * d_map).sum(axis=1)), sem, np.take(lab["instance"], gid),
+                   np.take(lab["reflectivity"], gid), np.maximum(_RETRO_BY_CLASS[sem], np.take(lab["retro"], gid)),
+                   np.take(lab["glass"], gid))
+
+
 def _surface_intensity(scene: TickScene, atm: Atmosphere, gid: np.ndarray, d_map: np.ndarray,
-                       r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Intensity, class and instance of hits ``gid`` seen along ``d_map`` (N, 3) at ranges ``r``."""
-    lab = scene.labels
-    normals = np.take(lab["normal"], gid, axis=0)
-    cos_inc = np.abs((normals * d_map).sum(axis=1))
-    cls = np.take(lab["semantic"], gid)
-    rho = np.take(lab["reflectivity"], gid).astype(np.float64)
-    retro = np.maximum(_RETRO_BY_CLASS[cls], np.take(lab["retro"], gid)).astype(np.float64)
+                       r: np.ndarray, surface: _Surface | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Intensity, class and instance of hits ``gid`` seen along ``d_map`` (N, 3) at ranges ``r`` (``surface``:
+    their :class:`_Surface`, when gathered already)."""
+    s = surface if surface is not None else _Surface.of(scene, gid, d_map)
+    rho = s.rho.astype(np.float64)
+    retro = s.retro.astype(np.float64)
     if atm.rain_rate_mm_h > 0:
-        wet = np.where(normals[:, 2] > 0.5, wet_factor(atm.rain_rate_mm_h), 1.0)
+        wet = np.where(s.normals[:, 2] > 0.5, wet_factor(atm.rain_rate_mm_h), 1.0)
         rho, retro = rho * wet, retro * wet
-    return intensity_model(rho, retro, cos_inc, r, atm.beta), cls, np.take(lab["instance"], gid)
+    return intensity_model(rho, retro, s.cos_inc, r, atm.beta), s.cls, s.inst
 
 
 def _retro_hits(scene: TickScene, gid: np.ndarray) -> np.ndarray:
@@ -529,18 +561,13 @@ def _through_crowns(scene: TickScene, rays: np.ndarray, t: np.ndarray, gid: np.n
     return t, gid
 
 
-def _ray_drop(spec: LidarSpec, scene: TickScene, atm: Atmosphere, gid: np.ndarray, d_map: np.ndarray,
-              r: np.ndarray, intensity: np.ndarray) -> np.ndarray:
-    """:func:`drop_probability` of the hits ``gid`` (misses get any value: they are no return anyway)."""
-    lab = scene.labels
-    normals = np.take(lab["normal"], gid, axis=0)
-    cos_inc = np.abs((normals * d_map).sum(axis=1))
-    energy = np.take(lab["reflectivity"], gid) * cos_inc
-    retro = np.maximum(_RETRO_BY_CLASS[np.take(lab["semantic"], gid)], np.take(lab["retro"], gid))
-    wet = np.zeros(len(gid))
+def _ray_drop(spec: LidarSpec, atm: Atmosphere, s: _Surface, r: np.ndarray, intensity: np.ndarray) -> np.ndarray:
+    """:func:`drop_probability` of hits (their :class:`_Surface` ``s``) at ranges ``r``."""
+    energy = s.rho * s.cos_inc
+    wet = np.zeros(len(r))
     if atm.rain_rate_mm_h > 0:
-        wet = np.where(normals[:, 2] > 0.5, WET_DROP * min(1.0, atm.rain_rate_mm_h / 10.0) * (1.0 - cos_inc), 0.0)
-    return drop_probability(spec, intensity, r, energy, retro, np.take(lab["glass"], gid), wet)
+        wet = np.where(s.normals[:, 2] > 0.5, WET_DROP * min(1.0, atm.rain_rate_mm_h / 10.0) * (1.0 - s.cos_inc), 0.0)
+    return drop_probability(spec, intensity, r, energy, s.retro, s.glass, wet)
 
 
 def drop_probability(spec: LidarSpec, intensity: np.ndarray, range_m: np.ndarray, energy: np.ndarray,

@@ -50,8 +50,18 @@ def camera_rotation_in_body(agent: AgentState, cam: CameraSpec) -> np.ndarray:
     return mount_rotation(cam.mount)
 
 
+#: rows from which :func:`rotate` runs a compiled loop (one pass) instead of numpy's five
+ROTATE_KERNEL_ROWS = 4096
+
+
 def rotate(v: np.ndarray, rot: np.ndarray) -> np.ndarray:
     """``v @ rot.T`` for tall (N, 3) arrays, without BLAS (whose threads crawl on busy machines)."""
+    if len(v) >= ROTATE_KERNEL_ROWS and v.dtype.kind == "f" and rot.dtype.kind == "f":
+        from .kernels import rotate_rows
+
+        out = np.empty((len(v), 3), np.result_type(v.dtype, rot.dtype))
+        rotate_rows(v, np.asarray(rot), out)
+        return out
     return v[:, 0:1] * rot[:, 0] + v[:, 1:2] * rot[:, 1] + v[:, 2:3] * rot[:, 2]
 
 

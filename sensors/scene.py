@@ -148,7 +148,7 @@ class TickScene:
             self._cache[key] = (scene, lo, hi)
             return self._cache[key]
 
-    @property
+    @cached_property
     def actors_move(self) -> bool:
         """True when some actor has a velocity (then casts at other times see it elsewhere)."""
         return self.actor_velocity is not None and bool(np.any(self.actor_velocity))

@@ -136,3 +136,28 @@ def test_gathers_match_numpy():
     np.testing.assert_array_equal(sa, np.take(a, gid))
     np.testing.assert_array_equal(sb, np.take(b, gid))
     np.testing.assert_array_equal(kernels.gather(gid, b), np.take(b, gid))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_rotate_rows_matches_numpy(dtype):
+    """``rig.rotate`` runs the kernel on tall arrays: the same float64 (or float32 x float64) results as the
+    numpy expression it stands for, for contiguous, strided and broadcast rows."""
+    from cosim.sensors.rig import ROTATE_KERNEL_ROWS, rotate
+
+    rng = np.random.default_rng(3)
+    rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    tall = rng.normal(size=(ROTATE_KERNEL_ROWS + 17, 6)).astype(dtype)
+    for v in (np.ascontiguousarray(tall[:, :3]), tall[:, 3:], np.broadcast_to(tall[0, :3], (len(tall), 3))):
+        ref = v[:, 0:1] * rot[:, 0] + v[:, 1:2] * rot[:, 1] + v[:, 2:3] * rot[:, 2]
+        got = rotate(v, rot)
+        assert got.dtype == ref.dtype == np.float64 and np.array_equal(got, ref)
+    assert np.allclose(rotate(tall[:5, :3], rot), tall[:5, :3] @ rot.T)  # below the threshold: numpy
+
+
+def test_origin_bounds_match_numpy():
+    rng = np.random.default_rng(5)
+    rays = rng.normal(size=(1001, 6)).astype(np.float32)
+    lo, hi = kernels.origin_bounds(rays)
+    assert np.array_equal(lo, rays[:, :3].min(0)) and np.array_equal(hi, rays[:, :3].max(0))
+    one = kernels.origin_bounds(rays[:1])
+    assert np.array_equal(one[0], rays[0, :3]) and np.array_equal(one[1], rays[0, :3])
