@@ -3,12 +3,13 @@
 The library is the ``libembree4`` shipped inside the ``embreex`` wheel (``embreex.libs/``; no system
 package). Scenes are built through ctypes (which releases the GIL): one triangle geometry per scene,
 robust mode (:data:`SCENE_FLAGS`), build quality from the seam's hint (``high`` the static world,
-``medium`` a tick's actors, ``low`` the actors at a LiDAR firing's time). Rays are cast by numba
-``nogil`` kernels (compiled on first use, cached on disk) that fill 64-byte aligned ``RTCRayHit16`` /
-``RTCRay16`` packets and call ``rtcIntersect16`` / ``rtcOccluded16``, with the ``COHERENT`` query flag
-on a packet only when its 16 directions share an octant. Callers emit rays in coherent order (image
-tiles, :func:`cosim.sensors.kernels.packet_order`; LiDAR columns); casting threads run in parallel (the
-GIL is released).
+``medium`` a tick's actors and each actor's own scene, ``low`` the swept boxes); the actors at a LiDAR
+firing's time are a scene of translated instances of the actors' own scenes (:class:`EmbreeInstances`).
+Rays are cast by numba ``nogil`` kernels (compiled on first use, cached on disk) that fill 64-byte
+aligned ``RTCRayHit16`` / ``RTCRay16`` packets and call ``rtcIntersect16`` / ``rtcOccluded16``, with the
+``COHERENT`` query flag on a packet only when its 16 directions share an octant. Callers emit rays in
+coherent order (image tiles, :func:`cosim.sensors.kernels.packet_order`; LiDAR columns); casting threads
+run in parallel (the GIL is released).
 
 Embree is the engine inside Open3D's ``RaycastingScene`` too: the two backends hit the same triangles
 but where a ray meets an edge shared by two triangles (then either is the nearest).
@@ -45,7 +46,9 @@ _INVALID = 0xFFFFFFFF  # RTC_INVALID_GEOMETRY_ID
 
 #: RTCRayHit16 as (slots, 16) lanes of 4 bytes: the ray (org xyz, tnear, dir xyz, time, tfar, mask,
 #: id, flags), the hit (Ng xyz, u, v, primID, geomID, instID, instPrimID); two spare slots
-_TFAR, _MASK, _ID, _FLAGS, _PRIM, _GEOM = 8, 9, 10, 11, 17, 18
+_TFAR, _MASK, _ID, _FLAGS, _PRIM, _GEOM, _INST = 8, 9, 10, 11, 17, 18, 19
+_GEOMETRY_INSTANCE = 121  # RTC_GEOMETRY_TYPE_INSTANCE
+_FORMAT_FLOAT3X4_ROW_MAJOR = 0x9134
 _SLOTS = 24
 
 
@@ -79,6 +82,9 @@ for _name, _res, _args in (
     ("rtcReleaseGeometry", None, [_p]),
     ("rtcCommitScene", None, [_p]),
     ("rtcReleaseScene", None, [_p]),
+    ("rtcSetGeometryInstancedScene", None, [_p, _p]),
+    ("rtcSetGeometryTransform", None, [_p, _u, _i, _p]),
+    ("rtcAttachGeometryByID", None, [_p, _p, _u]),
 ):
     _fn = getattr(_lib, _name)
     _fn.restype, _fn.argtypes = _res, _args
@@ -177,13 +183,16 @@ def _fill(rays, p, m, f, u, valid):
             u[_ID * 16 + k] = 0
             u[_FLAGS * 16 + k] = 0
             u[_GEOM * 16 + k] = _INVALID
+            u[_INST * 16 + k] = _INVALID
             valid[k] = -1
         else:
             valid[k] = 0
 
 
 @_jit
-def _closest(scene, rays, t, prim):
+def _closest(scene, rays, t, prim, offsets):
+    """Nearest hits; in a scene of instances (``offsets`` (I,) not empty) the triangle index is the hit
+    instance's offset plus the triangle's index in its prototype."""
     n = rays.shape[0]
     f = _aligned(_SLOTS * 16, np.float32)
     u = f.view(np.uint32)
@@ -199,6 +208,8 @@ def _closest(scene, rays, t, prim):
             if u[_GEOM * 16 + k] != _INVALID:
                 t[p + k] = f[_TFAR * 16 + k]
                 prim[p + k] = np.int32(u[_PRIM * 16 + k])
+                if len(offsets):
+                    prim[p + k] += np.int32(offsets[u[_INST * 16 + k]])
             else:
                 t[p + k] = np.inf
                 prim[p + k] = -1
@@ -221,8 +232,49 @@ def _occluded(scene, rays, out):
             out[p + k] = f[_TFAR * 16 + k] < 0  # Embree sets tfar to -inf on an occluded ray
 
 
+class EmbreeInstances:
+    """A committed Embree scene of translated instances of prototype scenes (released when garbage
+    collected): instance i is ``prototypes[i]`` moved by ``translations[i]`` (None: no instance); a hit's
+    triangle index is ``offsets[i]`` plus its index in the prototype."""
+
+    def __init__(self, prototypes: list[EmbreeScene | None], translations: np.ndarray, offsets: np.ndarray):
+        dev = _get_device()
+        scene = _lib.rtcNewScene(dev)
+        _lib.rtcSetSceneFlags(scene, SCENE_FLAGS)
+        xfm = np.zeros(12, np.float32)
+        xfm[[0, 5, 10]] = 1.0
+        for i, proto in enumerate(prototypes):
+            if proto is None:
+                continue
+            geom = _lib.rtcNewGeometry(dev, _GEOMETRY_INSTANCE)
+            _lib.rtcSetGeometryInstancedScene(geom, proto.handle)
+            xfm[[3, 7, 11]] = translations[i]
+            _lib.rtcSetGeometryTransform(geom, 0, _FORMAT_FLOAT3X4_ROW_MAJOR, xfm.ctypes.data)
+            _lib.rtcCommitGeometry(geom)
+            _lib.rtcAttachGeometryByID(scene, geom, i)
+            _lib.rtcReleaseGeometry(geom)
+        _lib.rtcCommitScene(scene)
+        err = _lib.rtcGetDeviceError(dev)
+        if err:
+            _lib.rtcReleaseScene(scene)
+            raise CosimError(f"Embree failed to build a scene of {len(prototypes)} instances (error {err})")
+        self.handle = int(scene)
+        self.prototypes = prototypes  # kept alive while instanced
+        self.offsets = np.ascontiguousarray(offsets, np.int64)
+        weakref.finalize(self, _lib.rtcReleaseScene, scene)
+
+
+_FLAT = np.zeros(0, np.int64)  # the offsets of a scene that is not one of instances
+
+
 class EmbreeBackend:
     name = "embree"
+
+    def instances(self, prototypes: list[EmbreeScene | None], translations: np.ndarray,
+                  offsets: np.ndarray) -> EmbreeInstances:
+        """A scene of the ``prototypes`` (handles of :meth:`build`) each translated by its row of
+        ``translations`` (N, 3) [m]; hits report ``offsets[i]`` plus the prototype's triangle index."""
+        return EmbreeInstances(prototypes, translations, offsets)
 
     def build(self, vertices: np.ndarray, triangles: np.ndarray, quality: Quality = "high") -> EmbreeScene | None:
         if len(triangles) == 0:
@@ -235,7 +287,7 @@ class EmbreeBackend:
             return misses(n)
         t = np.empty(n, np.float32)
         prim = np.empty(n, np.int32)
-        _closest(scene.handle, np.ascontiguousarray(rays, np.float32), t, prim)
+        _closest(scene.handle, np.ascontiguousarray(rays, np.float32), t, prim, getattr(scene, "offsets", _FLAT))
         return t, prim
 
     def occluded(self, scene: EmbreeScene | None, rays: np.ndarray) -> np.ndarray:

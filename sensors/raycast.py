@@ -13,7 +13,12 @@ A backend is an object with four operations (:class:`RayBackend`), each over pla
 - ``name``.
 
 "Build actors at a time" is ``build`` of the actors' vertices moved by their velocity (see
-:class:`cosim.sensors.scene.TickScene`): a backend needs no notion of time.
+:class:`cosim.sensors.scene.TickScene`): a backend needs no notion of time. A backend may also offer
+``instances(prototypes, translations, offsets)``: one scene of scenes it built (one per actor, at the
+tick), each translated by its row of ``translations`` (N, 3) [m], whose hits report ``offsets[i]`` plus the
+triangle's index in prototype ``i``; the actors at each LiDAR time bin are then made of instances instead of
+a new BVH of the moved mesh (``embree``: 8 builds of every actor per tick become one; the same triangles,
+distances to float32 rounding, tests/test_ray_backends.py).
 
 Backends are a registry (:data:`RAY_BACKENDS`, :func:`ray_backend`); the scenario key
 ``sensors.ray_backend`` chooses one (docs/architecture.md, "Ray backends"): ``embree`` (the default,

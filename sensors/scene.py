@@ -110,9 +110,10 @@ class TickScene:
     actor_velocity: np.ndarray | None = None  # (Va,) x 3 float64 [m/s] map velocity of each actor vertex
     actor_spheres: np.ndarray | None = None  # (A, 8): centre (3), radius, velocity (3), track id per actor
     actor_faces: np.ndarray | None = None  # (Ta,) int32 face ids of the actor triangles (None: computed)
+    actor_vertex_counts: tuple[int, ...] | None = None  # vertices per actor, in the order of actor_spheres
     timer: CastTimer = field(default_factory=CastTimer)
     _cache: dict = field(default_factory=dict)
-    _lock: threading.Lock = field(default_factory=threading.Lock)
+    _lock: threading.RLock = field(default_factory=threading.RLock)  # re-entrant: scenes are made of prototypes
 
     @classmethod
     def build(cls, static: StaticScene, actors) -> TickScene:
@@ -122,7 +123,44 @@ class TickScene:
         spheres = np.array([[*a.center_m, 0.5 * float(np.linalg.norm(a.size_m)), *a.velocity_mps, a.track_id]
                             for a in actors], np.float64).reshape(-1, 8)
         return cls(static, mesh, track, np.concatenate(vel) if vel else np.zeros((0, 3)), spheres,
-                   actor_faces=faces)
+                   actor_faces=faces, actor_vertex_counts=tuple(counts))
+
+    def _prototypes(self) -> tuple[list, np.ndarray] | None:
+        """One scene per actor (its triangles at the tick, None for an actor without any) and the index of each
+        one's first triangle among the actors', for backends that instance scenes (``instances``, see
+        :mod:`cosim.sensors.raycast`); None for others or when the actor counts are unknown."""
+        backend = self.static.backend
+        if not hasattr(backend, "instances") or self.actor_vertex_counts is None:
+            return None
+        with self._lock:
+            if "prototypes" in self._cache:
+                return self._cache["prototypes"]
+        v_end = np.cumsum(self.actor_vertex_counts)
+        v_start = v_end - np.asarray(self.actor_vertex_counts)
+        tris = self.actors.triangles
+        # the actors' triangles are in actor order, each referring to its own actor's vertices
+        owner = np.searchsorted(v_end, tris[:, 0], side="right")
+        t_end = np.cumsum(np.bincount(owner, minlength=len(v_end)))
+        t_start = t_end - np.bincount(owner, minlength=len(v_end))
+        protos = [backend.build(self.actors.vertices[v0:v1], (tris[t0:t1] - v0).astype(np.uint32), "medium")
+                  if t1 > t0 else None
+                  for v0, v1, t0, t1 in zip(v_start, v_end, t_start, t_end, strict=True)]
+        entry = (protos, t_start)
+        with self._lock:
+            return self._cache.setdefault("prototypes", entry)
+
+    def _moved(self, dt_s: float, exclude_track: int | None = None) -> Built | None:
+        """The actors moved by their velocity x ``dt_s``, as translated instances of :meth:`_prototypes`
+        (without ``exclude_track``'s); None when the backend has no instances."""
+        found = self._prototypes()
+        if found is None:
+            return None
+        protos, offsets = found
+        sp = self.actor_spheres
+        if exclude_track is not None:
+            protos = [None if int(track) == exclude_track else p for p, track in zip(protos, sp[:, 7], strict=True)]
+        backend = self.static.backend
+        return Built(backend, backend.instances(protos, sp[:, 4:7] * dt_s, offsets))
 
     def swept_boxes(self, exclude_track: int | None, dt_min_s: float):
         """Scene of one axis-aligned box per actor (without ``exclude_track``) holding it over
@@ -177,6 +215,10 @@ class TickScene:
                 return self._cache[key]
             verts = self.actors.vertices
             if dt_s and self.actors_move:
+                moved = self._moved(dt_s)
+                if moved is not None:
+                    self._cache[key] = moved
+                    return moved
                 verts = (verts + self.actor_velocity * dt_s).astype(np.float32)
             sub = self.actors if verts is self.actors.vertices else TriMesh(
                 verts, *(getattr(self.actors, f) for f in ("triangles", "semantic", "instance", "albedo",
@@ -187,11 +229,16 @@ class TickScene:
 
     def _without(self, exclude_track: int, dt_s: float):
         """Scene of the actors at ``dt_s`` without ``exclude_track``'s shape and the actor triangle index
-        of each of its triangles (made on demand: only sensors whose rays meet their own shape need one)."""
+        of each of its triangles (None: the actors' own, a scene of instances) (made on demand: only sensors
+        whose rays meet their own shape need one)."""
         key = ("without", int(exclude_track), float(dt_s) if self.actors_move else 0.0)
         with self._lock:
             if key in self._cache:
                 return self._cache[key]
+            if key[2]:
+                moved = self._moved(dt_s, exclude_track)
+                if moved is not None:  # instances keep the actors' triangle indices
+                    return self._cache.setdefault(key, (moved, None))
         keep = np.nonzero(self.actor_track != exclude_track)[0].astype(np.int32)
         verts = self.actors.vertices
         if dt_s and self.actors_move:
@@ -219,7 +266,7 @@ class TickScene:
         other, keep = self._without(exclude_track, dt_s)
         t2, p2 = cast(other, rays[own])
         t[own] = t2
-        prim[own] = np.where(p2 >= 0, keep[np.maximum(p2, 0)], -1)
+        prim[own] = p2 if keep is None else np.where(p2 >= 0, keep[np.maximum(p2, 0)], -1)
         return t, prim
 
     @cached_property

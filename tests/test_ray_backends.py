@@ -148,3 +148,41 @@ def test_actors_moved_to_a_time_are_hit_where_they_are_then(backend):
     assert np.isinf(t_now[1])
     assert np.isinf(t_before[0]) and np.isfinite(t_before[1])
     assert scene.labels["instance"][g_now[0]] == 7 and scene.labels["instance"][g_before[1]] == 7
+
+
+def test_actors_at_a_time_as_instances_hit_what_the_moved_mesh_hits():
+    """The embree backend casts the actors at a LiDAR firing's time as translated instances of one scene per
+    actor (TickScene._moved) instead of a new BVH of the moved mesh: the same triangles, the same distances
+    to float32 rounding, and the same when a sensor's own shape is left out."""
+    import dataclasses
+
+    from cosim.sensors.scene import StaticScene, TickScene
+
+    world = synthetic_world()
+    snap = synthetic_snapshot(3, 2, 1)
+    moving = tuple(dataclasses.replace(a, velocity_mps=(12.0 - 2 * k % 7, 3.0 - k % 5, 0.0))
+                   for k, a in enumerate(snap.actors))
+    suite = SensorSuite(_scenario("embree"), world, encode_images=False, workers=1)
+    static = StaticScene(suite.static.mesh, "embree")
+    suite.close()
+    inst = TickScene.build(static, moving)
+    flat = dataclasses.replace(TickScene.build(static, moving), actor_vertex_counts=None)  # the moved-mesh path
+    rng = np.random.default_rng(11)
+    centres = np.array([a.center_m for a in moving])
+    aim = centres[rng.integers(0, len(centres), 20_000)] + rng.normal(0.0, 1.5, (20_000, 3))
+    origin = aim + rng.normal(0.0, 25.0, (20_000, 3)) * [1, 1, 0.2] + [0, 0, 3.0]
+    d = aim - origin
+    rays = np.concatenate([origin, d / np.linalg.norm(d, axis=1, keepdims=True)], axis=1).astype(np.float32)
+    own = moving[0].track_id
+    for dt in (-0.04, -0.01):
+        assert inst._actor_scene(dt).handle.__class__.__name__ == "EmbreeInstances"
+        for exclude in (None, own):
+            t_i, p_i = inst._cast_actors(rays, exclude, dt)
+            t_f, p_f = flat._cast_actors(rays, exclude, dt)
+            hit = p_f >= 0
+            assert hit.mean() > 0.3  # the rays were aimed at the actors
+            assert np.mean(p_i == p_f) >= 0.999
+            same = hit & (p_i == p_f)
+            assert np.allclose(t_i[same], t_f[same], rtol=0, atol=2e-4)
+            if exclude is not None:
+                assert not np.any(np.isin(p_i[p_i >= 0], np.nonzero(inst.actor_track == own)[0]))
