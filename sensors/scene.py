@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -55,13 +56,13 @@ class CastTimer:
 
 def place_actors(actors: tuple[Actor, ...] | list[Actor], with_faces: bool = False):
     """Actor shapes placed in the map frame: mesh and the track id per triangle (T,) int64 (and, with
-    ``with_faces``, the face id per triangle (T,) int32 of :meth:`TriMesh.faces`, from the templates'
-    cached ids, and the vertex count per actor)."""
+    ``with_faces``, a function giving the face id per triangle (T,) int32 of :meth:`TriMesh.faces` from the
+    templates' ids, made on demand: only cameras need them, and a posed person's are made anew, and the vertex
+    count per actor)."""
     parts: list[TriMesh] = []
     tracks: list[np.ndarray] = []
-    faces: list[np.ndarray] = []
+    templates = []
     counts: list[int] = []
-    f_off = 0
     for a in actors:
         tpl = actor_template(a)
         v = tpl.vertices.astype(np.float64) * np.asarray(a.size_m, np.float64)
@@ -75,14 +76,21 @@ def place_actors(actors: tuple[Actor, ...] | list[Actor], with_faces: bool = Fal
         )
         tracks.append(np.full(t, a.track_id, np.int64))
         if with_faces:
-            faces.append(tpl.faces + f_off)
-            f_off += int(tpl.faces.max(initial=-1)) + 1
+            templates.append(tpl)
             counts.append(len(tpl.vertices))
     mesh = concat(parts) if parts else empty_mesh()
     track = np.concatenate(tracks) if tracks else np.zeros(0, np.int64)
     if not with_faces:
         return mesh, track
-    return mesh, track, (np.concatenate(faces) if faces else np.zeros(0, np.int32)), counts
+
+    def faces() -> np.ndarray:
+        out, f_off = [], 0
+        for tpl in templates:
+            out.append(tpl.faces + f_off)
+            f_off += int(tpl.faces.max(initial=-1)) + 1
+        return np.concatenate(out) if out else np.zeros(0, np.int32)
+
+    return mesh, track, faces, counts
 
 
 class StaticScene:
@@ -109,7 +117,8 @@ class TickScene:
     actor_track: np.ndarray  # (Ta,) int64 track id per actor triangle
     actor_velocity: np.ndarray | None = None  # (Va,) x 3 float64 [m/s] map velocity of each actor vertex
     actor_spheres: np.ndarray | None = None  # (A, 8): centre (3), radius, velocity (3), track id per actor
-    actor_faces: np.ndarray | None = None  # (Ta,) int32 face ids of the actor triangles (None: computed)
+    # (Ta,) int32 face ids of the actor triangles, or a function making them (None: computed from the mesh)
+    actor_faces: np.ndarray | Callable[[], np.ndarray] | None = None
     actor_vertex_counts: tuple[int, ...] | None = None  # vertices per actor, in the order of actor_spheres
     timer: CastTimer = field(default_factory=CastTimer)
     _cache: dict = field(default_factory=dict)
@@ -269,6 +278,12 @@ class TickScene:
         prim[own] = p2 if keep is None else np.where(p2 >= 0, keep[np.maximum(p2, 0)], -1)
         return t, prim
 
+    def _actor_face_ids(self) -> np.ndarray:
+        f = self.actor_faces
+        if f is None:
+            return self.actors.faces()
+        return f() if callable(f) else f
+
     @cached_property
     def labels(self) -> dict[str, np.ndarray]:
         """Per-global-index tables: ``semantic`` uint8, ``instance`` uint32, ``reflectivity`` float32,
@@ -285,7 +300,7 @@ class TickScene:
             "albedo": lambda: self.table(m.albedo, a.albedo, (0.0, 0.0, 0.0)),
             "emissive": lambda: self.table(m.emissive, a.emissive, 0.0),
             "material": lambda: self.table(m.material, a.material, 0),
-            "face": lambda: self.table(self.static.faces, (a.faces() if self.actor_faces is None else self.actor_faces)
+            "face": lambda: self.table(self.static.faces, self._actor_face_ids()
                                        + (int(self.static.faces.max(initial=-1)) + 1), -1),
             "retro": lambda: self.table(m.retro_values(), a.retro_values(), 0.0),
             "glass": lambda: self.table(m.glass_values(), a.glass_values(), False),
