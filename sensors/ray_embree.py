@@ -103,6 +103,17 @@ def _get_device() -> int:
         return _device
 
 
+def _commit(owner: object, dev: int, scene: int, what: str) -> int:
+    """Commit ``scene`` (its handle, released with ``owner``), or release it and raise on a device error."""
+    _lib.rtcCommitScene(scene)
+    err = _lib.rtcGetDeviceError(dev)
+    if err:
+        _lib.rtcReleaseScene(scene)
+        raise CosimError(f"Embree failed to build a scene of {what} (error {err})")
+    weakref.finalize(owner, _lib.rtcReleaseScene, scene)
+    return int(scene)
+
+
 class EmbreeScene:
     """One committed Embree scene of one triangle geometry (released when garbage collected); ``handle``
     is its ``RTCScene`` pointer."""
@@ -128,14 +139,8 @@ class EmbreeScene:
         _lib.rtcCommitGeometry(geom)
         _lib.rtcAttachGeometry(scene, geom)
         _lib.rtcReleaseGeometry(geom)
-        _lib.rtcCommitScene(scene)
-        err = _lib.rtcGetDeviceError(dev)
-        if err:
-            _lib.rtcReleaseScene(scene)
-            raise CosimError(f"Embree failed to build a scene of {len(t)} triangles (error {err})")
-        self.handle = int(scene)
+        self.handle = _commit(self, dev, scene, f"{len(t)} triangles")
         self.n_triangles = len(t)
-        weakref.finalize(self, _lib.rtcReleaseScene, scene)
 
 
 # ----------------------------------------------------------------------------------- kernels
@@ -253,15 +258,9 @@ class EmbreeInstances:
             _lib.rtcCommitGeometry(geom)
             _lib.rtcAttachGeometryByID(scene, geom, i)
             _lib.rtcReleaseGeometry(geom)
-        _lib.rtcCommitScene(scene)
-        err = _lib.rtcGetDeviceError(dev)
-        if err:
-            _lib.rtcReleaseScene(scene)
-            raise CosimError(f"Embree failed to build a scene of {len(prototypes)} instances (error {err})")
-        self.handle = int(scene)
+        self.handle = _commit(self, dev, scene, f"{len(prototypes)} instances")
         self.prototypes = prototypes  # kept alive while instanced
         self.offsets = np.ascontiguousarray(offsets, np.int64)
-        weakref.finalize(self, _lib.rtcReleaseScene, scene)
 
 
 _FLAT = np.zeros(0, np.int64)  # the offsets of a scene that is not one of instances
