@@ -58,7 +58,7 @@ def place_actors(actors: tuple[Actor, ...] | list[Actor], with_faces: bool = Fal
     """Actor shapes placed in the map frame: mesh and the track id per triangle (T,) int64 (and, with
     ``with_faces``, a function giving the face id per triangle (T,) int32 of :meth:`TriMesh.faces` from the
     templates' ids, made on demand: only cameras need them, and a posed person's are made anew, and the vertex
-    count per actor)."""
+    and triangle counts per actor)."""
     parts: list[TriMesh] = []
     tracks: list[np.ndarray] = []
     templates = []
@@ -77,7 +77,7 @@ def place_actors(actors: tuple[Actor, ...] | list[Actor], with_faces: bool = Fal
         tracks.append(np.full(t, a.track_id, np.int64))
         if with_faces:
             templates.append(tpl)
-            counts.append(len(tpl.vertices))
+            counts.append((len(tpl.vertices), t))
     mesh = concat(parts) if parts else empty_mesh()
     track = np.concatenate(tracks) if tracks else np.zeros(0, np.int64)
     if not with_faces:
@@ -119,7 +119,7 @@ class TickScene:
     actor_spheres: np.ndarray | None = None  # (A, 8): centre (3), radius, velocity (3), track id per actor
     # (Ta,) int32 face ids of the actor triangles, or a function making them (None: computed from the mesh)
     actor_faces: np.ndarray | Callable[[], np.ndarray] | None = None
-    actor_vertex_counts: tuple[int, ...] | None = None  # vertices per actor, in the order of actor_spheres
+    actor_counts: tuple[tuple[int, int], ...] | None = None  # (vertices, triangles) per actor, as actor_spheres
     timer: CastTimer = field(default_factory=CastTimer)
     _cache: dict = field(default_factory=dict)
     _lock: threading.RLock = field(default_factory=threading.RLock)  # re-entrant: scenes are made of prototypes
@@ -127,30 +127,27 @@ class TickScene:
     @classmethod
     def build(cls, static: StaticScene, actors) -> TickScene:
         mesh, track, faces, counts = place_actors(actors, with_faces=True)
-        vel = [np.broadcast_to(np.asarray(a.velocity_mps, np.float64), (n, 3)) for a, n in zip(actors, counts,
-                                                                                            strict=True)]
+        vel = [np.broadcast_to(np.asarray(a.velocity_mps, np.float64), (n, 3)) for a, (n, _) in zip(actors, counts,
+                                                                                                 strict=True)]
         spheres = np.array([[*a.center_m, 0.5 * float(np.linalg.norm(a.size_m)), *a.velocity_mps, a.track_id]
                             for a in actors], np.float64).reshape(-1, 8)
         return cls(static, mesh, track, np.concatenate(vel) if vel else np.zeros((0, 3)), spheres,
-                   actor_faces=faces, actor_vertex_counts=tuple(counts))
+                   actor_faces=faces, actor_counts=tuple(counts))
 
     def _prototypes(self) -> tuple[list, np.ndarray] | None:
         """One scene per actor (its triangles at the tick, None for an actor without any) and the index of each
         one's first triangle among the actors', for backends that instance scenes (``instances``, see
         :mod:`cosim.sensors.raycast`); None for others or when the actor counts are unknown."""
         backend = self.static.backend
-        if not hasattr(backend, "instances") or self.actor_vertex_counts is None:
+        if not hasattr(backend, "instances") or self.actor_counts is None:
             return None
         with self._lock:
             if "prototypes" in self._cache:
                 return self._cache["prototypes"]
-        v_end = np.cumsum(self.actor_vertex_counts)
-        v_start = v_end - np.asarray(self.actor_vertex_counts)
+        counts = np.asarray(self.actor_counts, np.int64).reshape(-1, 2)
+        v_end, t_end = np.cumsum(counts, axis=0).T
+        v_start, t_start = v_end - counts[:, 0], t_end - counts[:, 1]
         tris = self.actors.triangles
-        # the actors' triangles are in actor order, each referring to its own actor's vertices
-        owner = np.searchsorted(v_end, tris[:, 0], side="right")
-        t_end = np.cumsum(np.bincount(owner, minlength=len(v_end)))
-        t_start = t_end - np.bincount(owner, minlength=len(v_end))
         protos = [backend.build(self.actors.vertices[v0:v1], (tris[t0:t1] - v0).astype(np.uint32), "medium")
                   if t1 > t0 else None
                   for v0, v1, t0, t1 in zip(v_start, v_end, t_start, t_end, strict=True)]

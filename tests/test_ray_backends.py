@@ -166,7 +166,7 @@ def test_actors_at_a_time_as_instances_hit_what_the_moved_mesh_hits():
     static = StaticScene(suite.static.mesh, "embree")
     suite.close()
     inst = TickScene.build(static, moving)
-    flat = dataclasses.replace(TickScene.build(static, moving), actor_vertex_counts=None)  # the moved-mesh path
+    flat = dataclasses.replace(TickScene.build(static, moving), actor_counts=None)  # the moved-mesh path
     rng = np.random.default_rng(11)
     centres = np.array([a.center_m for a in moving])
     aim = centres[rng.integers(0, len(centres), 20_000)] + rng.normal(0.0, 1.5, (20_000, 3))

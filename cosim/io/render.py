@@ -44,6 +44,7 @@ from cosim.classes import SEMANTIC_CLASSES, SEMANTIC_COLOURS
 from cosim.errors import CosimError
 from cosim.geometry import has_distortion, project_to_image, undistort
 from cosim.io.reader import Episode, Tick
+from cosim.io.validate_boxes import instance_ids
 
 log = logging.getLogger(__name__)
 
@@ -203,22 +204,6 @@ def draw_segments(rgb: np.ndarray, segments: np.ndarray, colours: np.ndarray, th
     return out
 
 
-def _present(ids: np.ndarray, candidates: np.ndarray) -> np.ndarray:
-    """Which of the (non-zero) ``candidates`` (N,) appear in ``ids``: ``np.isin(candidates, unique(ids) - {0})``,
-    by counting the pixels within the candidates' range instead of sorting the whole image."""
-    cand = np.asarray(candidates, np.int64)
-    if cand.size == 0 or ids.size == 0:
-        return np.zeros(cand.shape, bool)
-    lo, hi = int(cand.min()), int(cand.max())
-    flat = ids.ravel()
-    if flat.dtype.kind not in "iu" or hi - lo > 1 << 22:
-        seen = np.unique(flat)
-        return np.isin(cand, seen[seen != 0])
-    flat = flat[(flat >= lo) & (flat <= hi)].astype(np.int64)
-    counts = np.bincount(flat - lo, minlength=hi - lo + 1)
-    return (counts[cand - lo] > 0) & (cand != 0)
-
-
 def _box_segments(ep: Episode, tick: Tick, agent: str, camera: str, width: int,
                   height: int) -> tuple[np.ndarray, np.ndarray] | None:
     """The labelled boxes the camera sees (module docstring) as pixel segments (M, 2, 2) [u, v] on its
@@ -230,7 +215,7 @@ def _box_segments(ep: Episode, tick: Tick, agent: str, camera: str, width: int,
     keep = np.array([aid != agent for aid in labels.agent_ids], bool)
     inst_topic = f"/{agent}/{camera}/instance"
     if inst_topic in tick:
-        keep &= _present(tick[inst_topic].array, labels.track_ids)
+        keep &= np.isin(labels.track_ids, instance_ids(tick[inst_topic].array)[0])  # the tracks it sees
     if not keep.any():
         return None
     frame = tick.image(agent, camera).frame_id
