@@ -31,6 +31,7 @@ import numpy as np
 
 from cosim.errors import InputError
 from cosim.eval.predictions import SETTINGS
+from cosim.geometry import rotation_matrix
 from cosim.learn.grid import Grid
 
 FUSIONS: tuple[str, ...] = ("none", "late", "early", "intermediate")
@@ -167,13 +168,6 @@ def crop_record(rec: dict[str, Any], egos: list[str], grid: Grid) -> dict[str, A
     return out
 
 
-def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    x, y, z, w = (float(c) for c in q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
 def delivered(episode: str, tick: int, tx: str, rx: str, probability: float) -> bool:
     seed = zlib.crc32(f"{episode}|{tick}|{tx}|{rx}".encode())
     return bool(np.random.default_rng(seed).random() < probability)
@@ -286,7 +280,7 @@ def _boxes(rec: dict[str, Any], ego_from_map: np.ndarray, setup: Setup) -> tuple
         c = ego_from_map[:3, :3] @ rec["label_centers"][i] + ego_from_map[:3, 3]
         if not ((c >= lo) & (c <= hi)).all():
             continue
-        r = ego_from_map[:3, :3] @ _quat_to_matrix(rec["label_rotations"][i])
+        r = ego_from_map[:3, :3] @ rotation_matrix(tuple(float(c) for c in rec["label_rotations"][i]))
         boxes.append([*c, *rec["label_sizes"][i], np.arctan2(r[1, 0], r[0, 0])])
         keep.append(i)
     return (np.asarray(boxes, np.float32).reshape(-1, 7),
