@@ -404,7 +404,7 @@ def render_lidar(
     intensity = np.zeros(n)
     cls = np.zeros(n, surface.cls.dtype)
     inst = np.zeros(n, surface.inst.dtype)
-    intensity[at], cls[at], inst[at] = _surface_intensity(atm, surface, r[at])
+    intensity[at], cls[at], inst[at] = _intensity_of(atm, surface, r[at])
 
     spur = np.zeros(n, bool)
     spur_r = spur_i = np.zeros(n)
@@ -503,7 +503,13 @@ class _Surface:
                    np.take(lab["glass"], gid))
 
 
-def _surface_intensity(atm: Atmosphere, s: _Surface, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _surface_intensity(scene: TickScene, atm: Atmosphere, gid: np.ndarray, d_map: np.ndarray,
+                       r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Intensity, class and instance of hits ``gid`` seen along ``d_map`` (N, 3) at ranges ``r``."""
+    return _intensity_of(atm, _Surface.of(scene, gid, d_map), r)
+
+
+def _intensity_of(atm: Atmosphere, s: _Surface, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Intensity, class and instance of hits (their :class:`_Surface` ``s``) at ranges ``r``."""
     rho = s.rho.astype(np.float64)
     retro = s.retro.astype(np.float64)
@@ -623,7 +629,7 @@ def _edge_returns(scene: TickScene, spec: LidarSpec, atm: Atmosphere, rays: np.n
         return []
     if rng is not None:
         t2 = t2 + sigma * rng.standard_normal(len(idx))
-    i2, c2, n2 = _surface_intensity(atm, _Surface.of(scene, g2, mid), t2)
+    i2, c2, n2 = _surface_intensity(scene, atm, g2, mid, t2)
     # the near returns of these beams: parts[0] holds the returns of beams with a first hit, in beam order
     pts, inten, rng_, cls, inst, toff, kind, beam = parts[0]
     order = np.cumsum(hit) - 1  # row of each beam's return in parts[0]
