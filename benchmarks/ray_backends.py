@@ -9,8 +9,7 @@ Builds the world of scenarios/default.yaml with the rig of benchmarks/sensors.py
 own threads) for
 
 - *coherent image*: one ray per pixel of vehicle_0's front camera against one scene of the static world
-  and the actors, in row order and in packet order (:func:`cosim.sensors.kernels.packet_order`), and
-  the sun-shadow rays of its hits (``occluded``);
+  and the actors, in row order, and the sun-shadow rays of its hits (``occluded``);
 - *adaptive tick*: every camera of the tick cast as the renderer casts it (``cast_image``, quadtree
   refinement, sun shadows, actors), no image kept between ticks;
 - *LiDAR tick*: every LiDAR of the tick (``render_lidar``: motion distortion, crowns, ray drop).
@@ -103,7 +102,6 @@ def main() -> None:
               f"{args.export.stat().st_size / 1e6:.1f} MB")
         return
 
-    order = kernels.packet_order(np.arange(len(rays), dtype=np.int64), cam.width)
     sun = first.atm.sun_dir.astype(np.float32)
     scenes = {n: build(ray_backend(n), mesh.vertices, mesh.triangles, "high") for n in names}
     res: dict[str, dict[str, list[float]]] = {n: {} for n in names}
@@ -119,11 +117,8 @@ def main() -> None:
             scene = scenes[n]
             c, (t, g) = cpu(lambda scene=scene: scene.closest(rays))
             add(n, "image, row order", c)
-            ro = rays[order]
-            c, (t2, g2) = cpu(lambda scene=scene, ro=ro: scene.closest(ro))
-            add(n, "image, packet order", c)
-            gid = np.where(g2 >= 0, g2, mesh.n_triangles).astype(np.int32)
-            sh, _ = kernels.shadow_rays(ro, t2, gid, lab_n, sun, np.float32(0.02))
+            gid = np.where(g >= 0, g, mesh.n_triangles).astype(np.int32)
+            sh, _ = kernels.shadow_rays(rays, t, gid, lab_n, sun, np.float32(0.02))
             c, occ = cpu(lambda scene=scene, sh=sh: scene.occluded(sh))
             add(n, "shadow rays (occluded)", c)
             hits[n]["shadow"] = occ

@@ -338,7 +338,6 @@ def cast_image(
         under[i0:i1 + 1, j0:j1 + 1] = True
     idx = np.flatnonzero(under)
     if len(idx):
-        idx = idx[kernels.packet_order(idx, w)]
         rr, cc = np.divmod(idx, w)
         rays = _rays(pose, xs[cc], ys[rr], NEAR_CLIP_M)
         ta, ga = scene.cast(rays, exclude_track, with_static=False)
@@ -355,7 +354,6 @@ def cast_image(
         shade_px &= lit & np.isfinite(depth) & ((gid < scene.n_static) | (gid == scene.miss))
         idx = np.flatnonzero(shade_px)
         if len(idx):
-            idx = idx[kernels.packet_order(idx, w)]
             rr, cc = np.divmod(idx, w)
             rays = _rays(pose, xs[cc], ys[rr], NEAR_CLIP_M)
             t = depth.ravel()[idx] - np.float32(NEAR_CLIP_M)
@@ -422,7 +420,6 @@ def _cast_adaptive(
     S = np.ones((h + 1) * gw, bool)  # the sun reaches the sample
 
     def sample(idx: np.ndarray) -> None:
-        idx = idx[kernels.packet_order(idx, gw)]  # coherent 16-ray packets
         rays = kernels.grid_rays(idx, gw, xs_ext, ys_ext, pose.rotation, pose.position_m, NEAR_CLIP_M)
         t, g = scene.cast(rays, exclude_track, with_actors=False)
         if any_actor:

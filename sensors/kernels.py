@@ -76,44 +76,6 @@ def grid_rays(idx, gw, xs, ys, rotation, position, near):
 
 
 @_jit
-def _spread(v):
-    """The bits of ``v`` (< 2^16) moved to the even bit positions (Morton code helper)."""
-    v &= 0xFFFF
-    v = (v | (v << 8)) & 0x00FF00FF
-    v = (v | (v << 4)) & 0x0F0F0F0F
-    v = (v | (v << 2)) & 0x33333333
-    return (v | (v << 1)) & 0x55555555
-
-
-@_jit
-def packet_order(idx, gw):
-    """Order (N,) int64 in which to cast the rays through the grid points ``idx`` (N,) (flat, row-major
-    over rows of ``gw``) so that each run of 16 is a tight bundle (one ray packet): by 4 x 4 tile in
-    Z order (Morton code of the tile's row and column), within a tile in the given order. A counting
-    sort: O(N + tiles)."""
-    n = idx.shape[0]
-    key = np.empty(n, np.int64)
-    kmax = 0
-    for i in range(n):
-        r = idx[i] // gw
-        c = idx[i] - r * gw
-        k = (_spread(r >> 2) << 1) | _spread(c >> 2)
-        key[i] = k
-        if k > kmax:
-            kmax = k
-    start = np.zeros(kmax + 2, np.int64)
-    for i in range(n):
-        start[key[i] + 1] += 1
-    for k in range(kmax + 1):
-        start[k + 1] += start[k]
-    out = np.empty(n, np.int64)
-    for i in range(n):
-        out[start[key[i]]] = i
-        start[key[i]] += 1
-    return out
-
-
-@_jit
 def shadow_rays(rays, t, gid, normal, sun, bias):
     """Shadow rays (M, 6) float32 of the hits that face the sun, and which rays (M,) they belong to.
 

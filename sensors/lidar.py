@@ -382,7 +382,7 @@ def render_lidar(
     rays[:, :3] = origin
     rays[:, 3:] = d_map
     # cast column by column (the firings in time order: every channel of one azimuth together), so that
-    # each 16-ray packet is a tight bundle
+    # consecutive rays visit the same BVH nodes
     col = _column_order(spec, beams)
     c_rays, c_off_s = rays[col], t_off_s[col]
     if fixed is not None and beams.repeats and origin.strides[0] == 0:  # a standing sensor, the same firings

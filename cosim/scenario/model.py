@@ -547,8 +547,9 @@ class SensorsSpec(Model):
     # cameras draw procedural surface detail (asphalt grain, worn markings, window grids, lit windows at
     # night, vegetation and terrain variation); false: flat colour per surface
     surface_detail: bool = True
-    # the engine that casts every ray (docs/architecture.md, "Ray backends"): embree (Embree 4 packets, the
-    # default) or open3d (the reference); images and labels agree but for rays through shared triangle edges
+    # the engine that casts every ray (docs/architecture.md, "Ray backends"): embree (Embree 4 called
+    # directly, the default) or open3d (the reference); images and labels agree but for rays through shared
+    # triangle edges
     ray_backend: Literal["embree", "open3d"] = "embree"
 
     @model_validator(mode="before")
