@@ -165,6 +165,12 @@ def _fill_block(G, T, S, r0, c0, s, wgt, gid, depth, lit, with_lit):
 
 
 @_jit
+def _clamp(g, n):
+    """``g`` clamped to 0 .. n - 1 (a sample's triangle index as an index into per-triangle tables)."""
+    return 0 if g < 0 else (n - 1 if g >= n else g)
+
+
+@_jit
 def refine_level(G, T, S, face, s, top, parent_mixed, forced, fill, gid, depth, lit, with_lit):
     """One level of the quadtree: blocks of ``s`` px (those whose parent block of 2 ``s`` was mixed,
     every block at the top level) are coherent when their four corner samples share a face (and the
@@ -189,12 +195,9 @@ def refine_level(G, T, S, face, s, top, parent_mixed, forced, fill, gid, depth, 
             c0 = bj * s
             same = not forced[bi, bj]
             if same:
-                f = np.empty(4, np.int64)
-                for q in range(4):
-                    gq = G[r0 + (q // 2) * s, c0 + (q % 2) * s]
-                    gq = 0 if gq < 0 else (nf - 1 if gq >= nf else gq)
-                    f[q] = face[gq]
-                same = f[0] == f[1] and f[0] == f[2] and f[0] == f[3]
+                f0 = face[_clamp(G[r0, c0], nf)]
+                same = (f0 == face[_clamp(G[r0, c0 + s], nf)] and f0 == face[_clamp(G[r0 + s, c0], nf)]
+                        and f0 == face[_clamp(G[r0 + s, c0 + s], nf)])
             if same and with_lit:
                 l0 = S[r0, c0]
                 same = l0 == S[r0, c0 + s] and l0 == S[r0 + s, c0] and l0 == S[r0 + s, c0 + s]
