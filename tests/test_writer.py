@@ -281,3 +281,30 @@ def test_serialized_records_write_the_bytes_of_messages(tmp_path):
                 w.write(topic, rec.message() if parse and hasattr(rec, "message") else rec, frames.t_ns)
             paths.append(w.finish())
     assert paths[0].read_bytes() == paths[1].read_bytes()
+
+
+def test_chunks_are_zstd_level_1_with_zlib_crcs(tmp_path):
+    """The writer hands mcap its chunk codec (cosim/io/writer.py): every chunk is exactly level-1 zstd of its
+    records (fails if mcap stops compressing through its module's ``zstandard``), and its CRC is zlib's CRC-32
+    of the records, so any MCAP reader checks it."""
+    import zlib
+
+    import zstandard
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    path = tmp_path / "chunks.mcap"
+    with EpisodeWriter(path) as w:
+        for k in range(40):  # several chunks: 40 messages of 300 kB of compressible, varied bytes
+            payload = bytes((i * (k + 3) // 7) % 251 for i in range(300_000))
+            w.write("/blob", ("cosim.Blob", {"type": "object"}, {"k": k, "data": payload.hex()[:600_000]}), k * TICK_NS)
+        w.finish()
+    with open(path, "rb") as f:
+        chunks = [r for r in StreamReader(f, emit_chunks=True, validate_crcs=True).records if isinstance(r, Chunk)]
+    assert len(chunks) >= 3
+    for c in chunks:
+        records = zstandard.ZstdDecompressor().decompress(c.data, max_output_size=c.uncompressed_size)
+        assert len(records) == c.uncompressed_size
+        assert c.data == zstandard.ZstdCompressor(level=1).compress(records)
+        assert c.data != zstandard.ZstdCompressor(level=3).compress(records)
+        assert c.uncompressed_crc == zlib.crc32(records)

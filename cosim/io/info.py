@@ -84,9 +84,9 @@ def topic_family(topic: str) -> str:
 
 def _compressor(name: str):
     if name == "zstd":
-        import zstandard
+        from cosim.io.writer import chunk_compress
 
-        return zstandard.compress
+        return chunk_compress
     if name == "lz4":
         import lz4.frame
 

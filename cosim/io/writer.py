@@ -6,6 +6,15 @@ the temporary file, so a crash never leaves a file that looks complete.
 
 Times: every record's ``log_time`` and ``publish_time`` is simulation time in integer ns since the
 episode start, never the wall clock, so the same scenario and seed give the same bytes.
+
+Chunks: ``mcap``'s writer compresses each chunk with ``zstandard.compress`` (level 3) and checks it with
+``zlib.crc32``, both looked up in its module. This module hands it :class:`_ChunkCodec` in their place:
+zstd at :data:`CHUNK_ZSTD_LEVEL` (1) and libdeflate's CRC-32 (``imagecodecs.deflate_crc32``: the same
+polynomial and values as zlib's, 3.9x its speed here). On cosim's data level 1 is both faster and smaller
+than 3: rewriting the messages of an 8 s LiDAR-only episode took 1.49 instead of 2.46 CPU-s and 151.5
+instead of 154.3 MB, a full-rig second 1.4-1.8 instead of 2.1-2.4 CPU-s and 88.6 instead of 89.0 MB (the
+point clouds compress better at 1, the label images and BEV grids alike). Files are standard MCAP either
+way; any reader checks the CRCs with its own CRC-32.
 """
 
 from __future__ import annotations
@@ -15,12 +24,16 @@ import json
 import logging
 import os
 import re
+import threading
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
+import imagecodecs
+import mcap.writer
+import zstandard
 from google.protobuf import descriptor_pb2
 from google.protobuf.message import Message as ProtoMessage
 from mcap.writer import CompressionType, Writer
@@ -32,6 +45,34 @@ log = logging.getLogger(__name__)
 
 COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 CHUNK_SIZE = 4 * 1024 * 1024  # [bytes]
+#: zstd level of the episode's chunks (module docstring)
+CHUNK_ZSTD_LEVEL = 1
+
+
+class _ChunkCodec:
+    """What ``mcap.writer`` calls as ``zstandard.compress`` and ``zlib.crc32`` (module docstring). One zstd
+    context per thread (a context is not safe to share); single-threaded zstd gives the same bytes for the
+    same input and level on every run."""
+
+    _local = threading.local()
+
+    @classmethod
+    def compress(cls, data: bytes) -> bytes:
+        ctx = getattr(cls._local, "zstd", None)
+        if ctx is None:
+            ctx = cls._local.zstd = zstandard.ZstdCompressor(level=CHUNK_ZSTD_LEVEL)
+        return ctx.compress(data)
+
+    crc32 = staticmethod(imagecodecs.deflate_crc32)
+
+
+def chunk_compress(data: bytes) -> bytes:
+    """``data`` zstd-compressed as the writer compresses an episode's chunks."""
+    return _ChunkCodec.compress(data)
+
+
+mcap.writer.zstandard = _ChunkCodec  # type: ignore[attr-defined]
+mcap.writer.zlib = _ChunkCodec  # type: ignore[attr-defined]
 
 
 def temporary_path(final: Path, pid: int | None = None) -> Path:
