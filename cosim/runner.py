@@ -8,6 +8,7 @@ sensors and writes labels and sensor data. The episode file appears only when it
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import importlib.metadata
 import itertools
 import json
@@ -111,6 +112,27 @@ def episode_metadata(loaded: LoadedScenario, world: World) -> dict[str, str]:
     }
 
 
+#: glibc malloc arenas of an episode's process (:func:`limit_malloc_arenas`)
+MALLOC_ARENAS = 2
+_M_ARENA_MAX = -8  # mallopt parameter (glibc malloc.h)
+
+
+def limit_malloc_arenas(n: int = MALLOC_ARENAS) -> bool:
+    """Cap glibc's malloc arenas of this process at ``n`` (``mallopt(M_ARENA_MAX, n)``); whether it took effect
+    (False where the C library has no ``mallopt``). By default glibc gives threads up to 8 arenas per core,
+    and each keeps the large image arrays the render threads free for reuse: the default episode's runner
+    grew steadily to 1.23 GB over 3 s (the tree to 1.62 GB). With 2 arenas it peaks at 1.03 GB (the tree
+    1.42 GB, under issue 26's 1.5 GB) for the same CPU time (``benchmarks/memory.py``; docs/architecture.md,
+    "Processes and the lockstep protocol")."""
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    mallopt.restype = ctypes.c_int
+    return mallopt(_M_ARENA_MAX, int(n)) == 1
+
+
 def run_episode(
     loaded: LoadedScenario,
     out_dir: Path,
@@ -134,6 +156,7 @@ def run_episode(
 
     s = loaded.scenario
     started = time.perf_counter()
+    limit_malloc_arenas()  # before the render and writer threads start
     final = episode_path(loaded, out_dir)
     check_output_dir(final.parent)
     check_scenario_inputs(loaded)

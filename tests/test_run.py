@@ -214,3 +214,41 @@ def test_sensor_episode_honours_the_output_image_format(tmp_path):
     assert len(images) == 2 * (5 * 6 + 5 * 4 + 5)  # two ticks, every camera of the 5+5+5 rig
     assert {i.format for i in images} == {"png"}  # JPEG is the default
     assert all(i.data[:8] == b"\x89PNG\r\n\x1a\n" for i in images)
+
+
+_ARENA_PROBE = """
+import ctypes, sys, tempfile, threading
+from cosim.runner import limit_malloc_arenas
+libc = ctypes.CDLL(None)
+if sys.argv[1] == "limit":
+    assert limit_malloc_arenas()
+libc.malloc.restype = ctypes.c_void_p
+libc.malloc.argtypes = [ctypes.c_size_t]
+libc.free.argtypes = [ctypes.c_void_p]
+def churn():  # ctypes calls release the GIL: the threads contend for malloc's locks
+    for _ in range(20000):
+        libc.free(libc.malloc(2000))
+threads = [threading.Thread(target=churn) for _ in range(16)]
+for t in threads:
+    t.start()
+for t in threads:
+    t.join()
+with tempfile.NamedTemporaryFile("r") as f:
+    libc.fopen.restype = ctypes.c_void_p
+    fp = libc.fopen(f.name.encode(), b"w")
+    libc.malloc_info(0, ctypes.c_void_p(fp))
+    libc.fclose(ctypes.c_void_p(fp))
+    print(f.read().count("<heap nr="))
+"""
+
+
+def test_the_episode_process_caps_malloc_arenas():
+    """limit_malloc_arenas (called first thing by run_episode) keeps 16 contending threads to 2 glibc arenas, where
+    the default gives them more (each keeps freed image arrays: the runner's memory grew through an episode)."""
+    def arenas(mode: str) -> int:
+        out = subprocess.run([sys.executable, "-c", _ARENA_PROBE, mode], capture_output=True, text=True, cwd=REPO,
+                             check=True, timeout=60)
+        return int(out.stdout.strip())
+
+    assert arenas("limit") <= 2
+    assert arenas("default") > 2
