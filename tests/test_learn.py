@@ -57,9 +57,12 @@ def test_voxelise_puts_points_in_their_pillars_and_caps_them():
     assert sorted(map(tuple, coords.tolist())) == [(4, 8), (7, 0)]
     by_cell = dict(zip(map(tuple, coords.tolist()), counts.tolist(), strict=True))
     assert by_cell == {(4, 8): 3, (7, 0): 1}
+    assert len(feats) == counts.sum() == 4  # the kept points, pillar after pillar
     row = int(np.nonzero((coords == [4, 8]).all(axis=1))[0][0])
-    np.testing.assert_allclose(feats[row, :3, 7:9], [[0.0, 0.0]] * 3, atol=1e-6)  # at the pillar's centre
-    assert (feats[row, 3:] == 0).all()
+    mine = np.repeat(np.arange(len(counts)), counts) == row
+    np.testing.assert_allclose(feats[mine, 7:9], [[0.0, 0.0]] * 3, atol=1e-6)  # at the pillar's centre
+    np.testing.assert_allclose(feats[~mine, 7:9], [[0.0, 0.0]], atol=1e-6)
+    np.testing.assert_allclose(feats[~mine, :4], pts[5:6])
     _f2, c2, _n2 = voxelise(pts[::-1].copy(), g)
     assert sorted(map(tuple, c2.tolist())) == sorted(map(tuple, coords.tolist()))
 
@@ -71,7 +74,9 @@ def test_voxelise_keeps_every_agents_share_of_an_overfull_pillar():
     other = np.tile([[0.7, 0.7, -1.0, 0.5]], (40, 1))
     few = np.array([[2.5, 2.5, -1.0, 0.1], [2.5, 2.5, -1.0, 0.2]])
     feats, coords, counts = voxelise(np.concatenate([ego, other, few]).astype(np.float32), g)
-    by_cell = {tuple(c): (f, n) for c, f, n in zip(coords.tolist(), feats, counts.tolist(), strict=True)}
+    pillar = np.repeat(np.arange(len(counts)), counts)
+    by_cell = {tuple(c): (feats[pillar == i], n) for i, (c, n) in enumerate(zip(coords.tolist(), counts.tolist(),
+                                                                                 strict=True))}
     f, n = by_cell[(4, 4)]
     assert n == 8
     assert sorted(f[:, 3].tolist()) == [0.5] * 4 + [1.0] * 4  # half the kept points are the collaborator's
@@ -439,8 +444,8 @@ def _record(collab_pose: tuple[float, float, float], obj_xy: tuple[float, float]
 def test_intermediate_fusion_puts_a_collaborators_object_in_its_ego_cell(yaw_deg):
     import torch
 
-    from cosim.learn.model import fuse_maps, warp_maps
-    from cosim.learn.samples import Setup, agent_grid, make_item
+    from cosim.learn.model import fuse
+    from cosim.learn.samples import Setup, make_item
     from cosim.learn.train import batch_arrays
 
     setup = Setup(fusion="intermediate", agents="all")
@@ -454,9 +459,8 @@ def test_intermediate_fusion_puts_a_collaborators_object_in_its_ego_cell(yaw_deg
     agent_of = b["coords"][:, 0] % 2
     feats = torch.zeros(len(agent_of), 2)
     feats[torch.arange(len(agent_of)), torch.from_numpy(agent_of)] = 1.0
-    warped, hit = warp_maps(feats, torch.from_numpy(b["coords"]), torch.from_numpy(b["poses"]),
-                            torch.from_numpy(b["present"]), g, agent_grid(g))
-    fused = fuse_maps(warped, hit, "max")[0]
+    hits = [torch.from_numpy(b[k]) for k in ("cell", "src", "ego")]
+    fused = fuse(feats, *hits, g.ny * g.nx, "max").T.reshape(2, g.ny, g.nx)
     col = int((obj[0] - g.x_range[0]) // g.pillar_m)
     row = int((obj[1] - g.y_range[0]) // g.pillar_m)
     ys, xs = np.nonzero(fused[1].numpy())
@@ -465,8 +469,85 @@ def test_intermediate_fusion_puts_a_collaborators_object_in_its_ego_cell(yaw_deg
     assert fused[1, row, col] == 1.0  # the cell under the car's centre point holds the collaborator's feature
     ego_cell = (int((20.3 - g.y_range[0]) // g.pillar_m), int((-30.3 - g.x_range[0]) // g.pillar_m))
     assert fused[0, ego_cell[0], ego_cell[1]] == 1.0 and fused[0].sum() == 1.0  # the ego's own map: unwarped
-    attn = fuse_maps(warped, hit, "attention")[0]
+    attn = fuse(feats, *hits, g.ny * g.nx, "attention").T.reshape(2, g.ny, g.nx)
     assert attn[1, row, col] == 1.0  # attention: the only agent with a pillar there takes the cell
+
+
+@needs_torch
+def test_sparse_fusion_matches_a_cell_by_cell_reference():
+    """The warp's hits and both fusions against a plain loop over ego cells and agents: every ego cell centre
+    moved into each agent's frame by its 4x4 pose, the agent's pillar there looked up by cell, then the max or
+    the softmax of <ego feature, agent feature> / sqrt(C) over the agents that have one."""
+    import torch
+
+    from cosim.learn.grid import warp_index
+    from cosim.learn.model import fuse
+
+    g = Grid(x_range=(-8.0, 8.0), y_range=(-4.0, 4.0), pillar_m=1.0)
+    agent = Grid(x_range=(-20.0, 20.0), y_range=(-20.0, 20.0), pillar_m=1.0)
+    rng = np.random.default_rng(3)
+    n_b, n_j, c = 2, 3, 4
+    present = np.array([[True, True, True], [True, True, False]])
+    poses = np.concatenate([np.zeros((n_b, 1, 3)), np.stack([rng.uniform(-np.pi, np.pi, (n_b, n_j - 1)),
+                            rng.uniform(-6, 6, (n_b, n_j - 1)), rng.uniform(-3, 3, (n_b, n_j - 1))], axis=2)],
+                           axis=1)
+    cells = sorted({(m, int(r), int(q)) for m in range(n_b * n_j) if present.reshape(-1)[m]
+                    for r, q in rng.integers(10, 30, (150, 2))})
+    coords = np.array(cells, np.int64)
+    feats = torch.from_numpy(rng.uniform(0, 1, (len(coords), c)))
+    cell, src, ego = warp_index(coords, poses, present, g, agent)
+    lookup = {cl: i for i, cl in enumerate(cells)}
+    want_max = np.zeros((n_b * g.ny * g.nx, c))
+    want_att = np.zeros((n_b * g.ny * g.nx, c))
+    n_hits = 0
+    for b in range(n_b):
+        for row in range(g.ny):
+            for col in range(g.nx):
+                centre = np.array([g.x_range[0] + (col + 0.5) * g.pillar_m, g.y_range[0] + (row + 0.5) * g.pillar_m,
+                                   0.0, 1.0])
+                found = []
+                for j in range(n_j):
+                    if not present[b, j]:
+                        continue
+                    yaw, x, y = poses[b, j]
+                    pose = np.eye(4)
+                    pose[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+                    pose[:2, 3] = [x, y]
+                    ax, ay = (np.linalg.inv(pose) @ centre)[:2]
+                    key = (b * n_j + j, int(np.floor(ay - agent.y_range[0])), int(np.floor(ax - agent.x_range[0])))
+                    if key in lookup:
+                        found.append((j, feats[lookup[key]].numpy()))
+                n_hits += len(found)
+                if not found:
+                    continue
+                k = (b * g.ny + row) * g.nx + col
+                f = np.stack([v for _j, v in found])
+                want_max[k] = f.max(axis=0)
+                own = next((v for j, v in found if j == 0), np.zeros(c))
+                score = f @ own / np.sqrt(c)
+                w = np.exp(score - score.max())
+                want_att[k] = (w / w.sum()) @ f
+    assert len(cell) == n_hits > 50 and ego.sum() > 0 and (~ego).sum() > 0
+    hits = [torch.from_numpy(a) for a in (cell, src, ego)]
+    np.testing.assert_allclose(fuse(feats, *hits, len(want_max), "max").numpy(), want_max, atol=1e-12)
+    np.testing.assert_allclose(fuse(feats, *hits, len(want_max), "attention").numpy(), want_att, atol=1e-12)
+
+
+@needs_torch
+def test_pillar_encoder_is_the_max_over_each_pillars_points():
+    import torch
+
+    from cosim.learn.model import PillarDetector
+    from cosim.learn.samples import Setup
+
+    model = PillarDetector(Setup().grid, 6, width=8).eval()
+    rng = np.random.default_rng(5)
+    counts = np.array([1, 5, 32, 3])
+    feats = torch.from_numpy(rng.normal(0, 1, (counts.sum(), 9)).astype(np.float32))
+    got = model.encode(feats, torch.from_numpy(counts))
+    point = torch.relu(model.pfn_bn(model.pfn(feats)))
+    want = torch.stack([p.max(dim=0).values for p in torch.split(point, counts.tolist())])
+    assert torch.equal(got, want) and (want > 0).any()
 
 
 def test_agent_poses_follow_the_flips():

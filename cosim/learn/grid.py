@@ -75,55 +75,91 @@ class Grid:
 
 
 def voxelise(points: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pillars of a point cloud (N, 4: x, y, z, intensity) in the grid's frame.
+    """Pillars of a point cloud (N, 4: x, y, z, intensity) in the grid's frame, as a sparse list of points.
 
-    Returns ``features`` (P, max_points, 9) float32, ``coords`` (P, 2) int64 (row iy, column ix) and
-    ``counts`` (P,) points per pillar (<= max_points). Points are kept in their given order within a pillar;
-    a pillar with more than ``max_points`` keeps ``max_points`` of them evenly spaced through that order (so
-    every agent of a merged cloud keeps its share); when more than ``max_pillars`` pillars are occupied, the
-    fullest are kept (ties by grid index), so the result depends only on the points.
+    Returns ``features`` (K, 9) float32, the kept points pillar after pillar (``counts[0]`` points of the
+    first pillar, then the second's, ...), ``coords`` (P, 2) int64 (row iy, column ix) and ``counts`` (P,)
+    points per pillar (<= max_points, sum K). Points are kept in their given order within a pillar; a pillar
+    with more than ``max_points`` keeps ``max_points`` of them evenly spaced through that order (so every agent
+    of a merged cloud keeps its share); when more than ``max_pillars`` pillars are occupied, the fullest are
+    kept (ties by grid index), so the result depends only on the points.
     """
     pts = grid.crop(np.asarray(points, np.float32))
     m = grid.max_points
     if len(pts) == 0:
-        return (np.zeros((0, m, POINT_FEATURES), np.float32), np.zeros((0, 2), np.int64), np.zeros(0, np.int64))
+        return np.zeros((0, POINT_FEATURES), np.float32), np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
     ix = np.floor((pts[:, 0] - grid.x_range[0]) / grid.pillar_m).astype(np.int64).clip(0, grid.nx - 1)
     iy = np.floor((pts[:, 1] - grid.y_range[0]) / grid.pillar_m).astype(np.int64).clip(0, grid.ny - 1)
     flat = iy * grid.nx + ix
     order = np.argsort(flat, kind="stable")
     flat_s, pts_s = flat[order], pts[order]
-    uniq, start, counts = np.unique(flat_s, return_index=True, return_counts=True)
-    rank = np.arange(len(flat_s)) - np.repeat(start, counts)
+    uniq, counts = np.unique(flat_s, return_counts=True)
     if len(uniq) > grid.max_pillars:
         keep = np.lexsort((uniq, -counts))[: grid.max_pillars]
         keep.sort()
-        sel = np.zeros(len(uniq), bool)
-        sel[keep] = True
-        point_sel = np.repeat(sel, counts)
-        uniq, counts = uniq[sel], counts[sel]
-        flat_s, pts_s, rank = flat_s[point_sel], pts_s[point_sel], rank[point_sel]
-    pillar = np.repeat(np.arange(len(uniq)), counts)
+        point_sel = np.repeat(np.isin(np.arange(len(uniq)), keep), counts)
+        uniq, counts = uniq[keep], counts[keep]
+        flat_s, pts_s = flat_s[point_sel], pts_s[point_sel]
     # a pillar with more than m points keeps m of them evenly spaced through its points' order (the j-th kept
     # is the floor(j n / m)-th): with the ego's cloud first, the first m would drop every collaborator's point
     # wherever the ego's fill the pillar
-    total = np.repeat(counts, counts)
-    full = total > m
-    ok = ~full | ((rank * m) % total < m)
-    rank = np.where(full, (rank * m) // total, rank)
-    pillar, rank, p = pillar[ok], rank[ok], pts_s[ok]
+    if counts.max() > m:
+        total = np.repeat(counts, counts)
+        rank = np.arange(len(flat_s)) - np.repeat(np.cumsum(counts) - counts, counts)
+        ok = (total <= m) | ((rank * m) % total < m)
+        pts_s = pts_s[ok]
     n = np.minimum(counts, m)
-    feats = np.zeros((len(uniq), m, POINT_FEATURES), np.float32)
-    feats[pillar, rank, :4] = p[:, :4]
-    mean = np.zeros((len(uniq), 3), np.float64)
-    np.add.at(mean, pillar, p[:, :3].astype(np.float64))
-    mean /= n[:, None]
-    feats[pillar, rank, 4:7] = p[:, :3] - mean[pillar].astype(np.float32)
+    pillar = np.repeat(np.arange(len(uniq)), n)
+    first = np.cumsum(n) - n
+    mean = np.add.reduceat(pts_s[:, :3].astype(np.float64), first, axis=0) / n[:, None]
     cy, cx = np.divmod(uniq, grid.nx)
-    centre_x = grid.x_range[0] + (cx + 0.5) * grid.pillar_m
-    centre_y = grid.y_range[0] + (cy + 0.5) * grid.pillar_m
-    feats[pillar, rank, 7] = p[:, 0] - centre_x[pillar]
-    feats[pillar, rank, 8] = p[:, 1] - centre_y[pillar]
+    centre = np.stack([grid.x_range[0] + (cx + 0.5) * grid.pillar_m, grid.y_range[0] + (cy + 0.5) * grid.pillar_m],
+                      axis=1)
+    feats = np.empty((len(pts_s), POINT_FEATURES), np.float32)
+    feats[:, :4] = pts_s[:, :4]
+    feats[:, 4:7] = pts_s[:, :3] - mean.astype(np.float32)[pillar]
+    feats[:, 7:9] = pts_s[:, :2] - centre[pillar]
     return feats, np.stack([cy, cx], axis=1).astype(np.int64), n.astype(np.int64)
+
+
+def warp_index(coords: np.ndarray, poses: np.ndarray, present: np.ndarray, grid: Grid, agent: Grid
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Intermediate fusion's index warp: for every ego cell of ``grid`` and every agent j of its sample, the
+    pillar of agent j (in ``agent``'s grid, in agent j's frame) whose cell holds the ego cell's centre moved
+    into that frame (nearest cell, any yaw).
+
+    ``coords`` (P, 3) [map, row, column] of the pillars, map = b x J + j; ``poses`` (B, J, 3) yaw, x, y of
+    agent j's frame in the ego's; ``present`` (B, J). Returns the hits only, ordered by map then cell:
+    ``cell`` (H,) the ego cell (b x ny x nx + row x nx + column), ``pillar`` (H,) the pillar's row of
+    ``coords`` and ``ego`` (H,) bool: the hit is the sample's first agent's (the ego's own map).
+    """
+    j = present.shape[1]
+    cx = grid.x_range[0] + (np.arange(grid.nx, dtype=np.float64) + 0.5) * grid.pillar_m
+    cy = grid.y_range[0] + (np.arange(grid.ny, dtype=np.float64) + 0.5) * grid.pillar_m
+    keys = (coords[:, 0] * agent.ny + coords[:, 1]) * agent.nx + coords[:, 2]
+    order = np.argsort(keys, kind="stable")
+    keys_s = keys[order]
+    cells, pillars, egos = [], [], []
+    for m in np.flatnonzero(present.reshape(-1)):
+        yaw, x, y = poses.reshape(-1, 3)[m]
+        c, s = math.cos(yaw), math.sin(yaw)
+        dx, dy = cx[None, :] - x, cy[:, None] - y
+        col = np.floor((c * dx + s * dy - agent.x_range[0]) / agent.pillar_m).astype(np.int64)  # the ego cell's
+        row = np.floor((-s * dx + c * dy - agent.y_range[0]) / agent.pillar_m).astype(np.int64)  # centre in j's
+        inside = ((col >= 0) & (col < agent.nx) & (row >= 0) & (row < agent.ny)).reshape(-1)
+        query = (m * agent.ny + row.reshape(-1)) * agent.nx + col.reshape(-1)
+        pos = np.searchsorted(keys_s, query).clip(max=max(len(keys_s) - 1, 0))
+        if not len(keys_s):
+            continue
+        hit = np.flatnonzero(inside & (keys_s[pos] == query))
+        cells.append(m // j * grid.ny * grid.nx + hit)
+        pillars.append(order[pos[hit]])
+        egos.append(np.full(len(hit), m % j == 0))
+    if not cells:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, bool)
+    cell = np.concatenate(cells)
+    order = np.argsort(cell, kind="stable")
+    return cell[order], np.concatenate(pillars)[order], np.concatenate(egos)[order]
 
 
 def gaussian_radius(length_cells: float, width_cells: float, min_overlap: float = 0.1) -> float:

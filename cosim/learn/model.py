@@ -6,9 +6,10 @@ al., 2021) papers.
 Intermediate fusion (:class:`PillarDetector` with ``fusion="intermediate"``): each agent's pillars, in its
 own bird's-eye grid (:func:`cosim.learn.samples.agent_grid`), are encoded (one encoder, or one per agent
 kind), then each ego cell takes the feature of the agent's pillar under its centre moved into the agent's
-frame (:func:`warp_maps`: an index warp, any yaw), and the agents' maps are fused per cell by max (F-Cooper,
-Chen et al. 2019) or by scaled dot-product attention of the ego's feature over the agents' (AttFuse, Xu et
-al. 2022) before the backbone.
+frame (:func:`cosim.learn.grid.warp_index`: an index warp, any yaw, computed with the batch), and the agents'
+features are fused per cell by max (F-Cooper, Chen et al. 2019) or by scaled dot-product attention of the
+ego's feature over the agents' (AttFuse, Xu et al. 2022) before the backbone (:func:`fuse`). Pillars and
+hits are sparse lists: no agent's map is ever made dense.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from cosim.learn.grid import POINT_FEATURES, REG_CHANNELS, Grid
-from cosim.learn.samples import KINDS, agent_grid
+from cosim.learn.samples import KINDS
 
 
 def _conv(cin: int, cout: int, stride: int = 1) -> list[nn.Module]:
@@ -56,42 +57,45 @@ class PillarDetector(nn.Module):
         self.reg = nn.Conv2d(2 * c, REG_CHANNELS, 1)
         nn.init.constant_(self.heat.bias, -2.19)  # a prior of 0.1 per cell, as CenterNet
 
-    def encode(self, features: torch.Tensor, mask: torch.Tensor, kinds: torch.Tensor | None = None
+    def encode(self, features: torch.Tensor, counts: torch.Tensor, kinds: torch.Tensor | None = None
                ) -> torch.Tensor:
-        """Pillar features (P, C): the PointNet of each pillar's points (per agent kind with ``kinds`` (P,))."""
+        """Pillar features (P, C): the PointNet of each pillar's points, ``features`` (K, 9) of the points,
+        pillar after pillar, ``counts`` (P,) points per pillar (per agent kind with ``kinds`` (P,) of each
+        pillar): a linear layer, batch norm over the points, ReLU, then the maximum over each pillar's points."""
         c = self.pfn.out_features
-        point = torch.zeros(features.shape[0], features.shape[1], c, dtype=features.dtype, device=features.device)
         if not self.per_kind or kinds is None:
-            point[mask] = F.relu(self.pfn_bn(self.pfn(features[mask])))
+            point = F.relu(self.pfn_bn(self.pfn(features)))
         else:
+            point = features.new_zeros(features.shape[0], c)
+            of_point = kinds.repeat_interleave(counts)
             for k in range(len(KINDS)):
-                sel = mask & (kinds == k)[:, None]
+                sel = of_point == k
                 if not bool(sel.any()):
                     continue
                 lin, bn = (self.pfn, self.pfn_bn) if k == 0 else (self.kind_pfn[k - 1], self.kind_bn[k - 1])
-                point[sel] = F.relu(bn(lin(features[sel])))
-        return point.max(dim=1).values
+                point = point.index_put((torch.nonzero(sel).squeeze(1),), F.relu(bn(lin(features[sel]))))
+        return torch.segment_reduce(point, "max", lengths=counts, unsafe=True)
 
-    def forward(self, features: torch.Tensor, mask: torch.Tensor, coords: torch.Tensor, batch_size: int,
+    def forward(self, features: torch.Tensor, counts: torch.Tensor, coords: torch.Tensor, batch_size: int,
                 maps: dict[str, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """``features`` (P, M, 9), ``mask`` (P, M) bool, ``coords`` (P, 3) long [batch, row, column].
+        """``features`` (K, 9) of the pillars' points, pillar after pillar, ``counts`` (P,) long points per
+        pillar, ``coords`` (P, 3) long [batch, row, column] of each pillar.
         Intermediate fusion: ``coords`` [map, row, column] in the agents' grids, map = batch x J + agent,
-        and ``maps`` with ``poses`` (B, J, 3) (yaw, x, y of each agent's frame in the ego's), ``kinds`` (B, J)
-        and ``present`` (B, J) bool. Returns heatmap logits (B, K, H, W) and regression (B, 8, H, W)."""
+        and ``maps`` with ``kinds`` (B, J) and the warp's hits ``cell``, ``src``, ``ego``
+        (:func:`cosim.learn.grid.warp_index`). Returns heatmap logits (B, K, H, W) and regression (B, 8, H, W)."""
         g = self.grid
         c = self.pfn.out_features
         if self.intermediate:
             if maps is None:
                 raise ValueError("intermediate fusion needs the agents' poses (maps)")
-            kinds = maps["kinds"].reshape(-1)[coords[:, 0]]
-            pillar = self.encode(features, mask, kinds)
-            warped, hit = warp_maps(pillar, coords, maps["poses"], maps["present"], g, agent_grid(g))
-            x = fuse_maps(warped, hit, self.fuse)
+            pillars = self.encode(features, counts, maps["kinds"].reshape(-1)[coords[:, 0]])
+            fused = fuse(pillars, maps["cell"], maps["src"], maps["ego"], batch_size * g.ny * g.nx, self.fuse)
+            x = fused.view(batch_size, g.ny, g.nx, c).permute(0, 3, 1, 2)
         else:
-            pillar = self.encode(features, mask)
+            pillars = self.encode(features, counts)
             canvas = torch.zeros(batch_size * g.ny * g.nx, c, dtype=features.dtype, device=features.device)
             flat = (coords[:, 0] * g.ny + coords[:, 1]) * g.nx + coords[:, 2]
-            canvas = canvas.index_put((flat,), pillar)
+            canvas = canvas.index_put((flat,), pillars)
             x = canvas.view(batch_size, g.ny, g.nx, c).permute(0, 3, 1, 2)
         x1 = self.block1(x)
         x2 = self.block2(x1)
@@ -100,62 +104,25 @@ class PillarDetector(nn.Module):
         return self.heat(y), self.reg(y)
 
 
-def warp_maps(pillar: torch.Tensor, coords: torch.Tensor, poses: torch.Tensor, present: torch.Tensor, grid: Grid,
-              agent: Grid) -> tuple[torch.Tensor, torch.Tensor]:
-    """The agents' pillar features in the ego grid: for each ego cell, the feature of the pillar of agent j
-    whose cell (of ``agent``'s grid, in agent j's frame) holds the ego cell's centre moved into that frame.
-
-    ``pillar`` (P, C); ``coords`` (P, 3) [map, row, column], map = b x J + j; ``poses`` (B, J, 3) yaw, x, y
-    of agent j's frame in the ego's; ``present`` (B, J). Returns (B, J, C, ny, nx) features (0 where agent j
-    has no pillar) and (B, J, ny, nx) bool: where it has one."""
-    b, j = present.shape
-    dev = pillar.device
-    cx = grid.x_range[0] + (torch.arange(grid.nx, device=dev, dtype=torch.float64) + 0.5) * grid.pillar_m
-    cy = grid.y_range[0] + (torch.arange(grid.ny, device=dev, dtype=torch.float64) + 0.5) * grid.pillar_m
-    ex, ey = cx[None, :].expand(grid.ny, grid.nx), cy[:, None].expand(grid.ny, grid.nx)
-    p = poses.reshape(b * j, 3).to(torch.float64)
-    cos, sin = torch.cos(p[:, 0])[:, None, None], torch.sin(p[:, 0])[:, None, None]
-    dx, dy = ex[None] - p[:, 1, None, None], ey[None] - p[:, 2, None, None]
-    ax = cos * dx + sin * dy  # the ego cell centre in agent j's frame
-    ay = -sin * dx + cos * dy
-    col = torch.floor((ax - agent.x_range[0]) / agent.pillar_m).long()
-    row = torch.floor((ay - agent.y_range[0]) / agent.pillar_m).long()
-    inside = (col >= 0) & (col < agent.nx) & (row >= 0) & (row < agent.ny)
-    maps = torch.arange(b * j, device=dev)[:, None, None]
-    query = (maps * agent.ny + row.clamp(0, agent.ny - 1)) * agent.nx + col.clamp(0, agent.nx - 1)
-    keys = (coords[:, 0] * agent.ny + coords[:, 1]) * agent.nx + coords[:, 2]
-    order = torch.argsort(keys)
-    keys_s = keys[order]
-    pos = torch.searchsorted(keys_s, query.reshape(-1)).clamp(max=max(len(keys_s) - 1, 0))
-    if len(keys_s):
-        hit = (keys_s[pos] == query.reshape(-1)) & inside.reshape(-1)
-    else:
-        hit = torch.zeros(query.numel(), dtype=torch.bool, device=dev)
-    hit = hit & present.reshape(-1)[:, None].expand(b * j, grid.ny * grid.nx).reshape(-1)
-    c = pillar.shape[1]
-    out = torch.zeros(b * j * grid.ny * grid.nx, c, dtype=pillar.dtype, device=dev)
-    if len(keys_s):
-        idx = torch.nonzero(hit).squeeze(1)
-        out = out.index_put((idx,), pillar[order[pos[idx]]])
-    out = out.view(b, j, grid.ny, grid.nx, c).permute(0, 1, 4, 2, 3)
-    return out, hit.view(b, j, grid.ny, grid.nx)
-
-
-def fuse_maps(warped: torch.Tensor, hit: torch.Tensor, how: str) -> torch.Tensor:
-    """(B, C, ny, nx): the agents' warped maps (B, J, C, ny, nx) fused per cell, by max over the agents
-    (F-Cooper's maxout; features are ReLU outputs, so an agent without a pillar there, at 0, never wins) or
-    by attention: softmax over the agents with a pillar there of <ego feature, agent feature> / sqrt(C),
-    weighting the agents' features (AttFuse)."""
+def fuse(pillars: torch.Tensor, cell: torch.Tensor, src: torch.Tensor, ego: torch.Tensor, n_cells: int, how: str
+         ) -> torch.Tensor:
+    """(n_cells, C): the agents' pillar features ``pillars`` (P, C) fused per ego cell over the warp's hits
+    (:func:`cosim.learn.grid.warp_index`: ``cell`` in ascending order, ``src`` the pillar, ``ego`` the ego's
+    own), by max over the agents (F-Cooper's maxout; features are ReLU outputs, and a cell no agent has a
+    pillar in is 0) or by attention: softmax over the agents with a pillar in the cell of <ego feature, agent
+    feature> / sqrt(C), weighting the agents' features (AttFuse; the ego's feature is 0 where it has no
+    pillar)."""
+    c = pillars.shape[1]
+    feat = pillars[src]
     if how == "max":
-        return warped.max(dim=1).values
-    c = warped.shape[2]
-    ego = warped[:, :1]
-    score = (warped * ego).sum(dim=2) / math.sqrt(c)  # (B, J, ny, nx)
-    allowed = hit.clone()
-    allowed[:, 0] |= ~hit.any(dim=1)  # a cell no agent has a pillar in: the ego's (zero) feature
-    score = score.masked_fill(~allowed, float("-inf"))
-    w = torch.softmax(score, dim=1)
-    return (w[:, :, None] * warped).sum(dim=1)
+        lengths = torch.bincount(cell, minlength=n_cells)
+        return torch.segment_reduce(feat, "max", lengths=lengths, unsafe=True, initial=0.0)
+    own = pillars.new_zeros(n_cells, c).index_put((cell[ego],), feat[ego])
+    score = (feat * own[cell]).sum(dim=1) / math.sqrt(c)
+    top = score.new_full((n_cells,), float("-inf")).scatter_reduce(0, cell, score, "amax", include_self=True)
+    w = torch.exp(score - top[cell])
+    w = w / score.new_zeros(n_cells).index_add(0, cell, w)[cell]
+    return pillars.new_zeros(n_cells, c).index_add(0, cell, w[:, None] * feat)
 
 
 def focal_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

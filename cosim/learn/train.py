@@ -30,7 +30,7 @@ import torch
 
 from cosim.errors import InputError
 from cosim.eval.predictions import parse_record, record_json
-from cosim.learn.grid import decode, targets, voxelise
+from cosim.learn.grid import decode, targets, voxelise, warp_index
 from cosim.learn.model import PillarDetector, focal_loss, peaks, regression_loss
 from cosim.learn.nms import circle_nms
 from cosim.learn.samples import SCHEDULES, Setup, agent_grid, augment, augment_poses  # noqa: F401 (SCHEDULES: here too)
@@ -81,23 +81,24 @@ def device_of(name: str | None) -> torch.device:
 def batch_arrays(clouds: Sequence[np.ndarray], setup: Setup, per_sample: Sequence[int] | None = None,
                  poses: Sequence[np.ndarray] | None = None, kinds: Sequence[np.ndarray] | None = None
                  ) -> dict[str, np.ndarray]:
-    """Voxelise clouds into one batch (numpy): ``feats`` (P, M, 9), ``mask`` (P, M), ``coords`` (P, 3)
-    [batch, row, column]. Intermediate fusion (``per_sample``: clouds of each sample, in order; ``poses``,
-    ``kinds`` per sample): coords [b x J + j, row, column] in the agents' grid, and ``poses`` (B, J, 3),
-    ``kinds`` (B, J), ``present`` (B, J) with J the most agents of a sample."""
+    """Voxelise clouds into one batch (numpy): ``feats`` (K, 9) the kept points, pillar after pillar,
+    ``counts`` (P,) points per pillar, ``coords`` (P, 3) [batch, row, column]. Intermediate fusion (``per_sample``:
+    clouds of each sample, in order; ``poses``, ``kinds`` per sample): coords [b x J + j, row, column] in the
+    agents' grid, ``poses`` (B, J, 3), ``kinds`` (B, J), ``present`` (B, J) with J the most agents of a
+    sample, and the warp's hits ``cell``, ``src``, ``ego`` (:func:`cosim.learn.grid.warp_index`)."""
     inter = per_sample is not None
     grid = agent_grid(setup.grid) if inter else setup.grid
     if inter:
         j_max = max(per_sample)
         slot = [(b, j) for b, n in enumerate(per_sample) for j in range(n)]
-    feats, coords, masks = [], [], []
+    feats, coords, counts = [], [], []
     for n, cloud in enumerate(clouds):
         f, c, k = voxelise(cloud, grid)
         m = slot[n][0] * j_max + slot[n][1] if inter else n
         feats.append(f)
         coords.append(np.concatenate([np.full((len(c), 1), m, np.int64), c], axis=1))
-        masks.append(np.arange(grid.max_points)[None, :] < k[:, None])
-    out = {"feats": np.concatenate(feats), "mask": np.concatenate(masks), "coords": np.concatenate(coords)}
+        counts.append(k)
+    out = {"feats": np.concatenate(feats), "counts": np.concatenate(counts), "coords": np.concatenate(coords)}
     if inter:
         b = len(per_sample)
         out["poses"] = np.zeros((b, j_max, 3), np.float64)
@@ -107,6 +108,7 @@ def batch_arrays(clouds: Sequence[np.ndarray], setup: Setup, per_sample: Sequenc
             out["poses"][i, :n] = poses[i]
             out["kinds"][i, :n] = kinds[i]
             out["present"][i, :n] = True
+        out["cell"], out["src"], out["ego"] = warp_index(out["coords"], out["poses"], out["present"], setup.grid, grid)
     return out
 
 
@@ -117,8 +119,8 @@ def to_device(arrays: dict[str, Any], device: torch.device) -> dict[str, torch.T
 
 def run_model(model: PillarDetector, batch: dict[str, torch.Tensor], batch_size: int
               ) -> tuple[torch.Tensor, torch.Tensor]:
-    maps = {k: batch[k] for k in ("poses", "kinds", "present")} if "poses" in batch else None
-    return model(batch["feats"], batch["mask"], batch["coords"], batch_size, maps)
+    maps = {k: batch[k] for k in ("kinds", "cell", "src", "ego")} if "poses" in batch else None
+    return model(batch["feats"], batch["counts"], batch["coords"], batch_size, maps)
 
 
 def _lr(opts: TrainOptions, step: int, total: int) -> float:
