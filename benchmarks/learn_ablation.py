@@ -1,0 +1,325 @@
+"""The ablation of docs/learnability.md on a CPU: train every setting of :data:`SETTINGS` from a cache, predict
+the test split, score it and write the tables (issue 35).
+
+    cosim batch sweeps/learnability.yaml --out out/learn72 --count 72 --set duration_s=10 --workers 2
+    python benchmarks/learn_ablation.py run out/learn72 --out out/ablation --steps 800 --parallel 2
+    python benchmarks/learn_ablation.py report out/learn72 --out out/ablation
+
+``run`` makes the cache (``cosim learn cache --every 2``) when ``OUT/cache`` is missing, then trains the
+settings ``--parallel`` at a time (each one process with one torch thread: on a 2-core machine two at once
+keep both cores busy), each followed by its prediction of the test split (and late fusion with each ego-only
+model on every agent's cloud). Every command is ``cosim learn`` itself; what it cost (user + system
+CPU-seconds of its process tree, wall seconds) is appended to ``OUT/jobs.jsonl``. A finished step is
+skipped when ``run`` is started again, so an interrupted run resumes.
+
+``report`` scores every prediction file with ``cosim eval``'s scoring against two ground truths, the
+objects the setting's own agents see and the objects any agent of the full setting (V+I+D) sees (the
+common reference that lets settings be compared: the records' ``agents`` field is read as ``all``), per
+environment, drone strategy and lighting; gathers mean and spread over seeds, the val curves' flatness
+and the CPU of every stage; and writes ``OUT/ablation.md`` and ``OUT/ablation.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+#: name -> (fusion, agents, fuse, seeds): the paper's agent ablation with intermediate fusion (its models
+#: are all intermediate), its fusion ablation on V+I+D, three seeds for ego only and V+I+D. Late fusion is
+#: predicted with the ego-only models (:data:`LATE`).
+SETTINGS: dict[str, tuple[str, str, str, tuple[int, ...]]] = {
+    "ego": ("none", "ego", "max", (0, 1, 2)),
+    "inter-VID": ("intermediate", "all", "max", (0, 1, 2)),
+    "inter-V": ("intermediate", "vehicles", "max", (0,)),
+    "inter-VI": ("intermediate", "vehicles+rsus", "max", (0,)),
+    "inter-VD": ("intermediate", "vehicles+drones", "max", (0,)),
+    "early-VID": ("early", "all", "max", (0,)),
+    "att-VID": ("intermediate", "all", "attention", (0,)),
+}
+#: late fusion: the ego-only model of each seed on every agent's cloud
+LATE = ("late-VID", "ego", "all")
+#: the order training jobs start in: a long and a short one side by side, the first seed of everything first
+ORDER = ("inter-VID/s0", "ego/s0", "inter-V/s0", "inter-VI/s0", "inter-VD/s0", "early-VID/s0", "att-VID/s0",
+         "inter-VID/s1", "ego/s1", "inter-VID/s2", "ego/s2")
+CONDITIONS = ("environment", "strategy", "lighting")
+AGENT_LABEL = {"ego": "ego only", "vehicles": "V", "vehicles+rsus": "V+I", "vehicles+drones": "V+D", "all": "V+I+D"}
+CACHE_EVERY = 2
+TEST_EVERY = 6  # a multiple of the cache's
+
+
+def cosim(*args: str) -> list[str]:
+    return [sys.executable, "-c", "import sys; from cosim.cli import main; sys.exit(main())", *args]
+
+
+def timed(cmd: list[str], log: Path) -> tuple[int, float, float]:
+    """Run ``cmd`` (output to ``log``); exit status, CPU-seconds of its process tree and wall seconds."""
+    t0 = time.perf_counter()
+    with open(log, "w") as f:
+        p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=REPO)
+        _pid, status, usage = os.wait4(p.pid, 0)
+    p.returncode = os.waitstatus_to_exitcode(status)
+    return p.returncode, usage.ru_utime + usage.ru_stime, time.perf_counter() - t0
+
+
+def record(out: Path, **rec) -> None:
+    with open(out / "jobs.jsonl", "a") as f:
+        f.write(json.dumps(rec) + "\n")
+
+
+def jobs_done(out: Path) -> dict[str, dict]:
+    path = out / "jobs.jsonl"
+    if not path.is_file():
+        return {}
+    recs = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return {r["job"]: r for r in recs if r["rc"] == 0}
+
+
+def train_cmd(name: str, seed: int, args: argparse.Namespace, run: Path) -> list[str]:
+    fusion, agents, fuse, _seeds = SETTINGS[name]
+    return cosim("learn", "train", str(args.dataset), "--out", str(run), "--fusion", fusion, "--agents", agents,
+                 "--fuse", fuse, "--cache", str(args.out / "cache"), "--every", str(CACHE_EVERY),
+                 "--steps", str(args.steps), "--batch-size", "8", "--lr", str(args.lr), "--schedule", "onecycle",
+                 "--val-steps", str(args.val_steps), "--val-every-tick", "10", "--keep-every", str(args.val_steps),
+                 "--threads", "1", "--seed", str(seed), "--quiet")
+
+
+def predict_jobs(args: argparse.Namespace) -> list[tuple[str, list[str]]]:
+    jobs = []
+    for name, (_f, _a, _fu, seeds) in SETTINGS.items():
+        for s in seeds:
+            run = args.out / "runs" / f"{name}-s{s}"
+            jobs.append((f"predict {name}/s{s}", cosim(
+                "learn", "predict", str(run), str(args.dataset), "--split", "test", "--every", str(TEST_EVERY),
+                "--cache", str(args.out / "cache"), "--threads", "1", "--quiet",
+                "--out", str(args.out / "pred" / f"{name}-s{s}.jsonl"))))
+    late, base, agents = LATE
+    for s in SETTINGS[base][3]:
+        jobs.append((f"predict {late}/s{s}", cosim(
+            "learn", "predict", str(args.out / "runs" / f"{base}-s{s}"), str(args.dataset), "--split", "test",
+            "--every", str(TEST_EVERY), "--cache", str(args.out / "cache"), "--fusion", "late", "--agents", agents,
+            "--threads", "1", "--quiet", "--out", str(args.out / "pred" / f"{late}-s{s}.jsonl"))))
+    return jobs
+
+
+def run_all(args: argparse.Namespace) -> int:
+    out = args.out
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    (out / "runs").mkdir(exist_ok=True)
+    (out / "pred").mkdir(exist_ok=True)
+    done = jobs_done(out)
+    if "cache" not in done:
+        rc, cpu, wall = timed(cosim("learn", "cache", str(args.dataset), "--out", str(out / "cache"),
+                                    "--every", str(CACHE_EVERY)), out / "logs" / "cache.log")
+        record(out, job="cache", rc=rc, cpu_s=round(cpu, 1), wall_s=round(wall, 1))
+        if rc:
+            print(f"cache failed ({out / 'logs' / 'cache.log'})", file=sys.stderr)
+            return rc
+    preds = dict(predict_jobs(args))
+    chains = []
+    for key in ORDER:
+        name, seed = key.split("/s")
+        if args.only and name not in args.only:
+            continue
+        chain = []
+        run = out / "runs" / f"{name}-s{seed}"
+        if f"train {key}" not in done:
+            if run.exists():  # a run cut short: start it again
+                for f in sorted(run.iterdir()):
+                    f.unlink()
+                run.rmdir()
+            chain.append((f"train {key}", train_cmd(name, int(seed), args, run)))
+        for job in (f"predict {key}", *([f"predict {LATE[0]}/s{seed}"] if name == LATE[1] else [])):
+            if job not in done:
+                chain.append((job, preds[job]))
+        if chain:
+            chains.append(chain)
+    failed = run_chains(chains, args.parallel, out)
+    print(f"{sum(map(len, chains))} jobs; failed: {', '.join(failed) or 'none'}")
+    return 1 if failed else 0
+
+
+def run_chains(chains: list[list[tuple[str, list[str]]]], parallel: int, out: Path) -> list[str]:
+    """Run the chains ``parallel`` at a time (each in a thread that waits for its processes); a chain's jobs
+    run in order (a training, then its predictions) and stop at the first that fails."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def one(chain: list[tuple[str, list[str]]]) -> str | None:
+        for name, cmd in chain:
+            print(f"start {name}", flush=True)
+            rc, cpu, wall = timed(cmd, out / "logs" / (name.replace(" ", "_").replace("/", "_") + ".log"))
+            record(out, job=name, rc=rc, cpu_s=round(cpu, 1), wall_s=round(wall, 1))
+            print(f"end   {name}: rc {rc}, {cpu:.0f} CPU-s, {wall:.0f} s", flush=True)
+            if rc:
+                return name
+        return None
+
+    with ThreadPoolExecutor(parallel) as pool:
+        return [n for n in pool.map(one, chains) if n]
+
+
+# ------------------------------------------------------------------------------------------------ report
+
+
+def score(refs, path: Path, common: bool) -> dict[str, dict]:
+    """AP30 / AP50 / AP70 of the vehicle group, overall and per condition value, of one prediction file:
+    against the objects its own agents see, or (``common``) those any agent of V+I+D sees."""
+    from dataclasses import replace
+
+    from cosim.eval.evaluate import EvalOptions, evaluate
+    from cosim.eval.predictions import read_predictions
+
+    recs = read_predictions(path)
+    setting = recs[0].agents
+    if common:
+        recs = [replace(r, agents="all") for r in recs]
+        setting = "all"
+    result = evaluate(refs, recs, EvalOptions(visible_only=True, metrics=("detection",)))
+    keys = [("overall", "all"), *sorted({(b, v) for _s, b, v in result.cells if b in CONDITIONS})]
+    table = {}
+    for b, v in keys:
+        m = result.metrics(setting, b, v)
+        det = m["detection"].get("vehicle", {})
+        table[f"{b}={v}"] = {k: det.get(k) for k in ("AP30", "AP50", "AP70")} | {"frames": m["frames"]}
+    return table
+
+
+def flatness(run: Path) -> dict:
+    """Val AP30 / AP50 at each validation and the change of AP30 over the last 20 % of the steps."""
+    from cosim.learn.train import read_log
+
+    vals = [r for r in read_log(run) if "val" in r]
+    if not vals:
+        return {}
+    last = vals[-1]["step"]
+    tail = [r for r in vals if r["step"] >= 0.8 * last]
+    ap30 = [r["val"]["AP30"] for r in tail]
+    ap50 = [r["val"]["AP50"] for r in vals]
+    best = max(range(len(vals)), key=lambda i: (ap50[i] == ap50[i] and ap50[i], -i))  # best.pt: the first best
+    return {"steps": [r["step"] for r in vals], "AP30": [r["val"]["AP30"] for r in vals], "AP50": ap50,
+            "tail_AP30_change": round(max(ap30) - min(ap30), 2), "best_step": vals[best]["step"]}
+
+
+def mean_spread(xs: list[float]) -> tuple[float, float]:
+    xs = [x for x in xs if x is not None and not math.isnan(x)]
+    if not xs:
+        return float("nan"), float("nan")
+    m = sum(xs) / len(xs)
+    return m, (max(xs) - min(xs)) / 2 if len(xs) > 1 else 0.0
+
+
+def report(args: argparse.Namespace) -> int:
+    from cosim.eval.dataset import load_dataset
+
+    out = args.out
+    refs = [r for r in load_dataset(args.dataset) if r.split == "test"]
+    jobs = jobs_done(out)
+    models = [(n, s) for n, (_f, _a, _fu, seeds) in SETTINGS.items() for s in seeds]
+    models += [(LATE[0], s) for s in SETTINGS[LATE[1]][3]]
+    results: dict[str, dict] = {}
+    for name, s in models:
+        pred = out / "pred" / f"{name}-s{s}.jsonl"
+        if not pred.is_file():
+            continue
+        t0 = time.process_time()
+        train_key = f"train {LATE[1] if name == LATE[0] else name}/s{s}"
+        run = out / "runs" / f"{LATE[1] if name == LATE[0] else name}-s{s}"
+        results[f"{name}/s{s}"] = {
+            "own": score(refs, pred, common=False), "common": score(refs, pred, common=True),
+            "curve": flatness(run) if name != LATE[0] else {},
+            "train_cpu_s": jobs.get(train_key, {}).get("cpu_s"), "train_wall_s": jobs.get(train_key, {}).get("wall_s"),
+            "best_step": flatness(run).get("best_step"),
+            "predict_cpu_s": jobs.get(f"predict {name}/s{s}", {}).get("cpu_s"),
+            "score_cpu_s": round(time.process_time() - t0, 1)}
+        print(f"scored {name}/s{s}", file=sys.stderr)
+    (out / "ablation.json").write_text(json.dumps({"results": results, "jobs": jobs}, indent=1) + "\n")
+    (out / "ablation.md").write_text(tables(results, jobs))
+    print(out / "ablation.md")
+    return 0
+
+
+def _cell(results: dict, name: str, ref: str, key: str, metric: str) -> str:
+    vals = [r[ref].get(key, {}).get(metric) for k, r in results.items() if k.split("/s")[0] == name]
+    m, spread = mean_spread(vals)
+    if math.isnan(m):
+        return "-"
+    n = sum(v is not None for v in vals)
+    return f"{m:.1f}" + (f" ± {spread:.1f}" if n > 1 else "")
+
+
+def tables(results: dict, jobs: dict) -> str:
+    names = [n for n in [*SETTINGS, LATE[0]] if any(k.split("/s")[0] == n for k in results)]
+
+    def label(n: str) -> str:
+        if n == LATE[0]:
+            return "late, V+I+D (ego-only models)"
+        fusion, agents, fuse, _s = SETTINGS[n]
+        kind = {"none": "", "early": "early, ", "intermediate": f"intermediate ({fuse}), "}[fusion]
+        return f"{kind}{AGENT_LABEL[agents]}"
+
+    def seeds(n: str) -> int:
+        return sum(k.split("/s")[0] == n for k in results)
+
+    lines = ["# cosim learn ablation (benchmarks/learn_ablation.py)", "",
+             "AP of the vehicle group in %, mean ± half the range over seeds where there are several.", ""]
+    lines += ["## Overall", "", "| setting | seeds | own visible AP30 | AP50 | common AP30 | AP50 | AP70 | best step |"
+              " val AP30 change, last 20 % | train CPU-s |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for n in names:
+        rs = [r for k, r in results.items() if k.split("/s")[0] == n]
+        change = [r["curve"].get("tail_AP30_change") for r in rs if r["curve"]]
+        cpu = [r["train_cpu_s"] for r in rs if r["train_cpu_s"]]
+        best = [str(r["best_step"]) for r in rs if r["best_step"] is not None]
+        lines.append(f"| {label(n)} | {seeds(n)} | {_cell(results, n, 'own', 'overall=all', 'AP30')} | "
+                     f"{_cell(results, n, 'own', 'overall=all', 'AP50')} | "
+                     f"{_cell(results, n, 'common', 'overall=all', 'AP30')} | "
+                     f"{_cell(results, n, 'common', 'overall=all', 'AP50')} | "
+                     f"{_cell(results, n, 'common', 'overall=all', 'AP70')} | {', '.join(best) or '-'} | "
+                     f"{', '.join(f'{c:.1f}' for c in change) or '-'} | {', '.join(f'{c:.0f}' for c in cpu) or '-'} |")
+    for cond in CONDITIONS:
+        values = sorted({key.split("=", 1)[1] for r in results.values() for key in r["common"]
+                         if key.startswith(cond + "=")})
+        frames = {v: next((r["common"][f"{cond}={v}"]["frames"] for r in results.values()
+                           if f"{cond}={v}" in r["common"]), 0) for v in values}
+        lines += ["", f"## By {cond} (common reference: objects any agent of V+I+D sees)", "",
+                  "Test frames: " + ", ".join(f"{v} {frames[v]}" for v in values) + ".", "",
+                  "| setting | " + " | ".join(f"{v} AP30 | {v} AP50" for v in values) + " |",
+                  "|---|" + "---:|" * (2 * len(values))]
+        for n in names:
+            cells = [_cell(results, n, "common", f"{cond}={v}", m) for v in values for m in ("AP30", "AP50")]
+            lines.append(f"| {label(n)} | " + " | ".join(cells) + " |")
+    lines += ["", "## CPU of every stage", "", "| job | CPU-s | wall s |", "|---|---:|---:|"]
+    total = 0.0
+    for job, r in jobs.items():
+        lines.append(f"| {job} | {r['cpu_s']:.0f} | {r['wall_s']:.0f} |")
+        total += r["cpu_s"]
+    lines.append(f"| all jobs | {total:.0f} | |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run", help="cache, train and predict every setting")
+    rp = sub.add_parser("report", help="score the predictions and write OUT/ablation.md and .json")
+    for q in (r, rp):
+        q.add_argument("dataset", type=Path, help="batch folder of sweeps/learnability.yaml")
+        q.add_argument("--out", type=Path, required=True)
+    r.add_argument("--steps", type=int, default=800)
+    r.add_argument("--lr", type=float, default=3e-3)
+    r.add_argument("--val-steps", type=int, default=200)
+    r.add_argument("--parallel", type=int, default=2)
+    r.add_argument("--only", nargs="*", help="only these settings (names of SETTINGS)")
+    args = p.parse_args()
+    return run_all(args) if args.cmd == "run" else report(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
