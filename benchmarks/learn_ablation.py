@@ -16,7 +16,8 @@ skipped when ``run`` is started again, so an interrupted run resumes.
 objects the setting's own agents see and the objects any agent of the full setting (V+I+D) sees (the
 common reference that lets settings be compared: the records' ``agents`` field is read as ``all``), per
 environment, drone strategy and lighting; gathers mean and spread over seeds, the val curves' flatness
-and the CPU of every stage; and writes ``OUT/ablation.md`` and ``OUT/ablation.json``.
+and the CPU of every stage; runs ``cosim learn recall`` on the seed-0 predictions (objects the ego has no
+return on, found per setting); and writes ``OUT/ablation.md`` and ``OUT/ablation.json``.
 """
 
 from __future__ import annotations
@@ -240,8 +241,15 @@ def report(args: argparse.Namespace) -> int:
             "predict_cpu_s": jobs.get(f"predict {name}/s{s}", {}).get("cpu_s"),
             "score_cpu_s": round(time.process_time() - t0, 1)}
         print(f"scored {name}/s{s}", file=sys.stderr)
+    first = [out / "pred" / f"{n}-s0.jsonl" for n in [*SETTINGS, LATE[0]] if (out / "pred" / f"{n}-s0.jsonl").is_file()]
+    rc, cpu, wall = timed(cosim("learn", "recall", str(args.dataset), *map(str, first), "--out", str(out / "recall")),
+                          out / "logs" / "recall.log")
+    jobs["recall"] = {"job": "recall", "rc": rc, "cpu_s": round(cpu, 1), "wall_s": round(wall, 1)}
+    recall = ((out / "recall" / "recall.md").read_text() if rc == 0
+              else f"recall failed: {out / 'logs' / 'recall.log'}\n")
     (out / "ablation.json").write_text(json.dumps({"results": results, "jobs": jobs}, indent=1) + "\n")
-    (out / "ablation.md").write_text(tables(results, jobs))
+    (out / "ablation.md").write_text(f"{tables(results, jobs)}\n## Where collaboration helps (seed 0, `cosim learn "
+                                     f"recall`)\n\n{recall}")
     print(out / "ablation.md")
     return 0
 
