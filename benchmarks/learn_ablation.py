@@ -289,7 +289,8 @@ def tables(results: dict, jobs: dict) -> str:
     lines = ["# cosim learn ablation (benchmarks/learn_ablation.py)", "",
              "AP of the vehicle group in %, mean ± half the range over seeds where there are several.", ""]
     lines += ["## Overall", "", "| setting | seeds | own visible AP30 | AP50 | common AP30 | AP50 | AP70 | best step |"
-              " val AP30 change over the last validations (from <= 80 % of the steps) | train CPU-s |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+              " val AP30 change over the last validations (from <= 80 % of the steps) | train CPU-s |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for n in names:
         rs = [r for k, r in results.items() if k.split("/s")[0] == n]
         change = [r["curve"].get("tail_AP30_change") for r in rs if r["curve"]]
