@@ -129,7 +129,7 @@ def warp_index(coords: np.ndarray, poses: np.ndarray, present: np.ndarray, grid:
     into that frame (nearest cell, any yaw).
 
     ``coords`` (P, 3) [map, row, column] of the pillars, map = b x J + j; ``poses`` (B, J, 3) yaw, x, y of
-    agent j's frame in the ego's; ``present`` (B, J). Returns the hits only, ordered by map then cell:
+    agent j's frame in the ego's; ``present`` (B, J). Returns the hits only, ordered by cell, then agent:
     ``cell`` (H,) the ego cell (b x ny x nx + row x nx + column), ``pillar`` (H,) the pillar's row of
     ``coords`` and ``ego`` (H,) bool: the hit is the sample's first agent's (the ego's own map).
     """
@@ -139,7 +139,7 @@ def warp_index(coords: np.ndarray, poses: np.ndarray, present: np.ndarray, grid:
     keys = (coords[:, 0] * agent.ny + coords[:, 1]) * agent.nx + coords[:, 2]
     order = np.argsort(keys, kind="stable")
     keys_s = keys[order]
-    cells, pillars, egos = [], [], []
+    cells, pillars, egos = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [np.zeros(0, bool)]
     for m in np.flatnonzero(present.reshape(-1)):
         yaw, x, y = poses.reshape(-1, 3)[m]
         c, s = math.cos(yaw), math.sin(yaw)
@@ -149,14 +149,10 @@ def warp_index(coords: np.ndarray, poses: np.ndarray, present: np.ndarray, grid:
         inside = ((col >= 0) & (col < agent.nx) & (row >= 0) & (row < agent.ny)).reshape(-1)
         query = (m * agent.ny + row.reshape(-1)) * agent.nx + col.reshape(-1)
         pos = np.searchsorted(keys_s, query).clip(max=max(len(keys_s) - 1, 0))
-        if not len(keys_s):
-            continue
-        hit = np.flatnonzero(inside & (keys_s[pos] == query))
+        hit = np.flatnonzero(inside & (keys_s[pos] == query)) if len(keys_s) else np.zeros(0, np.int64)
         cells.append(m // j * grid.ny * grid.nx + hit)
         pillars.append(order[pos[hit]])
         egos.append(np.full(len(hit), m % j == 0))
-    if not cells:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, bool)
     cell = np.concatenate(cells)
     order = np.argsort(cell, kind="stable")
     return cell[order], np.concatenate(pillars)[order], np.concatenate(egos)[order]
