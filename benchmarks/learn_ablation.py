@@ -172,9 +172,10 @@ def run_chains(chains: list[list[tuple[str, list[str]]]], parallel: int, out: Pa
 # ------------------------------------------------------------------------------------------------ report
 
 
-def score(refs, path: Path, common: bool) -> dict[str, dict]:
+def score(refs, path: Path) -> dict[str, dict[str, dict]]:
     """AP30 / AP50 / AP70 of the vehicle group, overall and per condition value, of one prediction file:
-    against the objects its own agents see, or (``common``) those any agent of V+I+D sees."""
+    ``own``, against the objects its own agents see, and ``common``, against those any agent of V+I+D sees
+    (the records again, read as ``all``), in one pass over the ground truth."""
     from dataclasses import replace
 
     from cosim.eval.evaluate import EvalOptions, evaluate
@@ -182,17 +183,17 @@ def score(refs, path: Path, common: bool) -> dict[str, dict]:
 
     recs = read_predictions(path)
     setting = recs[0].agents
-    if common:
-        recs = [replace(r, agents="all") for r in recs]
-        setting = "all"
-    result = evaluate(refs, recs, EvalOptions(visible_only=True, metrics=("detection",)))
+    both = recs if setting == "all" else [*recs, *(replace(r, agents="all") for r in recs)]
+    result = evaluate(refs, both, EvalOptions(visible_only=True, metrics=("detection",)))
     keys = [("overall", "all"), *sorted({(b, v) for _s, b, v in result.cells if b in CONDITIONS})]
-    table = {}
-    for b, v in keys:
-        m = result.metrics(setting, b, v)
-        det = m["detection"].get("vehicle", {})
-        table[f"{b}={v}"] = {k: det.get(k) for k in ("AP30", "AP50", "AP70")} | {"frames": m["frames"]}
-    return table
+    tables: dict[str, dict[str, dict]] = {}
+    for name, agents in (("own", setting), ("common", "all")):
+        tables[name] = {}
+        for b, v in keys:
+            m = result.metrics(agents, b, v)
+            det = m["detection"].get("vehicle", {})
+            tables[name][f"{b}={v}"] = {k: det.get(k) for k in ("AP30", "AP50", "AP70")} | {"frames": m["frames"]}
+    return tables
 
 
 def flatness(run: Path) -> dict:
@@ -242,7 +243,7 @@ def report(args: argparse.Namespace) -> int:
         train_key = f"train {LATE[1] if name == LATE[0] else name}/s{s}"
         run = out / "runs" / f"{LATE[1] if name == LATE[0] else name}-s{s}"
         results[f"{name}/s{s}"] = {
-            "own": score(refs, pred, common=False), "common": score(refs, pred, common=True),
+            **score(refs, pred),
             "curve": flatness(run) if name != LATE[0] else {},
             "train_cpu_s": jobs.get(train_key, {}).get("cpu_s"), "train_wall_s": jobs.get(train_key, {}).get("wall_s"),
             "best_step": flatness(run).get("best_step"),
