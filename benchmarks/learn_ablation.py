@@ -8,7 +8,7 @@ the test split, score it and write the tables (issue 35).
 ``run`` makes the cache (``cosim learn cache --every 2``) when ``OUT/cache`` is missing, then trains the
 settings ``--parallel`` at a time (each one process with one torch thread: on a 2-core machine two at once
 keep both cores busy), each followed by its prediction of the test split (and late fusion with each ego-only
-model of seed 0 on every agent's cloud). Every command is ``cosim learn`` itself; what it cost (user + system
+model on every agent's cloud). Every command is ``cosim learn`` itself; what it cost (user + system
 CPU-seconds of its process tree, wall seconds) is appended to ``OUT/jobs.jsonl``. A finished step is
 skipped when ``run`` is started again, so an interrupted run resumes.
 
@@ -36,7 +36,7 @@ sys.path.insert(0, str(REPO))
 
 #: name -> (fusion, agents, fuse, seeds): the paper's agent ablation with intermediate fusion (its models
 #: are all intermediate), its fusion ablation on V+I+D, three seeds for ego only and V+I+D. Late fusion is
-#: predicted with the ego-only model of seed 0 (:data:`LATE`). Attention fusion (``--fuse attention``) is
+#: predicted with each ego-only model (:data:`LATE`). Attention fusion (``--fuse attention``) is
 #: not in the grid: it did not fit the 2-core machine's time with the rest (docs/learnability.md).
 SETTINGS: dict[str, tuple[str, str, str, tuple[int, ...]]] = {
     "ego": ("none", "ego", "max", (0, 1, 2)),
@@ -46,9 +46,9 @@ SETTINGS: dict[str, tuple[str, str, str, tuple[int, ...]]] = {
     "inter-VD": ("intermediate", "vehicles+drones", "max", (0,)),
     "early-VID": ("early", "all", "max", (0,)),
 }
-#: late fusion: the ego-only model of seed 0 on every agent's cloud
+#: late fusion: each ego-only model on every agent's cloud
 LATE = ("late-VID", "ego", "all")
-LATE_SEEDS = (0,)
+LATE_SEEDS = (0, 1, 2)
 #: the order training jobs start in: a long and a short one side by side, the first seed of everything first
 ORDER = ("inter-VID/s0", "ego/s0", "inter-V/s0", "inter-VI/s0", "inter-VD/s0", "early-VID/s0", "inter-VID/s1",
          "ego/s1", "inter-VID/s2", "ego/s2")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -13,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cosim.learn.grid import Grid, decode, targets, voxelise
+from cosim.learn.grid import REG_CHANNELS, Grid, decode, targets, voxelise
 from cosim.learn.nms import circle_nms
 from tests.helpers import REPO, run_cli, run_sweep
 
@@ -142,19 +143,43 @@ def test_voxelise_keeps_the_fullest_pillars_when_too_many():
     assert sorted(counts.tolist()) == [2, 3]
 
 
-def test_targets_decode_back_to_the_boxes():
+@pytest.mark.parametrize("yaws", [(0.3, -2.0), (2.5, -0.9), (math.pi / 2 + 1e-3, -math.pi / 2 + 1e-3),
+                                  (math.pi - 1e-3, 0.0)])
+def test_targets_decode_back_to_the_boxes(yaws):
     g = Grid()
-    boxes = np.array([[10.3, -5.2, -1.0, 4.5, 1.9, 1.6, 0.3], [-30.1, 20.7, -0.8, 12.0, 2.5, 3.2, -2.0]])
+    boxes = np.array([[10.3, -5.2, -1.0, 4.5, 1.9, 1.6, yaws[0]], [-30.1, 20.7, -0.8, 12.0, 2.5, 3.2, yaws[1]]])
     t = targets(boxes, np.array([0, 3]), g, 6)
     assert t["mask"].sum() == 2 and t["heatmap"].max() == 1.0
-    reg = np.zeros((8, *g.out_shape), np.float32)
+    reg = np.zeros((REG_CHANNELS, *g.out_shape), np.float32)
     for n in range(2):
         cy, cx = divmod(int(t["index"][n]), g.out_shape[1])
         reg[:, cy, cx] = t["reg"][n]
     heat = t["heatmap"] * (t["heatmap"] == 1)
     out, _scores, cls = decode(heat, reg, g)
-    np.testing.assert_allclose(out, boxes, atol=1e-5)
+    np.testing.assert_allclose(out[:, :6], boxes[:, :6], atol=1e-5)
+    turn = np.angle(np.exp(1j * (out[:, 6] - boxes[:, 6])))  # the heading, not only the axis, comes back
+    np.testing.assert_allclose(turn, 0.0, atol=1e-5)
     assert cls.tolist() == [0, 3]
+    # a box and the same box turned by pi share the axis channels and differ in the direction target alone
+    turned = targets(boxes + np.array([0, 0, 0, 0, 0, 0, math.pi]), np.array([0, 3]), g, 6)
+    np.testing.assert_allclose(turned["reg"][:2, :8], t["reg"][:2, :8], atol=1e-5)
+    assert (turned["reg"][:2, 8] + t["reg"][:2, 8]).tolist() == [1.0, 1.0]
+
+
+@needs_torch
+def test_regression_loss_scores_the_direction_by_cross_entropy():
+    import torch
+
+    from cosim.learn.model import regression_loss
+
+    target = torch.zeros(1, 1, REG_CHANNELS)
+    target[0, 0, 8] = 1.0
+    index, mask = torch.zeros(1, 1, dtype=torch.long), torch.ones(1, 1)
+    right, wrong = torch.zeros(1, REG_CHANNELS, 1, 1), torch.zeros(1, REG_CHANNELS, 1, 1)
+    right[0, 8], wrong[0, 8] = 4.0, -4.0
+    l_right, l_wrong = (float(regression_loss(r, target, index, mask)) for r in (right, wrong))
+    assert l_right == pytest.approx(0.2 * math.log1p(math.exp(-4.0)), rel=1e-5)
+    assert l_wrong == pytest.approx(0.2 * math.log1p(math.exp(4.0)), rel=1e-5)
 
 
 def test_circle_nms_keeps_the_best_of_close_centres():

@@ -17,8 +17,12 @@ AREA_HALF_M: tuple[float, float] = (140.8, 40.0)
 #: Point features per point in a pillar: x, y, z, intensity, offsets to the pillar's point mean (3) and to
 #: the pillar's centre (2).
 POINT_FEATURES = 9
-#: Regression channels per output cell: dx, dy (offset in cells), z, log l, log w, log h, sin yaw, cos yaw.
-REG_CHANNELS = 8
+#: Regression channels per output cell: dx, dy (offset in cells), z, log l, log w, log h, sin 2 yaw, cos 2 yaw
+#: (the box's axis, which a LiDAR return fixes: a car seen from one side looks alike both ways) and the
+#: direction (a logit, target 1 where the heading is the axis angle in (-pi/2, pi/2], 0 where it is that + pi).
+REG_CHANNELS = 9
+#: The first channels of :data:`REG_CHANNELS`, trained by L1; the last, the direction, by cross-entropy.
+L1_CHANNELS = 8
 
 
 @dataclass(frozen=True)
@@ -178,8 +182,9 @@ def gaussian_radius(length_cells: float, width_cells: float, min_overlap: float 
 def targets(boxes: np.ndarray, labels: np.ndarray, grid: Grid, n_classes: int, max_objects: int = 128
             ) -> dict[str, np.ndarray]:
     """Training targets of one sample: ``heatmap`` (K, H, W) with a Gaussian peak of 1 at each box centre
-    in its class's channel, and up to ``max_objects`` regression targets ``reg`` (O, 8) at cells ``index``
-    (O,) (flat row * W + column), ``mask`` (O,) marking the used rows."""
+    in its class's channel, and up to ``max_objects`` regression targets ``reg`` (O, 9) at cells ``index``
+    (O,) (flat row * W + column), ``mask`` (O,) marking the used rows. The yaw is the doubled angle's sine and
+    cosine plus a direction target of 1 or 0 (:data:`REG_CHANNELS`)."""
     h, w = grid.out_shape
     heat = np.zeros((n_classes, h, w), np.float32)
     reg = np.zeros((max_objects, REG_CHANNELS), np.float32)
@@ -202,8 +207,9 @@ def targets(boxes: np.ndarray, labels: np.ndarray, grid: Grid, n_classes: int, m
         y0, y1, x0, x1 = max(0, cy - r), min(h, cy + r + 1), max(0, cx - r), min(w, cx + r + 1)
         g = np.exp(-((xx[y0:y1, x0:x1] - cx) ** 2 + (yy[y0:y1, x0:x1] - cy) ** 2) / (2 * sigma ** 2))
         np.maximum(heat[k, y0:y1, x0:x1], g.astype(np.float32), out=heat[k, y0:y1, x0:x1])
+        axis = 0.5 * math.atan2(math.sin(2 * box[6]), math.cos(2 * box[6]))
         reg[n] = [fx - cx, fy - cy, box[2], math.log(box[3]), math.log(box[4]), math.log(box[5]),
-                  math.sin(box[6]), math.cos(box[6])]
+                  math.sin(2 * box[6]), math.cos(2 * box[6]), float(math.cos(box[6] - axis) > 0)]
         index[n] = cy * w + cx
         mask[n] = 1.0
         n += 1
@@ -213,7 +219,8 @@ def targets(boxes: np.ndarray, labels: np.ndarray, grid: Grid, n_classes: int, m
 def decode(heat: np.ndarray, reg: np.ndarray, grid: Grid, score_min: float = 0.1, top_k: int = 100
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Boxes from one sample's head output: ``heat`` (K, H, W) probabilities, already reduced to local
-    maxima (others 0), ``reg`` (8, H, W). Returns boxes (N, 7) [x, y, z, l, w, h, yaw], scores (N,),
+    maxima (others 0), ``reg`` (9, H, W): the yaw is the axis angle, turned by pi where the direction logit is
+    not above 0. Returns boxes (N, 7) [x, y, z, l, w, h, yaw], scores (N,),
     class indices (N,), best first."""
     _k, h, w = heat.shape
     flat = heat.reshape(-1)
@@ -226,6 +233,7 @@ def decode(heat: np.ndarray, reg: np.ndarray, grid: Grid, score_min: float = 0.1
     x = grid.x_range[0] + (cx + r[0]) * cell
     y = grid.y_range[0] + (cy + r[1]) * cell
     size = np.exp(np.clip(r[3:6], -3.0, 3.5))
-    yaw = np.arctan2(r[6], r[7])
+    axis = 0.5 * np.arctan2(r[6], r[7])
+    yaw = np.where(r[8] > 0, axis, np.where(axis > 0, axis - np.pi, axis + np.pi))  # in (-pi, pi]
     boxes = np.stack([x, y, r[2], size[0], size[1], size[2], yaw], axis=1).astype(np.float64)
     return boxes.reshape(-1, 7), flat[cand].astype(np.float64), cls.astype(np.int64)

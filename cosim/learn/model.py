@@ -20,7 +20,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from cosim.learn.grid import POINT_FEATURES, REG_CHANNELS, Grid
+from cosim.learn.grid import L1_CHANNELS, POINT_FEATURES, REG_CHANNELS, Grid
 from cosim.learn.samples import KINDS
 
 
@@ -82,7 +82,7 @@ class PillarDetector(nn.Module):
         pillar, ``coords`` (P, 3) long [batch, row, column] of each pillar.
         Intermediate fusion: ``coords`` [map, row, column] in the agents' grids, map = batch x J + agent,
         and ``maps`` with ``kinds`` (B, J) and the warp's hits ``cell``, ``src``, ``ego``
-        (:func:`cosim.learn.grid.warp_index`). Returns heatmap logits (B, K, H, W) and regression (B, 8, H, W)."""
+        (:func:`cosim.learn.grid.warp_index`). Returns heatmap logits (B, K, H, W) and regression (B, 9, H, W)."""
         g = self.grid
         c = self.pfn.out_features
         if self.intermediate:
@@ -136,13 +136,19 @@ def focal_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return -(pos_loss.sum() + neg_loss.sum()) / n
 
 
-def regression_loss(reg: torch.Tensor, target: torch.Tensor, index: torch.Tensor, mask: torch.Tensor
-                    ) -> torch.Tensor:
-    """L1 between the predicted and the true regression at the objects' centre cells."""
+def regression_loss(reg: torch.Tensor, target: torch.Tensor, index: torch.Tensor, mask: torch.Tensor,
+                    direction_weight: float = 0.2) -> torch.Tensor:
+    """At the objects' centre cells: L1 between the predicted and the true box channels (the first
+    :data:`~cosim.learn.grid.L1_CHANNELS`), plus ``direction_weight`` x the binary cross-entropy of the
+    direction logit (PointPillars' direction classifier and weight)."""
     b, ch, h, w = reg.shape
     pred = reg.view(b, ch, h * w).gather(2, index.unsqueeze(1).expand(b, ch, index.shape[1])).permute(0, 2, 1)
     m = mask.unsqueeze(2)
-    return (F.l1_loss(pred * m, target * m, reduction="sum")) / (m.sum() * ch).clamp(min=1.0)
+    n = m.sum()
+    l1 = F.l1_loss(pred[..., :L1_CHANNELS] * m, target[..., :L1_CHANNELS] * m, reduction="sum")
+    bce = F.binary_cross_entropy_with_logits(pred[..., L1_CHANNELS:], target[..., L1_CHANNELS:], weight=m,
+                                             reduction="sum")
+    return l1 / (n * L1_CHANNELS).clamp(min=1.0) + direction_weight * bce / n.clamp(min=1.0)
 
 
 def peaks(logits: torch.Tensor) -> torch.Tensor:

@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 
 CHECKPOINT = "checkpoint.pt"
 BEST = "best.pt"
-FORMAT = 1  # checkpoint layout version
+FORMAT = 2  # checkpoint layout version (2: the yaw as axis and direction, 9 regression channels)
 
 
 @dataclass(frozen=True)
