@@ -713,3 +713,23 @@ def test_recall_counts_the_objects_the_ego_does_not_see(trained, tiny_batch, tmp
     assert ego["frames"] == allr["frames"] == 10 and ego["ego-blind"] == allr["ego-blind"]
     assert ego["ego-blind seen by setting"] == 0  # the ego alone sees none of its blind objects
     assert allr["ego-blind seen by setting"] >= allr["found (ego-blind)"] >= 0
+    for row in rows:  # the tightness table scores exactly the matched boxes
+        assert row["found"] == row["found (ego-blind)"] + row["found (ego-seen)"]
+    assert "How tight the found boxes are" in (tmp_path / "recall" / "recall.md").read_text()
+
+
+def test_box_errors_are_measured_in_the_true_box_frame():
+    from cosim.learn.recall import box_errors, error_summary
+
+    yaw = 0.7
+    along, across = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
+    gt_c = np.array([[10.0, 5.0, -1.0], [0.0, 0.0, -1.0]])
+    det_c = gt_c + np.r_[0.4 * along - 0.1 * across, 0.0][None, :] * np.array([[1.0], [0.0]])
+    err = box_errors(det_c, np.array([[4.9, 2.0, 1.5], [4.5, 1.8, 1.5]]), np.array([yaw + math.pi + 0.1, -yaw]),
+                     gt_c, np.array([[4.5, 1.8, 1.5], [4.5, 1.8, 1.5]]), np.array([yaw, yaw]))
+    np.testing.assert_allclose(err[0, :4], [0.4, -0.1, 0.4, 0.2], atol=1e-9)
+    np.testing.assert_allclose(err[0, 5], 0.1, atol=1e-9)  # the axis is off by 0.1 rad; the heading by a half turn
+    np.testing.assert_allclose(err[1, 4:], [-2 * yaw, 2 * yaw], atol=1e-9)
+    summary = error_summary(err)
+    assert summary["found"] == 2 and summary["heading flipped %"] == 50.0
+    assert summary["yaw deg (mod 180)"] == pytest.approx(math.degrees((0.1 + 2 * yaw) / 2), abs=0.05)

@@ -2,7 +2,9 @@
 of ``cosim learn predict``), the vehicles in the ego's evaluation area that the ego has no LiDAR return on
 (``/<ego>/visibility``), how many of them the setting's agents see, and how many the model finds (a
 prediction of at least ``min_score`` matched one-to-one, best score first, at BEV IoU >= ``iou``), beside the
-same for the objects the ego does see. No torch."""
+same for the objects the ego does see; and how tight the found boxes are (:data:`ERROR_COLUMNS`: medians over
+the found vehicles of the centre's error along and across the true box, of the length and width errors, of
+the yaw error up to a half turn, and the share whose heading is off by more than a quarter turn). No torch."""
 
 from __future__ import annotations
 
@@ -20,11 +22,13 @@ from cosim.eval.predictions import read_predictions
 
 COLUMNS = ("predictions", "agents", "frames", "ego-blind", "ego-blind seen by setting", "found (ego-blind)",
            "recall ego-blind %", "recall ego-blind seen %", "ego-seen", "found (ego-seen)", "recall ego-seen %")
+ERROR_COLUMNS = ("predictions", "found", "along m", "across m", "length m", "width m", "yaw deg (mod 180)",
+                 "heading flipped %")
 
 
 def recall_rows(refs: list[EpisodeRef], files: list[Path], iou: float = 0.3, min_score: float = 0.3
                 ) -> list[dict[str, Any]]:
-    """One row per prediction file (columns :data:`COLUMNS`)."""
+    """One row per prediction file (columns :data:`COLUMNS`, then :data:`ERROR_COLUMNS` after the first)."""
     preds = {}
     for f in files:
         recs = read_predictions(f)
@@ -40,6 +44,7 @@ def recall_rows(refs: list[EpisodeRef], files: list[Path], iou: float = 0.3, min
         if unknown:
             raise InputError(f"{f}: episode {unknown[0]} is not in the dataset's chosen split")
     counts: dict[Path, dict[str, int]] = {f: defaultdict(int) for f in files}
+    errors: dict[Path, list[np.ndarray]] = {f: [] for f in files}
     wanted = {k for by_key, _a in preds.values() for k in by_key}
     for ref in refs:
         ticks = {k[1] for k in wanted if k[0] == ref.id}
@@ -60,7 +65,12 @@ def recall_rows(refs: list[EpisodeRef], files: list[Path], iou: float = 0.3, min
                 det_cls = np.asarray(rec.classes)
                 keep &= np.isin(det_cls, VEHICLE_CLASSES) if len(det_cls) else keep
                 det_fp = footprints(rec.centers_m[keep, :2], rec.sizes_m[keep, :2], rec.yaws_rad[keep])
-                found = _found(det_fp, rec.scores[keep], gt_fp[veh], iou)
+                match = _matches(det_fp, rec.scores[keep], gt_fp[veh], iou)
+                found = match >= 0
+                hit = np.flatnonzero(keep)[match[found]]
+                errors[f].append(box_errors(rec.centers_m[hit], rec.sizes_m[hit], rec.yaws_rad[hit],
+                                            truth.centers_m[veh][found], truth.sizes_m[veh][found],
+                                            truth.yaws_rad[veh][found]))
                 blind = ~ego_sees[veh]
                 c["ego-blind"] += int(blind.sum())
                 c["ego-blind seen by setting"] += int((blind & seen[setting][veh]).sum())
@@ -81,24 +91,51 @@ def recall_rows(refs: list[EpisodeRef], files: list[Path], iou: float = 0.3, min
                      "recall ego-blind %": pct("found (ego-blind)", "ego-blind"),
                      "recall ego-blind seen %": pct("found (ego-blind seen)", "ego-blind seen by setting"),
                      "ego-seen": c["ego-seen"], "found (ego-seen)": c["found (ego-seen)"],
-                     "recall ego-seen %": pct("found (ego-seen)", "ego-seen")})
+                     "recall ego-seen %": pct("found (ego-seen)", "ego-seen"),
+                     **error_summary(np.concatenate(errors[f]) if errors[f] else np.zeros((0, 6)))})
     return rows
 
 
-def _found(det_fp: np.ndarray, scores: np.ndarray, gt_fp: np.ndarray, iou: float) -> np.ndarray:
-    """(M,) bool: ground-truth boxes matched one-to-one (best score first) at IoU >= ``iou``: the greedy rule
-    of cosim eval's matching (cosim.eval.ap.match_frame)."""
-    out = np.zeros(len(gt_fp), bool)
+def box_errors(det_centers: np.ndarray, det_sizes: np.ndarray, det_yaws: np.ndarray, gt_centers: np.ndarray,
+               gt_sizes: np.ndarray, gt_yaws: np.ndarray) -> np.ndarray:
+    """(N, 6) errors of N matched boxes: the centre's error along and across the true box [m], length and
+    width errors [m], the yaw error [rad]: signed in (-pi, pi] (the heading's), then folded to [0, pi/2]
+    (the axis')."""
+    d = det_centers[:, :2] - gt_centers[:, :2]
+    c, s = np.cos(gt_yaws), np.sin(gt_yaws)
+    turn = np.angle(np.exp(1j * (det_yaws - gt_yaws)))
+    axis = np.abs(turn)
+    axis = np.minimum(axis, np.pi - axis)
+    return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], det_sizes[:, 0] - gt_sizes[:, 0],
+                     det_sizes[:, 1] - gt_sizes[:, 1], turn, axis], axis=1).reshape(-1, 6)
+
+
+def error_summary(err: np.ndarray) -> dict[str, Any]:
+    """The :data:`ERROR_COLUMNS` (but the file's name) of :func:`box_errors` rows: medians of the absolute
+    errors, and the share of headings off by more than a quarter turn."""
+    if not len(err):
+        return {k: float("nan") for k in ERROR_COLUMNS[2:]} | {"found": 0}
+    med = np.median(np.abs(err), axis=0)
+    return {"found": len(err), "along m": round(float(med[0]), 3), "across m": round(float(med[1]), 3),
+            "length m": round(float(med[2]), 3), "width m": round(float(med[3]), 3),
+            "yaw deg (mod 180)": round(float(np.degrees(med[5])), 1),
+            "heading flipped %": round(100.0 * float(np.mean(np.abs(err[:, 4]) > np.pi / 2)), 1)}
+
+
+def _matches(det_fp: np.ndarray, scores: np.ndarray, gt_fp: np.ndarray, iou: float) -> np.ndarray:
+    """(M,) int: for each ground-truth box the detection (its index in ``det_fp``) matched to it one-to-one,
+    best score first, at IoU >= ``iou`` (the greedy rule of cosim eval's matching, cosim.eval.ap.match_frame),
+    or -1."""
+    out = np.full(len(gt_fp), -1, np.int64)
     if not len(det_fp) or not len(gt_fp):
         return out
-
     order = np.argsort(-scores, kind="stable")
     ious = iou_matrix(det_fp[order], gt_fp)
     for i in range(len(order)):
-        cand = np.where(out, -1.0, ious[i])
+        cand = np.where(out >= 0, -1.0, ious[i])
         j = int(np.argmax(cand))
         if cand[j] >= iou:
-            out[j] = True
+            out[j] = order[i]
     return out
 
 
@@ -108,6 +145,9 @@ def write_recall(rows: list[dict[str, Any]], out: Path, iou: float, min_score: f
              f"{min_score}, BEV IoU >= {iou})", "", "| " + " | ".join(COLUMNS) + " |",
              "|" + "---|" * len(COLUMNS)]
     lines += ["| " + " | ".join(str(r[c]) for c in COLUMNS) + " |" for r in rows]
+    lines += ["", "How tight the found boxes are (the same matches; medians of absolute errors in the true box's "
+              "frame)", "", "| " + " | ".join(ERROR_COLUMNS) + " |", "|" + "---|" * len(ERROR_COLUMNS)]
+    lines += ["| " + " | ".join(str(r[c]) for c in ERROR_COLUMNS) + " |" for r in rows]
     md = out / "recall.md"
     md.write_text("\n".join(lines) + "\n")
     js = out / "recall.json"
