@@ -379,6 +379,13 @@ def test_bad_input_one_message_exit_2(trained, tiny_batch, tmp_path):
     torch.save(ckpt, other / "checkpoint.pt")
     cases.append((["learn", "predict", str(other), str(tiny_batch), "--out", str(tmp_path / "p.jsonl")],
                   "no class zeppelin"))
+    old_format = tmp_path / "old_format"
+    old_format.mkdir()
+    torch.save({**torch.load(trained / "checkpoint.pt", weights_only=False), "format": 1}, old_format / "checkpoint.pt")
+    cases += [(["learn", "predict", str(old_format), str(tiny_batch), "--out", str(tmp_path / "p.jsonl")],
+               "changed the yaw head"),
+              (["learn", "train", str(tiny_batch), "--out", str(old_format), "--steps", "2", "--resume"],
+               "changed the yaw head")]
     cases += [
         (["learn", "train", str(tiny_batch), "--out", str(tmp_path / "r5"), "--cache", str(empty)], "no cache.json"),
         (["learn", "predict", str(trained), str(tiny_batch), "--out", str(tmp_path / "p.jsonl"), "--fusion",

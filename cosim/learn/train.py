@@ -150,6 +150,15 @@ def model_for(setup: Setup, opts: TrainOptions) -> PillarDetector:
                           encoders=setup.encoders)
 
 
+def check_format(ckpt: Any, path: Path) -> None:
+    """InputError unless ``ckpt`` (a loaded checkpoint file) is a cosim learn checkpoint of :data:`FORMAT`."""
+    if not isinstance(ckpt, dict) or "format" not in ckpt:
+        raise InputError(f"{path}: not a cosim learn checkpoint")
+    if ckpt["format"] != FORMAT:
+        raise InputError(f"{path}: a cosim learn checkpoint of format {ckpt['format']}; this cosim reads format "
+                         f"{FORMAT} (format 2 changed the yaw head, docs/learnability.md): train the model again")
+
+
 def load_run(run: Path, device: torch.device | None = None) -> tuple[PillarDetector, Setup, dict[str, Any]]:
     """The model of a RUN folder (its ``best.pt``, chosen on validation, else its last checkpoint) or of one
     checkpoint file, its setup and the checkpoint."""
@@ -162,8 +171,7 @@ def load_run(run: Path, device: torch.device | None = None) -> tuple[PillarDetec
         ckpt = torch.load(path, map_location=device, weights_only=False)
     except Exception as exc:  # a truncated or foreign file: say which, once
         raise InputError(f"{path}: cannot read the checkpoint ({exc})") from None
-    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
-        raise InputError(f"{path}: not a cosim learn checkpoint of format {FORMAT}")
+    check_format(ckpt, path)
     setup = Setup.from_dict(ckpt["setup"])
     opts = TrainOptions.from_dict(ckpt["options"])
     model = model_for(setup, opts).to(device)
@@ -387,6 +395,7 @@ def fit(samples: Any, val_fn: Callable[[PillarDetector], dict[str, float]] | Non
     best = -1.0
     if resume:
         ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
+        check_format(ckpt, ckpt_path)
         old = Setup.from_dict(ckpt["setup"])
         if old != setup:
             raise InputError(f"{run} was trained with fusion {old.fusion}, agents {old.agents}, classes "
