@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from cosim.errors import InputError
-from cosim.eval.boxes import footprints, iou_matrix
+from cosim.eval.boxes import footprints, iou_matrix, wrap_angle
 from cosim.eval.dataset import VEHICLE_CLASSES, EpisodeRef, iter_truth, require_visibility
 from cosim.eval.predictions import read_predictions
 
@@ -67,10 +67,9 @@ def recall_rows(refs: list[EpisodeRef], files: list[Path], iou: float = 0.3, min
                 det_fp = footprints(rec.centers_m[keep, :2], rec.sizes_m[keep, :2], rec.yaws_rad[keep])
                 match = _matches(det_fp, rec.scores[keep], gt_fp[veh], iou)
                 found = match >= 0
-                hit = np.flatnonzero(keep)[match[found]]
+                hit, true = np.flatnonzero(keep)[match[found]], np.flatnonzero(veh)[found]
                 errors[f].append(box_errors(rec.centers_m[hit], rec.sizes_m[hit], rec.yaws_rad[hit],
-                                            truth.centers_m[veh][found], truth.sizes_m[veh][found],
-                                            truth.yaws_rad[veh][found]))
+                                            truth.centers_m[true], truth.sizes_m[true], truth.yaws_rad[true]))
                 blind = ~ego_sees[veh]
                 c["ego-blind"] += int(blind.sum())
                 c["ego-blind seen by setting"] += int((blind & seen[setting][veh]).sum())
@@ -99,11 +98,11 @@ def recall_rows(refs: list[EpisodeRef], files: list[Path], iou: float = 0.3, min
 def box_errors(det_centers: np.ndarray, det_sizes: np.ndarray, det_yaws: np.ndarray, gt_centers: np.ndarray,
                gt_sizes: np.ndarray, gt_yaws: np.ndarray) -> np.ndarray:
     """(N, 6) errors of N matched boxes: the centre's error along and across the true box [m], length and
-    width errors [m], the yaw error [rad]: signed in (-pi, pi] (the heading's), then folded to [0, pi/2]
+    width errors [m], the yaw error [rad]: signed in [-pi, pi) (the heading's), then folded to [0, pi/2]
     (the axis')."""
     d = det_centers[:, :2] - gt_centers[:, :2]
     c, s = np.cos(gt_yaws), np.sin(gt_yaws)
-    turn = np.angle(np.exp(1j * (det_yaws - gt_yaws)))
+    turn = wrap_angle(det_yaws - gt_yaws)
     axis = np.abs(turn)
     axis = np.minimum(axis, np.pi - axis)
     return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], det_sizes[:, 0] - gt_sizes[:, 0],
