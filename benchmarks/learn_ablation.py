@@ -17,7 +17,8 @@ objects the setting's own agents see and the objects any agent of the full setti
 common reference that lets settings be compared: the records' ``agents`` field is read as ``all``), per
 environment, drone strategy and lighting; gathers mean and spread over seeds, the val curves' flatness
 and the CPU of every stage; runs ``cosim learn recall`` on the seed-0 predictions (objects the ego has no
-return on, found per setting); and writes ``OUT/ablation.md`` and ``OUT/ablation.json``.
+return on, found per setting), over the whole test split and per environment and drone strategy; and
+writes ``OUT/ablation.md`` and ``OUT/ablation.json``.
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ LATE_SEEDS = (0, 1, 2)
 ORDER = ("inter-VID/s0", "ego/s0", "inter-V/s0", "inter-VI/s0", "inter-VD/s0", "early-VID/s0", "inter-VID/s1",
          "ego/s1", "inter-VID/s2", "ego/s2")
 CONDITIONS = ("environment", "strategy", "lighting")
+RECALL_BY = ("environment", "strategy")  # the recall table again per value of these (where drones add sight)
 AGENT_LABEL = {"ego": "ego only", "vehicles": "V", "vehicles+rsus": "V+I", "vehicles+drones": "V+D", "all": "V+I+D"}
 CACHE_EVERY = 2
 TEST_EVERY = 6  # a multiple of the cache's
@@ -253,14 +255,17 @@ def report(args: argparse.Namespace) -> int:
         cached.write_text(json.dumps(results[f"{name}/s{s}"]))
         print(f"scored {name}/s{s}", file=sys.stderr)
     first = [out / "pred" / f"{n}-s0.jsonl" for n in [*SETTINGS, LATE[0]] if (out / "pred" / f"{n}-s0.jsonl").is_file()]
-    rc, cpu, wall = timed(cosim("learn", "recall", str(args.dataset), *map(str, first), "--out", str(out / "recall")),
-                          out / "logs" / "recall.log")
-    jobs["recall"] = {"job": "recall", "rc": rc, "cpu_s": round(cpu, 1), "wall_s": round(wall, 1)}
-    recall = ((out / "recall" / "recall.md").read_text() if rc == 0
-              else f"recall failed: {out / 'logs' / 'recall.log'}\n")
+    recall = []
+    for by in (None, *RECALL_BY):  # the whole test split, then per environment and per drone strategy
+        name = "recall" if by is None else f"recall-{by}"
+        rc, cpu, wall = timed(cosim("learn", "recall", str(args.dataset), *map(str, first), "--out", str(out / name),
+                                    *(["--by", by] if by else [])), out / "logs" / f"{name}.log")
+        jobs[name] = {"job": name, "rc": rc, "cpu_s": round(cpu, 1), "wall_s": round(wall, 1)}
+        recall.append((out / name / "recall.md").read_text() if rc == 0
+                      else f"recall failed: {out / 'logs' / f'{name}.log'}\n")
     (out / "ablation.json").write_text(json.dumps({"results": results, "jobs": jobs}, indent=1) + "\n")
     (out / "ablation.md").write_text(f"{tables(results, jobs)}\n## Where collaboration helps (seed 0, `cosim learn "
-                                     f"recall`)\n\n{recall}")
+                                     f"recall`)\n\n" + "\n".join(recall))
     print(out / "ablation.md")
     return 0
 

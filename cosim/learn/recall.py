@@ -4,7 +4,9 @@ of ``cosim learn predict``), the vehicles in the ego's evaluation area that the 
 prediction of at least ``min_score`` matched one-to-one, best score first, at BEV IoU >= ``iou``), beside the
 same for the objects the ego does see; and how tight the found boxes are (:data:`ERROR_COLUMNS`: medians over
 the found vehicles of the centre's error along and across the true box, of the length and width errors, of
-the yaw error up to a half turn, and the share whose heading is off by more than a quarter turn). No torch."""
+the yaw error up to a half turn, and the share whose heading is off by more than a quarter turn). With ``by`` (a
+condition of :data:`cosim.eval.dataset.CONDITIONS`), one row per file and value of that condition: where in the
+data a kind of agent adds sight and finds. No torch."""
 
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ import numpy as np
 
 from cosim.errors import InputError
 from cosim.eval.boxes import footprints, iou_matrix, wrap_angle
-from cosim.eval.dataset import VEHICLE_CLASSES, EpisodeRef, iter_truth, require_visibility
+from cosim.eval.dataset import CONDITIONS, VEHICLE_CLASSES, EpisodeRef, iter_truth, require_visibility
 from cosim.eval.predictions import read_predictions
 
 COLUMNS = ("predictions", "agents", "frames", "ego-blind", "ego-blind seen by setting", "found (ego-blind)",
@@ -26,9 +28,17 @@ ERROR_COLUMNS = ("predictions", "found", "along m", "across m", "length m", "wid
                  "heading flipped %")
 
 
-def recall_rows(refs: list[EpisodeRef], files: list[Path], iou: float = 0.3, min_score: float = 0.3
-                ) -> list[dict[str, Any]]:
-    """One row per prediction file (columns :data:`COLUMNS`, then :data:`ERROR_COLUMNS` after the first)."""
+def columns(names: tuple[str, ...], by: str | None) -> tuple[str, ...]:
+    """``names`` with the condition ``by`` after the first (the file's name), when rows are split by it."""
+    return names if by is None else (names[0], by, *names[1:])
+
+
+def recall_rows(refs: list[EpisodeRef], files: list[Path], iou: float = 0.3, min_score: float = 0.3,
+                by: str | None = None) -> list[dict[str, Any]]:
+    """One row per prediction file (columns :data:`COLUMNS`, then :data:`ERROR_COLUMNS` after the first), or
+    with ``by`` one per file and value of that episode condition (``columns(COLUMNS, by)``), values sorted."""
+    if by is not None and by not in CONDITIONS:
+        raise InputError(f"--by {by}: not a condition (one of {', '.join(CONDITIONS)})")
     preds = {}
     for f in files:
         recs = read_predictions(f)
@@ -43,13 +53,14 @@ def recall_rows(refs: list[EpisodeRef], files: list[Path], iou: float = 0.3, min
         unknown = sorted({k[0] for k in by_key} - ids)
         if unknown:
             raise InputError(f"{f}: episode {unknown[0]} is not in the dataset's chosen split")
-    counts: dict[Path, dict[str, int]] = {f: defaultdict(int) for f in files}
-    errors: dict[Path, list[np.ndarray]] = {f: [] for f in files}
+    counts: dict[tuple[Path, str], dict[str, int]] = defaultdict(lambda: defaultdict(int))
+    errors: dict[tuple[Path, str], list[np.ndarray]] = defaultdict(list)
     wanted = {k for by_key, _a in preds.values() for k in by_key}
     for ref in refs:
         ticks = {k[1] for k in wanted if k[0] == ref.id}
         if not ticks:
             continue
+        cell = "all" if by is None else ref.conditions.get(by, "-")
         for truth in iter_truth(ref, ticks=ticks):
             seen = require_visibility(truth, "cosim learn recall")
             veh = np.isin(np.asarray(truth.classes), VEHICLE_CLASSES) & truth.in_area
@@ -59,7 +70,7 @@ def recall_rows(refs: list[EpisodeRef], files: list[Path], iou: float = 0.3, min
                 rec = by_key.get((truth.episode, truth.tick, truth.ego))
                 if rec is None:
                     continue
-                c = counts[f]
+                c = counts[f, cell]
                 c["frames"] += 1
                 keep = rec.scores >= min_score
                 det_cls = np.asarray(rec.classes)
@@ -68,7 +79,7 @@ def recall_rows(refs: list[EpisodeRef], files: list[Path], iou: float = 0.3, min
                 match = _matches(det_fp, rec.scores[keep], gt_fp[veh], iou)
                 found = match >= 0
                 hit, true = np.flatnonzero(keep)[match[found]], np.flatnonzero(veh)[found]
-                errors[f].append(box_errors(rec.centers_m[hit], rec.sizes_m[hit], rec.yaws_rad[hit],
+                errors[f, cell].append(box_errors(rec.centers_m[hit], rec.sizes_m[hit], rec.yaws_rad[hit],
                                             truth.centers_m[true], truth.sizes_m[true], truth.yaws_rad[true]))
                 blind = ~ego_sees[veh]
                 c["ego-blind"] += int(blind.sum())
@@ -78,21 +89,26 @@ def recall_rows(refs: list[EpisodeRef], files: list[Path], iou: float = 0.3, min
                 c["ego-seen"] += int((~blind).sum())
                 c["found (ego-seen)"] += int((found & ~blind).sum())
     rows = []
+    cells = ["all"] if by is None else sorted({cell for _f, cell in counts})
     for f in files:
-        c = counts[f]
-
-        def pct(a: str, b: str, c: dict[str, int] = c) -> float:
-            return round(100.0 * c[a] / c[b], 1) if c[b] else float("nan")
-
-        rows.append({"predictions": f.name, "agents": preds[f][1], "frames": c["frames"],
-                     "ego-blind": c["ego-blind"], "ego-blind seen by setting": c["ego-blind seen by setting"],
-                     "found (ego-blind)": c["found (ego-blind)"],
-                     "recall ego-blind %": pct("found (ego-blind)", "ego-blind"),
-                     "recall ego-blind seen %": pct("found (ego-blind seen)", "ego-blind seen by setting"),
-                     "ego-seen": c["ego-seen"], "found (ego-seen)": c["found (ego-seen)"],
-                     "recall ego-seen %": pct("found (ego-seen)", "ego-seen"),
-                     **error_summary(np.concatenate(errors[f]) if errors[f] else np.zeros((0, 6)))})
+        for cell in cells:
+            rows.append(_row(f, preds[f][1], counts[f, cell], errors[f, cell])
+                        | ({} if by is None else {by: cell}))
     return rows
+
+
+def _row(f: Path, setting: str, c: dict[str, int], errors: list[np.ndarray]) -> dict[str, Any]:
+    def pct(a: str, b: str) -> float:
+        return round(100.0 * c[a] / c[b], 1) if c[b] else float("nan")
+
+    return {"predictions": f.name, "agents": setting, "frames": c["frames"],
+            "ego-blind": c["ego-blind"], "ego-blind seen by setting": c["ego-blind seen by setting"],
+            "found (ego-blind)": c["found (ego-blind)"],
+            "recall ego-blind %": pct("found (ego-blind)", "ego-blind"),
+            "recall ego-blind seen %": pct("found (ego-blind seen)", "ego-blind seen by setting"),
+            "ego-seen": c["ego-seen"], "found (ego-seen)": c["found (ego-seen)"],
+            "recall ego-seen %": pct("found (ego-seen)", "ego-seen"),
+            **error_summary(np.concatenate(errors) if errors else np.zeros((0, 6)))}
 
 
 def box_errors(det_centers: np.ndarray, det_sizes: np.ndarray, det_yaws: np.ndarray, gt_centers: np.ndarray,
@@ -138,17 +154,19 @@ def _matches(det_fp: np.ndarray, scores: np.ndarray, gt_fp: np.ndarray, iou: flo
     return out
 
 
-def write_recall(rows: list[dict[str, Any]], out: Path, iou: float, min_score: float) -> tuple[Path, Path]:
+def write_recall(rows: list[dict[str, Any]], out: Path, iou: float, min_score: float, by: str | None = None
+                 ) -> tuple[Path, Path]:
     out.mkdir(parents=True, exist_ok=True)
+    cols, error_cols = columns(COLUMNS, by), columns(ERROR_COLUMNS, by)
     lines = [f"Objects in the ego's area with no ego LiDAR return, found by each model (prediction score >= "
-             f"{min_score}, BEV IoU >= {iou})", "", "| " + " | ".join(COLUMNS) + " |",
-             "|" + "---|" * len(COLUMNS)]
-    lines += ["| " + " | ".join(str(r[c]) for c in COLUMNS) + " |" for r in rows]
+             f"{min_score}, BEV IoU >= {iou}){'' if by is None else ', by ' + by}", "",
+             "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    lines += ["| " + " | ".join(str(r[c]) for c in cols) + " |" for r in rows]
     lines += ["", "How tight the found boxes are (the same matches; medians of absolute errors in the true box's "
-              "frame)", "", "| " + " | ".join(ERROR_COLUMNS) + " |", "|" + "---|" * len(ERROR_COLUMNS)]
-    lines += ["| " + " | ".join(str(r[c]) for c in ERROR_COLUMNS) + " |" for r in rows]
+              "frame)", "", "| " + " | ".join(error_cols) + " |", "|" + "---|" * len(error_cols)]
+    lines += ["| " + " | ".join(str(r[c]) for c in error_cols) + " |" for r in rows]
     md = out / "recall.md"
     md.write_text("\n".join(lines) + "\n")
     js = out / "recall.json"
-    js.write_text(json.dumps({"iou": iou, "min_score": min_score, "rows": rows}, indent=1) + "\n")
+    js.write_text(json.dumps({"iou": iou, "min_score": min_score, "by": by, "rows": rows}, indent=1) + "\n")
     return md, js
