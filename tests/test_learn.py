@@ -392,6 +392,10 @@ def test_bad_input_one_message_exit_2(trained, tiny_batch, tmp_path):
           "intermediate", "--agents", "all"], "needs a model trained for it"),
         (["learn", "recall", str(tiny_batch), str(tmp_path / "none.jsonl"), "--out", str(tmp_path / "rc")],
          "no such prediction file"),
+        (["learn", "recall", str(tiny_batch), str(trained / "log.jsonl"), "--out", str(tmp_path / "rc"), "--by",
+          "weekday"], "--by weekday: not a condition"),
+        (["learn", "train", str(tiny_batch), "--out", str(tmp_path / "r6"), "--turn", "200"],
+         "--turn 200: the largest turn must be 0 to 180 degrees"),
         (["learn", "cache", str(tiny_batch), "--out", str(tmp_path / "c"), "--split", "nope"], "no episode in split"),
     ]
     for args, words in cases:
@@ -582,7 +586,9 @@ def test_pillar_encoder_is_the_max_over_each_pillars_points():
     assert torch.equal(got, want) and (want > 0).any()
 
 
-def test_agent_poses_follow_the_flips():
+def test_agent_poses_follow_the_flips_and_turns():
+    """Each agent's cloud, mirrored and turned in its own frame, lands where the ego's mirrored and turned
+    cloud is, through the augmented pose: intermediate fusion's warp sees one consistent scene."""
     from cosim.learn.samples import augment, augment_poses, bev_pose, to_bev_frame
 
     rng = np.random.default_rng(1)
@@ -593,11 +599,30 @@ def test_agent_poses_follow_the_flips():
     t[:2, 3] = [12.0, -4.0]
     pose = bev_pose(t)
     local = to_bev_frame(ego_cloud, pose)
-    for fx, fy in ((True, False), (False, True), (True, True)):
-        flipped_ego, _ = augment(ego_cloud, np.zeros((0, 7)), fx, fy)
-        flipped_local, _ = augment(local, np.zeros((0, 7)), fx, fy)
-        np.testing.assert_allclose(to_bev_frame(flipped_ego, augment_poses(pose[None], fx, fy)[0]), flipped_local,
-                                   atol=1e-4)
+    for fx, fy, turn in ((True, False, 0.0), (False, True, 0.0), (True, True, 0.0), (False, False, 0.6),
+                         (True, False, -0.3), (True, True, 2.5)):
+        moved_ego, _ = augment(ego_cloud, np.zeros((0, 7)), fx, fy, turn)
+        moved_local, _ = augment(local, np.zeros((0, 7)), fx, fy, turn)
+        new_pose = augment_poses(pose[None], fx, fy, turn)[0]
+        np.testing.assert_allclose(to_bev_frame(moved_ego, new_pose), moved_local, atol=1e-4)
+        if turn:  # the turn moved the cloud: the check above is not the identity
+            assert np.abs(moved_ego[:, :2] - augment(ego_cloud, np.zeros((0, 7)), fx, fy)[0][:, :2]).max() > 1.0
+
+
+def test_a_turned_box_keeps_its_points_on_its_corners():
+    from cosim.eval.boxes import footprints
+    from cosim.learn.samples import augment
+
+    box = np.array([[20.0, -6.0, -1.0, 4.6, 1.9, 1.5, 0.2]], np.float32)
+    corners = footprints(box[:, :2], box[:, 3:5], box[:, 6])[0]  # (4, 2)
+    cloud = np.c_[corners, np.full((4, 1), -1.0), np.ones((4, 1))].astype(np.float32)
+    for fx, fy, turn in ((False, False, 0.5), (True, False, -0.7), (False, True, 1.2), (True, True, -2.0)):
+        moved, boxes = augment(cloud, box, fx, fy, turn)
+        got = footprints(boxes[:, :2], boxes[:, 3:5], boxes[:, 6])[0]
+        # the same four corners, in some order (a mirror reverses their winding)
+        d = np.linalg.norm(got[:, None, :] - moved[None, :, :2], axis=2)
+        assert d.min(axis=1).max() < 1e-4, (fx, fy, turn, got, moved[:, :2])
+        np.testing.assert_allclose(boxes[0, 3:6], box[0, 3:6])
 
 
 @needs_torch
@@ -688,7 +713,7 @@ def test_intermediate_training_is_deterministic_with_workers_and_keeps_the_best(
     setup = Setup(fusion="intermediate", agents="all", encoders="kind")
     for name, workers in (("a", 0), ("b", 2)):
         train(train_refs, test_refs, setup, TrainOptions(steps=4, batch_size=2, seed=3, threads=1, workers=workers,
-                                                         val_steps=2, val_every_tick=2),
+                                                         val_steps=2, val_every_tick=2, turn_deg=45.0),
               tmp_path / name, show_progress=False, cache=tiny_cache)
     a, b = (torch.load(tmp_path / n / CHECKPOINT, weights_only=False)["model"] for n in "ab")
     assert all(torch.equal(a[k], b[k]) for k in a)
@@ -723,6 +748,16 @@ def test_recall_counts_the_objects_the_ego_does_not_see(trained, tiny_batch, tmp
     for row in rows:  # the tightness table scores exactly the matched boxes
         assert row["found"] == row["found (ego-blind)"] + row["found (ego-seen)"]
     assert "How tight the found boxes are" in (tmp_path / "recall" / "recall.md").read_text()
+    # by a condition: one row per file and value, whose counts add up to the file's
+    r = run_cli("learn", "recall", str(tiny_batch), *preds, "--split", "train", "--out", str(tmp_path / "by"),
+                "--min-score", "0.0", "--by", "environment")
+    assert r.returncode == 0, r.stderr[-3000:]
+    by = json.loads((tmp_path / "by" / "recall.json").read_text())
+    assert by["by"] == "environment" and [row["environment"] for row in by["rows"]] == ["urban", "urban"]
+    for row, whole in zip(by["rows"], rows, strict=True):  # (as JSON text: NaN, a share of nothing, is not == NaN)
+        assert json.dumps({k: v for k, v in row.items() if k != "environment"}, sort_keys=True) == json.dumps(
+            whole, sort_keys=True)
+    assert "| predictions | environment | agents |" in (tmp_path / "by" / "recall.md").read_text()
 
 
 def test_box_errors_are_measured_in_the_true_box_frame():

@@ -33,6 +33,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     from cosim.learn.data import Setup, split_episodes
     from cosim.learn.train import TrainOptions, device_of, train
 
+    if not 0.0 <= args.turn <= 180.0:
+        raise InputError(f"--turn {args.turn:g}: the largest turn must be 0 to 180 degrees")
+
     setup = Setup(fusion=args.fusion, agents=args.agents or ("ego" if args.fusion == "none" else "all"),
                   classes=tuple(args.classes or VEHICLE_CLASSES), delivery=args.delivery, lidar=args.lidar,
                   fuse=args.fuse, encoders=args.encoders)
@@ -44,7 +47,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     opts = TrainOptions(epochs=args.epochs, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                         every=args.every, val_every_tick=args.val_every_tick, val_steps=args.val_steps,
                         save_every=args.save_every, keep_every=args.keep_every, seed=args.seed, width=args.width,
-                        threads=args.threads, schedule=args.schedule, workers=args.workers)
+                        threads=args.threads, schedule=args.schedule, workers=args.workers, turn_deg=args.turn)
     summary = train(train_refs, val_refs, setup, opts, Path(args.out), resume=args.resume,
                     device=device_of(args.device), show_progress=not args.quiet,
                     cache=Path(args.cache) if args.cache else None)
@@ -145,8 +148,8 @@ def cmd_recall(args: argparse.Namespace) -> int:
     for f in files:
         if not f.is_file():
             raise InputError(f"{f}: no such prediction file")
-    rows = recall_rows(refs, files, iou=args.iou, min_score=args.min_score)
-    md, _js = write_recall(rows, Path(args.out), args.iou, args.min_score)
+    rows = recall_rows(refs, files, iou=args.iou, min_score=args.min_score, by=args.by)
+    md, _js = write_recall(rows, Path(args.out), args.iou, args.min_score, args.by)
     print(md.read_text(), end="")
     return EXIT_OK
 
@@ -184,6 +187,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--lidar", choices=LIDAR_MODES, default="tick", help=lidar_help)
     tr.add_argument("--cache", help="a folder of cosim learn cache: read the samples from it, not from MCAP")
     tr.add_argument("--workers", type=int, default=0, help="processes that make the batches (default 0: none)")
+    tr.add_argument("--turn", type=float, default=0.0, metavar="DEG",
+                    help="turn each training sample about z by a random angle of up to DEG degrees either way "
+                         "(default 0: mirror only)")
     tr.add_argument("--schedule", choices=SCHEDULES, default="cosine",
                     help="learning rate: cosine (warm-up, cosine to 0; default) or onecycle")
     tr.add_argument("--agents", choices=list(SETTINGS), help="collaborating agent kinds (default: ego for "
@@ -259,6 +265,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     rc.add_argument("--split", help="split of the predictions (default test)")
     rc.add_argument("--iou", type=float, default=0.3, help="BEV IoU of a match (default 0.3)")
     rc.add_argument("--min-score", type=float, default=0.3, help="predictions of at least this score (default 0.3)")
+    rc.add_argument("--by", help="one row per file and value of this episode condition (lighting, weather, "
+                                 "environment or strategy)")
     rc.set_defaults(func=cmd_recall)
 
     cu = lsub.add_parser("curves", help="plot validation AP against steps of one or more runs (PNG)")

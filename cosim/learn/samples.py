@@ -288,8 +288,10 @@ def _boxes(rec: dict[str, Any], ego_from_map: np.ndarray, setup: Setup) -> tuple
             [rec["label_classes"][i] for i in keep])
 
 
-def augment(cloud: np.ndarray, boxes: np.ndarray, flip_x: bool, flip_y: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Mirror a cloud and its boxes about the x axis (y -> -y) and/or the y axis (x -> -x)."""
+def augment(cloud: np.ndarray, boxes: np.ndarray, flip_x: bool, flip_y: bool, turn: float = 0.0
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Mirror a cloud and its boxes about the x axis (y -> -y) and/or the y axis (x -> -x), then turn them by
+    ``turn`` [rad] about the z axis (global rotation: boxes at every yaw, not mostly along the ego's axes)."""
     cloud, boxes = cloud.copy(), boxes.copy()
     if flip_y:
         cloud[:, 1] *= -1
@@ -299,13 +301,21 @@ def augment(cloud: np.ndarray, boxes: np.ndarray, flip_x: bool, flip_y: bool) ->
         cloud[:, 0] *= -1
         boxes[:, 0] *= -1
         boxes[:, 6] = np.pi - boxes[:, 6]
+    if turn:
+        c, s = np.float32(math.cos(turn)), np.float32(math.sin(turn))
+        for a in (cloud, boxes):
+            x, y = a[:, 0].copy(), a[:, 1].copy()
+            a[:, 0] = c * x - s * y
+            a[:, 1] = s * x + c * y
+        boxes[:, 6] += turn
     return cloud, boxes
 
 
-def augment_poses(poses: np.ndarray, flip_x: bool, flip_y: bool) -> np.ndarray:
-    """The bird's-eye poses (yaw, x, y) of the agents' frames after the scene is mirrored as :func:`augment`
-    mirrors it; each agent's cloud, in its own frame, is mirrored the same way (a mirror M turns R(yaw) into
-    M R(yaw) = R(-yaw) M)."""
+def augment_poses(poses: np.ndarray, flip_x: bool, flip_y: bool, turn: float = 0.0) -> np.ndarray:
+    """The bird's-eye poses (yaw, x, y) of the agents' frames after the scene is mirrored and turned as
+    :func:`augment` does it; each agent's cloud, in its own frame, is mirrored and turned the same way (a
+    mirror M turns R(yaw) into M R(yaw) = R(-yaw) M; a turn Q keeps the yaw, Q R(yaw) = R(yaw) Q, and
+    turns the position)."""
     out = poses.copy()
     if flip_y:
         out[:, 0] *= -1
@@ -313,6 +323,11 @@ def augment_poses(poses: np.ndarray, flip_x: bool, flip_y: bool) -> np.ndarray:
     if flip_x:
         out[:, 0] *= -1
         out[:, 1] *= -1
+    if turn:
+        c, s = math.cos(turn), math.sin(turn)
+        x, y = out[:, 1].copy(), out[:, 2].copy()
+        out[:, 1] = c * x - s * y
+        out[:, 2] = s * x + c * y
     return out
 
 

@@ -63,6 +63,7 @@ class TrainOptions:
     threads: int | None = None  # torch CPU threads (None: torch's default)
     schedule: str = "cosine"  # warm-up then cosine decay to 0, or one-cycle (30 % rise from lr/25, then cosine)
     workers: int = 0  # worker processes making the batches (0: in the training process)
+    turn_deg: float = 0.0  # turn each sample about z by up to this many degrees either way (0: no turn)
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -239,7 +240,8 @@ def validate(model: PillarDetector, samples: Samples, device: torch.device) -> d
 
 def step_batch(samples: Any, order: np.ndarray, start: int, opts: TrainOptions, step: int) -> dict[str, Any]:
     """The batch of training step ``step`` (numpy): samples ``order[start:start + batch]`` (wrapping),
-    flipped as drawn from (seed, step); late fusion takes one agent's cloud of each sample (also drawn)."""
+    flipped and turned as drawn from (seed, step); late fusion takes one agent's cloud of each sample (also
+    drawn)."""
     rng = np.random.default_rng([opts.seed, step])
     setup = samples.setup
     clouds, tgts, per_sample, poses, kinds = [], [], [], [], []
@@ -247,17 +249,19 @@ def step_batch(samples: Any, order: np.ndarray, start: int, opts: TrainOptions, 
         item = samples.item(int(order[(start + j) % len(order)]))
         k = int(rng.integers(len(item["clouds"])))  # late fusion: one agent's cloud of the sample
         flip = rng.random(2) < 0.5
+        # drawn only when turning, so that runs without it keep their batches
+        turn = math.radians(opts.turn_deg) * rng.uniform(-1.0, 1.0) if opts.turn_deg else 0.0
         if setup.fusion == "intermediate":
             boxes = item["targets"][0][0]
             for cloud in item["clouds"]:
-                c, boxes_f = augment(cloud, boxes, bool(flip[0]), bool(flip[1]))
+                c, boxes_f = augment(cloud, boxes, bool(flip[0]), bool(flip[1]), turn)
                 clouds.append(c)
             per_sample.append(len(item["clouds"]))
-            poses.append(augment_poses(item["poses"], bool(flip[0]), bool(flip[1])))
+            poses.append(augment_poses(item["poses"], bool(flip[0]), bool(flip[1]), turn))
             kinds.append(item["kinds"])
             tgts.append(targets(boxes_f, item["targets"][0][1], setup.grid, len(setup.classes)))
             continue
-        cloud, boxes = augment(item["clouds"][k], item["targets"][k][0], bool(flip[0]), bool(flip[1]))
+        cloud, boxes = augment(item["clouds"][k], item["targets"][k][0], bool(flip[0]), bool(flip[1]), turn)
         clouds.append(cloud)
         tgts.append(targets(boxes, item["targets"][k][1], setup.grid, len(setup.classes)))
     if setup.fusion == "intermediate":
