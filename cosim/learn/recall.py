@@ -80,7 +80,7 @@ def recall_rows(refs: list[EpisodeRef], files: list[Path], iou: float = 0.3, min
                 found = match >= 0
                 hit, true = np.flatnonzero(keep)[match[found]], np.flatnonzero(veh)[found]
                 errors[f, cell].append(box_errors(rec.centers_m[hit], rec.sizes_m[hit], rec.yaws_rad[hit],
-                                            truth.centers_m[true], truth.sizes_m[true], truth.yaws_rad[true]))
+                                                  truth.centers_m[true], truth.sizes_m[true], truth.yaws_rad[true]))
                 blind = ~ego_sees[veh]
                 c["ego-blind"] += int(blind.sum())
                 c["ego-blind seen by setting"] += int((blind & seen[setting][veh]).sum())
