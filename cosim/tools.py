@@ -141,10 +141,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 @contextlib.contextmanager
 def _stop_on_signals(stop: threading.Event) -> Iterator[None]:
-    """The first Ctrl-C (or SIGTERM) sets ``stop`` so the replay winds down; a second one interrupts at once."""
+    """The first Ctrl-C (or SIGTERM) sets ``stop`` so the replay winds down; a second one interrupts at once.
+
+    The handler runs in the main thread between two bytecodes, possibly inside ``stop.wait`` while that
+    thread holds the event's lock; ``stop.set()`` there would wait for that lock forever. So a short thread
+    sets it, once the main thread lets go of the lock.
+    """
 
     def first(signum: int, frame: Any) -> None:
-        stop.set()
+        threading.Thread(target=stop.set, name="stop on signal", daemon=True).start()
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
     previous = {s: signal.signal(s, first) for s in (signal.SIGINT, signal.SIGTERM)}
