@@ -390,7 +390,8 @@ def test_ctrl_c_right_after_a_foxglove_client_disconnects_stops_the_replay(tmp_p
     try:
         url = replay.line_starting("foxglove").split()[1]
         assert url.startswith("ws://127.0.0.1:") and int(url.rsplit(":", 1)[1]) > 0
-        with connect(url, subprotocols=["foxglove.sdk.v1"], max_size=None, open_timeout=30) as ws:
+        # close_timeout: the close handshake waits behind the data still streaming in (10 s by default)
+        with connect(url, subprotocols=["foxglove.sdk.v1"], max_size=None, open_timeout=30, close_timeout=1) as ws:
             assert json.loads(ws.recv(timeout=30))["op"] == "serverInfo"
             advertise = json.loads(ws.recv(timeout=30))
             assert advertise["op"] == "advertise"
