@@ -37,8 +37,8 @@ sys.path.insert(0, str(REPO))
 
 #: name -> (fusion, agents, fuse, seeds): the paper's agent ablation with intermediate fusion (its models
 #: are all intermediate), its fusion ablation on V+I+D, three seeds for ego only and V+I+D. Late fusion is
-#: predicted with each ego-only model (:data:`LATE`). Attention fusion (``--fuse attention``) is
-#: not in the grid: it did not fit the 2-core machine's time with the rest (docs/learnability.md).
+#: predicted with each ego-only model (:data:`LATE`). Intermediate V+I+D is trained with both per-cell
+#: fusions: max (F-Cooper, every other intermediate setting) and attention (AttFuse), one seed.
 SETTINGS: dict[str, tuple[str, str, str, tuple[int, ...]]] = {
     "ego": ("none", "ego", "max", (0, 1, 2)),
     "inter-VID": ("intermediate", "all", "max", (0, 1, 2)),
@@ -46,13 +46,14 @@ SETTINGS: dict[str, tuple[str, str, str, tuple[int, ...]]] = {
     "inter-VI": ("intermediate", "vehicles+rsus", "max", (0,)),
     "inter-VD": ("intermediate", "vehicles+drones", "max", (0,)),
     "early-VID": ("early", "all", "max", (0,)),
+    "inter-VID-att": ("intermediate", "all", "attention", (0,)),
 }
 #: late fusion: each ego-only model on every agent's cloud
 LATE = ("late-VID", "ego", "all")
 LATE_SEEDS = (0, 1, 2)
 #: the order training jobs start in: a long and a short one side by side, the first seed of everything first
 ORDER = ("inter-VID/s0", "ego/s0", "inter-V/s0", "inter-VI/s0", "inter-VD/s0", "early-VID/s0", "inter-VID/s1",
-         "ego/s1", "inter-VID/s2", "ego/s2")
+         "ego/s1", "inter-VID/s2", "ego/s2", "inter-VID-att/s0")
 CONDITIONS = ("environment", "strategy", "lighting")
 RECALL_BY = ("environment", "strategy")  # the recall table again per value of these (where drones add sight)
 AGENT_LABEL = {"ego": "ego only", "vehicles": "V", "vehicles+rsus": "V+I", "vehicles+drones": "V+D", "all": "V+I+D"}
