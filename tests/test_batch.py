@@ -4,6 +4,7 @@ process pool, retries, crashes, the manifest and resume (the real pipeline is in
 from __future__ import annotations
 
 import itertools
+import os
 from collections import Counter
 
 import pytest
@@ -22,7 +23,7 @@ from cosim.batch.plan import balanced_allocation, derive_seed, largest_remainder
 from cosim.batch.runner import run_batch
 from cosim.batch.sweep import SweepError, load_sweep
 from cosim.errors import InputError
-from tests.fakes import fake_episode, spawning_episode
+from tests.fakes import fake_episode, niceness_episode, spawning_episode
 from tests.helpers import PAPER, REPO, SIX, run_cli, six_plan, write_sweep
 from tests.helpers import run_fake_batch as run
 
@@ -220,13 +221,15 @@ def test_ray_executor_retries_a_crashed_worker_and_reports_failures(tmp_path):
     body = FAULTS.replace("values: [clear, foggy]", "values: [clear]").replace("      - {label: ok}\n", "")
     plan = plan_file(write_sweep(tmp_path, body.replace("count: 6", "count: 2")))
     out = tmp_path / "out"
-    summary = run_batch(plan, out, make_executor("ray", workers=2, episode_fn=fake_episode), retries=1,
+    summary = run_batch(plan, out, make_executor("ray", workers=2, episode_fn=niceness_episode), retries=1,
                         show_progress=False)
     assert list(summary.failed) == ["all-clear-fail-0000"] and "forced failure" in summary.failed["all-clear-fail-0000"]
     crash = latest_records(out)["all-clear-crash-0000"]  # its worker process died; Ray reports it, we retry
     assert crash["status"] == "done" and crash["attempts"] == 2 and verify(out, crash)
     errors = [r["error"] for r in read_records(out / "manifest.jsonl") if r.get("retrying")]
     assert any("WorkerCrashedError" in e for e in errors)
+    # Ray's workers run at niceness 15 by default, starved beside any busy process; ours at the driver's
+    assert {int(f.read_text()) for f in out.glob(".nice-*")} == {os.nice(0)}
 
 
 def test_resume_redoes_missing_and_corrupt_files_only(tmp_path):

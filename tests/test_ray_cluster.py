@@ -34,9 +34,11 @@ SMOKE = REPO / "sweeps" / "smoke.yaml"
 HEAD_IP, NODE_IP = "127.0.0.1", "127.0.0.2"
 OBJECT_STORE_BYTES = 200 * 1024 * 1024
 START_TIMEOUT_S = 180
-# The head declares a node dead after about 5 missed health checks of 1 s (default: 30 s or more).
+# The head declares a node dead after about 5 missed health checks of 1 s (default: 30 s or more). The
+# nodes run their workers at niceness 0, as README's "A Ray cluster" says to where nodes do other work too
+# (here: the rest of the suite), not Ray's 15.
 RAY_ENV = {"RAY_health_check_period_ms": "1000", "RAY_health_check_failure_threshold": "5",
-           "RAY_health_check_timeout_ms": "2000", "RAY_USAGE_STATS_ENABLED": "0",
+           "RAY_health_check_timeout_ms": "2000", "RAY_USAGE_STATS_ENABLED": "0", "RAY_worker_niceness": "0",
            # Explicit: a head started where ~/.ray/auth_token exists would otherwise turn token auth on.
            "RAY_AUTH_MODE": "disabled"}
 
