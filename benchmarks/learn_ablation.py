@@ -9,8 +9,11 @@ the test split, score it and write the tables (issue 35).
 settings ``--parallel`` at a time (each one process with one torch thread: on a 2-core machine two at once
 keep both cores busy), each followed by its prediction of the test split (and late fusion with each ego-only
 model on every agent's cloud). Every command is ``cosim learn`` itself; what it cost (user + system
-CPU-seconds of its process tree, wall seconds) is appended to ``OUT/jobs.jsonl``. A finished step is
-skipped when ``run`` is started again, so an interrupted run resumes.
+CPU-seconds of its process tree, wall seconds) is appended to ``OUT/jobs.jsonl``. Ctrl-C or SIGTERM stops
+the running jobs (recording what they cost) and starts no more. Started again, ``run`` skips the finished
+jobs and continues a training cut short from its last checkpoint (``cosim learn train --resume``: saved every
+100 steps, and a resumed run gives the same weights as an uninterrupted one), so the grid can be spread over
+several sittings; a job's cost is the sum of all its attempts.
 
 ``report`` scores every prediction file with ``cosim eval``'s scoring against two ground truths, the
 objects the setting's own agents see and the objects any agent of the full setting (V+I+D) sees (the
@@ -24,11 +27,15 @@ writes ``OUT/ablation.md`` and ``OUT/ablation.json``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
+import shutil
+import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -65,12 +72,23 @@ def cosim(*args: str) -> list[str]:
     return [sys.executable, "-c", "import sys; from cosim.cli import main; sys.exit(main())", *args]
 
 
-def timed(cmd: list[str], log: Path) -> tuple[int, float, float]:
-    """Run ``cmd`` (output to ``log``); exit status, CPU-seconds of its process tree and wall seconds."""
+def timed(cmd: list[str], log: Path, running: set | None = None, lock: threading.Lock | None = None,
+          stopping: threading.Event | None = None) -> tuple[int, float, float]:
+    """Run ``cmd`` (output to ``log``); exit status, CPU-seconds of its process tree and wall seconds. With
+    ``running`` and ``lock``, the process is in ``running`` while it runs (to be stopped by a signal); it is
+    not started once ``stopping`` is set."""
     t0 = time.perf_counter()
-    with open(log, "w") as f:
-        p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=REPO)
+    with open(log, "a" if "--resume" in cmd else "w") as f:
+        with lock or contextlib.nullcontext():
+            if stopping is not None and stopping.is_set():
+                return -signal.SIGTERM, 0.0, 0.0
+            p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=REPO)
+            if running is not None:
+                running.add(p)
         _pid, status, usage = os.wait4(p.pid, 0)
+        if running is not None:
+            with lock:
+                running.discard(p)
     p.returncode = os.waitstatus_to_exitcode(status)
     return p.returncode, usage.ru_utime + usage.ru_stime, time.perf_counter() - t0
 
@@ -81,11 +99,19 @@ def record(out: Path, **rec) -> None:
 
 
 def jobs_done(out: Path) -> dict[str, dict]:
+    """The finished jobs of ``OUT/jobs.jsonl``: each one's successful record, with the CPU and wall seconds
+    of all its attempts (a training stopped and resumed, or started again) and their count."""
     path = out / "jobs.jsonl"
     if not path.is_file():
         return {}
     recs = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    return {r["job"]: r for r in recs if r["rc"] == 0}
+    done = {}
+    for r in recs:
+        if r["rc"] == 0:
+            tries = [t for t in recs if t["job"] == r["job"]]
+            done[r["job"]] = {**r, "cpu_s": round(sum(t["cpu_s"] for t in tries), 1),
+                              "wall_s": round(sum(t["wall_s"] for t in tries), 1), "attempts": len(tries)}
+    return done
 
 
 def train_cmd(name: str, seed: int, args: argparse.Namespace, run: Path) -> list[str]:
@@ -137,39 +163,62 @@ def run_all(args: argparse.Namespace) -> int:
         chain = []
         run = out / "runs" / f"{name}-s{seed}"
         if f"train {key}" not in done:
-            if run.exists():  # a run cut short: start it again
-                for f in sorted(run.iterdir()):
-                    f.unlink()
-                run.rmdir()
-            chain.append((f"train {key}", train_cmd(name, int(seed), args, run)))
+            resume = (run / "checkpoint.pt").is_file()  # a run cut short: continue it from its checkpoint
+            if run.exists() and not resume:  # cut short before its first checkpoint: start it again
+                shutil.rmtree(run)
+            chain.append((f"train {key}", train_cmd(name, int(seed), args, run) + (["--resume"] if resume else [])))
         late = name == LATE[1] and int(seed) in LATE_SEEDS
         for job in (f"predict {key}", *([f"predict {LATE[0]}/s{seed}"] if late else [])):
             if job not in done:
                 chain.append((job, preds[job]))
         if chain:
             chains.append(chain)
-    failed = run_chains(chains, args.parallel, out)
+    failed, stopped = run_chains(chains, args.parallel, out)
+    if stopped:
+        print("stopped by a signal: run the same command again to continue", file=sys.stderr)
+        return 130
     print(f"{sum(map(len, chains))} jobs; failed: {', '.join(failed) or 'none'}")
     return 1 if failed else 0
 
 
-def run_chains(chains: list[list[tuple[str, list[str]]]], parallel: int, out: Path) -> list[str]:
+def run_chains(chains: list[list[tuple[str, list[str]]]], parallel: int, out: Path) -> tuple[list[str], bool]:
     """Run the chains ``parallel`` at a time (each in a thread that waits for its processes); a chain's jobs
-    run in order (a training, then its predictions) and stop at the first that fails."""
+    run in order (a training, then its predictions) and stop at the first that fails. SIGINT or SIGTERM
+    stops the running jobs (their cost is recorded like any other's) and starts no more. Returns the
+    failed jobs and whether a signal stopped the run."""
     from concurrent.futures import ThreadPoolExecutor
+
+    stopping = threading.Event()
+    running: set[subprocess.Popen] = set()
+    lock = threading.Lock()
+
+    def stop(signum: int, _frame) -> None:
+        stopping.set()
+        with lock:
+            for p in running:
+                p.send_signal(signal.SIGTERM)
 
     def one(chain: list[tuple[str, list[str]]]) -> str | None:
         for name, cmd in chain:
+            if stopping.is_set():
+                return None
             print(f"start {name}", flush=True)
-            rc, cpu, wall = timed(cmd, out / "logs" / (name.replace(" ", "_").replace("/", "_") + ".log"))
+            rc, cpu, wall = timed(cmd, out / "logs" / (name.replace(" ", "_").replace("/", "_") + ".log"),
+                                  running, lock, stopping)
             record(out, job=name, rc=rc, cpu_s=round(cpu, 1), wall_s=round(wall, 1))
             print(f"end   {name}: rc {rc}, {cpu:.0f} CPU-s, {wall:.0f} s", flush=True)
             if rc:
                 return name
         return None
 
-    with ThreadPoolExecutor(parallel) as pool:
-        return [n for n in pool.map(one, chains) if n]
+    handlers = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with ThreadPoolExecutor(parallel) as pool:
+            failed = [n for n in pool.map(one, chains) if n]
+        return failed, stopping.is_set()
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
 
 
 # ------------------------------------------------------------------------------------------------ report
@@ -204,7 +253,8 @@ def flatness(run: Path) -> dict:
     from the last validation at or before 80 % of them (so over at least the last 20 %)."""
     from cosim.learn.train import read_log
 
-    vals = [r for r in read_log(run) if "val" in r]
+    # the training's own validations (`cosim learn validate` adds lines with a "split")
+    vals = [r for r in read_log(run) if "val" in r and "split" not in r]
     if not vals:
         return {}
     last = vals[-1]["step"]  # the window: from the last validation at or before 80 % of the steps to the end

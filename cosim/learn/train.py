@@ -329,6 +329,14 @@ class _NoBar:
         pass
 
 
+def _copy_whole(src: Path, dst: Path) -> None:
+    """Copy ``src`` to ``dst`` through a temporary file, so that a run stopped mid-copy never leaves a
+    truncated checkpoint under ``dst``'s name (a resumed run and ``predict`` read it)."""
+    tmp = dst.with_suffix(".tmp")
+    shutil.copyfile(src, tmp)
+    tmp.replace(dst)
+
+
 def _cpu_s() -> float:
     import resource
 
@@ -464,9 +472,9 @@ def fit(samples: Any, val_fn: Callable[[PillarDetector], dict[str, float]] | Non
         if kept or new_best or step % opts.save_every == 0 or step == total:
             save(ckpt_path, step, prior_s + time.perf_counter() - t_train)
         if new_best:
-            shutil.copyfile(ckpt_path, run / BEST)
+            _copy_whole(ckpt_path, run / BEST)
         if kept:
-            shutil.copyfile(ckpt_path, run / f"checkpoint_{step:06d}.pt")
+            _copy_whole(ckpt_path, run / f"checkpoint_{step:06d}.pt")
     bar.close()
     wall = time.perf_counter() - t_train
     train_s = prior_s + wall
