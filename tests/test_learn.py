@@ -733,6 +733,41 @@ def test_intermediate_training_is_deterministic_with_workers_and_keeps_the_best(
 @needs_torch
 @pytest.mark.integration
 @pytest.mark.timeout(900)
+def test_validate_rescores_kept_checkpoints_as_the_training_did(tiny_batch, tiny_cache, tmp_path, capsys):
+    """``cosim learn validate`` on a run's kept checkpoints, from the cache and from a step on, gives the
+    training's own validation numbers on the same ticks, and scores each step once per split and ``--every``."""
+    from cosim.eval.dataset import load_dataset
+    from cosim.learn.data import Setup
+    from cosim.learn.train import TrainOptions, read_log, train
+
+    refs = load_dataset(tiny_batch)
+    run = tmp_path / "run"
+    train([r for r in refs if r.split == "train"], [r for r in refs if r.split == "test"],
+          Setup(fusion="early", agents="all"), TrainOptions(steps=4, batch_size=2, seed=3, threads=1, val_steps=2,
+                                                             val_every_tick=2, keep_every=2),
+          run, show_progress=False, cache=tiny_cache)
+    own = {r["step"]: r["val"] for r in read_log(run) if "val" in r}
+    assert sorted(own) == [2, 4]
+    capsys.readouterr()  # the training's own lines
+
+    def validate(*extra: str) -> dict[int, str]:
+        status, out, err = cli_in_process(capsys, "learn", "validate", str(run), str(tiny_batch), "--split", "test",
+                                          "--threads", "1", *extra)
+        assert status == 0, err
+        return {int(line.split()[1].rstrip(":")): line for line in out.splitlines() if line.startswith("step ")}
+
+    assert sorted(validate("--every", "2", "--cache", str(tiny_cache), "--from-step", "4")) == [4]
+    assert validate("--every", "2", "--cache", str(tiny_cache), "--from-step", "4") == {}  # scored before
+    assert sorted(validate("--every", "2")) == [2]  # from the MCAP files: the step not scored yet
+    assert sorted(validate("--every", "4", "--from-step", "3")) == [4]  # another --every: scored again
+    rescored = {(r["step"], r["every"]): r["val"] for r in read_log(run) if r.get("split") == "test"}
+    assert rescored[(4, 2)] == own[4] and rescored[(2, 2)] == own[2]
+    assert set(rescored) == {(4, 2), (2, 2), (4, 4)}
+
+
+@needs_torch
+@pytest.mark.integration
+@pytest.mark.timeout(900)
 def test_recall_counts_the_objects_the_ego_does_not_see(trained, tiny_batch, tmp_path):
     preds = []
     for agents in ("ego", "all"):

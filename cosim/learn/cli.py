@@ -117,7 +117,8 @@ def cmd_validate(args: argparse.Namespace) -> int:
     run = Path(args.run)
     refs = split_episodes(load_dataset(Path(args.dataset)), args.split, args.split, args.dataset)
     t0 = time.perf_counter()
-    for step, ap in validate_checkpoints(run, refs, args.every, args.split, threads=args.threads):
+    for step, ap in validate_checkpoints(run, refs, args.every, args.split, threads=args.threads,
+                                         cache=Path(args.cache) if args.cache else None, from_step=args.from_step):
         print(f"step {step}: {args.split} AP30 {ap['AP30']:.1f}  AP50 {ap['AP50']:.1f}  AP70 {ap['AP70']:.1f}")
     print(f"wall     {time.perf_counter() - t0:.1f} s")
     return EXIT_OK
@@ -244,6 +245,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     va.add_argument("dataset", help="batch folder")
     va.add_argument("--split", default="val", help="split to score (default val)")
     va.add_argument("--every", type=_positive, default=10, help="ticks 0, every, 2 every... (default 10)")
+    va.add_argument("--from-step", type=int, default=0, metavar="STEP",
+                    help="only the checkpoints at this step or later (e.g. the last 20 %% of the steps)")
+    va.add_argument("--cache", help="a folder of cosim learn cache to read the samples from")
     va.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's)")
     va.set_defaults(func=cmd_validate)
 

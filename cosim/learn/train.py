@@ -486,10 +486,12 @@ def fit(samples: Any, val_fn: Callable[[PillarDetector], dict[str, float]] | Non
     return summary
 
 
-def validate_checkpoints(run: Path, refs: list[EpisodeRef], every: int, split: str, threads: int | None = None):
-    """Score ``checkpoint_<step>.pt`` of a run (and its last checkpoint) on ``refs``, except steps already
-    scored on ``split``; each result is appended to the run's ``log.jsonl`` as ``{"step", "val", "split"}``.
-    Yields (step, AP dict)."""
+def validate_checkpoints(run: Path, refs: list[EpisodeRef], every: int, split: str, threads: int | None = None,
+                         cache: Path | None = None, from_step: int = 0):
+    """Score ``checkpoint_<step>.pt`` of a run (and its last checkpoint) at steps >= ``from_step`` on
+    ``refs`` (ticks 0, every, 2 every...; read from ``cache`` when given), except steps already scored on
+    ``split`` with the same ``every``; each result is appended to the run's ``log.jsonl`` as ``{"step",
+    "val", "split", "every"}`` (the training's own validations have no ``split``). Yields (step, AP dict)."""
     run = Path(run)
     files = sorted(run.glob("checkpoint_*.pt"))
     if (run / CHECKPOINT).is_file():
@@ -499,21 +501,22 @@ def validate_checkpoints(run: Path, refs: list[EpisodeRef], every: int, split: s
     if threads:
         torch.set_num_threads(threads)
     device = device_of(None)
-    done = {int(r["step"]) for r in read_log(run) if "val" in r and r.get("split") == split}  # scored before
+    done = {int(r["step"]) for r in read_log(run)  # scored before
+            if "val" in r and r.get("split") == split and r.get("every") == every}
     samples = None
     for f in files:
         model, setup, ckpt = load_run(f, device)
         step = int(ckpt["step"])
-        if step in done:
+        if step in done or step < from_step:
             continue
         done.add(step)
         if samples is None:
             from cosim.learn.data import Samples, check_classes
 
             check_classes(refs, setup.classes, f"the model in {run}")
-            samples = Samples(refs, setup, every=every)
+            samples = Samples(refs, setup, every=every, cache=cache)
         ap = validate(model, samples, device)
-        _append_log(run / "log.jsonl", {"step": step, "val": ap, "split": split})
+        _append_log(run / "log.jsonl", {"step": step, "val": ap, "split": split, "every": every})
         yield step, ap
     if samples is not None:
         samples.close()
