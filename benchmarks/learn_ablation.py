@@ -8,7 +8,9 @@ the test split, score it and write the tables (issue 35).
 ``run`` makes the cache (``cosim learn cache --every 2``) when ``OUT/cache`` is missing, then trains the
 settings ``--parallel`` at a time (each one process with one torch thread: on a 2-core machine two at once
 keep both cores busy), each followed by its prediction of the test split (and late fusion with each ego-only
-model on every agent's cloud). Every command is ``cosim learn`` itself; what it cost (user + system
+model on every agent's cloud) and its tail check: the kept checkpoints of the last 20 % of the steps scored
+again on the val split at every cached tick (``cosim learn validate``), five times the frames of the
+training's own validation, so that the curves' flatness is read with less noise. Every command is ``cosim learn`` itself; what it cost (user + system
 CPU-seconds of its process tree, wall seconds) is appended to ``OUT/jobs.jsonl``. Ctrl-C or SIGTERM stops
 the running jobs (recording what they cost) and starts no more. Started again, ``run`` skips the finished
 jobs and continues a training cut short from its last checkpoint (``cosim learn train --resume``: saved every
@@ -66,6 +68,9 @@ RECALL_BY = ("environment", "strategy")  # the recall table again per value of t
 AGENT_LABEL = {"ego": "ego only", "vehicles": "V", "vehicles+rsus": "V+I", "vehicles+drones": "V+D", "all": "V+I+D"}
 CACHE_EVERY = 2
 TEST_EVERY = 6  # a multiple of the cache's
+#: the tail check: the kept checkpoints of the last 20 % of the steps scored again on the val split at every
+#: cached tick (5 times the frames of the training's own validation, every 10th tick)
+DENSE_EVERY = CACHE_EVERY
 
 
 def cosim(*args: str) -> list[str]:
@@ -123,6 +128,17 @@ def train_cmd(name: str, seed: int, args: argparse.Namespace, run: Path) -> list
                  "--threads", "1", "--seed", str(seed), "--quiet")
 
 
+def tail_from(steps: int, val_steps: int) -> int:
+    """The flatness window's first step: the last validation at or before 80 % of the steps."""
+    return max(val_steps, int(0.8 * steps) // val_steps * val_steps)
+
+
+def tail_cmd(run: Path, args: argparse.Namespace) -> list[str]:
+    return cosim("learn", "validate", str(run), str(args.dataset), "--split", "val", "--every", str(DENSE_EVERY),
+                 "--from-step", str(tail_from(args.steps, args.val_steps)), "--cache", str(args.out / "cache"),
+                 "--threads", "1")
+
+
 def predict_jobs(args: argparse.Namespace) -> list[tuple[str, list[str]]]:
     jobs = []
     for name, (_f, _a, _fu, seeds) in SETTINGS.items():
@@ -171,6 +187,8 @@ def run_all(args: argparse.Namespace) -> int:
         for job in (f"predict {key}", *([f"predict {LATE[0]}/s{seed}"] if late else [])):
             if job not in done:
                 chain.append((job, preds[job]))
+        if f"tail {key}" not in done:
+            chain.append((f"tail {key}", tail_cmd(run, args)))
         if chain:
             chains.append(chain)
     failed, stopped = run_chains(chains, args.parallel, out)
@@ -263,8 +281,14 @@ def flatness(run: Path) -> dict:
     ap30 = [r["val"]["AP30"] for r in tail]
     ap50 = [r["val"]["AP50"] for r in vals]
     best = max(range(len(vals)), key=lambda i: (ap50[i] == ap50[i] and ap50[i], -i))  # best.pt: the first best
+    dense = {r["step"]: r["val"] for r in read_log(run)  # the tail check's (`run`'s tail jobs)
+             if r.get("split") == "val" and r.get("every") == DENSE_EVERY and r["step"] >= start}
+    dense_ap30 = [dense[st]["AP30"] for st in sorted(dense)]
+    complete = sorted(dense) == [r["step"] for r in tail]
     return {"steps": [r["step"] for r in vals], "AP30": [r["val"]["AP30"] for r in vals], "AP50": ap50,
-            "tail_AP30_change": round(max(ap30) - min(ap30), 2), "tail_from": start, "best_step": vals[best]["step"]}
+            "tail_AP30_change": round(max(ap30) - min(ap30), 2), "tail_from": start, "best_step": vals[best]["step"],
+            "dense_tail": {"steps": sorted(dense), "AP30": dense_ap30,
+                           "AP30_change": round(max(dense_ap30) - min(dense_ap30), 2) if complete else None}}
 
 
 def mean_spread(xs: list[float]) -> tuple[float, float]:
@@ -288,23 +312,23 @@ def report(args: argparse.Namespace) -> int:
         pred = out / "pred" / f"{name}-s{s}.jsonl"
         if not pred.is_file():
             continue
-        cached = out / "scores" / f"{name}-s{s}.json"
+        cached = out / "scores" / f"{name}-s{s}.json"  # the scores of a prediction file, made once
         if cached.is_file() and cached.stat().st_mtime > pred.stat().st_mtime:
-            results[f"{name}/s{s}"] = json.loads(cached.read_text())
-            continue
-        t0 = time.process_time()
-        train_key = f"train {LATE[1] if name == LATE[0] else name}/s{s}"
-        run = out / "runs" / f"{LATE[1] if name == LATE[0] else name}-s{s}"
+            scored = json.loads(cached.read_text())
+        else:
+            t0 = time.process_time()
+            scored = {**score(refs, pred), "score_cpu_s": round(time.process_time() - t0, 1)}
+            cached.parent.mkdir(exist_ok=True)
+            cached.write_text(json.dumps(scored))
+            print(f"scored {name}/s{s}", file=sys.stderr)
+        base = LATE[1] if name == LATE[0] else name
+        curve = flatness(out / "runs" / f"{base}-s{s}")  # read afresh: a tail check may have come since
+        train = jobs.get(f"train {base}/s{s}", {})
         results[f"{name}/s{s}"] = {
-            **score(refs, pred),
-            "curve": flatness(run) if name != LATE[0] else {},
-            "train_cpu_s": jobs.get(train_key, {}).get("cpu_s"), "train_wall_s": jobs.get(train_key, {}).get("wall_s"),
-            "best_step": flatness(run).get("best_step"),
+            **scored, "curve": curve if name != LATE[0] else {}, "best_step": curve.get("best_step"),
+            "train_cpu_s": train.get("cpu_s"), "train_wall_s": train.get("wall_s"),
             "predict_cpu_s": jobs.get(f"predict {name}/s{s}", {}).get("cpu_s"),
-            "score_cpu_s": round(time.process_time() - t0, 1)}
-        cached.parent.mkdir(exist_ok=True)
-        cached.write_text(json.dumps(results[f"{name}/s{s}"]))
-        print(f"scored {name}/s{s}", file=sys.stderr)
+            "tail_cpu_s": jobs.get(f"tail {base}/s{s}", {}).get("cpu_s") if name != LATE[0] else None}
     first = [out / "pred" / f"{n}-s0.jsonl" for n in [*SETTINGS, LATE[0]] if (out / "pred" / f"{n}-s0.jsonl").is_file()]
     recall = []
     for by in (None, *RECALL_BY):  # the whole test split, then per environment and per drone strategy
@@ -346,11 +370,13 @@ def tables(results: dict, jobs: dict) -> str:
     lines = ["# cosim learn ablation (benchmarks/learn_ablation.py)", "",
              "AP of the vehicle group in %, mean ± half the range over seeds where there are several.", ""]
     lines += ["## Overall", "", "| setting | seeds | own visible AP30 | AP50 | common AP30 | AP50 | AP70 | best step |"
-              " val AP30 change over the last validations (from <= 80 % of the steps) | train CPU-s |",
-              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+              " val AP30 change over the last validations (from <= 80 % of the steps) | the same, every cached"
+              f" tick (every {DENSE_EVERY}) | train CPU-s |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for n in names:
         rs = [r for k, r in results.items() if k.split("/s")[0] == n]
         change = [r["curve"].get("tail_AP30_change") for r in rs if r["curve"]]
+        dense = [r["curve"].get("dense_tail", {}).get("AP30_change") for r in rs if r["curve"]]
         cpu = [r["train_cpu_s"] for r in rs if r["train_cpu_s"]]
         best = [str(r["best_step"]) for r in rs if r["best_step"] is not None]
         lines.append(f"| {label(n)} | {seeds(n)} | {_cell(results, n, 'own', 'overall=all', 'AP30')} | "
@@ -358,7 +384,9 @@ def tables(results: dict, jobs: dict) -> str:
                      f"{_cell(results, n, 'common', 'overall=all', 'AP30')} | "
                      f"{_cell(results, n, 'common', 'overall=all', 'AP50')} | "
                      f"{_cell(results, n, 'common', 'overall=all', 'AP70')} | {', '.join(best) or '-'} | "
-                     f"{', '.join(f'{c:.1f}' for c in change) or '-'} | {', '.join(f'{c:.0f}' for c in cpu) or '-'} |")
+                     f"{', '.join(f'{c:.1f}' for c in change) or '-'} | "
+                     f"{', '.join('-' if c is None else f'{c:.1f}' for c in dense) or '-'} | "
+                     f"{', '.join(f'{c:.0f}' for c in cpu) or '-'} |")
     for cond in CONDITIONS:
         values = sorted({key.split("=", 1)[1] for r in results.values() for key in r["common"]
                          if key.startswith(cond + "=")})
