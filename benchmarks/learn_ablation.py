@@ -10,8 +10,9 @@ settings ``--parallel`` at a time (each one process with one torch thread: on a 
 keep both cores busy), each followed by its prediction of the test split (and late fusion with each ego-only
 model on every agent's cloud) and its tail check: the kept checkpoints of the last 20 % of the steps scored
 again on the val split at every cached tick (``cosim learn validate``), five times the frames of the
-training's own validation, so that the curves' flatness is read with less noise. Every command is ``cosim learn`` itself; what it cost (user + system
-CPU-seconds of its process tree, wall seconds) is appended to ``OUT/jobs.jsonl``. Ctrl-C or SIGTERM stops
+training's own validation, so that the curves' flatness is read with less noise. Every command is ``cosim
+learn`` itself; what it cost (user + system CPU-seconds of its process tree, wall seconds) is appended to
+``OUT/jobs.jsonl``. Ctrl-C or SIGTERM stops
 the running jobs (recording what they cost) and starts no more. Started again, ``run`` skips the finished
 jobs and continues a training cut short from its last checkpoint (``cosim learn train --resume``: saved every
 100 steps, and a resumed run gives the same weights as an uninterrupted one), so the grid can be spread over
