@@ -12,11 +12,11 @@ model on every agent's cloud) and its tail check: the kept checkpoints of the la
 again on the val split at every cached tick (``cosim learn validate``), five times the frames of the
 training's own validation, so that the curves' flatness is read with less noise. Every command is ``cosim
 learn`` itself; what it cost (user + system CPU-seconds of its process tree, wall seconds) is appended to
-``OUT/jobs.jsonl``. Ctrl-C or SIGTERM stops
-the running jobs (recording what they cost) and starts no more. Started again, ``run`` skips the finished
-jobs and continues a training cut short from its last checkpoint (``cosim learn train --resume``: saved every
-100 steps, and a resumed run gives the same weights as an uninterrupted one), so the grid can be spread over
-several sittings; a job's cost is the sum of all its attempts.
+``OUT/jobs.jsonl``. Ctrl-C or SIGTERM stops the running jobs (recording what they cost) and starts no more.
+Started again, ``run`` skips the finished jobs and continues a training cut short from its last checkpoint
+(``cosim learn train --resume``: saved every 100 steps, and a resumed run gives the same weights as an
+uninterrupted one), so the grid can be spread over several sittings; a job's cost is the sum of all its
+attempts.
 
 ``report`` scores every prediction file with ``cosim eval``'s scoring against two ground truths, the
 objects the setting's own agents see and the objects any agent of the full setting (V+I+D) sees (the
