@@ -273,7 +273,8 @@ def flatness(run: Path) -> dict:
     from cosim.learn.train import read_log
 
     # the training's own validations (`cosim learn validate` adds lines with a "split")
-    vals = [r for r in read_log(run) if "val" in r and "split" not in r]
+    log = read_log(run)
+    vals = [r for r in log if "val" in r and "split" not in r]
     if not vals:
         return {}
     last = vals[-1]["step"]  # the window: from the last validation at or before 80 % of the steps to the end
@@ -282,7 +283,7 @@ def flatness(run: Path) -> dict:
     ap30 = [r["val"]["AP30"] for r in tail]
     ap50 = [r["val"]["AP50"] for r in vals]
     best = max(range(len(vals)), key=lambda i: (ap50[i] == ap50[i] and ap50[i], -i))  # best.pt: the first best
-    dense = {r["step"]: r["val"] for r in read_log(run)  # the tail check's (`run`'s tail jobs)
+    dense = {r["step"]: r["val"] for r in log  # the tail check's (`run`'s tail jobs)
              if r.get("split") == "val" and r.get("every") == DENSE_EVERY and r["step"] >= start}
     dense_ap30 = [dense[st]["AP30"] for st in sorted(dense)]
     complete = sorted(dense) == [r["step"] for r in tail]

@@ -505,6 +505,9 @@ def validate_checkpoints(run: Path, refs: list[EpisodeRef], every: int, split: s
             if "val" in r and r.get("split") == split and r.get("every") == every}
     samples = None
     for f in files:
+        named = f.stem.removeprefix("checkpoint_")  # checkpoint_<step>.pt names its step: skip it unloaded
+        if named.isdigit() and (int(named) in done or int(named) < from_step):
+            continue
         model, setup, ckpt = load_run(f, device)
         step = int(ckpt["step"])
         if step in done or step < from_step:
