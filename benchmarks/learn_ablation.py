@@ -24,7 +24,9 @@ common reference that lets settings be compared: the records' ``agents`` field i
 environment, drone strategy and lighting; gathers mean and spread over seeds, the val curves' flatness
 and the CPU of every stage; runs ``cosim learn recall`` on the seed-0 predictions (objects the ego has no
 return on, found per setting), over the whole test split and per environment and drone strategy; and
-writes ``OUT/ablation.md`` and ``OUT/ablation.json``.
+writes ``OUT/ablation.md`` and ``OUT/ablation.json``. ``--use NAME=DIR`` takes a setting from another run's
+folder instead (``ego=out/ablation3600``: ego only trained for more steps, and late fusion with those
+models), ``--to DIR`` writes the report there; the overall table gives each setting's steps.
 """
 
 from __future__ import annotations
@@ -301,20 +303,44 @@ def mean_spread(xs: list[float]) -> tuple[float, float]:
     return m, (max(xs) - min(xs)) / 2 if len(xs) > 1 else 0.0
 
 
+def sources(args: argparse.Namespace) -> dict[str, Path]:
+    """Each setting's results folder: ``--out``, or the folder ``--use NAME=DIR`` names (late fusion goes
+    with its ego-only models unless named itself)."""
+    use = {}
+    for item in args.use or []:
+        name, sep, folder = item.partition("=")
+        if not sep or name not in [*SETTINGS, LATE[0]] or not Path(folder).is_dir():
+            raise SystemExit(f"--use {item}: expected NAME=DIR with NAME one of {', '.join([*SETTINGS, LATE[0]])}"
+                             " and DIR a results folder of `run`")
+        use[name] = Path(folder)
+    if LATE[1] in use:
+        use.setdefault(LATE[0], use[LATE[1]])
+    return {name: use.get(name, args.out) for name in [*SETTINGS, LATE[0]]}
+
+
 def report(args: argparse.Namespace) -> int:
     from cosim.eval.dataset import load_dataset
 
-    out = args.out
+    out = args.to or args.out
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    src = sources(args)
     refs = [r for r in load_dataset(args.dataset) if r.split == "test"]
-    jobs = jobs_done(out)
+    done = {folder: jobs_done(folder) for folder in set(src.values())}
+    jobs = {}  # the jobs behind the reported results, from each setting's folder
+    for folder, recs in done.items():
+        for job, r in recs.items():
+            name = job.split(" ")[-1].split("/s")[0]  # "train ego/s1" -> "ego"; "cache" stays "cache"
+            if src.get(name, args.out) == folder:
+                jobs[job if folder == args.out else f"{job} ({folder})"] = r
     models = [(n, s) for n, (_f, _a, _fu, seeds) in SETTINGS.items() for s in seeds]
     models += [(LATE[0], s) for s in LATE_SEEDS]
     results: dict[str, dict] = {}
     for name, s in models:
-        pred = out / "pred" / f"{name}-s{s}.jsonl"
+        base = LATE[1] if name == LATE[0] else name
+        pred = src[name] / "pred" / f"{name}-s{s}.jsonl"
         if not pred.is_file():
             continue
-        cached = out / "scores" / f"{name}-s{s}.json"  # the scores of a prediction file, made once
+        cached = src[name] / "scores" / f"{name}-s{s}.json"  # the scores of a prediction file, made once
         if cached.is_file() and cached.stat().st_mtime > pred.stat().st_mtime:
             scored = json.loads(cached.read_text())
         else:
@@ -323,15 +349,17 @@ def report(args: argparse.Namespace) -> int:
             cached.parent.mkdir(exist_ok=True)
             cached.write_text(json.dumps(scored))
             print(f"scored {name}/s{s}", file=sys.stderr)
-        base = LATE[1] if name == LATE[0] else name
-        curve = flatness(out / "runs" / f"{base}-s{s}")  # read afresh: a tail check may have come since
-        train = jobs.get(f"train {base}/s{s}", {})
+        curve = flatness(src[base] / "runs" / f"{base}-s{s}")  # read afresh: a tail check may have come since
+        own = done[src[name]]
+        train = done[src[base]].get(f"train {base}/s{s}", {})
         results[f"{name}/s{s}"] = {
             **scored, "curve": curve if name != LATE[0] else {}, "best_step": curve.get("best_step"),
+            "steps": curve["steps"][-1] if curve else None, "folder": str(src[name]),
             "train_cpu_s": train.get("cpu_s"), "train_wall_s": train.get("wall_s"),
-            "predict_cpu_s": jobs.get(f"predict {name}/s{s}", {}).get("cpu_s"),
-            "tail_cpu_s": jobs.get(f"tail {base}/s{s}", {}).get("cpu_s") if name != LATE[0] else None}
-    first = [out / "pred" / f"{n}-s0.jsonl" for n in [*SETTINGS, LATE[0]] if (out / "pred" / f"{n}-s0.jsonl").is_file()]
+            "predict_cpu_s": own.get(f"predict {name}/s{s}", {}).get("cpu_s"),
+            "tail_cpu_s": own.get(f"tail {base}/s{s}", {}).get("cpu_s") if name != LATE[0] else None}
+    first = [src[n] / "pred" / f"{n}-s0.jsonl" for n in [*SETTINGS, LATE[0]]
+             if (src[n] / "pred" / f"{n}-s0.jsonl").is_file()]
     recall = []
     for by in (None, *RECALL_BY):  # the whole test split, then per environment and per drone strategy
         name = "recall" if by is None else f"recall-{by}"
@@ -371,17 +399,18 @@ def tables(results: dict, jobs: dict) -> str:
 
     lines = ["# cosim learn ablation (benchmarks/learn_ablation.py)", "",
              "AP of the vehicle group in %, mean ± half the range over seeds where there are several.", ""]
-    lines += ["## Overall", "", "| setting | seeds | own visible AP30 | AP50 | common AP30 | AP50 | AP70 | best step |"
-              " val AP30 change over the last validations (from <= 80 % of the steps) | the same, every cached"
-              f" tick (every {DENSE_EVERY}) | train CPU-s |",
-              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines += ["## Overall", "", "| setting | seeds | steps | own visible AP30 | AP50 | common AP30 | AP50 | AP70 |"
+              " best step | val AP30 change over the last validations (from <= 80 % of the steps) | the same, every"
+              f" cached tick (every {DENSE_EVERY}) | train CPU-s |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for n in names:
         rs = [r for k, r in results.items() if k.split("/s")[0] == n]
+        steps = ", ".join(sorted({str(r.get("steps")) for r in rs if r.get("steps")})) or "-"
         change = [r["curve"].get("tail_AP30_change") for r in rs if r["curve"]]
         dense = [r["curve"].get("dense_tail", {}).get("AP30_change") for r in rs if r["curve"]]
         cpu = [r["train_cpu_s"] for r in rs if r["train_cpu_s"]]
         best = [str(r["best_step"]) for r in rs if r["best_step"] is not None]
-        lines.append(f"| {label(n)} | {seeds(n)} | {_cell(results, n, 'own', 'overall=all', 'AP30')} | "
+        lines.append(f"| {label(n)} | {seeds(n)} | {steps} | {_cell(results, n, 'own', 'overall=all', 'AP30')} | "
                      f"{_cell(results, n, 'own', 'overall=all', 'AP50')} | "
                      f"{_cell(results, n, 'common', 'overall=all', 'AP30')} | "
                      f"{_cell(results, n, 'common', 'overall=all', 'AP50')} | "
@@ -418,6 +447,10 @@ def main() -> int:
     for q in (r, rp):
         q.add_argument("dataset", type=Path, help="batch folder of sweeps/learnability.yaml")
         q.add_argument("--out", type=Path, required=True)
+    rp.add_argument("--use", nargs="*", metavar="NAME=DIR",
+                    help="take these settings from another run's folder (e.g. ego=out/ablation3600: ego only, and\n"
+                         "late fusion with its models, trained for more steps)")
+    rp.add_argument("--to", type=Path, help="write the report and recall tables here (default: --out)")
     r.add_argument("--steps", type=int, default=800)
     r.add_argument("--lr", type=float, default=3e-3)
     r.add_argument("--val-steps", type=int, default=200)
