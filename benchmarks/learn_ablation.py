@@ -21,12 +21,13 @@ attempts.
 ``report`` scores every prediction file with ``cosim eval``'s scoring against two ground truths, the
 objects the setting's own agents see and the objects any agent of the full setting (V+I+D) sees (the
 common reference that lets settings be compared: the records' ``agents`` field is read as ``all``), per
-environment, drone strategy and lighting; gathers mean and spread over seeds, the val curves' flatness
-and the CPU of every stage; runs ``cosim learn recall`` on the seed-0 predictions (objects the ego has no
-return on, found per setting), over the whole test split and per environment and drone strategy; and
-writes ``OUT/ablation.md`` and ``OUT/ablation.json``. ``--use NAME=DIR`` takes a setting from another run's
-folder instead (``ego=out/ablation3600``: ego only trained for more steps, and late fusion with those
-models), ``--to DIR`` writes the report there; the overall table gives each setting's steps.
+environment, drone strategy and lighting; gathers mean and spread over seeds, the drones' gain per
+environment and strategy (V+I+D - V+I, V+D - V), the val curves' flatness and the CPU of every stage;
+runs ``cosim learn recall`` on the seed-0 predictions (objects the ego has no return on, found per
+setting), over the whole test split and per environment and drone strategy; and writes ``OUT/ablation.md``
+and ``OUT/ablation.json``. ``--use NAME=DIR`` takes a setting from another run's folder instead
+(``ego=out/ablation3600``: ego only trained for more steps, and late fusion with those models), ``--to DIR``
+writes the report there; the overall table gives each setting's steps.
 """
 
 from __future__ import annotations
@@ -384,6 +385,36 @@ def _cell(results: dict, name: str, ref: str, key: str, metric: str) -> str:
     return f"{m:.1f}" + (f" ± {spread:.1f}" if n > 1 else "")
 
 
+#: the drones' gain: (with drones, without), both intermediate fusion with max
+GAINS = (("inter-VID", "inter-VI"), ("inter-VD", "inter-V"))
+
+
+def _mean(results: dict, name: str, key: str, metric: str) -> float:
+    vals = [r["common"].get(key, {}).get(metric) for k, r in results.items() if k.split("/s")[0] == name]
+    return mean_spread(vals)[0]
+
+
+def gains(results: dict) -> list[str]:
+    """What adding the drones changes, per condition value: the difference of the seed means (common
+    reference) of each pair of :data:`GAINS`."""
+    keys = ["overall=all", *sorted({key for r in results.values() for key in r["common"]
+                                    if key.split("=")[0] in ("environment", "strategy")})]
+    lines = ["", "## The drones' gain (common reference, AP30 / AP50; difference of the seed means)", "",
+             "| gain | " + " | ".join(k.split("=")[1] if k != "overall=all" else "overall" for k in keys) + " |",
+             "|---|" + "---:|" * len(keys)]
+    have = {k.split("/s")[0] for k in results}
+    for with_d, without in GAINS:
+        if with_d not in have or without not in have:
+            continue
+        cells = []
+        for key in keys:
+            d = [_mean(results, with_d, key, m) - _mean(results, without, key, m) for m in ("AP30", "AP50")]
+            cells.append(" / ".join("-" if math.isnan(x) else f"{x:+.1f}" for x in d))
+        label = f"{AGENT_LABEL[SETTINGS[with_d][1]]} - {AGENT_LABEL[SETTINGS[without][1]]}"
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return lines if len(lines) > 5 else []
+
+
 def tables(results: dict, jobs: dict) -> str:
     names = [n for n in [*SETTINGS, LATE[0]] if any(k.split("/s")[0] == n for k in results)]
 
@@ -430,6 +461,7 @@ def tables(results: dict, jobs: dict) -> str:
         for n in names:
             cells = [_cell(results, n, "common", f"{cond}={v}", m) for v in values for m in ("AP30", "AP50")]
             lines.append(f"| {label(n)} | " + " | ".join(cells) + " |")
+    lines += gains(results)
     lines += ["", "## CPU of every stage", "", "| job | CPU-s | wall s |", "|---|---:|---:|"]
     total = 0.0
     for job, r in jobs.items():
