@@ -1,11 +1,15 @@
-"""The ablation of docs/learnability.md on a CPU: train every setting of :data:`SETTINGS` from a cache, predict
+r"""The ablation of docs/learnability.md on a CPU: train every setting of :data:`SETTINGS` from a cache, predict
 the test split, score it and write the tables (issue 35).
 
     cosim batch sweeps/learnability.yaml --out out/learn72 --count 72 --set duration_s=10 --workers 2
-    python benchmarks/learn_ablation.py run out/learn72 --out out/ablation --steps 800 --parallel 2
-    python benchmarks/learn_ablation.py report out/learn72 --out out/ablation
+    python benchmarks/learn_ablation.py run out/learn72 --out out/ablation2400 --steps 2400 --val-steps 240
+    python benchmarks/learn_ablation.py run out/learn72 --out out/ablation3600 --steps 3600 --val-steps 360 \
+        --only ego --cache out/ablation2400/cache
+    python benchmarks/learn_ablation.py report out/learn72 --out out/ablation2400 --use ego=out/ablation3600 \
+        --to out/ablation_converged
 
-``run`` makes the cache (``cosim learn cache --every 2``) when ``OUT/cache`` is missing, then trains the
+(the step counts at which every val curve is flat: docs/learnability.md). ``run`` makes the cache (``cosim
+learn cache --every 2``) when ``OUT/cache`` is missing (``--cache DIR`` shares another run's), then trains the
 settings ``--parallel`` at a time (each one process with one torch thread: on a 2-core machine two at once
 keep both cores busy), each followed by its prediction of the test split (and late fusion with each ego-only
 model on every agent's cloud) and its tail check: the kept checkpoints of the last 20 % of the steps scored
@@ -123,10 +127,15 @@ def jobs_done(out: Path) -> dict[str, dict]:
     return done
 
 
+def cache_dir(args: argparse.Namespace) -> Path:
+    """The run's cache: ``--cache`` (another run's, shared) or ``OUT/cache``, made by ``run``."""
+    return args.cache or args.out / "cache"
+
+
 def train_cmd(name: str, seed: int, args: argparse.Namespace, run: Path) -> list[str]:
     fusion, agents, fuse, _seeds = SETTINGS[name]
     return cosim("learn", "train", str(args.dataset), "--out", str(run), "--fusion", fusion, "--agents", agents,
-                 "--fuse", fuse, "--cache", str(args.out / "cache"), "--every", str(CACHE_EVERY),
+                 "--fuse", fuse, "--cache", str(cache_dir(args)), "--every", str(CACHE_EVERY),
                  "--steps", str(args.steps), "--batch-size", "8", "--lr", str(args.lr), "--schedule", "onecycle",
                  "--val-steps", str(args.val_steps), "--val-every-tick", "10", "--keep-every", str(args.val_steps),
                  "--threads", "1", "--seed", str(seed), "--quiet")
@@ -139,7 +148,7 @@ def tail_from(steps: int, val_steps: int) -> int:
 
 def tail_cmd(run: Path, args: argparse.Namespace) -> list[str]:
     return cosim("learn", "validate", str(run), str(args.dataset), "--split", "val", "--every", str(DENSE_EVERY),
-                 "--from-step", str(tail_from(args.steps, args.val_steps)), "--cache", str(args.out / "cache"),
+                 "--from-step", str(tail_from(args.steps, args.val_steps)), "--cache", str(cache_dir(args)),
                  "--threads", "1")
 
 
@@ -150,24 +159,33 @@ def predict_jobs(args: argparse.Namespace) -> list[tuple[str, list[str]]]:
             run = args.out / "runs" / f"{name}-s{s}"
             jobs.append((f"predict {name}/s{s}", cosim(
                 "learn", "predict", str(run), str(args.dataset), "--split", "test", "--every", str(TEST_EVERY),
-                "--cache", str(args.out / "cache"), "--threads", "1", "--quiet",
+                "--cache", str(cache_dir(args)), "--threads", "1", "--quiet",
                 "--out", str(args.out / "pred" / f"{name}-s{s}.jsonl"))))
     late, base, agents = LATE
     for s in LATE_SEEDS:
         jobs.append((f"predict {late}/s{s}", cosim(
             "learn", "predict", str(args.out / "runs" / f"{base}-s{s}"), str(args.dataset), "--split", "test",
-            "--every", str(TEST_EVERY), "--cache", str(args.out / "cache"), "--fusion", "late", "--agents", agents,
+            "--every", str(TEST_EVERY), "--cache", str(cache_dir(args)), "--fusion", "late", "--agents", agents,
             "--threads", "1", "--quiet", "--out", str(args.out / "pred" / f"{late}-s{s}.jsonl"))))
     return jobs
 
 
 def run_all(args: argparse.Namespace) -> int:
+    from cosim.learn.samples import cache_meta_path
+
+    unknown = sorted(set(args.only or ()) - set(SETTINGS))
+    if unknown:
+        print(f"--only {' '.join(unknown)}: not a setting (one of {', '.join(SETTINGS)})", file=sys.stderr)
+        return 2
+    if args.cache is not None and not cache_meta_path(args.cache).is_file():
+        print(f"--cache {args.cache}: not a cache of `cosim learn cache`", file=sys.stderr)
+        return 2
     out = args.out
     (out / "logs").mkdir(parents=True, exist_ok=True)
     (out / "runs").mkdir(exist_ok=True)
     (out / "pred").mkdir(exist_ok=True)
     done = jobs_done(out)
-    if "cache" not in done:
+    if args.cache is None and "cache" not in done:
         rc, cpu, wall = timed(cosim("learn", "cache", str(args.dataset), "--out", str(out / "cache"),
                                     "--every", str(CACHE_EVERY)), out / "logs" / "cache.log")
         record(out, job="cache", rc=rc, cpu_s=round(cpu, 1), wall_s=round(wall, 1))
@@ -488,6 +506,8 @@ def main() -> int:
     r.add_argument("--val-steps", type=int, default=200)
     r.add_argument("--parallel", type=int, default=2)
     r.add_argument("--only", nargs="*", help="only these settings (names of SETTINGS)")
+    r.add_argument("--cache", type=Path, help="an existing cache to train from (another run's OUT/cache), made\n"
+                   "with --every 2 on the same dataset (default: OUT/cache, made when missing)")
     args = p.parse_args()
     return run_all(args) if args.cmd == "run" else report(args)
 
