@@ -329,7 +329,7 @@ def sources(args: argparse.Namespace) -> dict[str, Path]:
     for item in args.use or []:
         name, sep, folder = item.partition("=")
         if not sep or name not in [*SETTINGS, LATE[0]] or not Path(folder).is_dir():
-            raise SystemExit(f"--use {item}: expected NAME=DIR with NAME one of {', '.join([*SETTINGS, LATE[0]])}"
+            raise ValueError(f"--use {item}: expected NAME=DIR with NAME one of {', '.join([*SETTINGS, LATE[0]])}"
                              " and DIR a results folder of `run`")
         use[name] = Path(folder)
     if LATE[1] in use:
@@ -340,9 +340,13 @@ def sources(args: argparse.Namespace) -> dict[str, Path]:
 def report(args: argparse.Namespace) -> int:
     from cosim.eval.dataset import load_dataset
 
+    try:
+        src = sources(args)
+    except ValueError as e:
+        print(e, file=sys.stderr)
+        return 2
     out = args.to or args.out
     (out / "logs").mkdir(parents=True, exist_ok=True)
-    src = sources(args)
     refs = [r for r in load_dataset(args.dataset) if r.split == "test"]
     done = {folder: jobs_done(folder) for folder in set(src.values())}
     jobs = {}  # the jobs behind the reported results, from each setting's folder
