@@ -4,9 +4,9 @@ the test split, score it and write the tables (issue 35).
     cosim batch sweeps/learnability.yaml --out out/learn72 --count 72 --set duration_s=10 --workers 2
     python benchmarks/learn_ablation.py run out/learn72 --out out/ablation2400 --steps 2400 --val-steps 240
     python benchmarks/learn_ablation.py run out/learn72 --out out/ablation3600 --steps 3600 --val-steps 360 \
-        --only ego --cache out/ablation2400/cache
+        --only ego early-VID --cache out/ablation2400/cache
     python benchmarks/learn_ablation.py report out/learn72 --out out/ablation2400 --use ego=out/ablation3600 \
-        --to out/ablation_converged
+        early-VID=out/ablation3600 --to out/ablation_converged
 
 (the step counts at which every val curve is flat: docs/learnability.md). ``run`` makes the cache (``cosim
 learn cache --every 2``) when ``OUT/cache`` is missing (``--cache DIR`` shares another run's), then trains the
