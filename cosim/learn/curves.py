@@ -16,6 +16,12 @@ def _log(run: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
+def own_validations(rows: list[dict]) -> list[dict]:
+    """The training's own validations of a run's log, in step order: not the lines `cosim learn validate`
+    appends (they carry a ``split`` and score other frames, so they would zigzag the curve)."""
+    return sorted((r for r in rows if "val" in r and "split" not in r), key=lambda r: r["step"])
+
+
 def plot_curves(runs: list[Path], out: Path, title: str) -> Path:
     """One PNG: loss (smoothed over 20 steps), validation AP30 and AP50 against steps, one line per run
     (labelled by its folder name)."""
@@ -34,7 +40,7 @@ def plot_curves(runs: list[Path], out: Path, title: str) -> Path:
             k = min(20, len(loss))
             smooth = np.convolve(loss, np.ones(k) / k, mode="valid")
             axes[0].plot(steps[k - 1:], smooth, label=run.name)
-        val = [r for r in rows if "val" in r]
+        val = own_validations(rows)
         for ax, key in zip(axes[1:], ("AP30", "AP50"), strict=True):
             ax.plot([r["step"] for r in val], [r["val"][key] for r in val], marker="o", label=run.name)
     axes[0].set(title="training loss (20-step mean)", xlabel="step", yscale="log")
