@@ -291,11 +291,11 @@ def score(refs, path: Path) -> dict[str, dict[str, dict]]:
 def flatness(run: Path) -> dict:
     """Val AP30 / AP50 at each validation and the change of AP30 over the last 20 % of the steps, measured
     from the last validation at or before 80 % of them (so over at least the last 20 %)."""
+    from cosim.learn.curves import own_validations
     from cosim.learn.train import read_log
 
-    # the training's own validations (`cosim learn validate` adds lines with a "split")
     log = read_log(run)
-    vals = [r for r in log if "val" in r and "split" not in r]
+    vals = own_validations(log)  # not the lines `cosim learn validate` adds
     if not vals:
         return {}
     last = vals[-1]["step"]  # the window: from the last validation at or before 80 % of the steps to the end
@@ -398,8 +398,13 @@ def report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _seed_values(results: dict, name: str, ref: str, key: str, metric: str) -> list[float | None]:
+    """One metric of a cell for every seed of a setting."""
+    return [r[ref].get(key, {}).get(metric) for k, r in results.items() if k.split("/s")[0] == name]
+
+
 def _cell(results: dict, name: str, ref: str, key: str, metric: str) -> str:
-    vals = [r[ref].get(key, {}).get(metric) for k, r in results.items() if k.split("/s")[0] == name]
+    vals = _seed_values(results, name, ref, key, metric)
     m, spread = mean_spread(vals)
     if math.isnan(m):
         return "-"
@@ -412,8 +417,7 @@ GAINS = (("inter-VID", "inter-VI"), ("inter-VD", "inter-V"))
 
 
 def _mean(results: dict, name: str, key: str, metric: str) -> float:
-    vals = [r["common"].get(key, {}).get(metric) for k, r in results.items() if k.split("/s")[0] == name]
-    return mean_spread(vals)[0]
+    return mean_spread(_seed_values(results, name, "common", key, metric))[0]
 
 
 def gains(results: dict) -> list[str]:
