@@ -249,3 +249,31 @@ def test_collaboration_object_split_agrees_with_the_coverage_counts(batch):
         assert k.object_share("only collaborators") == pytest.approx(c.recall("all") - c.recall("ego"))
         assert k.object_share("only drones") == pytest.approx(c.recall("all") - c.recall("vehicles+rsus"))
     assert {k[1] for k in collab if k[0] == "episode"} == {r.id for r in refs}
+
+
+def test_report_prints_visible_objects_per_frame_and_the_coverage_adds(batch, tmp_path, capsys):
+    """`cosim report` on a batch with visibility topics: the visible-objects column is the mean per frame of the
+    objects some agent sees (not their sum over the episode), and the collaboration tables it prints (not only
+    writes) carry `drones add` / `RSUs add` as `cosim coverage` computes them, never n/a here."""
+    from cosim.eval.coverage import coverage_adds
+
+    per_frame = {}
+    for ref in load_dataset(batch):
+        with open_episode(ref.path) as ep:
+            seen = [len({o["track_id"] for a in ep.agents for o in tick.visibility(a)["objects"]})
+                    for tick in ep.ticks(topics=["/labels/objects", *(f"/{a}/visibility" for a in ep.agents)])]
+            md = ep.metadata
+        per_frame[f"{md['weather']}/{md['lighting']}/{md['environment']}"] = sum(seen) / len(seen)
+    md_path = tmp_path / "report.md"
+    assert main(["report", str(batch), "--md", str(md_path)]) == 0
+    out = capsys.readouterr().out
+    text = md_path.read_text()
+    for cond, mean in per_frame.items():
+        row = next(line for line in text.splitlines() if line.startswith(f"| all | {cond} | 1 |"))
+        assert row.endswith(f"| {mean:.1f} |"), (row, mean)
+    drones, rsus = coverage_adds(compute_coverage(load_dataset(batch)))
+    assert "### Who sees the objects in the ego's evaluation area" in out
+    overall = next(line for line in out.splitlines() if line.startswith("| overall | all |")
+                   and line.count("|") == 10)
+    assert overall.endswith(f"| {drones['overall', 'all']:.1f} | {rsus['overall', 'all']:.1f} |"), overall
+    assert out.count("### ") == 2 and out.rstrip().endswith(text.rstrip().splitlines()[-1])

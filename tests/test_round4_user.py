@@ -117,12 +117,14 @@ def test_report_gives_bytes_frames_and_visible_objects_per_split_and_condition(e
                 visible += len(seen)
             cond = f"{md['weather']}/{md['lighting']}/{md['environment']}"
             expected[f"{split} {cond}"] = {"split": split, "condition": cond, "episodes": 1,
-                                           "bytes": ep.stat().st_size, "frames": len(e), "visible": visible}
+                                           "bytes": ep.stat().st_size, "frames": len(e), "visible": visible,
+                                           "visible_per_frame": visible / len(e)}
     assert rows == expected and all(r["visible"] > 0 for r in rows.values())
     text = report.md_path.read_text()
     assert "| split | condition (weather/lighting/environment) | episodes | bytes on disk | frames |" in text
     r = expected[next(iter(expected))]
-    assert f"| {r['split']} | {r['condition']} | 1 | {r['bytes']:,} | {r['frames']} | {r['visible']} |" in text
+    assert (f"| {r['split']} | {r['condition']} | 1 | {r['bytes']:,} | {r['frames']} | "
+            f"{r['visible_per_frame']:.1f} |") in text
 
 
 # ---------------------------------------------------------------------------------------------- exports

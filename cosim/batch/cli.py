@@ -157,6 +157,7 @@ def cmd_report(args: argparse.Namespace) -> int:
               f"({t['sim_per_wall']:.3f} sim s per wall s)")
     for p in report.images:
         print(f"plot     {p}")
+    print(report.collaboration)
     return EXIT_OK
 
 

@@ -1,10 +1,10 @@
 """``cosim report DIR``: the dataset statistics the AirV2X-Perception paper shows, for a batch folder.
 
 Hours per split; shares of weather, lighting, environment (by driving time) and drone strategy (by
-drone time); bytes on disk, frames and visible objects per split and condition; objects per class
-(unique track ids per episode, summed); agents per scene; throughput
-per node (where each episode ran, from the manifest). Written as Markdown plus PNG plots
-(matplotlib, Agg backend).
+drone time); bytes on disk, frames and visible objects (mean per frame) per split and condition; objects per
+class (unique track ids per episode, summed); agents per scene; throughput
+per node (where each episode ran, from the manifest); the collaboration tables (``cosim coverage``'s, with its
+``drones add`` / ``RSUs add``). Written as Markdown plus PNG plots (matplotlib, Agg backend).
 
 The episode list comes from the manifest (last record per episode, status ``done``); each episode's
 conditions come from its own ``episode`` metadata record and its objects from ``/labels/objects``.
@@ -49,6 +49,7 @@ class EpisodeStats:
 class Report:
     md_path: Path
     images: list[Path] = field(default_factory=list)
+    collaboration: str = ""  # the collaboration tables (Markdown), also the end of ``md_path``
     episodes: int = 0
     hours: float = 0.0
     stats: dict[str, Any] = field(default_factory=dict)
@@ -176,8 +177,9 @@ def summarize(episodes: list[EpisodeStats]) -> dict[str, Any]:
 
 
 def size_per_split_condition(episodes: list[EpisodeStats], split_order: list[str]) -> dict[str, dict[str, Any]]:
-    """``"<split> <weather>/<lighting>/<environment>"`` -> episodes, bytes on disk, frames and visible
-    object-frames (per tick, the objects at least one agent sees), splits in ``split_order``."""
+    """``"<split> <weather>/<lighting>/<environment>"`` -> episodes, bytes on disk, frames, visible
+    object-frames (``visible``: summed over the ticks, the objects at least one agent sees) and their mean per
+    frame (``visible_per_frame``), splits in ``split_order``."""
     out: dict[tuple[int, str, str], dict[str, Any]] = {}
     for e in episodes:
         cond = "/".join(getattr(e, c) for c in CONDITIONS)
@@ -188,6 +190,8 @@ def size_per_split_condition(episodes: list[EpisodeStats], split_order: list[str
         row["bytes"] += e.size_bytes
         row["frames"] += e.frames
         row["visible"] += e.visible
+    for row in out.values():
+        row["visible_per_frame"] = row["visible"] / row["frames"] if row["frames"] else 0.0
     return {f"{split} {cond}": row for (_i, split, cond), row in sorted(out.items())}
 
 
@@ -277,8 +281,8 @@ def _markdown(stats: dict[str, Any], status: dict[str, int], images: list[Path],
     out.append("")
     out += ["| split | condition (weather/lighting/environment) | episodes | bytes on disk | frames | "
             "visible objects (per frame, seen by an agent) |", "|---|---|---:|---:|---:|---:|"]
-    out += [f"| {r['split']} | {r['condition']} | {r['episodes']} | {r['bytes']:,} | {r['frames']} | {r['visible']} |"
-            for r in stats["size_per_split_condition"].values()]
+    out += [f"| {r['split']} | {r['condition']} | {r['episodes']} | {r['bytes']:,} | {r['frames']} | "
+            f"{r['visible_per_frame']:.1f} |" for r in stats["size_per_split_condition"].values()]
     out.append("")
     for key, title, unit in (("weather", "weather", "hours"), ("lighting", "lighting", "hours"),
                              ("environment", "environment", "hours"), ("strategy", "drone strategy", "drone-hours")):
@@ -302,13 +306,24 @@ def _markdown(stats: dict[str, Any], status: dict[str, int], images: list[Path],
 
 
 def collaboration_section(out_dir: Path) -> str:
-    """The collaboration tables of the batch (cosim/eval/collaboration.py), overall and per condition."""
+    """The collaboration tables of the batch (cosim/eval/collaboration.py), overall and per condition, with
+    ``drones add`` / ``RSUs add`` computed as ``cosim coverage`` does over the episodes with visibility topics
+    (n/a where no episode of the row has them)."""
     from cosim.eval.collaboration import collaboration_tables, compute_collaboration
+    from cosim.eval.coverage import compute_coverage, coverage_adds
     from cosim.eval.dataset import load_dataset
+    from cosim.io import open_episode
 
-    counts = compute_collaboration(load_dataset(out_dir))
+    refs = load_dataset(out_dir)
+    counts = compute_collaboration(refs)
     counts = {k: v for k, v in counts.items() if k[0] != "episode"}
-    return "\n## Collaboration\n\n" + "\n".join(t.markdown() for t in collaboration_tables(counts))
+    seen = []
+    for ref in refs:
+        with open_episode(ref.path) as ep:
+            if all(f"/{a}/visibility" in ep.topics for a in ep.agents):
+                seen.append(ref)
+    adds = coverage_adds(compute_coverage(seen)) if seen else (None, None)
+    return "\n## Collaboration\n\n" + "\n".join(t.markdown() for t in collaboration_tables(counts, *adds))
 
 
 def build_report(out_dir: Path, *, md_path: Path | None = None, img_dir: Path | None = None,
@@ -324,5 +339,7 @@ def build_report(out_dir: Path, *, md_path: Path | None = None, img_dir: Path | 
     md = Path(md_path) if md_path else out_dir / "report.md"
     images = _plots(stats, Path(img_dir) if img_dir else md.parent, img_prefix)
     md.parent.mkdir(parents=True, exist_ok=True)
-    md.write_text(_markdown(stats, status, images, md, out_dir.name) + collaboration_section(out_dir))
-    return Report(md_path=md, images=images, episodes=stats["episodes"], hours=stats["hours"], stats=stats)
+    collaboration = collaboration_section(out_dir)
+    md.write_text(_markdown(stats, status, images, md, out_dir.name) + collaboration)
+    return Report(md_path=md, images=images, collaboration=collaboration, episodes=stats["episodes"],
+                  hours=stats["hours"], stats=stats)
