@@ -38,11 +38,11 @@ from cosim.exporters.undistort import PinholeRemap, pinhole_remap
 from pydantic import BaseModel, ConfigDict, Field
 
 import cosim
-from cosim.batch.manifest import latest_records, sha256_file
 from cosim.errors import CosimError, InputError
 from cosim.io import Episode, Objects, Tick, open_episode
 from cosim.io.decode import parse_proto
 from cosim.io.deskew import deskew_tick, objects_to_tick_of
+from cosim.io.manifest import latest_records, sha256_file
 
 log = logging.getLogger(__name__)
 

@@ -11,18 +11,12 @@ import pytest
 
 from cosim.batch.estimate import calibrate
 from cosim.batch.executors import make_executor
-from cosim.batch.manifest import (
-    Manifest,
-    deterministic_view,
-    latest_records,
-    read_records,
-    sha256_file,
-    verify,
-)
+from cosim.batch.manifest import Manifest
 from cosim.batch.plan import balanced_allocation, derive_seed, largest_remainder, plan_file
 from cosim.batch.runner import run_batch
 from cosim.batch.sweep import SweepError, load_sweep
 from cosim.errors import InputError
+from cosim.io.manifest import deterministic_view, latest_records, read_records, sha256_file, verify
 from tests.fakes import fake_episode, niceness_episode, spawning_episode
 from tests.helpers import PAPER, REPO, SIX, run_cli, six_plan, write_sweep
 from tests.helpers import run_fake_batch as run

@@ -7,8 +7,8 @@ import socket
 import pytest
 
 from cosim.batch.job import container_id_in
-from cosim.batch.manifest import latest_records
 from cosim.batch.report import node_label, throughput
+from cosim.io.manifest import latest_records
 from tests.helpers import run_fake_batch as run
 from tests.helpers import six_plan
 

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from cosim.batch.manifest import deterministic_view, latest_records, verify
 from cosim.batch.report import build_report
+from cosim.io.manifest import deterministic_view, latest_records, verify
 from tests.helpers import REPO, run_cli
 
 pytestmark = pytest.mark.integration

@@ -32,8 +32,8 @@ from pathlib import Path
 
 import pytest
 
-from cosim.batch.manifest import deterministic_view, latest_records, sha256_file, verify
 from cosim.batch.report import build_report
+from cosim.io.manifest import deterministic_view, latest_records, sha256_file, verify
 from cosim.io.validate import validate_episode
 from tests.helpers import REPO, run_cli
 

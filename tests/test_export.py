@@ -405,7 +405,8 @@ def test_every_2_halves_the_timestamps(episode, labels, tmp_path):
 def test_a_batch_folder_keeps_its_splits(episode, tmp_path):
     from cosim.exporters.export import ExportOptions, run_export
 
-    from cosim.batch.manifest import Manifest, sha256_file
+    from cosim.batch.manifest import Manifest
+    from cosim.io.manifest import sha256_file
 
     batch = tmp_path / "batch"
     with Manifest(batch / "manifest.jsonl") as m:

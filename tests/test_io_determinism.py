@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from cosim.batch.manifest import latest_records
 from cosim.io import open_episode
+from cosim.io.manifest import latest_records
 from cosim.io.validate import validate_episode
 from tests.helpers import SCENARIOS, run_cli
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import psutil
 import pytest
 
-from cosim.batch.manifest import deterministic_view, latest_records, read_records, sha256_file, verify
+from cosim.io.manifest import deterministic_view, latest_records, read_records, sha256_file, verify
 from tests.helpers import REPO
 
 pytest.importorskip("ray")

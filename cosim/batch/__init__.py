@@ -2,7 +2,8 @@
 
 ``cosim batch SWEEP.yaml --out DIR`` = :func:`~cosim.batch.plan.plan_file` (deterministic episode list)
 + :func:`~cosim.batch.runner.run_batch` on an executor (:mod:`cosim.batch.executors`), recorded in an
-append-only manifest (:mod:`cosim.batch.manifest`). ``cosim report DIR`` = :mod:`cosim.batch.report`.
+append-only manifest (:mod:`cosim.batch.manifest`; read with
+:mod:`cosim.io.manifest`). ``cosim report DIR`` = :mod:`cosim.batch.report`.
 """
 
 from cosim.batch.plan import Episode, Plan, plan_file, plan_sweep

@@ -52,8 +52,8 @@ def _plan(args: argparse.Namespace) -> Any:
 def _print_plan(plan: Any, out: Path) -> None:
     from collections import Counter
 
-    from cosim.batch.manifest import latest_records
     from cosim.batch.runner import is_finished
+    from cosim.io.manifest import latest_records
 
     existing = latest_records(out) if out.is_dir() else {}
     finished = sum(is_finished(out, ep, existing.get(ep.id)) for ep in plan.episodes)

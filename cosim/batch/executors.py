@@ -6,7 +6,7 @@
   reporting (segfault, OOM kill) becomes a failed attempt naming its exit code or signal.
 - ``ray``: see :mod:`cosim.batch.ray_backend`.
 
-Both turn work into the same :class:`Event` stream, so retries, the manifest and progress live in
+Both turn work into the same :class:`~cosim.batch.job.Event` stream, so retries, the manifest and progress live in
 one place (:mod:`cosim.batch.runner`).
 """
 
@@ -22,41 +22,13 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
-from cosim.batch.job import EpisodeFn, Job, execute, run_real_episode
+from cosim.batch.job import PROGRESS_INTERVAL_S, EpisodeFn, Event, Executor, Job, execute, run_real_episode
+from cosim.batch.ray_backend import RayExecutor
 from cosim.errors import InputError
 
 log = logging.getLogger(__name__)
-
-PROGRESS_INTERVAL_S = 0.25  # a worker reports tick progress at most this often
-
-
-@dataclass(frozen=True)
-class Event:
-    """``kind``: started | progress | finished. ``outcome`` (finished) as :func:`cosim.batch.job.execute`."""
-
-    kind: str
-    job: Job
-    worker: str
-    done: int = 0
-    total: int = 0
-    outcome: dict[str, Any] | None = None
-
-
-class Executor(Protocol):
-    name: str
-
-    def has_capacity(self) -> bool: ...
-
-    def busy(self) -> bool: ...
-
-    def submit(self, job: Job) -> list[Event]: ...
-
-    def poll(self, timeout_s: float) -> list[Event]: ...
-
-    def shutdown(self) -> None: ...
-
 
 # ----------------------------------------------------------------------------------- local pool
 
@@ -232,8 +204,6 @@ def _make_local(*, workers: int = 1, episode_fn: EpisodeFn = run_real_episode, l
 
 
 def _make_ray(**kwargs: Any) -> Executor:
-    from cosim.batch.ray_backend import RayExecutor
-
     return RayExecutor(**kwargs)
 
 

@@ -18,10 +18,10 @@ import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
-from cosim.batch.manifest import sha256_file
 from cosim.errors import CosimError, InputError
+from cosim.io.manifest import sha256_file
 
 Progress = Callable[[int, int], None]
 
@@ -44,6 +44,39 @@ class Job:
 
 
 EpisodeFn = Callable[[Job, Progress], dict[str, Any]]
+
+
+PROGRESS_INTERVAL_S = 0.25  # a worker reports tick progress at most this often
+
+
+@dataclass(frozen=True)
+class Event:
+    """What an executor reports about a job. ``kind``: started | progress | finished. ``outcome`` (finished)
+    as :func:`execute`."""
+
+    kind: str
+    job: Job
+    worker: str
+    done: int = 0
+    total: int = 0
+    outcome: dict[str, Any] | None = None
+
+
+class Executor(Protocol):
+    """Where jobs run (:mod:`cosim.batch.executors`: local processes, Ray): every backend speaks
+    :class:`Event`."""
+
+    name: str
+
+    def has_capacity(self) -> bool: ...
+
+    def busy(self) -> bool: ...
+
+    def submit(self, job: Job) -> list[Event]: ...
+
+    def poll(self, timeout_s: float) -> list[Event]: ...
+
+    def shutdown(self) -> None: ...
 
 
 def run_real_episode(job: Job, progress: Progress) -> dict[str, Any]:

@@ -7,7 +7,7 @@ import sys
 import time
 from typing import Any
 
-from cosim.batch.executors import Event
+from cosim.batch.job import Event
 
 
 def _eta(elapsed_s: float, done: float, total: float) -> str:

@@ -16,8 +16,7 @@ import sys
 import time
 from typing import Any
 
-from cosim.batch.executors import PROGRESS_INTERVAL_S, Event
-from cosim.batch.job import EpisodeFn, Job, execute, run_real_episode
+from cosim.batch.job import PROGRESS_INTERVAL_S, EpisodeFn, Event, Job, execute, run_real_episode
 from cosim.errors import CosimError, InputError
 from cosim.preflight import RAY_MISSING
 

@@ -19,8 +19,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from cosim.batch.manifest import latest_records
 from cosim.errors import FormatError, InputError
+from cosim.io.manifest import latest_records
 
 log = logging.getLogger(__name__)
 

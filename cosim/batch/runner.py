@@ -20,11 +20,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from cosim.batch.executors import Event, Executor
-from cosim.batch.job import Job
-from cosim.batch.manifest import Manifest, latest_records, manifest_name, verify
+from cosim.batch.job import Event, Executor, Job
+from cosim.batch.manifest import Manifest, manifest_name
 from cosim.batch.plan import Episode, Plan
 from cosim.batch.progress import BatchProgress
+from cosim.io.manifest import latest_records, verify
 
 log = logging.getLogger(__name__)
 

@@ -82,7 +82,7 @@ def episode_ref(eid: str, path: Path, split: str) -> EpisodeRef:
 
 def load_dataset(path: Path | str, split: str | None = None) -> list[EpisodeRef]:
     """The episodes of a DATASET (see the module doc), optionally only those of one split."""
-    from cosim.batch.manifest import latest_records, manifest_files
+    from cosim.io.manifest import latest_records, manifest_files
 
     path = Path(path)
     refs: list[tuple[str, Path, str]] = []
