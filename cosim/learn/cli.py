@@ -31,14 +31,17 @@ def cmd_train(args: argparse.Namespace) -> int:
     require_torch()
     from cosim.eval.dataset import VEHICLE_CLASSES, load_dataset
     from cosim.learn.data import Setup, split_episodes
+    from cosim.learn.grid import make_grid
     from cosim.learn.train import TrainOptions, device_of, train
 
     if not 0.0 <= args.turn <= 180.0:
         raise InputError(f"--turn {args.turn:g}: the largest turn must be 0 to 180 degrees")
+    augment = _augment_options(args)
+    grid = make_grid(args.pillar_m, *((args.range_m[:2], args.range_m[2:]) if args.range_m else (None, None)))
 
     setup = Setup(fusion=args.fusion, agents=args.agents or ("ego" if args.fusion == "none" else "all"),
                   classes=tuple(args.classes or VEHICLE_CLASSES), delivery=args.delivery, lidar=args.lidar,
-                  fuse=args.fuse, encoders=args.encoders)
+                  fuse=args.fuse, encoders=args.encoders, grid=grid)
     refs = load_dataset(Path(args.dataset))
     train_refs = split_episodes(refs, args.split, "train", args.dataset)
     val_refs = None
@@ -47,7 +50,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     opts = TrainOptions(epochs=args.epochs, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                         every=args.every, val_every_tick=args.val_every_tick, val_steps=args.val_steps,
                         save_every=args.save_every, keep_every=args.keep_every, seed=args.seed, width=args.width,
-                        threads=args.threads, schedule=args.schedule, workers=args.workers, turn_deg=args.turn)
+                        threads=args.threads, schedule=args.schedule, workers=args.workers, turn_deg=args.turn,
+                        **augment)
     summary = train(train_refs, val_refs, setup, opts, Path(args.out), resume=args.resume,
                     device=device_of(args.device), show_progress=not args.quiet,
                     cache=Path(args.cache) if args.cache else None)
@@ -60,6 +64,29 @@ def cmd_train(args: argparse.Namespace) -> int:
           f"wall     {summary['train_s']:.1f} s training ({summary['val_s']:.1f} s of it validation) on "
           f"{summary['device']}, {summary['cpu_s']:.0f} CPU-s (workers included)")
     return EXIT_OK
+
+
+def _augment_options(args: argparse.Namespace) -> dict:
+    """The augmentation fields of TrainOptions from ``cosim learn train``'s flags, each checked (InputError)."""
+    lo, hi = args.scale
+    if not (0.5 <= lo <= hi <= 2.0):
+        raise InputError(f"--scale {lo:g} {hi:g}: give LOW <= HIGH, both within 0.5 to 2")
+    for flag, v, top in (("--translate-m", args.translate_m, 5.0), ("--height-jitter-m", args.height_jitter_m, 2.0),
+                         ("--intensity-noise", args.intensity_noise, 1.0)):
+        if not 0.0 <= v <= top:
+            raise InputError(f"{flag} {v:g}: a standard deviation of 0 to {top:g}")
+    if not 0.0 <= args.point_drop < 1.0:
+        raise InputError(f"--point-drop {args.point_drop:g}: the share of points dropped must be 0 to below 1")
+    if not 1.0 <= args.intensity_scale <= 10.0:
+        raise InputError(f"--intensity-scale {args.intensity_scale:g}: a factor of 1 (off) to 10")
+    if args.gt_sample < 0:
+        raise InputError(f"--gt-sample {args.gt_sample}: objects pasted per sample must be 0 (off) or more")
+    if args.gt_sample and args.fusion != "none":
+        raise InputError(f"--gt-sample pastes objects cut from single-agent samples: it works with --fusion none "
+                         f"only, not {args.fusion}")
+    return {"scale_min": lo, "scale_max": hi, "translate_m": args.translate_m, "height_m": args.height_jitter_m,
+            "point_drop": args.point_drop, "intensity_scale": args.intensity_scale,
+            "intensity_noise": args.intensity_noise, "gt_sample": args.gt_sample, "gt_min_points": args.gt_min_points}
 
 
 def cmd_predict(args: argparse.Namespace) -> int:
@@ -191,6 +218,30 @@ def register(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--turn", type=float, default=0.0, metavar="DEG",
                     help="turn each training sample about z by a random angle of up to DEG degrees either way "
                          "(default 0: mirror only)")
+    ag = tr.add_argument_group("augmentation (docs/learnability.md, \"Augmentation\"; each off by default)")
+    ag.add_argument("--scale", type=float, nargs=2, default=(1.0, 1.0), metavar=("LOW", "HIGH"),
+                    help="global scaling of each sample by a factor drawn from LOW to HIGH (e.g. 0.95 1.05)")
+    ag.add_argument("--translate-m", type=float, default=0.0, metavar="SIGMA",
+                    help="global translation: each sample moved by N(0, SIGMA) m along x, y and z (e.g. 0.2)")
+    ag.add_argument("--height-jitter-m", type=float, default=0.0, metavar="SIGMA",
+                    help="sensor-height jitter: each sample moved in z by N(0, SIGMA) m (e.g. 0.2)")
+    ag.add_argument("--point-drop", type=float, default=0.0, metavar="SHARE",
+                    help="drop each point with this probability (e.g. 0.1)")
+    ag.add_argument("--intensity-scale", type=float, default=1.0, metavar="F",
+                    help="intensities times a factor drawn log-uniformly from 1/F to F (e.g. 2; 1: off)")
+    ag.add_argument("--intensity-noise", type=float, default=0.0, metavar="SIGMA",
+                    help="plus N(0, SIGMA) per point, clipped to 0..1 (e.g. 0.05)")
+    ag.add_argument("--gt-sample", type=int, default=0, metavar="N",
+                    help="ground-truth sampling (fusion none): paste up to N labelled objects cut from other "
+                         "training samples into each sample, at free places on its ground, hiding what they "
+                         "occlude (e.g. 10)")
+    ag.add_argument("--gt-min-points", type=_positive, default=5, metavar="N",
+                    help="objects of the ground-truth database have at least N points (default 5)")
+    tr.add_argument("--pillar-m", type=float, default=0.8, metavar="M",
+                    help="pillar size (default 0.8; e.g. 0.4, 0.32, 0.2: finer costs CPU, docs/learnability.md)")
+    tr.add_argument("--range-m", type=float, nargs=4, metavar=("XMIN", "XMAX", "YMIN", "YMAX"),
+                    help="the detection range in the ego LiDAR frame (default -140.8 140.8 -40 40, cosim eval's "
+                         "area; KITTI-like front view: 0 70.4 -40 40)")
     tr.add_argument("--schedule", choices=SCHEDULES, default="cosine",
                     help="learning rate: cosine (warm-up, cosine to 0; default) or onecycle")
     tr.add_argument("--agents", choices=list(SETTINGS), help="collaborating agent kinds (default: ego for "

@@ -101,8 +101,8 @@ class CacheRecords:
         if cache.lidar != lidar:
             raise InputError(f"{cache.root} holds sweeps compensated as {cache.lidar!r}, not {lidar!r}: "
                              f"give --lidar {cache.lidar} or cache the data again")
-        if Grid.from_dict(cache.meta["grid"]) != self_grid:
-            raise InputError(f"{cache.root} was cropped to another grid than the model's: cache the data again")
+        if not Grid.from_dict(cache.meta["grid"]).covers(self_grid):
+            raise InputError(f"{cache.root} was cropped to a smaller range than the model's grid: cache the data again")
         ids = [r if isinstance(r, str) else r.id for r in refs]
         cached_every = int(cache.meta["every"])
         if every % cached_every:

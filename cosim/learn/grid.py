@@ -37,7 +37,7 @@ class Grid:
     z_range: tuple[float, float] = (-3.0, 1.0)
     pillar_m: float = 0.8
     max_points: int = 32
-    max_pillars: int = 40000
+    max_pillars: int = 40000  # MAX_PILLARS
     stride: int = 2
 
     @property
@@ -73,9 +73,46 @@ class Grid:
         return ((x >= self.x_range[0]) & (x < self.x_range[1]) & (y >= self.y_range[0]) & (y < self.y_range[1])
                 & (z >= self.z_range[0]) & (z < self.z_range[1]))
 
+    def covers(self, other: Grid) -> bool:
+        """Whether ``other``'s range (x, y and z) lies inside this grid's (any pillar size): points cropped
+        to this grid hold every point of ``other``."""
+        return all(a[0] <= b[0] and b[1] <= a[1] for a, b in ((self.x_range, other.x_range),
+                                                              (self.y_range, other.y_range),
+                                                              (self.z_range, other.z_range)))
+
     def box_inside(self, centers: np.ndarray) -> np.ndarray:
         return ((centers[:, 0] >= self.x_range[0]) & (centers[:, 0] < self.x_range[1])
                 & (centers[:, 1] >= self.y_range[0]) & (centers[:, 1] < self.y_range[1]))
+
+
+#: ``--pillar-m`` below which a grid is refused (PointPillars' finest is 0.16 m).
+MIN_PILLAR_M = 0.1
+#: The cap on pillars of the default grid, kept as the floor of a finer one's (:func:`make_grid`).
+MAX_PILLARS = 40000
+
+
+def make_grid(pillar_m: float = 0.8, x_range: tuple[float, float] | None = None,
+              y_range: tuple[float, float] | None = None) -> Grid:
+    """The detector's grid with ``pillar_m`` pillars over ``x_range``, ``y_range`` [m] of the ego LiDAR frame
+    (default: the evaluation area, :data:`AREA_HALF_M`; a KITTI-like front view is x (0, 70.4), y (-40, 40)).
+    Each extent must be a whole number of pillars (an even number, so that the head's stride-2 cells tile
+    it). ``max_pillars`` is the larger of :data:`MAX_PILLARS` and the cell count: no pillar is ever dropped.
+    Raises InputError naming the problem."""
+    from cosim.errors import InputError
+
+    x_range = tuple(float(v) for v in (x_range or (-AREA_HALF_M[0], AREA_HALF_M[0])))
+    y_range = tuple(float(v) for v in (y_range or (-AREA_HALF_M[1], AREA_HALF_M[1])))
+    if not (math.isfinite(pillar_m) and pillar_m >= MIN_PILLAR_M):
+        raise InputError(f"--pillar-m {pillar_m:g}: pillars must be at least {MIN_PILLAR_M:g} m")
+    for name, (lo, hi) in (("x", x_range), ("y", y_range)):
+        if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+            raise InputError(f"--range-m: the {name} range {lo:g} to {hi:g} m is empty (give low < high)")
+        n = (hi - lo) / pillar_m
+        if abs(n - round(n)) > 1e-6 or round(n) % 2:
+            raise InputError(f"--range-m: the {name} range {lo:g} to {hi:g} m is {n:.6g} pillars of {pillar_m:g} m; "
+                             "it must be an even whole number of them")
+    g = Grid(x_range=x_range, y_range=y_range, pillar_m=float(pillar_m))
+    return Grid(x_range=x_range, y_range=y_range, pillar_m=float(pillar_m), max_pillars=max(MAX_PILLARS, g.nx * g.ny))
 
 
 def voxelise(points: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

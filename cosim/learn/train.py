@@ -30,6 +30,15 @@ import torch
 
 from cosim.errors import InputError
 from cosim.eval.predictions import parse_record, record_json
+from cosim.learn.augment import (
+    GtDatabase,
+    drop_points,
+    jitter_intensity,
+    paste_objects,
+    scale,
+    transform_poses,
+    translate,
+)
 from cosim.learn.grid import decode, targets, voxelise, warp_index
 from cosim.learn.model import PillarDetector, focal_loss, peaks, regression_loss
 from cosim.learn.nms import circle_nms
@@ -64,6 +73,16 @@ class TrainOptions:
     schedule: str = "cosine"  # warm-up then cosine decay to 0, or one-cycle (30 % rise from lr/25, then cosine)
     workers: int = 0  # worker processes making the batches (0: in the training process)
     turn_deg: float = 0.0  # turn each sample about z by up to this many degrees either way (0: no turn)
+    # the toolbox augmentations (cosim.learn.augment; docs/learnability.md, "Augmentation"); the defaults are off
+    scale_min: float = 1.0  # global scaling by a factor drawn uniformly from [scale_min, scale_max]
+    scale_max: float = 1.0
+    translate_m: float = 0.0  # global translation: N(0, translate_m) [m] per axis x, y, z
+    height_m: float = 0.0  # sensor-height jitter: the whole scene moved in z by N(0, height_m) [m]
+    point_drop: float = 0.0  # each point dropped with this probability
+    intensity_scale: float = 1.0  # intensities times a factor log-uniform in [1 / intensity_scale, intensity_scale]
+    intensity_noise: float = 0.0  # plus N(0, intensity_noise) per point, clipped to 0..1
+    gt_sample: int = 0  # ground-truth sampling: paste up to this many database objects into each sample
+    gt_min_points: int = 5  # objects of the database: at least this many points inside their box
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -71,6 +90,17 @@ class TrainOptions:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TrainOptions:
         return cls(**{k: v for k, v in d.items() if k in cls.__dataclass_fields__})
+
+    def augments(self) -> bool:
+        """Whether any augmentation besides the flips and the turn is on."""
+        return (self.scale_min, self.scale_max, self.translate_m, self.height_m, self.point_drop,
+                self.intensity_scale, self.intensity_noise, self.gt_sample) != (1.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0)
+
+
+#: Options a resumed run must share with the run it continues: the model's width and the augmentations.
+RESUME_FIELDS: tuple[str, ...] = ("width", "turn_deg", "scale_min", "scale_max",
+                                  "translate_m", "height_m", "point_drop", "intensity_scale", "intensity_noise",
+                                  "gt_sample", "gt_min_points")
 
 
 def device_of(name: str | None) -> torch.device:
@@ -238,10 +268,13 @@ def validate(model: PillarDetector, samples: Samples, device: torch.device) -> d
     return {k: round(float(det.get(k, float("nan"))), 2) for k in ("AP30", "AP50", "AP70")}
 
 
-def step_batch(samples: Any, order: np.ndarray, start: int, opts: TrainOptions, step: int) -> dict[str, Any]:
+def step_batch(samples: Any, order: np.ndarray, start: int, opts: TrainOptions, step: int,
+               db: GtDatabase | None = None) -> dict[str, Any]:
     """The batch of training step ``step`` (numpy): samples ``order[start:start + batch]`` (wrapping),
     flipped and turned as drawn from (seed, step); late fusion takes one agent's cloud of each sample (also
-    drawn)."""
+    drawn). The other augmentations (:func:`augment_item`) draw from streams of their own, (seed, step, j, 1..3)
+    for the batch's j-th sample, so that runs without them keep their batches; ``db``: the ground-truth
+    database of ``opts.gt_sample``."""
     rng = np.random.default_rng([opts.seed, step])
     setup = samples.setup
     clouds, tgts, per_sample, poses, kinds = [], [], [], [], []
@@ -251,19 +284,34 @@ def step_batch(samples: Any, order: np.ndarray, start: int, opts: TrainOptions, 
         flip = rng.random(2) < 0.5
         # drawn only when turning, so that runs without it keep their batches
         turn = math.radians(opts.turn_deg) * rng.uniform(-1.0, 1.0) if opts.turn_deg else 0.0
+        streams = [np.random.default_rng([opts.seed, step, j, n]) for n in (1, 2, 3)] if opts.augments() else None
         if setup.fusion == "intermediate":
             boxes = item["targets"][0][0]
+            item_clouds = []
             for cloud in item["clouds"]:
                 c, boxes_f = augment(cloud, boxes, bool(flip[0]), bool(flip[1]), turn)
-                clouds.append(c)
+                item_clouds.append(c)
+            item_poses = augment_poses(item["poses"], bool(flip[0]), bool(flip[1]), turn)
+            labels = item["targets"][0][1]
+            if streams is not None:
+                item_clouds, boxes_f, labels, item_poses = augment_item(item_clouds, boxes_f, labels, opts, streams,
+                                                                        poses=item_poses)
+            clouds += item_clouds
             per_sample.append(len(item["clouds"]))
-            poses.append(augment_poses(item["poses"], bool(flip[0]), bool(flip[1]), turn))
+            poses.append(item_poses)
             kinds.append(item["kinds"])
-            tgts.append(targets(boxes_f, item["targets"][0][1], setup.grid, len(setup.classes)))
+            tgts.append(targets(boxes_f, labels, setup.grid, len(setup.classes)))
             continue
-        cloud, boxes = augment(item["clouds"][k], item["targets"][k][0], bool(flip[0]), bool(flip[1]), turn)
+        cloud, boxes = item["clouds"][k], item["targets"][k][0]
+        labels = item["targets"][k][1]
+        if streams is not None and opts.gt_sample and db is not None:
+            cloud, boxes, labels = paste_objects(db, cloud, boxes, labels, opts.gt_sample, streams[2],
+                                                 db.source_of(item))
+        cloud, boxes = augment(cloud, boxes, bool(flip[0]), bool(flip[1]), turn)
+        if streams is not None:
+            (cloud,), boxes, labels, _ = augment_item([cloud], boxes, labels, opts, streams)
         clouds.append(cloud)
-        tgts.append(targets(boxes, item["targets"][k][1], setup.grid, len(setup.classes)))
+        tgts.append(targets(boxes, labels, setup.grid, len(setup.classes)))
     if setup.fusion == "intermediate":
         batch = batch_arrays(clouds, setup, per_sample, poses, kinds)
     else:
@@ -272,12 +320,49 @@ def step_batch(samples: Any, order: np.ndarray, start: int, opts: TrainOptions, 
     return batch
 
 
+def augment_item(clouds: list[np.ndarray], boxes: np.ndarray, labels: np.ndarray, opts: TrainOptions,
+                 streams: list[np.random.Generator], poses: np.ndarray | None = None
+                 ) -> tuple[list[np.ndarray], np.ndarray, np.ndarray, np.ndarray | None]:
+    """One sample's global scaling, translation and sensor-height jitter (one draw for the whole scene, from
+    ``streams[0]``), then each cloud's point drop and intensity jitter (``streams[1]``), as ``opts`` says.
+
+    ``clouds`` (N, 4) float32 in the ego LiDAR frame with ``boxes`` (M, 7) there, or for intermediate fusion
+    each in its agent's bird's-eye frame with ``poses`` (J, 3) (yaw, x, y in the ego frame): every agent's cloud,
+    the boxes and the poses move as one scene (:func:`cosim.learn.augment.transform_poses`). Returns the
+    clouds, boxes, labels and poses (None without)."""
+    draw = streams[0]
+    factor = float(draw.uniform(opts.scale_min, opts.scale_max))
+    offset = draw.normal(0.0, 1.0, 3) * opts.translate_m
+    offset[2] += draw.normal(0.0, 1.0) * opts.height_m
+    log_i = math.log(opts.intensity_scale)
+    gain = math.exp(draw.uniform(-log_i, log_i))
+    no_boxes, no_points = np.zeros((0, 7)), np.zeros((0, 4), np.float32)
+    out = []
+    for cloud in clouds:
+        if factor != 1.0:
+            cloud, _ = scale(cloud, no_boxes, factor)
+        if offset.any():  # the x, y of an agent's frame move with its pose; z moves every cloud
+            cloud, _ = translate(cloud, no_boxes, offset if poses is None else np.array([0.0, 0.0, offset[2]]))
+        if opts.point_drop:
+            cloud = drop_points(cloud, opts.point_drop, streams[1])
+        if gain != 1.0 or opts.intensity_noise:
+            cloud = jitter_intensity(cloud, gain, opts.intensity_noise, streams[1])
+        out.append(cloud)
+    if factor != 1.0:
+        _, boxes = scale(no_points, boxes, factor)
+    if offset.any():
+        _, boxes = translate(no_points, boxes, offset)
+    if poses is not None:
+        poses = transform_poses(poses, factor, offset)
+    return out, boxes, labels, poses
+
+
 class StepBatches:
     """Map-style dataset of training batches by step number, for torch's DataLoader: worker processes
     make the batches (reading, voxelising, targets) while the model trains; batch k depends on k alone."""
 
-    def __init__(self, samples: Any, opts: TrainOptions, per_epoch: int):
-        self.samples, self.opts, self.per_epoch = samples, opts, per_epoch
+    def __init__(self, samples: Any, opts: TrainOptions, per_epoch: int, db: GtDatabase | None = None):
+        self.samples, self.opts, self.per_epoch, self.db = samples, opts, per_epoch, db
 
     def __len__(self) -> int:
         return 1 << 40
@@ -285,12 +370,12 @@ class StepBatches:
     def __getitem__(self, step: int) -> dict[str, Any]:
         epoch, pos = divmod(step, self.per_epoch)
         order = np.random.default_rng([self.opts.seed, 1_000_003 + epoch]).permutation(len(self.samples))
-        return step_batch(self.samples, order, pos * self.opts.batch_size, self.opts, step)
+        return step_batch(self.samples, order, pos * self.opts.batch_size, self.opts, step, self.db)
 
 
-def batches(samples: Any, opts: TrainOptions, per_epoch: int, first: int, total: int):
+def batches(samples: Any, opts: TrainOptions, per_epoch: int, first: int, total: int, db: GtDatabase | None = None):
     """The batches of steps first..total-1, made in ``opts.workers`` worker processes (0: here)."""
-    data = StepBatches(samples, opts, per_epoch)
+    data = StepBatches(samples, opts, per_epoch, db)
     if opts.workers <= 0:
         for step in range(first, total):
             yield data[step]
@@ -399,6 +484,9 @@ def fit(samples: Any, val_fn: Callable[[PillarDetector], dict[str, float]] | Non
     total = opts.steps if opts.steps is not None else opts.epochs * per_epoch
     if total < 1:
         raise InputError("nothing to train: give --epochs or --steps >= 1")
+    if opts.gt_sample and setup.fusion != "none":
+        raise InputError(f"--gt-sample pastes objects cut from single-agent samples: it works with --fusion none "
+                         f"only, not {setup.fusion}")
     model = new_model(setup, opts, device)
     optim = torch.optim.AdamW(model.parameters(), lr=opts.lr, weight_decay=opts.weight_decay)
     step = 0
@@ -411,7 +499,14 @@ def fit(samples: Any, val_fn: Callable[[PillarDetector], dict[str, float]] | Non
         old = Setup.from_dict(ckpt["setup"])
         if old != setup:
             raise InputError(f"{run} was trained with fusion {old.fusion}, agents {old.agents}, classes "
-                             f"{', '.join(old.classes)}, lidar {old.lidar}: resume it with the same options")
+                             f"{', '.join(old.classes)}, lidar {old.lidar}, pillars {old.grid.pillar_m:g} m over x "
+                             f"{old.grid.x_range[0]:g} to {old.grid.x_range[1]:g}, y {old.grid.y_range[0]:g} to "
+                             f"{old.grid.y_range[1]:g}: resume it with the same options")
+        old_opts = TrainOptions.from_dict(ckpt["options"])
+        differ = [f"{k} {getattr(old_opts, k)} (now {getattr(opts, k)})" for k in RESUME_FIELDS
+                  if getattr(old_opts, k) != getattr(opts, k)]
+        if differ:
+            raise InputError(f"{run} was trained with {', '.join(differ)}: resume it with the same options")
         model.load_state_dict(ckpt["model"])
         optim.load_state_dict(ckpt["optimizer"])
         step = int(ckpt["step"])
@@ -422,6 +517,10 @@ def fit(samples: Any, val_fn: Callable[[PillarDetector], dict[str, float]] | Non
     else:
         run.mkdir(parents=True, exist_ok=True)
         log_path.write_text("")
+    db = None
+    if opts.gt_sample:
+        db = GtDatabase.build(samples, opts.gt_min_points)
+        log.info("ground-truth database: %d objects from %d samples", len(db), len(samples))
     setup_s = time.perf_counter() - t0
 
     def save(path: Path, step: int, train_s: float) -> None:
@@ -438,7 +537,7 @@ def fit(samples: Any, val_fn: Callable[[PillarDetector], dict[str, float]] | Non
     bar = tqdm(total=total, initial=step, desc=f"train {setup.fusion}/{setup.agents}", unit="step", file=sys.stderr,
                disable=not show_progress or not sys.stderr.isatty(), dynamic_ncols=True, mininterval=0.5)
     last = None
-    for batch in batches(samples, opts, per_epoch, step, total):
+    for batch in batches(samples, opts, per_epoch, step, total, db):
         epoch = step // per_epoch
         b = to_device(batch, device)
         for group in optim.param_groups:
@@ -480,6 +579,7 @@ def fit(samples: Any, val_fn: Callable[[PillarDetector], dict[str, float]] | Non
     train_s = prior_s + wall
     summary = {"setup": setup.to_dict(), "options": opts.to_dict(), "train_samples": len(samples), "steps": step,
                "final_loss": last, "best_val_ap50": best if best >= 0 else None, "device": str(device),
+               "gt_database_objects": None if db is None else len(db),
                "setup_s": round(setup_s, 1), "train_s": round(train_s, 1), "val_s": round(val_s, 1),
                "wall_s": round(wall, 1), "cpu_s": round(_cpu_s() - cpu0, 1)}
     (run / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
