@@ -16,6 +16,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from .merge import merge_fields
+
 
 def _uniform(lo_deg: float, hi_deg: float, n: int) -> tuple[float, ...]:
     """``n`` elevations [deg] evenly spaced from ``lo_deg`` to ``hi_deg``, rounded to 1/1000 deg as sheets are."""
@@ -160,8 +162,6 @@ def expand_lidar(kind: str, default: dict[str, Any], given: Any) -> Any:
     preset's suggested mount height unless ``given`` sets a mount. ``given`` with ``elevations_deg`` and
     no ring count or span gets both from the table. Anything else (``null``, an unknown model) is
     left for validation to report."""
-    from .model import merge_fields
-
     if not isinstance(given, dict):
         return given
     base = dict(default)

@@ -21,6 +21,7 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from cosim.errors import ScenarioError
+from cosim.scenario.merge import merge_fields
 from cosim.scenario.model import (
     DRONE_STRATEGIES,
     EVENT_KINDS,
@@ -30,7 +31,6 @@ from cosim.scenario.model import (
     Scenario,
     WrongKind,
     complete_rigs,
-    merge_fields,
 )
 
 Key = tuple[str | int, ...]

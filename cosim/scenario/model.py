@@ -15,6 +15,7 @@ from typing import Annotated, Any, Literal, Union, get_args, get_origin
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer, model_validator
 
 from .lidar_presets import LIDAR_PRESETS, expand_lidar
+from .merge import merge_fields
 
 TICK_NS_PER_S = 1_000_000_000
 #: What ``output.name`` may be: a file stem that cannot leave the output folder or hide the file.
@@ -488,13 +489,6 @@ def default_drone_rig() -> RigSpec:
 
 
 DEFAULT_RIGS = {"vehicle": default_vehicle_rig, "rsu": default_rsu_rig, "drone": default_drone_rig}
-
-
-def merge_fields(base: Any, over: Any) -> Any:
-    """Deep-merge mappings field by field; anything else in ``over`` (a value, a list) replaces ``base``."""
-    if isinstance(base, dict) and isinstance(over, dict):
-        return {**base, **{k: merge_fields(base[k], v) if k in base else v for k, v in over.items()}}
-    return over
 
 
 def complete_rigs(sensors: Any, lidar: bool = True) -> Any:
