@@ -3,7 +3,8 @@
 The map frame is a local tangent plane (ENU) at the world's geo origin; the fix uses the
 ellipsoid's meridian and prime-vertical radii there (error below 1 mm over a few km).
 
-A sensor kind of :mod:`cosim.sensors.kinds` (``RigSpec.gnss``, ``/<agent>/gnss`` as ``foxglove.LocationFix``).
+A sensor kind of :mod:`cosim.sensors.kinds` (``RigSpec.gnss``, ``/<agent>/gnss`` as ``foxglove.LocationFix``),
+registered with :mod:`cosim.sensors.sensor_kind`.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 
 from cosim.scenario.model import GnssSpec
 
-from .kinds import SensorContext, SensorKind, register_sensor_kind
+from .sensor_kind import SensorContext, SensorKind, register_sensor_kind
 
 WGS84_A_M = 6_378_137.0
 WGS84_E2 = 6.69437999014e-3

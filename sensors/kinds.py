@@ -2,8 +2,9 @@
 
 A kind named ``<name>`` is
 - its spec: a ``<name>`` field of :class:`cosim.scenario.model.RigSpec` (None: the rig has none);
-- a module in ``sensors/`` that registers a :class:`SensorKind` with :func:`register_sensor_kind` and is
-  listed at the bottom of this module (the built-in kinds register on import);
+- a module in ``sensors/`` that registers a :class:`SensorKind` with :func:`register_sensor_kind` (from
+  :mod:`cosim.sensors.sensor_kind`, the seam's types and registry) and is imported here (the built-in kinds
+  register on import, so whoever reads :data:`SENSOR_KINDS` from this module sees them all);
 - its message: ``/<agent>/<name>`` in frame ``<agent>/<name>`` (at the agent's ``base_link``), from
   :attr:`SensorKind.message`; the suite renders it every tick after the LiDAR, in registration order;
 - its entry in docs/episode_format.md (and the topic table of :mod:`cosim.io.format`).
@@ -12,46 +13,12 @@ A kind named ``<name>`` is
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
+from . import gnss  # noqa: F401 (the built-in kinds register themselves on import)
+from .sensor_kind import SENSOR_KINDS, SensorContext, SensorKind, register_sensor_kind
 
-from cosim.registry import Registry
-from cosim.snapshot import AgentState
-from cosim.world.types import World
-
-
-@dataclass(frozen=True)
-class SensorContext:
-    """What a kind's render sees: the agent at this tick, the rig's spec of the kind, the world, the random
-    generator of the agent's sensors (draw a fixed number of values per tick: determinism) and whether
-    noise is on."""
-
-    agent: AgentState
-    spec: Any
-    world: World
-    rng: np.random.Generator
-    noise: bool
-    t_ns: int
-
-
-@dataclass(frozen=True)
-class SensorKind:
-    """``render(ctx) -> frame``; ``message(agent_id, frame, t_ns)`` -> the protobuf message (or a
-    ``(schema name, JSON schema, payload)`` triple for a JSON message) the episode writer writes."""
-
-    name: str
-    render: Callable[[SensorContext], Any]
-    message: Callable[[str, Any, int], Any]
-
-
-#: Sensor kinds by name: a duplicate name is an error, an unknown one lists the known ones.
-SENSOR_KINDS: Registry[SensorKind] = Registry("sensor kind")
-
-
-def register_sensor_kind(kind: SensorKind) -> SensorKind:
-    return SENSOR_KINDS.add(kind.name, kind)
+__all__ = ["SENSOR_KINDS", "SensorContext", "SensorKind", "register_sensor_kind", "render_kinds"]
 
 
 def render_kinds(rig: Any, ctx_of: Callable[[Any], SensorContext]) -> dict[str, Any]:
@@ -59,7 +26,3 @@ def render_kinds(rig: Any, ctx_of: Callable[[Any], SensorContext]) -> dict[str, 
     registration order."""
     return {name: kind.render(ctx_of(getattr(rig, name))) for name, kind in SENSOR_KINDS.items()
             if getattr(rig, name, None) is not None}
-
-
-# Built-in kinds register themselves on import.
-from . import gnss  # noqa: E402, F401
