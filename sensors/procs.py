@@ -2,7 +2,7 @@
 
 Open3D holds the GIL while it casts and most of the per-pixel work is numpy between casts, so
 threads in one process keep little more than one core busy. :class:`RenderProcesses` starts
-``n`` processes (``python -m cosim.sensors.procs``, over a socket pair); each builds its own
+``n`` processes (``python -m cosim.sensors.render_process``, over a socket pair); each builds its own
 :class:`~cosim.sensors.suite.SensorSuite` (the static scene once per episode) and renders a
 fixed share of the agents at every tick: an agent is given, the first time it is seen, to the
 process with the fewest cameras so far, and stays there (a standing RSU keeps its static image in
@@ -26,12 +26,10 @@ import dataclasses
 import logging
 import mmap
 import os
-import signal
 import socket
 import subprocess
 import sys
 import tempfile
-import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -114,7 +112,7 @@ class _Piece:
     meta: object
 
 
-def _export_pieces(frames: dict) -> tuple[dict, list[tuple[list[np.ndarray], int]]]:
+def export_pieces(frames: dict) -> tuple[dict, list[tuple[list[np.ndarray], int]]]:
     """(``frames`` by agent id with their arrays replaced by placeholders, the pieces: arrays and file size of
     each shared file). Each camera is a piece of its own; each agent's other sensors make one more."""
     pieces: list[tuple[list[np.ndarray], int]] = []
@@ -135,7 +133,7 @@ def _export_pieces(frames: dict) -> tuple[dict, list[tuple[list[np.ndarray], int
     return out, pieces
 
 
-def _write_pieces(pieces: list[tuple[list[np.ndarray], int]], tag: str) -> list[int]:
+def write_pieces(pieces: list[tuple[list[np.ndarray], int]], tag: str) -> list[int]:
     """One shared file per piece, its arrays copied in and then dropped (``pieces`` holds the last references
     the render process has); the descriptors. Each file is unlinked as soon as it is made: it lives as long
     as a descriptor or a mapping of it, so no crash leaves it behind."""
@@ -162,7 +160,7 @@ def _write_pieces(pieces: list[tuple[list[np.ndarray], int]], tag: str) -> list[
     return fds
 
 
-def _send_fds(conn: Connection, fds: list[int]) -> None:
+def send_fds(conn: Connection, fds: list[int]) -> None:
     with socket.fromfd(conn.fileno(), socket.AF_UNIX, socket.SOCK_STREAM) as s:
         for k in range(0, len(fds), _FDS_PER_MESSAGE):
             sendfds(s, fds[k:k + _FDS_PER_MESSAGE])
@@ -198,58 +196,6 @@ def _read_pieces(meta: dict, conn: Connection, n_files: int) -> dict:
     return out
 
 
-def _die_with_parent() -> None:
-    """Ask Linux to end this process when its parent ends (elsewhere: the closed socket ends it)."""
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
-
-
-def _main(conn: Connection) -> None:
-    """A render process: build the suite, then render the agents of each request until told to stop."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops us
-    _die_with_parent()
-    from .suite import SensorSuite
-
-    try:
-        scenario, world, kwargs = conn.recv()
-        suite = SensorSuite(scenario, world, encode_images=False, **kwargs)
-    except BaseException:
-        conn.send(("error", -1, traceback.format_exc()))
-        return
-    conn.send(("ready", -1, None))
-    with suite:
-        while True:
-            try:
-                msg = conn.recv()
-            except EOFError:
-                return
-            if msg is None:
-                return
-            seq, snapshot, items = msg
-            fds: list[int] = []
-            try:
-                frames, timing = suite.render_agents(snapshot, items)
-                meta, pieces = _export_pieces(frames)
-                del frames  # the pieces hold the arrays now: each goes once copied
-                fds = _write_pieces(pieces, str(seq))
-                del pieces
-                reply = ("ok", seq, (meta, len(fds), timing))
-            except BaseException:
-                reply = ("error", seq, traceback.format_exc())
-            try:
-                conn.send(reply)
-                _send_fds(conn, fds)
-            except OSError:  # the parent is gone
-                return
-            finally:
-                for fd in fds:
-                    os.close(fd)
-
-
 class RenderProcesses:
     """``n`` render processes over one scenario and world (see the module docstring)."""
 
@@ -265,7 +211,7 @@ class RenderProcesses:
             for _ in range(n):
                 ours, theirs = socket.socketpair()
                 with ours, theirs:
-                    p = subprocess.Popen([sys.executable, "-m", "cosim.sensors.procs", str(theirs.fileno())],
+                    p = subprocess.Popen([sys.executable, "-m", "cosim.sensors.render_process", str(theirs.fileno())],
                                          pass_fds=(theirs.fileno(),))
                     conn = Connection(ours.detach())
                 self._conns.append(conn)
@@ -352,9 +298,3 @@ class RenderProcesses:
             self._conns[k].close()
         self._conns, self._procs = [], []
 
-
-if __name__ == "__main__":
-    # run the importable module's _main, so that what it pickles names cosim.sensors.procs, not __main__
-    from cosim.sensors.procs import _main as main
-
-    main(Connection(int(sys.argv[1])))

@@ -50,6 +50,7 @@ from .imu import ImuFrame, imu_biases, render_imu
 from .kinds import SensorContext, render_kinds
 from .lidar import LidarFrame, actors_in_reach, reach_ball, render_lidar
 from .meshes import concat, is_lamp, static_mesh
+from .procs import RenderProcesses
 from .rig import camera_pose, intrinsics, projection, sensor_pose
 from .scene import StaticHits, StaticScene, TickScene
 from .signals import SIGN_CENTRE_M, sign_mesh, signal_mesh
@@ -265,8 +266,6 @@ class SensorSuite:
         log.info("static scene: %d triangles, built in %.2f s", m.n_triangles, time.perf_counter() - t0)
         self._procs = None
         if processes > 0:
-            from .procs import RenderProcesses
-
             self._procs = RenderProcesses(scenario, world, processes,
                                           {"block_px": block_px, "noise": noise, "workers": 1})
 
