@@ -2,18 +2,21 @@
 
 A backend owns one rigid body: the airframe, its 4 lagged rotors and the air around it. It speaks
 cosim frames and SI units only (map ENU, body FLU, metres, newtons); any engine-specific units or
-frames are converted inside the adapter module and nowhere else.
+frames are converted inside the adapter module and nowhere else. The registry of backends by name
+(:func:`register_backend`, :func:`backend_class`) is here too; :mod:`cosim.drones.backends` imports the built-in ones.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from typing import ClassVar
 
 import numpy as np
 
 from cosim.drones.airframe import Airframe, RotorBank
 from cosim.drones.control import BodyState
+from cosim.errors import InputError
 from cosim.world.types import World
 
 
@@ -48,3 +51,34 @@ class DynamicsBackend(ABC):
 
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release the engine."""
+
+
+# ------------------------------------------------------------------------------------- registry
+
+_REGISTRY: dict[str, type[DynamicsBackend]] = {}
+
+
+def register_backend(name: str) -> Callable[[type[DynamicsBackend]], type[DynamicsBackend]]:
+    """Class decorator adding a backend under ``name``; a second registration of a name is an error."""
+
+    def add(cls: type[DynamicsBackend]) -> type[DynamicsBackend]:
+        if name in _REGISTRY:
+            raise ValueError(f"drone dynamics backend {name!r} is already registered ({_REGISTRY[name].__name__})")
+        cls.name = name
+        _REGISTRY[name] = cls
+        return cls
+
+    return add
+
+
+def backend_class(name: str) -> type[DynamicsBackend]:
+    """The backend class registered as ``name``; an unknown name is an error listing the known ones."""
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        known = ", ".join(sorted(_REGISTRY))
+        raise InputError(f"unknown drone dynamics backend {name!r}; known backends: {known}") from None
+
+
+def backend_names() -> list[str]:
+    return sorted(_REGISTRY)

@@ -16,8 +16,7 @@ import jsbsim
 import numpy as np
 
 from cosim.drones.airframe import G_MPS2, Airframe
-from cosim.drones.backends import register_backend
-from cosim.drones.backends.base import DynamicsBackend
+from cosim.drones.backends.base import DynamicsBackend, register_backend
 from cosim.drones.control import BodyState
 from cosim.geometry import FT_TO_M, M_TO_FT
 from cosim.world.types import World

@@ -21,8 +21,7 @@ import sys
 import numpy as np
 
 from cosim.drones.airframe import G_MPS2, RHO_KGPM3, Airframe
-from cosim.drones.backends import register_backend
-from cosim.drones.backends.base import DynamicsBackend
+from cosim.drones.backends.base import DynamicsBackend, register_backend
 from cosim.drones.control import BodyState
 from cosim.drones.obstacles import MIN_OBSTACLE_HEIGHT_M, prism_label
 from cosim.geometry import quat_from_rpy, rotation_matrix
