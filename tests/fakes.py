@@ -18,8 +18,8 @@ from typing import Any
 
 from cosim import protocol
 from cosim.errors import CosimError
-from cosim.workers import die_with_conductor
 from cosim.workers.base import serve
+from cosim.workers.process import die_with_conductor
 
 
 class FakeEngine:

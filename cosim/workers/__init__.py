@@ -1,61 +1,17 @@
 """Simulation workers: one OS process per engine, speaking the lockstep protocol over Zenoh.
 
 This module is what a spawned worker imports first, so it stays light (no Zenoh, no engines): the worker
-arms its death-with-the-conductor here before the imports that take seconds on a loaded machine.
+arms its death-with-the-conductor (:mod:`cosim.workers.process`) before the imports that take seconds on a
+loaded machine.
 """
 
 from __future__ import annotations
 
 import logging
-import multiprocessing
-import multiprocessing.connection
-import os
-import signal
-import sys
-import threading
+
+from cosim.workers.process import die_with_conductor
 
 ROLES = ("traffic", "drones")
-
-_PR_SET_PDEATHSIG, _PR_SET_NAME = 1, 15  # prctl(2) options
-
-
-def set_process(role: str, *, die_with_parent: bool) -> None:
-    """Name the process ``cosim-<role>`` (as ``ps`` and ``top`` show it) and, for spawned workers, ask Linux
-    to SIGKILL it when its parent dies."""
-    if not sys.platform.startswith("linux"):
-        return
-    import ctypes
-
-    try:
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-    except OSError:
-        logging.getLogger(__name__).debug("libc unavailable; relying on the parent watch and liveliness")
-        return
-    libc.prctl(_PR_SET_NAME, ctypes.c_char_p(f"cosim-{role}".encode()[:15]), 0, 0, 0)
-    if die_with_parent:
-        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-
-
-def _exit_when_parent_gone(sentinel: int) -> None:
-    multiprocessing.connection.wait([sentinel])  # readable once the parent's end of the pipe is closed
-    os._exit(1)
-
-
-def die_with_conductor(role: str) -> None:
-    """Make this spawned worker end whenever the conductor that spawned it is gone, in any phase.
-
-    Called first thing in the worker process: PR_SET_PDEATHSIG (Linux) from now on; an immediate exit if
-    the conductor died before that was armed (the worker was re-parented); and, for other platforms, a
-    thread that exits the process when the pipe multiprocessing keeps to the parent closes.
-    """
-    set_process(role, die_with_parent=True)
-    parent = multiprocessing.parent_process()
-    if parent is None:
-        return
-    if os.getppid() != parent.pid:
-        os._exit(1)
-    threading.Thread(target=_exit_when_parent_gone, args=(parent.sentinel,), name="cosim-parent-watch",
-                     daemon=True).start()
 
 
 def make_engine(role: str):

@@ -22,7 +22,7 @@ import zenoh
 from cosim import protocol
 from cosim.errors import CosimError
 from cosim.transport import open_client
-from cosim.workers import set_process
+from cosim.workers.process import set_process
 
 log = logging.getLogger(__name__)
 
