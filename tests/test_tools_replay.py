@@ -440,3 +440,91 @@ def test_a_viewer_gone_without_a_clean_close_is_one_log_line(caplog):
     assert lines == [("WARNING", "Foxglove viewer 127.0.0.1:40001 went away without closing the connection"),
                      ("WARNING", "Foxglove viewer 127.0.0.1:40002 went away without closing the connection"),
                      ("ERROR", "some other failure"), ("ERROR", "some other failure")], lines
+
+
+@pytest.mark.integration
+def test_foxglove_replay_waits_for_a_viewer_then_sends_it_every_message_from_the_first(tmp_path, capsys):
+    """`--foxglove`: the replay says where to connect and sends nothing until a viewer subscribes, however late
+    it comes (here long after the Zenoh wait and the whole episode at --rate 100); a real WebSocket client
+    (subprotocol foxglove.sdk.v1) then receives every message of its topics, the first included. `--no-wait`
+    starts at once."""
+    pytest.importorskip("foxglove")
+    import struct
+
+    from websockets.sync.client import connect
+
+    path = write_synthetic_episode(tmp_path / "ep.mcap", ticks=3, sensors=False)
+    with open_episode(path) as ep:
+        expected = [(m.topic, m.log_time_ns, m.data) for m in ep.messages()]
+    replay = _ReplayProcess(str(path), "--rate", "100", "--wait", "0.2", "--listen", free_loopback_endpoint(),
+                            "--foxglove", "0")
+    try:
+        url = replay.line_starting("foxglove").split()[1]
+        waiting = replay.line_starting("waiting")
+        assert f"connect it to {url};" in waiting and "Ctrl-C" in waiting and "--no-wait" in waiting, waiting
+        time.sleep(1.5)  # a person pasting the URL: the episode alone lasts 0.006 s at --rate 100
+        assert replay.proc.poll() is None, replay.proc.communicate()
+        got = []
+        with connect(url, subprotocols=["foxglove.sdk.v1"], max_size=None, open_timeout=30, close_timeout=1) as ws:
+            assert ws.subprotocol == "foxglove.sdk.v1"
+            assert json.loads(ws.recv(timeout=30))["op"] == "serverInfo"
+            advertise = json.loads(ws.recv(timeout=30))
+            topic_of = {c["id"]: c["topic"] for c in advertise["channels"]}
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": c, "channelId": c} for c in topic_of]}))
+            while len(got) < len(expected):
+                frame = ws.recv(timeout=30)
+                if isinstance(frame, bytes) and frame[0] == 1:  # message data: op, subscription id, log time
+                    sub_id, log_time_ns = struct.unpack_from("<IQ", frame, 1)
+                    got.append((topic_of[sub_id], log_time_ns, frame[13:]))
+        assert replay.line_starting("replayed").startswith(f"replayed {len(expected)} messages")
+        assert replay.proc.wait(timeout=60) == 0
+    finally:
+        replay.close()
+    assert got == expected
+    status = main(["replay", str(path), "--rate", "100", "--listen", free_loopback_endpoint(), "--foxglove", "0",
+                   "--no-wait"])
+    out = capsys.readouterr().out
+    assert status == 0 and "waiting" not in out and f"replayed {len(expected)} messages" in out, out
+
+
+@pytest.mark.integration
+def test_the_readme_names_the_only_subprotocol_the_foxglove_server_accepts(tmp_path):
+    """The README's live-view steps say `--loop` where they say to connect, and name `foxglove.sdk.v1` as the one
+    subprotocol the server speaks: a client asking for the older `foxglove.websocket.v1` alone (Lichtblick before
+    v1.22.0) is refused, one asking for `foxglove.sdk.v1` gets it. The rate it states is the benchmark's order
+    (gigabytes per second for a whole episode), not the 30x lower figure it gave before."""
+    pytest.importorskip("foxglove")
+    import threading
+
+    from websockets.exceptions import InvalidHandshake
+    from websockets.sync.client import connect
+
+    from cosim.io.replay import ReplayOptions, replay_episode
+    from tests.helpers import REPO
+
+    readme = (REPO / "README.md").read_text().split("### Seeing an episode", 1)[1].split("\n### ", 1)[0]
+    step = readme.split("1. Open the file", 1)[1].split("\n2. ", 1)[0]
+    assert "--foxglove --loop" in step and "*Foxglove WebSocket*" in step
+    assert "`foxglove.sdk.v1`" in step and "Lichtblick from v1.22.0" in step
+    assert "GB/s" in step and "50 MB/s" not in step
+
+    path = write_synthetic_episode(tmp_path / "ep.mcap", ticks=2, sensors=False)
+    stop = threading.Event()
+    ready = threading.Event()
+    urls = []
+    opts = ReplayOptions(loop=True, foxglove_port=0, listen=[free_loopback_endpoint()])
+    worker = threading.Thread(target=replay_episode, args=(path, opts, stop),
+                              kwargs={"on_ready": lambda where: (urls.append(where.foxglove_url), ready.set())},
+                              daemon=True)
+    worker.start()
+    try:
+        assert ready.wait(60)
+        with pytest.raises(InvalidHandshake):
+            connect(urls[0], subprotocols=["foxglove.websocket.v1"], open_timeout=30).close()
+        with connect(urls[0], subprotocols=["foxglove.websocket.v1", "foxglove.sdk.v1"], open_timeout=30) as ws:
+            assert ws.subprotocol == "foxglove.sdk.v1"
+            assert json.loads(ws.recv(timeout=30))["op"] == "serverInfo"
+    finally:
+        stop.set()
+        worker.join(30)
+    assert not worker.is_alive()

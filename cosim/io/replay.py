@@ -20,6 +20,12 @@ endpoints given explicitly; by default the replayer listens on ``tcp/127.0.0.1:7
 therefore finds it only by connecting to that endpoint (``connect/endpoints``); a default Zenoh
 configuration, which relies on multicast scouting, hears nothing. ``on_ready`` receives the endpoints
 and the Foxglove URL before the first message, so the command line can print them.
+
+Waiting: with a Foxglove server, the replay sends nothing until the first viewer has connected and
+subscribed to a topic (``wait_viewer``, on by default: a short episode would be over before a person has
+pasted the URL into Foxglove; the server only sends a viewer the channels it subscribed to), then waits
+``VIEWER_SETTLE_S`` for the rest of its subscriptions; it waits as long as it takes (``stop`` ends it).
+Without one, it waits up to ``wait_subscribers_s`` for a Zenoh subscriber.
 Messages are sent reliably with blocking congestion control, in log-time order.
 
 Stopping: ``stop`` is checked between messages and at least every ``STOP_POLL_S`` while waiting, and
@@ -54,6 +60,7 @@ DEFAULT_FOXGLOVE_HOST = "127.0.0.1"
 LINGER_S = 0.5  # [s] kept open after the last message so queued data leaves the process
 STOP_POLL_S = 0.1  # [s] longest wait between two looks at the stop event
 CLOSE_TIMEOUT_S = 3.0  # [s] longest wait for the Foxglove server or the Zenoh session to close
+VIEWER_SETTLE_S = 0.5  # [s] after a viewer's first subscription, for the others it sends at the same time
 _WILDCARD_HOSTS = ("0.0.0.0", "::", "[::]")
 
 
@@ -68,6 +75,7 @@ class ReplayOptions:
     wait_subscribers_s: float = 5.0  # wait up to this long for a matching subscriber (0 = do not wait)
     foxglove_port: int | None = None
     foxglove_host: str = DEFAULT_FOXGLOVE_HOST
+    wait_viewer: bool = True  # with a Foxglove server: send nothing before a viewer subscribes (module docstring)
     compress: bool = True  # Zenoh payloads compressed as the file's chunks are (module docstring)
 
 
@@ -79,6 +87,7 @@ class ReplayEndpoints:
     zenoh_connect: list[str]  # the replayer connected to these (a router or a listening subscriber)
     prefix: str
     foxglove_url: str | None  # ws://HOST:PORT for Foxglove's "Foxglove WebSocket" connection
+    waits_for_viewer: bool = False  # nothing is sent before a Foxglove viewer subscribes
 
     def subscriber_endpoints(self) -> list[str]:
         """Endpoints a subscriber on this host connects to (wildcard hosts replaced by this host's name)."""
@@ -197,8 +206,10 @@ class _Foxglove:
         except ImportError:
             raise InputError("--foxglove needs the foxglove-sdk package: pip install foxglove-sdk") from None
         context = self._context = Context()  # this replay's channels only; held for the server's lifetime
+        self.subscribed = threading.Event()  # set at a viewer's first subscription
         try:
-            self._server = foxglove.start_server(port=port, host=host, context=context, name="cosim replay")
+            self._server = foxglove.start_server(port=port, host=host, context=context, name="cosim replay",
+                                                 server_listener=_SubscriptionListener(self.subscribed))
         except Exception as exc:  # the SDK raises its own error types
             raise InputError(f"cannot serve Foxglove on {host}:{port}: {exc}") from None
         self.url = foxglove_url(host, self._server.port)
@@ -218,6 +229,15 @@ class _Foxglove:
     def send(self, topic: str, data: bytes, log_time_ns: int) -> None:
         self._channels[topic].log(data, log_time=log_time_ns)
 
+    def wait_for_viewer(self, stop: threading.Event) -> bool:
+        """Until a viewer subscribes to a channel (then ``VIEWER_SETTLE_S`` more) or ``stop``; True: a viewer."""
+        log.info("waiting for a Foxglove viewer on %s", self.url)
+        while not self.subscribed.is_set():
+            if stop.wait(STOP_POLL_S):
+                return False
+        log.info("a Foxglove viewer subscribed: replaying")
+        return not _wait(stop, VIEWER_SETTLE_S)
+
     def close(self) -> None:
         def stop_server() -> None:
             for channel in self._channels.values():
@@ -225,6 +245,17 @@ class _Foxglove:
             self._server.stop()
 
         _close_within(stop_server, "the Foxglove server")
+
+
+class _SubscriptionListener:
+    """foxglove-sdk server listener (its ``ServerListener`` protocol): sets ``subscribed`` when a client
+    subscribes to a channel."""
+
+    def __init__(self, subscribed: threading.Event):
+        self._subscribed = subscribed
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        self._subscribed.set()
 
 
 _CLIENT = re.compile(r"client (\S+?):? ")
@@ -352,9 +383,13 @@ def replay_episode(
             queryable = session.declare_queryable(
                 f"{opts.prefix.rstrip('/')}_schema/**", lambda q: _answer_schema(q, opts.prefix, schemas)
             )
+            viewer = fox is not None and opts.wait_viewer
             if on_ready is not None:
-                on_ready(ReplayEndpoints(listen, list(opts.connect), opts.prefix, fox.url if fox else None))
-            _wait_for_subscriber(list(publishers.values()), opts.wait_subscribers_s, stop)
+                on_ready(ReplayEndpoints(listen, list(opts.connect), opts.prefix, fox.url if fox else None, viewer))
+            if viewer:
+                fox.wait_for_viewer(stop)
+            else:
+                _wait_for_subscriber(list(publishers.values()), opts.wait_subscribers_s, stop)
             codec = PayloadCodec(ep.chunk_compression if opts.compress else "")
             sent, loops, started = 0, 0, time.perf_counter()
             while not stop.is_set():
