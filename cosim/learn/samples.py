@@ -72,6 +72,9 @@ class Setup:
     lidar: str = "tick"
     fuse: str = "max"
     encoders: str = "shared"
+    #: The LiDAR's height above the road [m] in the training data (cosim: the rig's mount; a KITTI folder: given
+    #: or estimated); scans from another height are moved to it (cosim.learn.kitti). None: not recorded.
+    lidar_height_m: float | None = None
 
     def __post_init__(self) -> None:
         if self.fusion not in FUSIONS:
@@ -96,13 +99,15 @@ class Setup:
     def to_dict(self) -> dict[str, Any]:
         return {"fusion": self.fusion, "agents": self.agents, "classes": list(self.classes),
                 "grid": self.grid.to_dict(), "delivery": self.delivery, "min_points": self.min_points,
-                "lidar": self.lidar, "fuse": self.fuse, "encoders": self.encoders}
+                "lidar": self.lidar, "fuse": self.fuse, "encoders": self.encoders,
+                "lidar_height_m": self.lidar_height_m}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Setup:
         # checkpoints from before the compensation option were trained on raw sweeps
         return cls(d["fusion"], d["agents"], tuple(d["classes"]), Grid.from_dict(d["grid"]), bool(d["delivery"]),
-                   int(d["min_points"]), d.get("lidar", "raw"), d.get("fuse", "max"), d.get("encoders", "shared"))
+                   int(d["min_points"]), d.get("lidar", "raw"), d.get("fuse", "max"), d.get("encoders", "shared"),
+                   d.get("lidar_height_m"))
 
     def with_agents(self, fusion: str | None, agents: str | None) -> Setup:
         fusion = fusion or self.fusion

@@ -432,10 +432,10 @@ def _cpu_s() -> float:
 
 def train(train_refs: list[EpisodeRef], val_refs: list[EpisodeRef] | None, setup: Setup, opts: TrainOptions,
           run: Path, resume: bool = False, device: torch.device | None = None, show_progress: bool = True,
-          cache: Path | None = None) -> dict[str, Any]:
+          cache: Path | None = None, init: Path | None = None) -> dict[str, Any]:
     """Train (or resume) a detector into ``run`` on the episodes ``train_refs`` (from MCAP, or from the
-    ``cosim learn cache`` folder ``cache``), validating on ``val_refs``; returns the summary (also written to
-    summary.json)."""
+    ``cosim learn cache`` folder ``cache``), validating on ``val_refs``, starting from the weights of the run
+    ``init`` when given; returns the summary (also written to summary.json)."""
     from cosim.learn.data import Samples, check_classes
 
     run = Path(run)
@@ -450,23 +450,24 @@ def train(train_refs: list[EpisodeRef], val_refs: list[EpisodeRef] | None, setup
     device = device or device_of(None)
     try:
         summary = fit(samples, (lambda model: validate(model, val, device)) if val is not None else None, setup,
-                      opts, run, resume=resume, device=device, show_progress=show_progress)
+                      opts, run, resume=resume, device=device, show_progress=show_progress, init=init)
     finally:
         samples.close()
         if val is not None:
             val.close()
     summary.update({"train_episodes": len(train_refs), "val_episodes": len(val_refs or []),
                     "setup_s": round(summary["setup_s"] + time.perf_counter() - t0 - summary["wall_s"], 1),
-                    "cache": str(cache) if cache else None})
+                    "cache": str(cache) if cache else None, "init": str(init) if init else None})
     (run / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
 
 def fit(samples: Any, val_fn: Callable[[PillarDetector], dict[str, float]] | None, setup: Setup,
         opts: TrainOptions, run: Path, resume: bool = False, device: torch.device | None = None,
-        show_progress: bool = True) -> dict[str, Any]:
+        show_progress: bool = True, init: Path | None = None) -> dict[str, Any]:
     """The training loop: ``samples`` (``len``, ``item(i)``, ``setup``), ``val_fn`` (model -> AP dict, or
-    None). Writes the run folder; ``best.pt`` is the checkpoint of the best validation AP50."""
+    None). Writes the run folder; ``best.pt`` is the checkpoint of the best validation AP50. ``init``: a run
+    whose weights the model starts from (:func:`init_weights`; not on resume)."""
     try:
         from tqdm import tqdm
     except ModuleNotFoundError:  # a bare machine (benchmarks/learn_device.py): no progress bar
@@ -488,6 +489,8 @@ def fit(samples: Any, val_fn: Callable[[PillarDetector], dict[str, float]] | Non
         raise InputError(f"--gt-sample pastes objects cut from single-agent samples: it works with --fusion none "
                          f"only, not {setup.fusion}")
     model = new_model(setup, opts, device)
+    if init is not None and not resume:
+        init_weights(model, Path(init), setup, device)
     optim = torch.optim.AdamW(model.parameters(), lr=opts.lr, weight_decay=opts.weight_decay)
     step = 0
     log_path = run / "log.jsonl"
@@ -584,6 +587,21 @@ def fit(samples: Any, val_fn: Callable[[PillarDetector], dict[str, float]] | Non
                "wall_s": round(wall, 1), "cpu_s": round(_cpu_s() - cpu0, 1)}
     (run / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def init_weights(model: PillarDetector, run: Path, setup: Setup, device: torch.device) -> None:
+    """Load the weights of another run's model (``cosim learn train --init``: fine-tuning) into ``model``; one
+    InputError when that model has other classes or another shape (fusion, encoders, width)."""
+    src, src_setup, ckpt = load_run(run, device)
+    mine, theirs = model.state_dict(), src.state_dict()
+    bad = sorted(set(mine) ^ set(theirs)) or [k for k in mine if mine[k].shape != theirs[k].shape]
+    if bad or src_setup.classes != setup.classes:
+        width = TrainOptions.from_dict(ckpt["options"]).width
+        raise InputError(f"--init {run}: its model (fusion {src_setup.fusion}, classes {', '.join(src_setup.classes)}, "
+                         f"width {width}) is not of this run's shape (fusion {setup.fusion}, classes "
+                         f"{', '.join(setup.classes)}{', ' + bad[0] + ' differs' if bad else ''}): train with its "
+                         "--fusion, --classes and --width")
+    model.load_state_dict(theirs)
 
 
 def validate_checkpoints(run: Path, refs: list[EpisodeRef], every: int, split: str, threads: int | None = None,
