@@ -1,5 +1,7 @@
-"""The import graph of the source (ast, nothing imported): no package cycle of module-level imports and no
-import from a lower layer into a higher one, with the layers of docs/architecture.md ("Layers")."""
+"""The import graph of the source (ast, nothing imported): no package cycle of module-level imports, no import
+from a lower layer into a higher one, with the layers of docs/architecture.md ("Layers"), and no circle of
+imports between the modules of one package, function-level imports included (a lazy import that closes a
+circle hides it, it does not untie it)."""
 
 from __future__ import annotations
 
@@ -53,6 +55,39 @@ def imports_of(module: str, path: Path) -> list[tuple[str, bool]]:
             continue
         out += [(n, id(node) in top_level) for n in names if n == "cosim" or n.startswith("cosim.")]
     return out
+
+
+def module_edges(modules: dict[str, Path]) -> dict[str, set[str]]:
+    """Module -> the modules of ``modules`` it imports, at module level or in a function. ``from pkg import
+    name`` is an import of ``pkg.name`` when that is a module, else of ``pkg`` (its ``__init__``, where the
+    name lives); importing a package's submodule does run the package's ``__init__`` first, but that is
+    Python's doing, not an import the code chose: it is no edge. A module importing itself (``python -m``
+    entry points) is no edge either."""
+    edges: dict[str, set[str]] = defaultdict(set)
+    for module, path in modules.items():
+        found = imports_of(module, path)
+        names = {name for name, _ in found}
+        for name, _ in found:
+            if name in modules and any(other.startswith(name + ".") and other in modules for other in names):
+                continue  # `from pkg import sub`: the import is of pkg.sub (its own entry), not pkg's face
+            target = name
+            while target not in modules and "." in target:
+                target = target.rpartition(".")[0]
+            if target in modules and target != module:
+                edges[module].add(target)
+    return edges
+
+
+def package_circles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """The circles of imports between modules of the same package (a package's ``__init__`` counts as one of
+    its modules): strongly connected components of the edges that stay inside one package."""
+    def package(module: str) -> str:
+        return module.rpartition(".")[0]
+
+    inside = {m: {t for t in ts if package(t) == package(m) or t == package(m) or m == package(t)}
+              for m, ts in edges.items()}
+    return cycles(inside)
+
 
 
 def documented_layers() -> dict[str, int]:
@@ -129,13 +164,20 @@ def test_no_package_cycle_of_module_level_imports():
     assert cycles(edges) == []
 
 
+def upward(every: list[tuple[str, str, str, bool]], layers: dict[str, int]) -> list[str]:
+    """The imports of ``every`` (as :func:`package_graph` gives them) from a lower layer into a higher one."""
+    return [f"{module} imports {target} ({'module level' if top else 'in a function'}): layer "
+            f"{layers[unit_of(module)]} -> {layers[dst]}"
+            for module, target, dst, top in every if layers[dst] > layers[unit_of(module)]]
+
+
 def test_no_import_from_a_lower_layer_into_a_higher_one():
-    layers = documented_layers()
     _, every = package_graph()
-    upward = [f"{module} imports {target} ({'module level' if top else 'in a function'}): layer "
-              f"{layers[unit_of(module)]} -> {layers[dst]}"
-              for module, target, dst, top in every if layers[dst] > layers[unit_of(module)]]
-    assert upward == []
+    assert upward(every, documented_layers()) == []
+
+
+def test_no_circle_of_imports_between_the_modules_of_a_package():
+    assert package_circles(module_edges(source_modules())) == []
 
 
 def test_the_checks_catch_a_cycle_and_an_upward_import():
@@ -145,3 +187,32 @@ def test_the_checks_catch_a_cycle_and_an_upward_import():
     # the real graph has edges both ways between layers only downwards: io imports world, never back
     assert "cosim.world" in edges["cosim.io"] and "cosim.io" not in edges.get("cosim.world", set())
     assert any(dst == "cosim.actions" and not top for _, _, dst, top in every)  # drones' lazy import is seen
+
+
+def _toy_package(root: Path, files: dict[str, str]) -> dict[str, Path]:
+    """Write ``cosim/toy/<name>.py`` files under ``root``: import name -> file, as :func:`source_modules`."""
+    modules = {}
+    for name, text in files.items():
+        path = root / "cosim" / "toy" / f"{name}.py"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+        modules["cosim.toy" if name == "__init__" else f"cosim.toy.{name}"] = path
+    return modules
+
+
+def test_the_checks_catch_a_circle_inside_a_package_and_an_import_up_the_layers(tmp_path):
+    files = {"__init__": "from cosim.toy.base import Thing\nfrom cosim.toy import extra\n",
+             "base": "Thing = 1\n",
+             "extra": "from cosim.toy.base import Thing\n",  # the package's face imports it: no circle
+             "a": "import cosim.toy.b\n",
+             "b": "def late():\n    from cosim.toy.a import x\n",  # a function-level import closes a circle
+             "c": "from cosim.toy import Thing\n",  # a name of the face: an import of cosim/toy/__init__.py
+             "d": "import cosim.toy.d\n"}  # itself (a python -m entry point)
+    assert package_circles(module_edges(_toy_package(tmp_path, files))) == [["cosim.toy.a", "cosim.toy.b"]]
+    files["base"] = "import cosim.toy.c\n"  # base -> c -> the face -> base (and extra, which the face imports)
+    assert package_circles(module_edges(_toy_package(tmp_path, files))) == [
+        ["cosim.toy", "cosim.toy.base", "cosim.toy.c", "cosim.toy.extra"], ["cosim.toy.a", "cosim.toy.b"]]
+    layers = {"cosim.eval": 7, "cosim.batch": 8, "cosim.io": 5}
+    every = [("cosim.eval.dataset", "cosim.batch.manifest", "cosim.batch", False),
+             ("cosim.batch.runner", "cosim.io.manifest", "cosim.io", True)]
+    assert upward(every, layers) == ["cosim.eval.dataset imports cosim.batch.manifest (in a function): layer 7 -> 8"]
