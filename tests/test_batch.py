@@ -311,3 +311,22 @@ def test_cli_dry_run_prints_the_plan(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "3 episodes" in r.stdout and "shard 1/2" in r.stdout
     assert not (tmp_path / "o").exists()
+
+
+def test_dry_run_shows_the_conditions_and_draws_of_each_planned_episode(tmp_path, capsys):
+    """Each planned episode's line names the weather, lighting and environment it got (axes or draws) and
+    the values its `vary` draws gave, as its resolved scenario has them."""
+    from tests.helpers import cli_in_process
+
+    plan = six_plan(tmp_path)
+    status, out, err = cli_in_process(capsys, "batch", str(tmp_path / "sweep.yaml"), "--out", str(tmp_path / "o"),
+                                      "--dry-run", "--calibrate-s", "0")
+    assert status == 0, err
+    lines = [line for line in out.splitlines() if line.startswith("episode  ") and ".mcap" in line]
+    assert len(lines) == len(plan.episodes) == 6
+    for ep, line in zip(plan.episodes, lines, strict=True):
+        env = ep.scenario["environment"]
+        cond = f"{env['weather']}/{env['lighting']}/{ep.scenario['map']['kind']}"
+        assert line == (f"episode  {ep.file}  seed {ep.seed}  {ep.duration_s:g} s  {cond}  "
+                        f"agents.vehicles.count={ep.scenario['agents']['vehicles']['count']}"), line
+    assert len({line.split("  ")[4] for line in lines}) == 6  # the axes' six weather x map combinations

@@ -73,7 +73,7 @@ def _print_plan(plan: Any, out: Path) -> None:
     for w in plan.warnings:
         print(f"warning  {w}")
     for ep in plan.episodes[:10]:
-        print(f"episode  {ep.file}  seed {ep.seed}  {ep.duration_s:g} s")
+        print(f"episode  {ep.describe(list(plan.sweep.vary))}")
     if len(plan.episodes) > 10:
         print(f"episode  ... and {len(plan.episodes) - 10} more")
 

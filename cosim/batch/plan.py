@@ -55,6 +55,26 @@ class Episode:
         """Path of the episode file relative to the output folder."""
         return f"{self.split}/{self.id}.mcap"
 
+    @property
+    def conditions(self) -> dict[str, str]:
+        """``weather``, ``lighting`` and ``environment`` (the map kind) of the resolved scenario."""
+        env = self.scenario.get("environment", {})
+        return {"weather": str(env.get("weather", "?")), "lighting": str(env.get("lighting", "?")),
+                "environment": str(self.scenario.get("map", {}).get("kind", "?"))}
+
+    def describe(self, drawn_keys: Sequence[str] = ()) -> str:
+        """One line of the dry run's plan: file, seed, duration, ``weather/lighting/environment`` and the
+        values of ``drawn_keys`` (the sweep's ``vary`` keys) this episode drew, e.g.
+        ``all/all-urban-0000.mcap  seed 17  2 s  rainy/dusk/urban  agents.vehicles.count=3``."""
+        cond = "/".join(self.conditions.values())
+        drawn = " ".join(f"{k}={json.dumps(self.params[k])}" for k in drawn_keys
+                         if k in self.params and k not in _CONDITION_KEYS)
+        return f"{self.file}  seed {self.seed}  {self.duration_s:g} s  {cond}" + (f"  {drawn}" if drawn else "")
+
+
+#: Scenario keys :attr:`Episode.conditions` shows already.
+_CONDITION_KEYS = frozenset({"environment.weather", "environment.lighting", "map.kind"})
+
 
 @dataclass(frozen=True)
 class Plan:
