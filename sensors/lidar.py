@@ -25,13 +25,17 @@ noise and spurious near returns from drops. Ray drop (:func:`drop_probability`):
 return removes it with the probability of CARLA's drop-off model (``dropoff_general_rate``,
 ``dropoff_intensity_limit``, ``dropoff_zero_intensity``) combined with physical terms: too little
 return energy (long range, dark or grazing surfaces), glass (the beam passes through or glances off)
-and wet surfaces under rain (specular); retro-reflectors never drop. Dual returns (``dual_returns``): where
+and wet surfaces under rain (specular); retro-reflectors never drop. Self-occlusion (``self_occlusion``,
+:func:`own_body_range`): a beam whose first hit is the carrying vehicle's own body returns nothing, as the
+roof and bonnet of a real car blank the lowest rings of its roof LiDAR. Dual returns (``dual_returns``): where
 a beam's footprint straddles a near object's edge or a rain drop, the beam reports the strongest and the last return.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
@@ -46,6 +50,7 @@ from cosim.snapshot import AgentState
 from . import kernels
 from .environment import Atmosphere
 from .lidar_models import needs_retro, report_intensity, ring_elevations_deg
+from .raycast import build
 from .rig import Pose, body_rotation, mount_rotation, rotate, sensor_pose
 from .scene import StaticHits, TickScene, cast
 
@@ -57,6 +62,10 @@ REACH_SLACK_M = 1.0
 RETURN_SINGLE, RETURN_STRONGEST, RETURN_LAST = 0, 1, 2
 DUAL_MIN_SEPARATION_M = 1.0  # [m] a second surface nearer than this behind the first is the same return
 OWN_FACES_MAX = 12  # faces of its own shape a ray may cross (then the rest counts as a hit on nothing)
+#: [m] height of a LiDAR's optical centre above its own body's top for self-occlusion, whatever the mount's
+#: height and the vehicle's: the sensor stands on the roof (KITTI's on a rack); fitted to the gaps of
+#: KITTI's lowest rings (benchmarks/lidar_self_occlusion.py, docs/lidar_models.md)
+ROOF_CLEARANCE_M = 0.7
 
 
 @dataclass(frozen=True)
@@ -396,6 +405,10 @@ def render_lidar(
     if noise:  # foliage lets part of the beams through (drawn first: the crowns decide what a beam hits)
         t, gid = _through_crowns(scene, rays, t, gid, rng.random(n), exclude_track, t_off_s)
     hit = t <= spec.range_m
+    if spec.self_occlusion and exclude_track is not None:
+        own_t = own_body_range(scene, exclude_track, pose, d_sensor)
+        if own_t is not None:
+            hit &= ~(own_t < t)
     r = np.where(hit, t, 0.0).astype(np.float64)
 
     # what the hits are (misses are no return, whatever their values): gathered once, for the hits only
@@ -477,6 +490,45 @@ def render_lidar(
         cat[5].astype(np.int32),
         cat[6].astype(np.uint8),
     )
+
+
+#: (own body's vertices in the sensor frame to 1 mm, triangles, beam directions) digest -> :func:`own_body_range`
+_OWN_BODY: dict[bytes, np.ndarray] = {}
+_OWN_BODY_MAX = 32
+_OWN_BODY_LOCK = threading.Lock()
+
+
+def own_body_range(scene: TickScene, track: int, pose: Pose, d_sensor: np.ndarray,
+                   roof_clearance_m: float = ROOF_CLEARANCE_M) -> np.ndarray | None:
+    """Range (N,) float32 [m] from the sensor along each beam ``d_sensor`` (N, 3) (unit vectors, sensor frame)
+    to the own body of the actor ``track`` (its shape at the tick, ``scene``), inf where the beam clears it;
+    None when the scene has no such actor. The body moves with the sensor, so the ranges are those of the
+    tick for every firing of the sweep (cached by the body's shape in the sensor frame, to 1 mm). The body
+    counts as standing with its top :data:`ROOF_CLEARANCE_M` under the sensor (``roof_clearance_m``)."""
+    own = scene.actor_track == track
+    if not own.any():
+        return None
+    tris = scene.actors.triangles[own]
+    used, inverse = np.unique(tris, return_inverse=True)
+    v = rotate(np.asarray(scene.actors.vertices[used], np.float64) - pose.position_m, pose.rotation.T)
+    v[:, 2] -= float(v[:, 2].max()) + roof_clearance_m
+    v_mm = np.rint(v * 1000.0).astype(np.int32)
+    tri = inverse.reshape(-1, 3).astype(np.uint32)
+    key = hashlib.blake2b(v_mm.tobytes() + tri.tobytes() + np.ascontiguousarray(d_sensor).tobytes(),
+                          digest_size=16).digest()
+    with _OWN_BODY_LOCK:
+        hit = _OWN_BODY.get(key)
+    if hit is None:
+        rays = np.zeros((len(d_sensor), 6), np.float32)
+        rays[:, 3:] = d_sensor
+        body = build(scene.static.backend, (v_mm / 1000.0).astype(np.float32), tri, "low")
+        hit, _ = cast(body, rays)
+        hit.flags.writeable = False
+        with _OWN_BODY_LOCK:
+            if len(_OWN_BODY) >= _OWN_BODY_MAX:
+                _OWN_BODY.pop(next(iter(_OWN_BODY)))
+            _OWN_BODY[key] = hit
+    return hit
 
 
 @dataclass(frozen=True)

@@ -272,7 +272,7 @@ class TickScene:
         other, keep = self._without(exclude_track, dt_s)
         t2, p2 = cast(other, rays[own])
         t[own] = t2
-        prim[own] = p2 if keep is None else np.where(p2 >= 0, keep[np.maximum(p2, 0)], -1)
+        prim[own] = p2 if keep is None or not len(keep) else np.where(p2 >= 0, keep[np.maximum(p2, 0)], -1)
         return t, prim
 
     def _actor_face_ids(self) -> np.ndarray:

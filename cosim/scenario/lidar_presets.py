@@ -111,7 +111,8 @@ LIDAR_PRESETS: dict[str, LidarPreset | None] = {
         datasheet="Velodyne HDL-64E S2 datasheet and user's manual (63-HDL64ES2)",
         elevations_deg=_HDL64E, rotation_hz=10.0, point_rate_hz=1_333_000.0, range_m=120.0, range_noise_m=0.02,
         detection_range_10pct_m=50.0, return_modes=("strongest",), intensity_transfer="kitti",
-        mount_height_m=1.73, mount_source="KITTI (Geiger et al. 2013, IJRR 32(11))"),
+        mount_height_m=1.73, mount_source="KITTI (Geiger et al. 2013, IJRR 32(11))",
+        extra={"self_occlusion": True}),
     "vlp32c": LidarPreset(
         sensor="Velodyne VLP-32C (Ultra Puck)",
         datasheet="Velodyne VLP-32C user manual 63-9325 (laser table) and datasheet",

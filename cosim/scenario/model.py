@@ -327,7 +327,8 @@ class LidarSpec(Model):
 
     ``model`` names a datasheet preset (:mod:`cosim.scenario.lidar_presets`, docs/lidar_models.md) that the
     loader expands into these fields; fields set beside it override it. ``intensity_transfer`` is how the
-    sensor reports intensity (``cosim.sensors.lidar_models``). The three fields that came with the presets
+    sensor reports intensity (``cosim.sensors.lidar_models``). ``self_occlusion``: beams whose first hit is
+    the carrying vehicle's own body return nothing. The four fields that came with the presets and levers
     are left out of the resolved scenario while they hold their defaults (:meth:`_dump`), so episodes of
     the generic rig keep their bytes."""
 
@@ -354,6 +355,9 @@ class LidarSpec(Model):
     detection_range_10pct_m: float = Field(50.0, gt=1, le=5000)
     motion_distortion: bool = True  # each firing at its own time within the sweep (false: one snapshot)
     dual_returns: bool = False  # strongest and last return where a beam partly hits a near object
+    # the carrying vehicle's own body blocks the beams that meet it first (no return), as on a real roof
+    # mount (docs/lidar_models.md, "What real scans lose"); on in the hdl64e preset
+    self_occlusion: bool = False
     mount: Mount = Mount(xyz_m=(0.0, 0.0, 1.9))
 
     @model_validator(mode="after")
@@ -378,7 +382,7 @@ class LidarSpec(Model):
     @model_serializer(mode="wrap")
     def _dump(self, handler: Any) -> Any:
         out = handler(self)
-        for name in ("model", "elevations_deg", "intensity_transfer"):
+        for name in ("model", "elevations_deg", "intensity_transfer", "self_occlusion"):
             if getattr(self, name) == LidarSpec.model_fields[name].default:
                 out.pop(name, None)
         return out
