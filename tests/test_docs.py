@@ -72,3 +72,34 @@ def test_the_readme_keys_table_matches_the_schema():
             assert yaml.safe_load(literal.group(1)) == pytest.approx(value), key
             checked += 1
     assert checked >= 20
+
+
+def test_the_readme_sweep_example_plans_as_the_readme_says(tmp_path):
+    """The README's sweep section: its YAML example is a valid sweep (every key the section describes is in it),
+    and its plan has the sizes, splits and level counts the section states."""
+    from collections import Counter
+
+    from cosim.batch.plan import plan_file
+
+    section = _text(REPO / "README.md").split("## Sweeps: the file `cosim batch` reads", 1)[1].split("\n## ", 1)[0]
+    example = section.split("```yaml\n", 1)[1].split("```", 1)[0]
+    data = yaml.safe_load(example)
+    assert {"name", "seed", "base", "set", "axes", "vary", "count", "split"} <= set(data)
+    assert any("levels" in axis for axis in data["axes"].values()) and "hours:" in example
+    path = tmp_path / "mini.yaml"
+    path.write_text(example)
+    plan = plan_file(path)
+    flat = " ".join(section.split())  # the claims, whatever the line breaks
+    n, seconds, combos = re.search(r"This one plans (\d+) episodes of (\d+) s over (\d+) combinations",
+                                   flat).groups()
+    assert (len(plan.episodes), plan.combinations) == (int(n), int(combos))
+    assert {e.duration_s for e in plan.episodes} == {float(seconds)}
+    splits = Counter(e.split for e in plan.episodes)
+    assert f"{splits['train']} in `train` and {splits['val']} in `val`" in flat, splits
+    strategy = Counter(e.labels["strategy"] for e in plan.episodes)
+    train = Counter(e.labels["strategy"] for e in plan.episodes if e.split == "train")
+    assert f"`hover` {strategy['hover']} and `patrol` {strategy['patrol']}" in flat, strategy
+    assert f"(in `train` {train['hover']} and {train['patrol']}, as the weights say" in flat, train
+    weather = Counter(e.labels["weather"] for e in plan.episodes)
+    assert f"`clear` {weather['clear']} and `foggy` {weather['foggy']}" in flat, weather
+    assert any(e.file == "train/train-foggy-patrol-0002.mcap" for e in plan.episodes)
