@@ -10,19 +10,16 @@ import sys
 import time
 from pathlib import Path
 
+from cosim import cli_args
 from cosim.errors import InputError
 
 EXIT_OK = 0
 
 
-def _positive(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
-    return v
+_positive = cli_args.positive_int
+DATASET = cli_args.path("input_path", "dataset")
+RUN = cli_args.path("input_folder", "run folder")
+CACHE = cli_args.path("input_folder", "cache folder")
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -32,10 +29,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     from cosim.eval.dataset import VEHICLE_CLASSES, load_dataset
     from cosim.learn.data import Setup, split_episodes
     from cosim.learn.grid import make_grid
-    from cosim.learn.train import TrainOptions, device_of, train
+    from cosim.learn.train import TrainOptions, check_run_folder, device_of, train
 
-    if not 0.0 <= args.turn <= 180.0:
-        raise InputError(f"--turn {args.turn:g}: the largest turn must be 0 to 180 degrees")
+    check_run_folder(Path(args.out), args.resume)  # before the dataset is read
     augment = _augment_options(args)
     grid = make_grid(args.pillar_m, *((args.range_m[:2], args.range_m[2:]) if args.range_m else (None, None)))
 
@@ -202,9 +198,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     lsub.required = True
 
     tr = lsub.add_parser("train", help="train a detector: cosim learn train DATASET --out RUN")
-    tr.add_argument("dataset", help="batch folder (its train split, or every episode when it has no splits), a "
-                                    "folder of episodes or one episode")
-    tr.add_argument("--out", required=True, help="run folder: checkpoint.pt, log.jsonl, summary.json")
+    tr.add_argument("dataset", type=DATASET,
+                    help="batch folder (its train split, or every episode when it has no splits), a "
+                         "folder of episodes or one episode")
+    tr.add_argument("--out", required=True, type=cli_args.output_folder,
+                    help="run folder: checkpoint.pt, log.jsonl, summary.json")
     tr.add_argument("--fusion", choices=FUSIONS, default="none",
                     help="none (ego only), late (boxes merged), early (points merged), intermediate (BEV features "
                          "warped into the ego frame and fused); default none")
@@ -213,9 +211,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--encoders", choices=ENCODERS, default="shared",
                     help="intermediate fusion: one pillar encoder for all agents, or one per agent kind")
     tr.add_argument("--lidar", choices=LIDAR_MODES, default="tick", help=lidar_help)
-    tr.add_argument("--cache", help="a folder of cosim learn cache: read the samples from it, not from MCAP")
-    tr.add_argument("--workers", type=int, default=0, help="processes that make the batches (default 0: none)")
-    tr.add_argument("--turn", type=float, default=0.0, metavar="DEG",
+    tr.add_argument("--cache", type=CACHE,
+                    help="a folder of cosim learn cache: read the samples from it, not from MCAP")
+    tr.add_argument("--workers", type=cli_args.non_negative_int, default=0,
+                    help="processes that make the batches (default 0: none)")
+    tr.add_argument("--turn", type=cli_args.float_in(0, 180, "degrees"), default=0.0, metavar="DEG",
                     help="turn each training sample about z by a random angle of up to DEG degrees either way "
                          "(default 0: mirror only)")
     ag = tr.add_argument_group("augmentation (docs/learnability.md, \"Augmentation\"; each off by default)")
@@ -253,18 +253,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--epochs", type=_positive, default=1, help="passes over the training samples (default 1)")
     tr.add_argument("--steps", type=_positive, help="optimiser steps in total (overrides --epochs)")
     tr.add_argument("--batch-size", type=_positive, default=8)
-    tr.add_argument("--lr", type=float, default=2e-3)
+    tr.add_argument("--lr", type=cli_args.positive_float, default=2e-3)
     tr.add_argument("--every", type=_positive, default=1, help="train on ticks 0, every, 2 every... (default 1)")
     tr.add_argument("--split", help="training split (default: train, or all episodes of a dataset without splits)")
     tr.add_argument("--val-split", help="validation split (default: val when the dataset has one)")
     tr.add_argument("--no-val", action="store_true", help="no validation")
     tr.add_argument("--val-every-tick", type=_positive, default=10, help="validate on ticks 0, k, 2k... (default 10)")
-    tr.add_argument("--val-steps", type=int, default=0, help="validate every this many steps (default: at the end)")
+    tr.add_argument("--val-steps", type=cli_args.non_negative_int, default=0,
+                    help="validate every this many steps (default: at the end)")
     tr.add_argument("--save-every", type=_positive, default=100, help="checkpoint every this many steps")
-    tr.add_argument("--keep-every", type=int, default=0, help="also keep checkpoint_<step>.pt every this many "
+    tr.add_argument("--keep-every", type=cli_args.non_negative_int, default=0,
+                    help="also keep checkpoint_<step>.pt every this many "
                                                               "steps (for cosim learn validate)")
     tr.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
-    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--seed", type=cli_args.non_negative_int, default=0)
     tr.add_argument("--width", type=_positive, default=16, help="pillar feature channels (default 16)")
     tr.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's; 1 is fastest on a "
                                                       "busy machine)")
@@ -273,9 +275,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     tr.set_defaults(func=cmd_train)
 
     pr = lsub.add_parser("predict", help="write predictions for cosim eval: cosim learn predict RUN DATASET --out F")
-    pr.add_argument("run", help="a run folder of cosim learn train")
-    pr.add_argument("dataset", help="batch folder (its test split by default), a folder of episodes or one episode")
-    pr.add_argument("--out", required=True, help="predictions file (.jsonl)")
+    pr.add_argument("run", type=RUN, help="a run folder of cosim learn train")
+    pr.add_argument("dataset", type=DATASET,
+                    help="batch folder (its test split by default), a folder of episodes or one episode")
+    pr.add_argument("--out", required=True, type=cli_args.output_file, help="predictions file (.jsonl)")
     pr.add_argument("--split", help="split to predict (default: test, or all episodes of a dataset without splits)")
     pr.add_argument("--every", type=_positive, default=1, help="predict ticks 0, every, 2 every... (default 1)")
     pr.add_argument("--fusion", choices=FUSIONS, help="fuse otherwise than the model was trained (e.g. late with an "
@@ -284,7 +287,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                              "(default: the model's)")
     pr.add_argument("--delivery", action="store_true", help="apply /comm/links delivery (see train)")
     pr.add_argument("--lidar", choices=LIDAR_MODES, help="LiDAR compensation (default: the model's)")
-    pr.add_argument("--cache", help="a folder of cosim learn cache to read the samples from")
+    pr.add_argument("--cache", type=CACHE, help="a folder of cosim learn cache to read the samples from")
     pr.add_argument("--device", help="torch device (default: cuda when present, else cpu)")
     pr.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's)")
     pr.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -292,20 +295,22 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     va = lsub.add_parser("validate", help="score every kept checkpoint of a run on a split (the learning curve "
                                           "in log.jsonl)")
-    va.add_argument("run", help="a run folder of cosim learn train (with checkpoint_<step>.pt from --keep-every)")
-    va.add_argument("dataset", help="batch folder")
+    va.add_argument("run", type=RUN,
+                    help="a run folder of cosim learn train (with checkpoint_<step>.pt from --keep-every)")
+    va.add_argument("dataset", type=DATASET, help="batch folder")
     va.add_argument("--split", default="val", help="split to score (default val)")
     va.add_argument("--every", type=_positive, default=10, help="ticks 0, every, 2 every... (default 10)")
-    va.add_argument("--from-step", type=int, default=0, metavar="STEP",
+    va.add_argument("--from-step", type=cli_args.non_negative_int, default=0, metavar="STEP",
                     help="only the checkpoints at this step or later (e.g. the last 20 %% of the steps)")
-    va.add_argument("--cache", help="a folder of cosim learn cache to read the samples from")
+    va.add_argument("--cache", type=CACHE, help="a folder of cosim learn cache to read the samples from")
     va.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's)")
     va.set_defaults(func=cmd_validate)
 
     ca = lsub.add_parser("cache", help="cache a dataset's samples (one .npz per episode): cosim learn cache "
                                        "DATASET --out DIR")
-    ca.add_argument("dataset", help="batch folder, a folder of episodes or one episode")
-    ca.add_argument("--out", required=True, help="cache folder (cache.json and <split>/<episode>.npz)")
+    ca.add_argument("dataset", type=DATASET, help="batch folder, a folder of episodes or one episode")
+    ca.add_argument("--out", required=True, type=cli_args.output_folder,
+                    help="cache folder (cache.json and <split>/<episode>.npz)")
     ca.add_argument("--lidar", choices=LIDAR_MODES, default="tick", help=lidar_help)
     ca.add_argument("--every", type=_positive, default=1, help="cache ticks 0, every, 2 every... (default 1)")
     ca.add_argument("--split", help="cache only this split (default: every episode)")
@@ -314,19 +319,21 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     rc = lsub.add_parser("recall", help="objects the ego has no return on, found by each model (one prediction "
                                         "file per setting)")
-    rc.add_argument("dataset", help="batch folder")
-    rc.add_argument("pred", nargs="+", help="prediction files of cosim learn predict (.jsonl)")
-    rc.add_argument("--out", required=True, help="folder for recall.md and recall.json")
+    rc.add_argument("dataset", type=DATASET, help="batch folder")
+    rc.add_argument("pred", nargs="+", type=cli_args.path("input_file", "prediction file"),
+                    help="prediction files of cosim learn predict (.jsonl)")
+    rc.add_argument("--out", required=True, type=cli_args.output_folder, help="folder for recall.md and recall.json")
     rc.add_argument("--split", help="split of the predictions (default test)")
-    rc.add_argument("--iou", type=float, default=0.3, help="BEV IoU of a match (default 0.3)")
-    rc.add_argument("--min-score", type=float, default=0.3, help="predictions of at least this score (default 0.3)")
+    rc.add_argument("--iou", type=cli_args.fraction, default=0.3, help="BEV IoU of a match (default 0.3)")
+    rc.add_argument("--min-score", type=cli_args.fraction, default=0.3,
+                    help="predictions of at least this score (default 0.3)")
     rc.add_argument("--by", help="one row per file and value of this episode condition (lighting, weather, "
                                  "environment or strategy)")
     rc.set_defaults(func=cmd_recall)
 
     cu = lsub.add_parser("curves", help="plot validation AP against steps of one or more runs (PNG)")
-    cu.add_argument("runs", nargs="+", help="run folders")
-    cu.add_argument("--out", required=True, help="PNG file")
+    cu.add_argument("runs", nargs="+", type=RUN, help="run folders")
+    cu.add_argument("--out", required=True, type=cli_args.output_file, help="PNG file")
     cu.add_argument("--title", default="validation AP (vehicle) against training steps")
     cu.set_defaults(func=cmd_curves)
 

@@ -47,7 +47,7 @@ import numpy as np
 from cosim.errors import InputError
 from cosim.eval.ap import THRESHOLDS, DetectionAccumulator
 from cosim.eval.boxes import footprints, iou_matrix
-from cosim.io.kitti import KittiFolder, boxes_to_velo, read_velodyne
+from cosim.io.kitti import KittiFolder, boxes_to_velo, read_labels, read_velodyne
 from cosim.learn.samples import quantise
 
 #: KITTI object types that can be targets, and the cosim class each becomes.
@@ -142,6 +142,9 @@ class KittiSource:
             missing = [s for s in self.stems if not self.kitti.has_labels(s)]
             if missing:
                 raise InputError(f"{self.folder}: no label_2/{missing[0]}.txt ({len(missing)} scans without one)")
+            for stem in self.stems:  # every label and calib file read once, so that a bad one stops us here
+                read_labels(self.folder / "label_2" / f"{stem}.txt")
+                self.kitti.calib(stem)
         self.id = folder_id(self.folder) + (f":{split}" if split else "")
         self.types = tuple(types)
         self.intensity_scale = float(intensity_scale)
