@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from cosim.errors import InputError
+from cosim import cli_args
 
 EXIT_OK = 0
 
@@ -16,8 +16,6 @@ def cmd_export(args: argparse.Namespace) -> int:
     from cosim.progress import progress_display
 
     get_format(args.format)  # an unknown format fails before any work
-    if args.every < 1:
-        raise InputError(f"--every must be >= 1, got {args.every}")
     # a bar on a terminal, else a plain line every 10 s (cosim.progress)
     progress, close = progress_display(f"export {args.format}", enabled=not args.quiet, unit="agent-frame")
     try:
@@ -43,8 +41,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--format", required=True, metavar="FORMAT", help="airv2x or opv2v")
     p.add_argument("--out", required=True, help="export root (no date-like YYYY_MM_DD_HH_MM_SS in its path)")
     p.add_argument("--split", help="split folder for every episode (default: the manifest's split, or train)")
-    p.add_argument("--every", type=int, default=1, metavar="K", help="keep every K-th tick (default 1)")
-    p.add_argument("--workers", type=int, default=1, metavar="N", help="processes writing ticks (default 1)")
+    p.add_argument("--every", type=cli_args.positive_int, default=1, metavar="K",
+                   help="keep every K-th tick (default 1)")
+    p.add_argument("--workers", type=cli_args.positive_int, default=1, metavar="N",
+                   help="processes writing ticks (default 1)")
     p.add_argument("--masks", action="store_true", help="also semantic and instance images (AirV2X)")
     p.add_argument("--raw-lidar", action="store_true",
                    help="LiDAR points as fired (each in its firing's sensor frame), not compensated to the tick pose")

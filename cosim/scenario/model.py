@@ -138,6 +138,16 @@ class MapSpec(Model):
     file: str | None = None  # .net.xml (kind net) or .osm (kind osm); relative to the scenario file
     size_m: float = Field(400.0, gt=50.0, le=5000.0)  # [m] side of the generated square area
     lanes: int | None = Field(None, ge=1, le=5)  # lanes per direction; None = the kind's default
+    # roadside clutter (cosim/world/clutter.py): kitti adds walls, fences, hedges, bushes, poles, bollards,
+    # signs, banks and close houses beyond the kerbs; none (the default) leaves the world as it was
+    clutter: Literal["none", "kitti"] = "none"
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: Any) -> Any:
+        out = handler(self)
+        if self.clutter == "none":  # worlds and resolved scenarios without clutter keep their bytes
+            out.pop("clutter", None)
+        return out
 
     @model_validator(mode="after")
     def _file_matches_kind(self) -> MapSpec:

@@ -14,6 +14,7 @@ import numpy as np
 from cosim.preflight import map_file
 from cosim.scenario.loader import LoadedScenario
 from cosim.world import geom
+from cosim.world.clutter import place_clutter
 from cosim.world.group import plan_group
 from cosim.world.layout import GROUND_Z, build_layout, prism
 from cosim.world.netgen import MapRequest, NetworkResult, generate_network
@@ -27,6 +28,7 @@ from cosim.world.types import Junction, StaticLayout, World
 log = logging.getLogger(__name__)
 
 STAGE_NET, STAGE_LAYOUT, STAGE_RSU, STAGE_ROUTES, STAGE_PARKED, STAGE_SIGNALS, STAGE_GROUP = 1, 2, 3, 4, 5, 6, 7
+STAGE_CLUTTER = 8
 MARGIN_M = {"urban": 30.0, "suburban": 30.0}  # [m] scenery beyond the outermost road; others 20
 RSU_POLE_M = 0.35  # [m] side of an RSU pole
 
@@ -78,6 +80,9 @@ def build_world(loaded: LoadedScenario, workdir: Path) -> World:
     for k, r in enumerate(rsus):
         foot = geom.rect(r.position_m[0], r.position_m[1], RSU_POLE_M, RSU_POLE_M, r.yaw_rad)
         prisms.append(prism("rsu", foot, GROUND_Z, r.height_m, next_id + k))
+    # roadside clutter (map.clutter, cosim/world/clutter.py), before the parked vehicles, which keep clear of it
+    prisms += place_clutter(net, prisms, bounds, spec.clutter, stage_rng(sc.seed, STAGE_CLUTTER),
+                            next_id + len(rsus))
 
     parked = place_parked(net, prisms, bounds, sc.parked, sc.traffic.mix, stage_rng(sc.seed, STAGE_PARKED))
     planned = plan_vehicles(sumo_net, sc, net.road_length_km(), stage_rng(sc.seed, STAGE_ROUTES),
