@@ -9,11 +9,13 @@ import argparse
 import json
 import logging
 import os
+import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 import cosim
+from cosim import cli_args
 from cosim.errors import CosimError, InputError
 from cosim.logs import NOTICE
 
@@ -22,12 +24,20 @@ log = logging.getLogger("cosim")
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 
+class ArgumentsError(InputError):
+    """Bad usage found by argparse (an unknown option, a missing argument, a value a ``cosim.cli_args`` check
+    refused): :func:`main` prints it as one line, like every other bad input, and returns exit status 2."""
+
+
 class _Parser(argparse.ArgumentParser):
-    """argparse that exits with status 2 and one line on bad usage (its default too, made explicit)."""
+    """argparse whose errors raise :class:`ArgumentsError` with one line naming the option: ``--lr must be a
+    finite number, got nan``, ``--out: /tmp/f is a file, not a folder``; no usage block."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
-        self.print_usage(sys.stderr)
-        self.exit(EXIT_BAD_INPUT, f"cosim: error: {message}\n")
+        m = re.match(r"argument (\S+): (.*)", message, re.S)
+        if m:  # "--x must be >= 1, got 0", "--x: no file at y", "dataset: no file or folder at y"
+            message = f"{m.group(1)}{' ' if m.group(2).startswith('must ') else ': '}{m.group(2)}"
+        raise ArgumentsError(" ".join(message.split()))
 
 
 def _human_size(n: float) -> str:
@@ -61,8 +71,6 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.clients is not None:
         names = [n.strip() for n in args.clients.split(",") if n.strip()]
         overrides.append("clients=" + json.dumps([{"name": n} for n in names]))
-    if args.progress_every < 0:
-        raise InputError(f"--progress-every must be >= 0 seconds, got {args.progress_every:g}")
     loaded = load_scenario(args.scenario, overrides)
     if args.listen:
         check_endpoint(args.listen)
@@ -137,8 +145,8 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="generate one episode from a scenario")
     run.add_argument("scenario", help="scenario YAML file, or the name of a shipped scenario")
     run.add_argument("--out", help="output folder (default: the scenario's output.dir)")
-    run.add_argument("--duration", type=float, help="simulated seconds (overrides duration_s)")
-    run.add_argument("--seed", type=int, help="random seed (overrides seed)")
+    run.add_argument("--duration", type=cli_args.positive_float, help="simulated seconds (overrides duration_s)")
+    run.add_argument("--seed", type=cli_args.non_negative_int, help="random seed (overrides seed)")
     run.add_argument("--set", action="append", metavar="KEY=VALUE",
                      help="override any scenario field, e.g. --set environment.weather=foggy (repeatable)")
     run.add_argument("--no-sensors", action="store_true", help="labels and transforms only (sensors.enabled=false)")
@@ -153,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--dry-run", action="store_true", help="check the scenario and the output folder and print "
                                                             "the resolved scenario (YAML); build and run nothing")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    run.add_argument("--progress-every", type=float, default=10.0, metavar="S",
+    run.add_argument("--progress-every", type=cli_args.at_least(0, "seconds"), default=10.0, metavar="S",
                      help="without a terminal, one progress line (tick k of n, s/tick, ETA) every S seconds "
                           "(default 10)")
     run.set_defaults(func=cmd_run)
@@ -203,7 +211,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """The ``cosim`` program. ``argv`` None: called as the program (a failed ``run`` then ends the process
     without the interpreter's slow teardown); a list: called in-process, always returns the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except ArgumentsError as exc:
+        print(f"cosim: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     level = [NOTICE, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     if not getattr(args, "func", None):

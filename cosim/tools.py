@@ -18,11 +18,13 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from cosim import cli_args
 from cosim.errors import InputError
 
 log = logging.getLogger(__name__)
 
 EXIT_OK, EXIT_PROBLEMS, EXIT_INTERRUPTED = 0, 1, 130
+EPISODE = cli_args.path("input_file", "episode file")
 
 
 def _episode(path: str) -> Path:
@@ -93,8 +95,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from cosim.io.replay import DEFAULT_FOXGLOVE_HOST, ReplayEndpoints, ReplayOptions, replay_episode
     from cosim.transport import check_endpoint
 
-    if args.rate <= 0:
-        raise InputError(f"--rate must be > 0, got {args.rate}")
     for e in (args.connect or []) + (args.listen or []):
         check_endpoint(e)
     if args.foxglove_host and args.foxglove is None:
@@ -199,7 +199,7 @@ def cmd_comm(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``info``, ``validate``, ``replay``, ``render`` and ``comm`` to the ``cosim`` command."""
     p = sub.add_parser("info", help="what an episode holds: scenario, conditions, agents, topics, size")
-    p.add_argument("episode", help="episode file (.mcap)")
+    p.add_argument("episode", type=EPISODE, help="episode file (.mcap)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--no-bytes", action="store_true", help="skip the bytes per topic family")
     p.add_argument("--full", action="store_true",
@@ -207,14 +207,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("validate", help="check episodes against docs/episode_format.md (exit 1 on problems)")
-    p.add_argument("episodes", nargs="+", metavar="episode", help="episode file(s) (.mcap)")
+    p.add_argument("episodes", nargs="+", metavar="episode", type=EPISODE, help="episode file(s) (.mcap)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--no-pixels", action="store_true", help="skip decoding instance masks (faster)")
     p.set_defaults(func=cmd_validate)
 
     p = sub.add_parser("replay", help="re-publish an episode over Zenoh with its original timing")
-    p.add_argument("episode", help="episode file (.mcap)")
-    p.add_argument("--rate", type=float, default=1.0, help="speed factor (2 = twice as fast; default 1)")
+    p.add_argument("episode", type=EPISODE, help="episode file (.mcap)")
+    p.add_argument("--rate", type=cli_args.positive_float, default=1.0,
+                   help="speed factor (2 = twice as fast; default 1)")
     p.add_argument("--loop", action="store_true", help="start again at the end until interrupted")
     p.add_argument(
         "--topics",
@@ -232,7 +233,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--prefix", default="cosim/replay", help="key prefix (default cosim/replay)")
     p.add_argument(
         "--wait",
-        type=float,
+        type=cli_args.at_least(0, "seconds"),
         default=5.0,
         metavar="SECONDS",
         help="wait this long for a Zenoh subscriber before sending (default 5; 0 = do not wait); with --foxglove "
@@ -242,7 +243,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="start at once: wait for no Foxglove viewer and no Zenoh subscriber")
     p.add_argument(
         "--foxglove",
-        type=int,
+        type=cli_args.non_negative_int,
         nargs="?",
         const=8765,
         metavar="PORT",
@@ -259,17 +260,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser("render", help="PNG contact sheets per agent and a BEV plot for chosen ticks")
-    p.add_argument("episode", help="episode file (.mcap)")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("episode", type=EPISODE, help="episode file (.mcap)")
+    p.add_argument("--out", required=True, type=cli_args.output_folder, help="output folder")
     p.add_argument("--ticks", help="ticks: '0,10,20', '0:50:10' or '-1' (default: first, middle, last)")
     p.add_argument("--agents", nargs="+", metavar="AGENT", help="agents for contact sheets (default all)")
-    p.add_argument("--dpi", type=int, default=80, help="figure resolution (default 80)")
+    p.add_argument("--dpi", type=cli_args.positive_int, default=80, help="figure resolution (default 80)")
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("comm", help="V2X links of an episode: summary per link type (LOS, SNR, delivery) and plots")
-    p.add_argument("episode", help="episode file (.mcap) written with comm.enabled")
-    p.add_argument("--out", help="folder for comm_quality.png and comm_map_t<tick>.png (default: no plots)")
-    p.add_argument("--tick", type=int, help="tick of the link map (default: the middle one)")
+    p.add_argument("episode", type=EPISODE, help="episode file (.mcap) written with comm.enabled")
+    p.add_argument("--out", type=cli_args.output_folder,
+                   help="folder for comm_quality.png and comm_map_t<tick>.png (default: no plots)")
+    p.add_argument("--tick", type=cli_args.non_negative_int, help="tick of the link map (default: the middle one)")
     p.add_argument("--json", action="store_true", help="machine-readable summary")
-    p.add_argument("--dpi", type=int, default=80, help="figure resolution (default 80)")
+    p.add_argument("--dpi", type=cli_args.positive_int, default=80, help="figure resolution (default 80)")
     p.set_defaults(func=cmd_comm)

@@ -37,9 +37,11 @@ def cmd_export(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``export`` to the ``cosim`` command."""
     p = sub.add_parser("export", help="episodes into the AirV2X-Perception or OPV2V/V2XSet layout (docs/exports.md)")
-    p.add_argument("source", help="episode file (.mcap) or batch folder (its manifest gives the splits)")
+    p.add_argument("source", type=cli_args.path("input_path", "episode file or batch folder"),
+                   help="episode file (.mcap) or batch folder (its manifest gives the splits)")
     p.add_argument("--format", required=True, metavar="FORMAT", help="airv2x or opv2v")
-    p.add_argument("--out", required=True, help="export root (no date-like YYYY_MM_DD_HH_MM_SS in its path)")
+    p.add_argument("--out", required=True, type=cli_args.output_folder,
+                   help="export root (no date-like YYYY_MM_DD_HH_MM_SS in its path)")
     p.add_argument("--split", help="split folder for every episode (default: the manifest's split, or train)")
     p.add_argument("--every", type=cli_args.positive_int, default=1, metavar="K",
                    help="keep every K-th tick (default 1)")

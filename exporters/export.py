@@ -38,6 +38,7 @@ from cosim.exporters.undistort import PinholeRemap, pinhole_remap
 from pydantic import BaseModel, ConfigDict, Field
 
 import cosim
+from cosim.cli_args import check_output_folder
 from cosim.errors import CosimError, InputError
 from cosim.io import Episode, Objects, Tick, open_episode
 from cosim.io.decode import parse_proto
@@ -511,7 +512,7 @@ def agent_frames(ep: Episode, seq: SequenceInfo, ticks: Sequence[int], raw_lidar
     wanted = set(ticks)
     if not wanted:
         return
-    for tick in ep.ticks(start=min(wanted), stop=max(wanted) + 1):
+    for tick in ep.ticks(topics, start=min(wanted), stop=max(wanted) + 1):
         if tick.index in wanted:
             yield TickView(seq, tick, cams, raw_lidar, objects_at_tick)
 

@@ -242,8 +242,10 @@ def cmd_assets(args) -> int:
 
 def register(sub) -> None:
     """Add ``assets`` to the ``cosim`` command."""
+    from cosim.cli_args import output_folder
+
     p = sub.add_parser("assets", help="the procedural asset catalogue: a table, catalogue.json, gallery.png and "
                                       "lidar_gallery.png")
-    p.add_argument("--out", default="assets", help="output folder (default: ./assets)")
+    p.add_argument("--out", default="assets", type=output_folder, help="output folder (default: ./assets)")
     p.add_argument("--no-pictures", action="store_true", help="the table and catalogue.json only")
     p.set_defaults(func=cmd_assets)

@@ -391,11 +391,11 @@ def test_bad_input_one_message_exit_2(trained, tiny_batch, tmp_path, capsys):
         (["learn", "predict", str(trained), str(tiny_batch), "--out", str(tmp_path / "p.jsonl"), "--fusion",
           "intermediate", "--agents", "all"], "needs a model trained for it"),
         (["learn", "recall", str(tiny_batch), str(tmp_path / "none.jsonl"), "--out", str(tmp_path / "rc")],
-         "no such prediction file"),
+         "no prediction file at"),
         (["learn", "recall", str(tiny_batch), str(trained / "log.jsonl"), "--out", str(tmp_path / "rc"), "--by",
           "weekday"], "--by weekday: not a condition"),
         (["learn", "train", str(tiny_batch), "--out", str(tmp_path / "r6"), "--turn", "200"],
-         "--turn 200: the largest turn must be 0 to 180 degrees"),
+         "--turn must be 0 to 180 degrees, got 200"),
         (["learn", "cache", str(tiny_batch), "--out", str(tmp_path / "c"), "--split", "nope"], "no episode in split"),
     ]
     # The first case as the program a user runs; the others in this process (the same main(), without

@@ -10,7 +10,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from cosim.errors import InputError
+from cosim import cli_args
 
 EXIT_OK, EXIT_FAILURE, EXIT_INTERRUPTED = 0, 1, 130
 
@@ -106,11 +106,6 @@ def _sigterm_as_interrupt(*_: Any) -> None:
 def cmd_batch(args: argparse.Namespace) -> int:
     from cosim.batch.executors import make_executor
     from cosim.batch.runner import run_batch
-
-    if args.workers < 1:
-        raise InputError(f"--workers must be >= 1, got {args.workers}")
-    if args.retries < 0:
-        raise InputError(f"--retries must be >= 0, got {args.retries}")
     from cosim.preflight import check_plan_inputs, check_ray_installed
     from cosim.runner import check_output_dir
 
@@ -165,28 +160,36 @@ def register(sub: argparse._SubParsersAction) -> None:
     b = sub.add_parser("batch", help="generate a sweep of episodes (local processes, Ray, shards; resumable)")
     b.add_argument("sweep", help="sweep YAML file, or the name of a shipped one (sweeps/)")
     b.add_argument("--out", required=True, help="output folder: <split>/<episode>.mcap and manifest*.jsonl")
-    b.add_argument("--workers", type=int, default=1, help="episodes at a time (local); CPUs of a local Ray")
+    b.add_argument("--workers", type=cli_args.positive_int, default=1,
+                   help="episodes at a time (local); CPUs of a local Ray")
     b.add_argument("--backend", default="local", choices=["local", "ray"], help="where episodes run")
     b.add_argument("--address", help="Ray cluster: auto, HOST:PORT or ray://HOST:PORT (default: a local Ray)")
-    b.add_argument("--max-in-flight", type=int, help="Ray: tasks submitted at once (default 2 x cluster CPUs)")
+    b.add_argument("--max-in-flight", type=cli_args.positive_int,
+                   help="Ray: tasks submitted at once (default 2 x cluster CPUs)")
     b.add_argument("--shard", type=_shard, metavar="I/K", help="run only episodes i, i+k, ... (0 <= i < k)")
-    b.add_argument("--retries", type=int, default=2, help="extra attempts per failed episode (default 2)")
+    b.add_argument("--retries", type=cli_args.non_negative_int, default=2,
+                   help="extra attempts per failed episode (default 2)")
     size = b.add_mutually_exclusive_group()
-    size.add_argument("--count", type=int, help="episodes in total (overrides the sweep's count/hours)")
-    size.add_argument("--hours", type=float, help="driving time in total (overrides the sweep's count/hours)")
-    b.add_argument("--scale", type=float, default=1.0, help="multiply the sweep's size (e.g. 0.01 for a smoke run)")
+    size.add_argument("--count", type=cli_args.positive_int,
+                      help="episodes in total (overrides the sweep's count/hours)")
+    size.add_argument("--hours", type=cli_args.positive_float,
+                      help="driving time in total (overrides the sweep's count/hours)")
+    b.add_argument("--scale", type=cli_args.at_least(0, noun="scale", above=True), default=1.0,
+                   help="multiply the sweep's size (e.g. 0.01 for a smoke run)")
     b.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a scenario field in every episode, e.g. --set sensors.enabled=false")
     b.add_argument("--dry-run", action="store_true", help="print the plan and an estimate; generate nothing")
-    b.add_argument("--calibrate-s", type=float, default=2.0,
+    b.add_argument("--calibrate-s", type=cli_args.at_least(0, "seconds"), default=2.0,
                    help="--dry-run: simulated seconds of the calibration episode (0: no calibration)")
     b.add_argument("-q", "--quiet", action="store_true", help="no progress display")
     b.set_defaults(func=cmd_batch)
 
     r = sub.add_parser("report", help="dataset statistics of a batch folder: Markdown + PNG plots")
-    r.add_argument("dir", help="batch output folder (with manifest*.jsonl)")
-    r.add_argument("--md", help="Markdown file to write (default DIR/report.md)")
-    r.add_argument("--img-dir", help="folder for the PNG plots (default: beside the Markdown)")
+    r.add_argument("dir", type=cli_args.path("input_folder", "batch folder"),
+                   help="batch output folder (with manifest*.jsonl)")
+    r.add_argument("--md", type=cli_args.output_file, help="Markdown file to write (default DIR/report.md)")
+    r.add_argument("--img-dir", type=cli_args.output_folder,
+                   help="folder for the PNG plots (default: beside the Markdown)")
     r.add_argument("--prefix", default="report_", help="file name prefix of the plots (default report_)")
     r.set_defaults(func=cmd_report)
 

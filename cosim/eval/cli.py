@@ -6,18 +6,18 @@ import argparse
 import logging
 from pathlib import Path
 
+from cosim import cli_args
 from cosim.errors import InputError
 
 log = logging.getLogger(__name__)
 
 EXIT_OK = 0
+DATASET = cli_args.path("input_path", "episode file or batch folder")
 
 
 def _rule(args: argparse.Namespace):
     from cosim.eval.dataset import VisibilityRule
 
-    if args.min_points < 1 or args.min_pixels < 1:
-        raise InputError(f"--min-points and --min-pixels must be >= 1, got {args.min_points} and {args.min_pixels}")
     return VisibilityRule(args.min_points, args.min_pixels)
 
 
@@ -91,38 +91,45 @@ def cmd_coverage(args: argparse.Namespace) -> int:
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", help="only the episodes of this split of a batch (default: all)")
-    p.add_argument("--min-points", type=int, default=1, metavar="N",
+    p.add_argument("--min-points", type=cli_args.positive_int, default=1, metavar="N",
                    help="an agent sees an object with >= N LiDAR points on it (default 1) ...")
-    p.add_argument("--min-pixels", type=int, default=1, metavar="M",
+    p.add_argument("--min-pixels", type=cli_args.positive_int, default=1, metavar="M",
                    help="... or >= M instance pixels over its cameras (default 1)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``eval`` and ``coverage`` to the ``cosim`` command (imports nothing heavy: every cosim start runs it)."""
     p = sub.add_parser("eval", help="score detections / BEV segmentation like the paper's tables (docs/evaluation.md)")
-    p.add_argument("--gt", required=True, metavar="DATASET", help="episode file or batch folder")
-    p.add_argument("--pred", metavar="PREDICTIONS", help="prediction .jsonl file or folder (docs/evaluation.md)")
+    p.add_argument("--gt", required=True, metavar="DATASET", type=DATASET, help="episode file or batch folder")
+    p.add_argument("--pred", metavar="PREDICTIONS", type=cli_args.path("input_path", "prediction file or folder"),
+                   help="prediction .jsonl file or folder (docs/evaluation.md)")
     p.add_argument("--baseline", metavar="NAME", help="generate predictions with a reference baseline: oracle-noise")
-    p.add_argument("--out", default="eval", help="output folder for tables and plots (default: ./eval)")
+    p.add_argument("--out", default="eval", type=cli_args.output_folder,
+                   help="output folder for tables and plots (default: ./eval)")
     _common(p)
     p.add_argument("--visible-only", action="store_true",
                    help="ground truth only where an agent of the record's setting sees the object")
     p.add_argument("--compat", metavar="MODE", help="airv2x: reproduce the AirV2X release's scoring (see docs)")
-    p.add_argument("--seed", type=int, default=0, help="baseline noise and compat subset seed (default 0)")
+    p.add_argument("--seed", type=cli_args.non_negative_int, default=0,
+                   help="baseline noise and compat subset seed (default 0)")
     p.add_argument("--metric", action="append", metavar="NAME",
                    help="compute only this metric (repeatable; default: every registered one: detection, "
                         "segmentation and any plug-in, docs/evaluation.md)")
     g = p.add_argument_group("oracle-noise baseline")
-    g.add_argument("--pos-sigma-m", type=float, default=0.0, help="centre noise, std along x and y [m]")
-    g.add_argument("--size-sigma", type=float, default=0.0, help="relative size noise, std (0.1 = 10%%)")
-    g.add_argument("--yaw-sigma-deg", type=float, default=0.0, help="yaw noise, std [deg]")
-    g.add_argument("--miss-rate", type=float, default=0.0, help="probability of dropping a visible object")
+    g.add_argument("--pos-sigma-m", type=cli_args.non_negative_float, default=0.0,
+                   help="centre noise, std along x and y [m]")
+    g.add_argument("--size-sigma", type=cli_args.non_negative_float, default=0.0,
+                   help="relative size noise, std (0.1 = 10%%)")
+    g.add_argument("--yaw-sigma-deg", type=cli_args.non_negative_float, default=0.0, help="yaw noise, std [deg]")
+    g.add_argument("--miss-rate", type=cli_args.fraction, default=0.0, help="probability of dropping a visible object")
     g.add_argument("--no-bev", action="store_true", help="no BEV segmentation predictions")
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("coverage", help="ground-truth collaborative coverage per agent types and condition")
-    p.add_argument("dataset", metavar="DATASET", help="episode file or batch folder (episodes with sensors)")
-    p.add_argument("--out", default="coverage", help="output folder for tables and plots (default: ./coverage)")
+    p.add_argument("dataset", metavar="DATASET", type=DATASET,
+                   help="episode file or batch folder (episodes with sensors)")
+    p.add_argument("--out", default="coverage", type=cli_args.output_folder,
+                   help="output folder for tables and plots (default: ./coverage)")
     _common(p)
     p.add_argument("--classes", nargs="+", metavar="CLASS",
                    help="object classes counted (default: car van truck bus motorcycle bicycle)")

@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from cosim.cli_args import check_output_folder
 from cosim.errors import InputError
 from cosim.eval.predictions import parse_record, record_json
 from cosim.learn.augment import (
@@ -430,6 +431,16 @@ def _cpu_s() -> float:
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
+def check_run_folder(run: Path, resume: bool) -> None:
+    """A run folder ``cosim learn train`` can write (InputError otherwise), checked before any work: not a file,
+    with no file above it; a new run's folder holds no run yet, a resumed run's holds its checkpoint."""
+    check_output_folder(run)
+    if (run / CHECKPOINT).exists() and not resume:
+        raise InputError(f"{run} already holds a training run: --resume continues it, or choose another --out")
+    if resume and not (run / CHECKPOINT).exists():
+        raise InputError(f"{run}: nothing to resume (no {CHECKPOINT})")
+
+
 def train(train_refs: list[EpisodeRef], val_refs: list[EpisodeRef] | None, setup: Setup, opts: TrainOptions,
           run: Path, resume: bool = False, device: torch.device | None = None, show_progress: bool = True,
           cache: Path | None = None, init: Path | None = None) -> dict[str, Any]:
@@ -439,10 +450,7 @@ def train(train_refs: list[EpisodeRef], val_refs: list[EpisodeRef] | None, setup
     from cosim.learn.data import Samples, check_classes
 
     run = Path(run)
-    if (run / CHECKPOINT).exists() and not resume:
-        raise InputError(f"{run} already holds a training run: --resume continues it, or choose another --out")
-    if resume and not (run / CHECKPOINT).exists():
-        raise InputError(f"{run}: nothing to resume (no {CHECKPOINT})")
+    check_run_folder(run, resume)
     check_classes(train_refs, setup.classes, "the model")
     t0 = time.perf_counter()
     samples = Samples(train_refs, setup, every=opts.every, cache=cache)
