@@ -73,6 +73,23 @@ def tiny_overrides() -> list[str]:
 
 
 @pytest.fixture(scope="session")
+def synthetic_episodes(tmp_path_factory) -> list[Path]:
+    """Two small synthetic episodes with sensors (visibility included), of 2 and 3 ticks (episode ids ``syn`` and
+    ``syn_3_ticks``; :func:`cosim.io.synthetic.write_synthetic_episode`, no engines). Read them, never write them."""
+    from cosim.io.synthetic import write_synthetic_episode
+
+    d = tmp_path_factory.mktemp("synthetic")
+    return [write_synthetic_episode(d / "syn.mcap", ticks=2, sensors=True),
+            write_synthetic_episode(d / "syn_3_ticks.mcap", ticks=3, sensors=True)]
+
+
+@pytest.fixture(scope="session")
+def synthetic_episode(synthetic_episodes) -> Path:
+    """The first of :func:`synthetic_episodes` (2 ticks, a vehicle, an RSU and a drone with sensors)."""
+    return synthetic_episodes[0]
+
+
+@pytest.fixture(scope="session")
 def smoke_batch(tmp_path_factory) -> Path:
     """One local batch of ``sweeps/smoke.yaml`` (6 tiny episodes, 2 workers): the reference every other way of
     running that sweep (resumed, Ray, a Ray cluster, shard containers) must reproduce. Read it, never write it."""

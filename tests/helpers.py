@@ -6,9 +6,11 @@ A test file imports helpers from here, never from another test file. Scenarios f
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -82,6 +84,18 @@ def cli_in_process(capsys, *args: str) -> tuple[int, str, str]:
         status = exc.code
     out = capsys.readouterr()
     return status, out.out, out.err
+
+
+def write_file(folder: Path, name: str, text: str | bytes) -> Path:
+    """``folder / name`` (parents made) holding ``text`` dedented (bytes as given): a scenario, sweep or other
+    input file of a test."""
+    p = folder / name
+    p.parent.mkdir(parents=True, exist_ok=True)
+    if isinstance(text, bytes):
+        p.write_bytes(text)
+    else:
+        p.write_text(textwrap.dedent(text))
+    return p
 
 
 def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600,
@@ -199,3 +213,36 @@ def six_plan(tmp_path: Path, body: str = SIX, **kw):
 def run_fake_batch(plan, out, fn=fake_episode, workers=2, retries=1):
     """Run a plan on the local process pool with a fake episode function (tests/fakes.py)."""
     return run_batch(plan, out, LocalExecutor(workers, fn), retries=retries, show_progress=False)
+
+
+def batch_folder(root: Path, episodes: list[Path], splits: list[str], sweep: str = "my_sweep") -> Path:
+    """A batch folder as `cosim batch` leaves it: the episodes under their splits and a manifest."""
+    root.mkdir(parents=True)
+    lines = []
+    for i, (ep, split) in enumerate(zip(episodes, splits, strict=True)):
+        rel = Path(split) / f"{sweep}-{i:04d}.mcap"
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_bytes(ep.read_bytes())
+        lines.append(json.dumps({"episode": f"{sweep}-{i:04d}", "sweep": sweep, "split": split, "file": str(rel),
+                                 "status": "done", "duration_s": 1.0}))
+    (root / "manifest.jsonl").write_text("\n".join(lines) + "\n")
+    return root
+
+
+_WRITER = """
+import sys, time
+from pathlib import Path
+from cosim.io.writer import EpisodeWriter
+w = EpisodeWriter(Path(sys.argv[1]))
+print(w.tmp_path, flush=True)
+time.sleep(120)
+"""
+
+
+def killed_writer(final: Path) -> Path:
+    """Start an episode writer in another process, SIGKILL it; returns the partial file it left."""
+    proc = subprocess.Popen([sys.executable, "-c", _WRITER, str(final)], stdout=subprocess.PIPE, text=True)
+    partial = Path(proc.stdout.readline().strip())
+    proc.kill()
+    proc.wait(10)
+    return partial

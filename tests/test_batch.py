@@ -18,7 +18,8 @@ from cosim.batch.sweep import SweepError, load_sweep
 from cosim.errors import InputError
 from cosim.io.manifest import deterministic_view, latest_records, read_records, sha256_file, verify
 from tests.fakes import fake_episode, niceness_episode, spawning_episode
-from tests.helpers import PAPER, REPO, SIX, run_cli, six_plan, write_sweep
+from tests.helpers import PAPER, REPO, SCENARIOS, SIX, run_cli, six_plan, write_file, write_sweep
+from tests.helpers import cli_in_process as cli
 from tests.helpers import run_fake_batch as run
 
 # ------------------------------------------------------------------------------------ helpers
@@ -330,3 +331,34 @@ def test_dry_run_shows_the_conditions_and_draws_of_each_planned_episode(tmp_path
         assert line == (f"episode  {ep.file}  seed {ep.seed}  {ep.duration_s:g} s  {cond}  "
                         f"agents.vehicles.count={ep.scenario['agents']['vehicles']['count']}"), line
     assert len({line.split("  ")[4] for line in lines}) == 6  # the axes' six weather x map combinations
+
+
+# ------------------------------------------------------------- the batch dry run checks what the batch checks
+
+
+def test_batch_dry_run_checks_that_ray_is_installed(tmp_path, capsys, monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "ray" else real(name, *a))
+    for dry in (["--dry-run", "--calibrate-s", "0"], []):
+        status, _, err = cli(capsys, "batch", "smoke", "--backend", "ray", "--out", str(tmp_path / "b"), *dry)
+        assert status == 2
+        assert err.strip() == "cosim: error: --backend ray needs Ray: pip install -e '.[ray]' (or pip install " \
+                              "'ray>=2.9')"
+
+
+def test_batch_dry_run_checks_the_map_files_of_its_episodes(tmp_path, capsys):
+    sweep = write_file(tmp_path, "nets.yaml", f"""\
+        name: nets
+        base: {SCENARIOS / "default.yaml"}
+        axes:
+          town:
+            levels:
+              - {{label: a, set: {{map.kind: net, map.file: {tmp_path / "town_a.net.xml"}}}}}
+              - {{label: b, set: {{map.kind: net, map.file: {tmp_path / "town_b.net.xml"}}}}}
+        count: 2
+        """)
+    (tmp_path / "town_a.net.xml").write_text("<net version='1.20'/>\n")
+    status, _, err = cli(capsys, "batch", str(sweep), "--dry-run", "--calibrate-s", "0", "--out", str(tmp_path / "b"))
+    assert status == 2 and err.startswith(f"cosim: error: map.file '{tmp_path / 'town_b.net.xml'}' not found"), err

@@ -108,3 +108,24 @@ def test_replies_that_arrived_while_the_caller_was_busy_are_not_timeouts():
         time.sleep(1.0)  # longer than the timeout: a slow sensor frame
         replies = c.collect(pending)
         assert replies["traffic"]["tick"] == 1 and replies["drones"]["tick"] == 1
+
+
+# ------------------------------------------------------------------------------- waiting for external workers
+
+
+@pytest.mark.integration  # a `cosim run` process that builds its world
+def test_waiting_for_external_workers_is_a_notice_not_a_warning(tmp_path):
+    import socket
+
+    from tests.helpers import run_cli
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    r = run_cli("run", "default", "--no-sensors", "--duration", "1", "--set", "map.kind=rural", "--set",
+                "map.size_m=300", "--set", "runtime.startup_timeout_s=1", "--external-workers", "--listen",
+                f"tcp/127.0.0.1:{port}", "--out", str(tmp_path), timeout=120)
+    assert r.returncode == 1 and "did not come up within 1 s" in r.stderr, r.stderr[-2000:]
+    assert f"NOTICE cosim.conductor: waiting for external workers: cosim worker traffic|drones --connect " \
+           f"tcp/127.0.0.1:{port}" in r.stderr
+    assert "WARNING" not in r.stderr

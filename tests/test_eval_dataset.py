@@ -24,6 +24,7 @@ from cosim.eval.predictions import SETTINGS, read_predictions
 from cosim.io import open_episode
 from cosim.io.synthetic import write_synthetic_episode
 from tests.helpers import REPO, run_cli, run_sweep
+from tests.helpers import cli_in_process as cli
 
 pytestmark = pytest.mark.integration
 
@@ -277,3 +278,17 @@ def test_report_prints_visible_objects_per_frame_and_the_coverage_adds(batch, tm
                    and line.count("|") == 10)
     assert overall.endswith(f"| {drones['overall', 'all']:.1f} | {rsus['overall', 'all']:.1f} |"), overall
     assert out.count("### ") == 2 and out.rstrip().endswith(text.rstrip().splitlines()[-1])
+
+
+# ------------------------------------------------------------------------------------ the ego of a prediction
+
+
+@pytest.mark.parametrize("ego", ["rsu_0", "drone_0"])
+def test_eval_rejects_an_ego_that_is_not_a_vehicle(synthetic_episode, tmp_path, capsys, ego):
+    f = tmp_path / "p.jsonl"
+    f.write_text(json.dumps({"episode": "syn", "tick": 0, "ego": ego, "boxes": []}) + "\n")
+    status, _, err = cli(capsys, "eval", "--gt", str(synthetic_episode), "--pred", str(f), "--out",
+                         str(tmp_path / "ev"))
+    assert status == 2
+    assert err.strip().splitlines() == [f"cosim: error: {f}:1: ego: {ego!r} is not a vehicle: the ego of a frame "
+                                        "is a connected vehicle (vehicle_0)"]

@@ -16,6 +16,7 @@ from cosim.errors import FormatError, InputError
 from cosim.io import Calibration, GnssFix, Grid, Image, Objects, PointCloud, TransformTree, open_episode
 from cosim.io.format import topic_spec
 from cosim.io.synthetic import TICK_NS, write_synthetic_episode
+from tests.helpers import cli_in_process as cli
 
 
 @pytest.fixture(scope="module")
@@ -248,3 +249,18 @@ def test_the_snapshot_is_rebuilt_exactly_from_the_labels(tmp_path):
         assert [(a.agent_id, a.kind, a.position_m, a.rotation, a.track_id) for a in got.agents] == [
             (a.agent_id, a.kind, a.position_m, a.rotation, a.track_id) for a in want.agents
         ]
+
+
+# -------------------------------------------------------------------------- a truncated file in every command
+
+
+@pytest.mark.parametrize("command", [["info"], ["render", "--out", "R"], ["export", "--format", "airv2x", "--out", "E"],
+                                     ["export", "--format", "opv2v", "--out", "E"], ["comm"]])
+def test_a_truncated_file_gives_the_same_status_and_message_in_every_command(synthetic_episode, tmp_path, capsys,
+                                                                             command):
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(synthetic_episode.read_bytes()[: synthetic_episode.stat().st_size * 2 // 3])
+    args = [str(tmp_path / a) if a in ("R", "E") else a for a in command[1:]]
+    status, _, err = cli(capsys, command[0], str(cut), *args)
+    assert status == 2
+    assert err.startswith(f"cosim: error: {cut}: truncated or corrupt MCAP") and len(err.strip().splitlines()) == 1

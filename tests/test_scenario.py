@@ -10,7 +10,8 @@ import pytest
 from cosim.errors import ScenarioError
 from cosim.scenario import load_scenario, shipped_scenarios
 from cosim.scenario.model import EscortDrone, HoverDrone, PatrolDrone, Scenario
-from tests.helpers import SCENARIOS, run_cli
+from tests.helpers import SCENARIOS, run_cli, write_file
+from tests.helpers import cli_in_process as cli
 
 
 def write(tmp_path: Path, name: str, text: str) -> Path:
@@ -188,3 +189,85 @@ def test_image_scale_shrinks_every_camera_of_every_rig():
         assert cams and all((c.width, c.height) == (320, 180) for c in cams)
         assert [c.fov_deg for c in cams] == [c.fov_deg for c in Scenario(name="x").rig_for(agent).cameras]
     assert all(c.width == 1280 for c in Scenario(name="x").rig_for("vehicle_0").cameras)
+
+
+# ---------------------------------------------- extends:, scenario names, several problems, --set attribution
+
+
+@pytest.mark.parametrize("parent", ["base/paper", "base/paper.yaml", "default", "town_rural_night.yaml"])
+def test_extends_takes_a_shipped_scenario_name_from_any_folder(tmp_path, parent):
+    f = write_file(tmp_path / "elsewhere", "mine.yaml", f"extends: {parent}\nname: mine\nduration_s: 1\n")
+    loaded = load_scenario(f)
+    assert loaded.scenario.name == "mine" and loaded.scenario.duration_s == 1
+
+
+def test_extends_prefers_a_file_beside_the_scenario_to_a_shipped_one(tmp_path):
+    write_file(tmp_path, "default.yaml", "name: local_base\nseed: 77\n")
+    f = write_file(tmp_path, "child.yaml", "extends: default\nname: child\n")
+    assert load_scenario(f).scenario.seed == 77
+
+
+def test_a_misspelt_base_scenario_gets_a_did_you_mean(tmp_path):
+    f = write_file(tmp_path, "child.yaml", "name: child\nextends: town_rual_night\n")
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(f)
+    assert err.value.line == 2 and err.value.path == "extends"
+    assert "did you mean 'town_rural_night'?" in str(err.value)
+
+
+def test_a_misspelt_scenario_name_gets_a_did_you_mean(capsys):
+    status, _, err = cli(capsys, "run", "town_rual_nigth", "--dry-run")
+    assert status == 2
+    assert err.startswith("cosim: error: ") and "did you mean 'town_rural_night'?" in err
+
+
+def test_a_scenario_with_several_problems_lists_them_all_with_file_line_and_key(tmp_path, capsys):
+    f = write_file(tmp_path, "bad.yaml", """\
+        extends: default
+        name: bad
+        duration_s: -1
+        seed: x
+        agents:
+          vehicles: {count: 99}
+          wat: 3
+        """)
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(f)
+    listed = [(p.line, p.path) for p in err.value.problems]
+    assert listed == [(3, "duration_s"), (4, "seed"), (6, "agents.vehicles.count"), (7, "agents.wat")]
+    status, _, text = cli(capsys, "run", str(f), "--dry-run")
+    lines = text.strip().splitlines()
+    assert status == 2 and lines[0] == f"cosim: error: {f}: 4 problems:"
+    assert lines[1:] == [f"  {p}" for p in err.value.problems]
+    assert lines[4].startswith(f"  {f}:7: agents.wat: unknown key 'wat'")
+
+
+def test_the_list_of_problems_stops_at_a_limit(tmp_path):
+    from cosim.scenario.loader import MAX_PROBLEMS
+
+    keys = "".join(f"  bad_{i}: 1\n" for i in range(MAX_PROBLEMS + 5))
+    f = write_file(tmp_path, "many.yaml", f"name: many\ntraffic:\n{keys}")
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(f)
+    assert len(err.value.problems) == MAX_PROBLEMS and err.value.more == 5
+    assert str(err.value).endswith("... and 5 more")
+
+
+@pytest.mark.parametrize("assignment, key", [
+    ("map.kind=net", "map.file"),  # a rule on a sibling key the override did not write
+    ("tick_hz=7", "tick_hz"),
+    ("agents.vehicles.count=0", "agents.drones.2.target"),  # the file's line is fine; the --set broke it
+    ("traffic.step_hz=7", "traffic.step_hz"),
+])
+def test_an_error_caused_by_a_set_names_that_set(capsys, assignment, key):
+    status, _, err = cli(capsys, "run", "default", "--dry-run", "--set", assignment)
+    assert status == 2
+    assert err.startswith(f"cosim: error: --set {assignment}: {key}: "), err
+    assert "default.yaml" not in err and "paper.yaml" not in err
+
+
+def test_an_error_already_in_the_file_still_names_the_file_despite_a_set(tmp_path):
+    f = write_file(tmp_path, "bad.yaml", "extends: default\nname: bad\nduration_s: -1\n")
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(f, ["environment.weather=foggy"])
+    assert err.value.source == str(f.resolve()) and err.value.line == 3

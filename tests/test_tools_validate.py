@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import json
 import random
 
 import pytest
@@ -12,6 +13,7 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from cosim.cli import main
 from cosim.io.synthetic import TICK_NS, write_synthetic_episode
 from cosim.io.validate import validate_episode
+from tests.helpers import cli_in_process as cli
 
 
 def _only(report, check):
@@ -278,3 +280,65 @@ def test_random_damage_is_always_found_and_never_crashes(tmp_path, compression):
         bad.write_bytes(bytes(data))
         report = validate_episode(bad)
         assert not report.ok, f"{kind} damage not found"
+
+
+# --------------------------------------------------- cosim info: summary first, bytes estimated from one tick
+
+
+@pytest.fixture
+def counted_reads(monkeypatch) -> list[int]:
+    """Messages read through Episode.messages (one entry per message)."""
+    from cosim.io.reader import Episode
+
+    read: list[int] = []
+    real = Episode.messages
+
+    def counting(self, *a, **k):
+        for m in real(self, *a, **k):
+            read.append(1)
+            yield m
+
+    monkeypatch.setattr(Episode, "messages", counting)
+    return read
+
+
+def test_info_prints_summary_and_family_bytes_first_and_topics_per_agent_without_reading_the_file(
+        synthetic_episode, capsys, counted_reads):
+    from cosim.io import open_episode
+
+    with open_episode(synthetic_episode) as ep:
+        per_tick = len(ep.topics)
+        total = ep.message_count
+    status, out, _ = cli(capsys, "info", str(synthetic_episode))
+    assert status == 0
+    lines = out.splitlines()
+    family_at = next(i for i, ln in enumerate(lines) if ln.startswith("bytes by topic family"))
+    topics_at = next(i for i, ln in enumerate(lines) if ln.startswith("topics "))
+    assert family_at < topics_at and lines[topics_at] == f"topics       {per_tick} (per agent; --full lists each)"
+    per_agent = lines[topics_at + 1:]
+    assert [ln.split()[0] for ln in per_agent] == ["episode", "vehicle_0", "rsu_0", "drone_0"]
+    assert "1 camera (down) x image depth semantic instance calibration" in per_agent[3]
+    assert len(counted_reads) <= per_tick < total  # one tick read, for the compression ratios
+
+    counted_reads.clear()
+    status, out, _ = cli(capsys, "info", str(synthetic_episode), "--full")
+    assert status == 0 and len(counted_reads) == total
+    assert "/drone_0/down/image" in out and "(payloads; stored = compressed alone" in out
+
+
+def test_info_estimates_family_bytes_close_to_the_full_count(synthetic_episode):
+    from cosim.io.info import episode_info
+
+    quick = {f.family: f for f in episode_info(synthetic_episode).families}
+    exact = {f.family: f for f in episode_info(synthetic_episode, full=True).families}
+    assert quick.keys() == exact.keys()
+    for fam, f in exact.items():
+        assert quick[fam].messages == f.messages
+        assert abs(quick[fam].raw_bytes - f.raw_bytes) <= 0.05 * f.raw_bytes + 2048, (fam, quick[fam], f)
+        assert abs(quick[fam].stored_bytes - f.stored_bytes) <= 0.5 * f.stored_bytes + 2048, (fam, quick[fam], f)
+
+
+def test_info_json_writes_the_seed_as_a_number(synthetic_episode, capsys):
+    status, out, _ = cli(capsys, "info", str(synthetic_episode), "--json", "--no-bytes")
+    info = json.loads(out)
+    assert status == 0 and info["seed"] == 0 and isinstance(info["seed"], int)
