@@ -72,6 +72,17 @@ def tiny_overrides() -> list[str]:
     return ["duration_s=2", "sensors.enabled=false", "map.size_m=300", "traffic.density_veh_per_km=6"]
 
 
+@pytest.fixture
+def no_world(monkeypatch):
+    """Fail if a command gets as far as building the world (its input checks must come first)."""
+    import cosim.world
+
+    def refuse(*_a, **_k):
+        raise AssertionError("the world was built before the input was checked")
+
+    monkeypatch.setattr(cosim.world, "build_world", refuse)
+
+
 @pytest.fixture(scope="session")
 def synthetic_episodes(tmp_path_factory) -> list[Path]:
     """Two small synthetic episodes with sensors (visibility included), of 2 and 3 ticks (episode ids ``syn`` and

@@ -6,6 +6,7 @@ from __future__ import annotations
 import itertools
 import os
 from collections import Counter
+from pathlib import Path
 
 import pytest
 
@@ -18,7 +19,7 @@ from cosim.batch.sweep import SweepError, load_sweep
 from cosim.errors import InputError
 from cosim.io.manifest import deterministic_view, latest_records, read_records, sha256_file, verify
 from tests.fakes import fake_episode, niceness_episode, spawning_episode
-from tests.helpers import PAPER, REPO, SCENARIOS, SIX, run_cli, six_plan, write_file, write_sweep
+from tests.helpers import PAPER, REPO, SCENARIOS, SIX, killed_writer, run_cli, six_plan, write_file, write_sweep
 from tests.helpers import cli_in_process as cli
 from tests.helpers import run_fake_batch as run
 
@@ -362,3 +363,100 @@ def test_batch_dry_run_checks_the_map_files_of_its_episodes(tmp_path, capsys):
     (tmp_path / "town_a.net.xml").write_text("<net version='1.20'/>\n")
     status, _, err = cli(capsys, "batch", str(sweep), "--dry-run", "--calibrate-s", "0", "--out", str(tmp_path / "b"))
     assert status == 2 and err.startswith(f"cosim: error: map.file '{tmp_path / 'town_b.net.xml'}' not found"), err
+
+
+# -------------------------------------- sweeps that cannot be planned; unusable output folders; partial files
+
+
+@pytest.mark.parametrize("size, expect", [
+    (f"count: {2**63}", ":3: count: Input should be less than or equal to 100000"),
+    (f"count: {2**64 + 5}", ":3: count: Input should be less than or equal to 100000"),
+    ("hours: 1.0e+12", ":3: hours: 1.8e+14 episodes cannot be planned: at most 100000 per plan"),
+    ("hours: .inf", ":3: hours: Input should be a finite number"),
+    ("count: .nan", ":3: count:"),
+])
+def test_sweep_sizes_that_cannot_be_planned_are_rejected_with_key_and_line(tmp_path, capsys, size, expect):
+    f = write_file(tmp_path, "sweep.yaml", f"name: big\nbase: {PAPER}\n{size}\n")
+    status, _, err = cli(capsys, "batch", str(f), "--out", str(tmp_path / "out"), "--dry-run", "--calibrate-s", "0")
+    assert status == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert f"{f}{expect}" in err, err
+
+
+def test_scale_and_count_flags_that_cannot_be_planned_are_rejected(tmp_path, capsys):
+    f = write_file(tmp_path, "sweep.yaml", f"name: ok\nbase: {PAPER}\ncount: 2\n")
+    for flags, expect in [(["--scale", "inf"], "--scale: scale must be a finite number > 0"),
+                          (["--scale", "1e300"], "--count" if False else "episodes cannot be planned"),
+                          (["--count", str(2**63)], "--count: 9.22337e+18 episodes cannot be planned")]:
+        status, _, err = cli(capsys, "batch", str(f), "--out", str(tmp_path / "out"), "--dry-run", "--calibrate-s", "0",
+                          *flags)
+        assert status == 2 and "Traceback" not in err, err
+        assert expect in err, err
+
+
+@pytest.fixture
+def read_only_dir(tmp_path):
+    """A folder on a read-only file system (a read-only tmpfs): root ignores permission bits, not that.
+    Skipped where mounting is not allowed."""
+    import shutil
+    import subprocess
+
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    if not shutil.which("mount"):
+        pytest.skip("no mount(8) here")
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(folder)], capture_output=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a read-only tmpfs here: {r.stderr.decode().strip()}")
+    yield folder
+    subprocess.run(["umount", str(folder)], check=True)
+
+
+def bad_out_dirs(tmp_path: Path, read_only: Path | None) -> dict[str, Path]:
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    out = {"/proc": Path("/proc/x"), "regular file": a_file, "under a file": a_file / "sub" / "dir"}
+    if read_only is not None:
+        out |= {"read-only folder": read_only, "under a read-only folder": read_only / "sub"}
+    return out
+
+
+@pytest.mark.parametrize("dry_run", [False, True])
+def test_batch_into_an_unusable_output_folder_is_one_message_and_exit_2(tmp_path, capsys, read_only_dir, dry_run):
+    for what, out in bad_out_dirs(tmp_path, read_only_dir).items():
+        args = ["batch", "smoke", "--out", str(out), "--count", "1", *(["--dry-run", "--calibrate-s", "0"]
+                                                                       if dry_run else [])]
+        status, _, err = cli(capsys, *args)
+        assert status == 2, (what, status, err)
+        lines = err.strip().splitlines()
+        assert len(lines) == 1, (what, err)
+        assert lines[0].startswith((f"cosim: error: cannot write episodes into output folder {out}",
+                                    f"cosim: error: output folder {out} is a file")), (what, err)
+        assert "Traceback" not in err
+    assert not (read_only_dir / "sub").exists()
+
+
+def test_a_batch_removes_partial_files_left_in_its_folders(tmp_path, monkeypatch, caplog):
+    from cosim.batch import runner
+    from cosim.batch.plan import plan_file
+
+    plan = plan_file("smoke", count=2)
+    out = tmp_path / "batch"
+    leftovers = [killed_writer(out / plan.episodes[0].file), killed_writer(out / "unrelated_s9.mcap")]
+    assert all(p.exists() for p in leftovers)
+
+    class NoExecutor:
+        status_lines = 0
+
+        def busy(self):
+            return False
+
+        def has_capacity(self):
+            raise AssertionError("stop before running anything")
+
+        def shutdown(self):
+            pass
+
+    with caplog.at_level("WARNING"), pytest.raises(AssertionError, match="stop before running"):
+        runner.run_batch(plan, out, NoExecutor(), show_progress=False)
+    assert not any(p.exists() for p in leftovers)
+    assert sum("left by a run that was killed" in r.getMessage() for r in caplog.records) == 2

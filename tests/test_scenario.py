@@ -10,7 +10,7 @@ import pytest
 from cosim.errors import ScenarioError
 from cosim.scenario import load_scenario, shipped_scenarios
 from cosim.scenario.model import EscortDrone, HoverDrone, PatrolDrone, Scenario
-from tests.helpers import SCENARIOS, run_cli, write_file
+from tests.helpers import PAPER, SCENARIOS, run_cli, write_file
 from tests.helpers import cli_in_process as cli
 
 
@@ -271,3 +271,212 @@ def test_an_error_already_in_the_file_still_names_the_file_despite_a_set(tmp_pat
     with pytest.raises(ScenarioError) as err:
         load_scenario(f, ["environment.weather=foggy"])
     assert err.value.source == str(f.resolve()) and err.value.line == 3
+
+
+# ----------------------------- overrides merge field by field; no NaN; strict kinds and bounds; hostile files
+
+
+def leaves(value, path=()):
+    """(key path, value) of every scalar in plain data."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            yield from leaves(v, (*path, k))
+    elif isinstance(value, list | tuple):
+        for i, v in enumerate(value):
+            yield from leaves(v, (*path, i))
+    else:
+        yield path, value
+
+
+def changed(a: dict, b: dict) -> dict[tuple, tuple]:
+    fa, fb = dict(leaves(a)), dict(leaves(b))
+    return {k: (fa.get(k, "<absent>"), fb.get(k, "<absent>")) for k in fa.keys() | fb.keys()
+            if fa.get(k, "<absent>") != fb.get(k, "<absent>")}
+
+
+@pytest.mark.parametrize("assignment, key", [
+    ("sensors.drone.lidar.range_noise_m=0", ("sensors", "drone", "lidar", "range_noise_m")),
+    ("sensors.vehicle.lidar.mount.xyz_m=[0, 0, 2.2]", ("sensors", "vehicle", "lidar", "mount", "xyz_m", 2)),
+    ("sensors.rsu.cameras.1.fov_deg=90", ("sensors", "rsu", "cameras", 1, "fov_deg")),
+    ("sensors.drone.imu.gyro_noise_radps=0.01", ("sensors", "drone", "imu", "gyro_noise_radps")),
+])
+def test_set_on_a_sensor_field_changes_exactly_that_field(assignment, key):
+    before = load_scenario("default").resolved
+    after = load_scenario("default", [assignment]).resolved
+    assert list(changed(before, after)) == [key]
+
+
+def test_partial_sensors_block_in_a_file_and_in_an_extends_overlay_merge_field_by_field(tmp_path):
+    base = write_file(tmp_path, "base.yaml", f"""
+        extends: {PAPER}
+        name: base
+        sensors:
+          drone:
+            lidar: {{range_noise_m: 0.0}}
+    """)
+    write_file(tmp_path, "over.yaml", """
+        extends: base.yaml
+        name: over
+        sensors:
+          drone:
+            lidar: {mount: {rpy_deg: [0, 0, 90]}}
+          vehicle:
+            imu: {accel_noise_mps2: 0.5}
+    """)
+    paper = load_scenario(PAPER).resolved
+    diff = changed(paper, load_scenario(base).resolved)
+    assert set(diff) == {("name",), ("sensors", "drone", "lidar", "range_noise_m")}
+    diff = changed(paper, load_scenario(tmp_path / "over.yaml").resolved)
+    assert set(diff) == {("name",), ("sensors", "drone", "lidar", "range_noise_m"),
+                         ("sensors", "drone", "lidar", "mount", "rpy_deg", 2),
+                         ("sensors", "vehicle", "imu", "accel_noise_mps2")}
+    s = load_scenario(tmp_path / "over.yaml").scenario
+    assert [c.name for c in s.sensors.drone.cameras] == ["down"] and s.sensors.drone.imu is not None
+    assert s.sensors.drone.lidar.lower_fov_deg == -90.0 and s.sensors.drone.lidar.mount.xyz_m == (0.0, 0.0, -0.2)
+
+
+def test_nan_and_infinity_are_rejected_in_every_float_field_with_the_key_path():
+    resolved = load_scenario("default").resolved
+    floats = [(p, v) for p, v in leaves(resolved) if isinstance(v, float)]
+    assert len(floats) > 100  # every float of the full rig: geometry, noise, mounts, rates, limits
+    for n, (path, _) in enumerate(floats):
+        key = ".".join(str(k) for k in path)
+        bad = (".nan", ".inf", "-.inf")[n % 3]
+        assignment = f"{key}={bad}"
+        if isinstance(path[-1], int):  # an item of a list (a vector): give the whole list, one item bad
+            items = [bad if i == path[-1] else repr(v) for i, v in enumerate(_at(resolved, path[:-1]))]
+            assignment = f"{'.'.join(str(k) for k in path[:-1])}=[{', '.join(items)}]"
+        with pytest.raises(ScenarioError) as err:
+            load_scenario("default", [assignment])
+        assert err.value.path == key, (assignment, str(err.value))
+        assert "finite number" in err.value.detail, (assignment, str(err.value))
+
+
+def _at(data, path):
+    for k in path:
+        data = data[k]
+    return data
+
+
+def test_nan_in_a_file_is_named_with_its_line(tmp_path, capsys, no_world):
+    f = write_file(tmp_path, "nan.yaml", f"""
+        extends: {PAPER}
+        name: nan
+        sensors:
+          drone:
+            lidar:
+              mount: {{xyz_m: [0, 0, .nan]}}
+    """)
+    status, _, err = cli(capsys, "run", str(f), "--out", str(tmp_path / "out"))
+    assert status == 2 and "Traceback" not in err
+    assert err.strip() == f"cosim: error: {f}:7: sensors.drone.lidar.mount.xyz_m.2: Input should be a finite number, " \
+                          "got NaN"
+
+
+def test_a_control_character_in_a_set_value_is_one_escaped_line(tmp_path, capsys, no_world):
+    status, _, err = cli(capsys, "run", "default", "--out", str(tmp_path), "--set", "output.name=a\x00b")
+    assert status == 2 and "\x00" not in err and len(err.strip().splitlines()) == 1, err
+    assert "--set output.name=a\\x00b: output.name: value is not valid YAML: control character U+0000" in err, err
+
+
+def test_hostile_scenario_files_get_one_message_naming_the_file(tmp_path, capsys, no_world):
+    cases = {
+        "nul.yaml": (b"name: x\x00\nseed: 1\n", ":1: invalid YAML: control character U+0000"),
+        "late_nul.yaml": (f"extends: {PAPER}\nname: x\nseed: 1\x00\n".encode(), ":3: invalid YAML: control character"),
+        "binary.yaml": (bytes(range(256)) * 4, "not a text file: byte 128 is not UTF-8"),
+        "long_extends.yaml": (("name: x\nextends: " + "a" * 10_000 + "\n").encode(),
+                              ":2: extends: cannot open the base scenario"),
+        "nul_extends.yaml": (b'name: x\nextends: "a\\0b"\n', ":2: extends: cannot open the base scenario"),
+        "deep.yaml": (("name: x\ndescription: " + "[" * 5000 + "]" * 5000 + "\n").encode(),
+                      ":2: invalid YAML: brackets nested more than 100 levels deep"),
+        "deep_block.yaml": (("name: x\ndescription:\n" + "".join(" " * i + "- \n" for i in range(0, 3000, 2))).encode(),
+                            ":204: invalid YAML: indented more than 400 columns (nested too deeply)"),
+        "tagged.yaml": (b"name: x\nseed: !!int nope\n", ":2: seed: invalid value 'nope'"),
+        "date.yaml": (b"name: x\nduration_s: 2024-13-45\n", "duration_s"),
+    }
+    for name, (content, expect) in cases.items():
+        f = write_file(tmp_path, name, content)
+        status, _, err = cli(capsys, "run", str(f), "--out", str(tmp_path / "out"))
+        assert status == 2, (name, err)
+        assert "Traceback" not in err and len(err.strip().splitlines()) == 1, (name, err)
+        assert str(f) in err and expect in err, (name, err)
+        assert len(err.replace(str(f), "F")) < 400, (name, err)  # a 10 000-character value is shortened
+
+
+def test_escort_target_with_no_connected_vehicles_says_so():
+    with pytest.raises(ScenarioError) as err:
+        load_scenario("default", ["agents.vehicles.count=0"])
+    assert "the scenario has no connected vehicles (agents.vehicles.count is 0)" in str(err.value)
+    assert "vehicle_-1" not in str(err.value)
+    with pytest.raises(ScenarioError, match=r"has 1 connected vehicle \(vehicle_0\)"):
+        load_scenario("default", ["agents.vehicles.count=1"])
+
+
+@pytest.mark.parametrize("assignment, key, message", [
+    ("duration_s=true", "duration_s", "expected a number, got true"),
+    ("duration_s='20'", "duration_s", 'expected a number, got "20"'),
+    ("sensors.enabled=1", "sensors.enabled", "expected true or false, got 1"),
+    ("comm.shadow_fading=yes_please", "comm.shadow_fading", 'expected true or false, got "yes_please"'),
+    ("agents.vehicles.count=3.0", "agents.vehicles.count", "expected a whole number, got 3.0"),
+    ("seed=false", "seed", "expected a whole number, got false"),
+    ("sensors.vehicle.lidar.mount.xyz_m=[0, true, 0]", "sensors.vehicle.lidar.mount.xyz_m.1",
+     "expected a number, got true"),
+    ("traffic.mix.car=false", "traffic.mix.car", "expected a number, got false"),
+])
+def test_numbers_and_booleans_are_strict(capsys, no_world, assignment, key, message):
+    status, _, err = cli(capsys, "run", "default", "--dry-run", "--set", assignment)
+    assert status == 2
+    assert err.strip().splitlines() == [f"cosim: error: --set {assignment}: {key}: {message}"]
+
+
+def test_every_wrong_kind_in_a_file_is_listed(tmp_path, no_world):
+    f = write_file(tmp_path, "kinds.yaml", """\
+        extends: default
+        name: kinds
+        duration_s: true
+        sensors: {enabled: 0}
+        agents: {vehicles: {count: "4"}}
+        """)
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(f)
+    assert [(p.line, p.path, p.detail) for p in err.value.problems] == [
+        (3, "duration_s", "expected a number, got true"),
+        (4, "sensors.enabled", "expected true or false, got 0"),
+        (5, "agents.vehicles.count", 'expected a whole number, got "4"')]
+
+
+def test_a_plain_exponent_is_a_number_as_in_yaml_1_2(tmp_path):
+    f = write_file(tmp_path, "exp.yaml", "extends: default\nname: exp\nduration_s: 2e1\n")
+    assert load_scenario(f).scenario.duration_s == 20.0
+
+
+@pytest.mark.parametrize("assignment, key", [
+    ("agents.drones.2.offset_m=[1.2e21, 0]", "agents.drones.2.offset_m.0"),
+    ("agents.drones.0.start=[0, -5e8]", "agents.drones.0.start.1"),
+    ("agents.drones.1.waypoints=[[0, 0], [1e12, 0]]", "agents.drones.1.waypoints.1.0"),
+    ("events=[{kind: breakdown, position_m: [3e7, 0]}]", "events.0.position_m.0"),
+    ("sensors.vehicle.lidar.mount.xyz_m=[0, 0, 1e4]", "sensors.vehicle.lidar.mount.xyz_m.2"),
+    ("sensors.drone.gnss.noise_m=1e9", "sensors.drone.gnss.noise_m"),
+    ("geo_origin.alt_m=1e30", "geo_origin.alt_m"),
+    ("runtime.tick_timeout_s=1e300", "runtime.tick_timeout_s"),
+    ("agents.rsus.height_m=[6, 1e6]", "agents.rsus.height_m"),
+    ("traffic.mix.car=1e300", "traffic.mix"),
+])
+def test_physical_quantities_have_bounds(capsys, no_world, assignment, key):
+    status, _, err = cli(capsys, "run", "default", "--dry-run", "--set", assignment)
+    assert status == 2
+    assert err.startswith(f"cosim: error: --set {assignment}: {key}: "), err
+
+
+def test_a_long_bad_value_is_cut_in_the_message(tmp_path, capsys, no_world):
+    long = "x" * 10_000
+    f = write_file(tmp_path, "long.yaml",
+                   f"extends: default\nname: long\nduration_s: {long}\noutput: {{name: {long}}}\n"
+                   f"{'k' * 1000}: 1\n")  # PyYAML's longest plain key
+    status, _, err = cli(capsys, "run", str(f), "--dry-run")
+    assert status == 2 and "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert lines[0] == f"cosim: error: {f}: 3 problems:"
+    # the file's path (longer under an xdist worker's temporary folder) is not the value being cut
+    assert all(len(line.replace(str(f), "F")) < 500 for line in lines), [len(line) for line in lines]
+    assert "(10002 characters)" in err and "output.name: " in err and "(1000 characters)" in err

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import random
 
 import pytest
@@ -14,6 +15,7 @@ from cosim.cli import main
 from cosim.io.synthetic import TICK_NS, write_synthetic_episode
 from cosim.io.validate import validate_episode
 from tests.helpers import cli_in_process as cli
+from tests.helpers import write_file
 
 
 def _only(report, check):
@@ -309,6 +311,7 @@ def test_info_prints_summary_and_family_bytes_first_and_topics_per_agent_without
     with open_episode(synthetic_episode) as ep:
         per_tick = len(ep.topics)
         total = ep.message_count
+        small = 2 * ep.n_ticks  # /labels/objects and /tf of every tick: the labels and the drones' altitudes
     status, out, _ = cli(capsys, "info", str(synthetic_episode))
     assert status == 0
     lines = out.splitlines()
@@ -318,11 +321,11 @@ def test_info_prints_summary_and_family_bytes_first_and_topics_per_agent_without
     per_agent = lines[topics_at + 1:]
     assert [ln.split()[0] for ln in per_agent] == ["episode", "vehicle_0", "rsu_0", "drone_0"]
     assert "1 camera (down) x image depth semantic instance calibration" in per_agent[3]
-    assert len(counted_reads) <= per_tick < total  # one tick read, for the compression ratios
+    assert len(counted_reads) <= per_tick + small < total  # one tick read, for the compression ratios
 
     counted_reads.clear()
     status, out, _ = cli(capsys, "info", str(synthetic_episode), "--full")
-    assert status == 0 and len(counted_reads) == total
+    assert status == 0 and len(counted_reads) == total + small
     assert "/drone_0/down/image" in out and "(payloads; stored = compressed alone" in out
 
 
@@ -342,3 +345,33 @@ def test_info_json_writes_the_seed_as_a_number(synthetic_episode, capsys):
     status, out, _ = cli(capsys, "info", str(synthetic_episode), "--json", "--no-bytes")
     info = json.loads(out)
     assert status == 0 and info["seed"] == 0 and isinstance(info["seed"], int)
+
+
+# ----------------------------------------------------------- non-finite values; a file that is not an episode
+
+
+def test_validate_rejects_non_finite_transforms_and_labels(tmp_path):
+    from cosim.io.synthetic import write_synthetic_episode
+    from cosim.io.validate import validate_episode
+
+    def poison(tick, topic, msg):
+        if tick == 3 and topic == "/tf":
+            msg.transforms[0].translation.x = math.nan
+        if tick == 4 and topic == "/labels/objects":
+            payload = msg[2]
+            payload["objects"][0]["center_m"][2] = math.inf
+        return msg
+
+    good = validate_episode(write_synthetic_episode(tmp_path / "good.mcap", ticks=6, sensors=False))
+    assert good.ok, good.lines()
+    report = validate_episode(write_synthetic_episode(tmp_path / "bad.mcap", ticks=6, sensors=False, edit=poison))
+    lines = report.lines()
+    assert any("tick 3" in line and "/tf" in line and "is not finite" in line for line in lines), lines
+    assert any("tick 4" in line and "objects.0.center_m.2 is not finite (inf)" in line for line in lines), lines
+
+
+def test_info_on_a_file_that_is_not_an_episode_exits_2(tmp_path, capsys):
+    for content in (b"hello\n", bytes(range(256))):
+        f = write_file(tmp_path, "x.mcap", content)
+        status, _, err = cli(capsys, "info", str(f))
+        assert status == 2 and "Traceback" not in err and f"{f}: not a readable MCAP file" in err, err

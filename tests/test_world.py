@@ -239,3 +239,31 @@ def test_osm_import_roads_and_buildings(tmp_path: Path) -> None:
     lat, lon, _ = world.geo_origin
     assert abs(lat - 48.1) < 0.01 and abs(lon - 11.5) < 0.01
     assert b'<vehicle id="vehicle_1"' in world.routes_xml
+
+
+# -------------------------------------------------------------------------- SUMO tools die with their process
+
+
+def test_netconvert_and_other_sumo_tools_die_with_the_conductor(tmp_path):
+    """A process running a SUMO tool through the world builder is SIGKILLed: the tool goes too."""
+    import subprocess
+    import sys
+    import time
+
+    import psutil
+
+    script = ("import sys\nfrom pathlib import Path\nimport cosim.world.netgen as n\n"
+              "n.sumo_binary = lambda name: '/bin/sleep'\nprint('go', flush=True)\n"
+              "n._run_tool('netconvert', ['60'], Path('.'))\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=tmp_path)
+    assert proc.stdout.readline().strip() == "go"
+    deadline = time.monotonic() + 20
+    children: list[psutil.Process] = []
+    while not children and time.monotonic() < deadline:
+        children = psutil.Process(proc.pid).children()
+        time.sleep(0.02)
+    assert children and children[0].name() == "sleep", children
+    proc.kill()
+    proc.wait(10)
+    _, alive = psutil.wait_procs(children, timeout=5)
+    assert not alive, alive
