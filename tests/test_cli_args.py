@@ -40,9 +40,11 @@ CHECKED_LATER = {
     ("batch", "--out"): "cosim.runner.check_output_dir, before the plan runs",
     ("report", "--prefix"): "a file-name prefix, not a path",
     ("export", "--split"): "a split name (the folder it makes is named after it)",
+    ("learn transfer", "--run"): "NAME=RUN pairs: cosim.learn.transfer.parse_runs checks each folder first",
 }
-#: An untyped argument reads like a path when its help says so (or it is an --out).
-PATH_WORDS = re.compile(r"\b(file|files|folder|folders|path|directory)\b|\.mcap|\.jsonl|\.png|\.pt\b", re.I)
+#: An untyped argument reads like a path when its help starts by naming one ("output folder", "a run folder
+#: and ...", "scenario YAML file"), or it is an --out.
+PATH_WORDS = re.compile(r"(an? |the )?([\w-]+ ){0,2}(file|folder|directory|path)s?\b", re.I)
 
 
 def commands(parser: argparse.ArgumentParser,
@@ -219,7 +221,7 @@ def test_every_number_and_path_argument_has_a_check():
             elif action.type is None and not action.choices and key not in CHECKED_LATER:
                 if isinstance(action.default, int | float) and not isinstance(action.default, bool):
                     unchecked.append(f"{key}: a number without a check")
-                elif PATH_WORDS.search(action.help or "") or action.dest == "out":
+                elif PATH_WORDS.match(action.help or "") or action.dest == "out":
                     unchecked.append(f"{key}: a path without a check (or list it in CHECKED_LATER)")
     assert unchecked == []
     assert set(CHECKED_LATER) <= {key_of(w, a) for w, p in COMMANDS.items() for a in arguments(p)}

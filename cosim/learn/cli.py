@@ -219,27 +219,27 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="turn each training sample about z by a random angle of up to DEG degrees either way "
                          "(default 0: mirror only)")
     ag = tr.add_argument_group("augmentation (docs/learnability.md, \"Augmentation\"; each off by default)")
-    ag.add_argument("--scale", type=float, nargs=2, default=(1.0, 1.0), metavar=("LOW", "HIGH"),
+    ag.add_argument("--scale", type=cli_args.finite_float, nargs=2, default=(1.0, 1.0), metavar=("LOW", "HIGH"),
                     help="global scaling of each sample by a factor drawn from LOW to HIGH (e.g. 0.95 1.05)")
-    ag.add_argument("--translate-m", type=float, default=0.0, metavar="SIGMA",
+    ag.add_argument("--translate-m", type=cli_args.finite_float, default=0.0, metavar="SIGMA",
                     help="global translation: each sample moved by N(0, SIGMA) m along x, y and z (e.g. 0.2)")
-    ag.add_argument("--height-jitter-m", type=float, default=0.0, metavar="SIGMA",
+    ag.add_argument("--height-jitter-m", type=cli_args.finite_float, default=0.0, metavar="SIGMA",
                     help="sensor-height jitter: each sample moved in z by N(0, SIGMA) m (e.g. 0.2)")
-    ag.add_argument("--point-drop", type=float, default=0.0, metavar="SHARE",
+    ag.add_argument("--point-drop", type=cli_args.finite_float, default=0.0, metavar="SHARE",
                     help="drop each point with this probability (e.g. 0.1)")
-    ag.add_argument("--intensity-scale", type=float, default=1.0, metavar="F",
+    ag.add_argument("--intensity-scale", type=cli_args.finite_float, default=1.0, metavar="F",
                     help="intensities times a factor drawn log-uniformly from 1/F to F (e.g. 2; 1: off)")
-    ag.add_argument("--intensity-noise", type=float, default=0.0, metavar="SIGMA",
+    ag.add_argument("--intensity-noise", type=cli_args.finite_float, default=0.0, metavar="SIGMA",
                     help="plus N(0, SIGMA) per point, clipped to 0..1 (e.g. 0.05)")
-    ag.add_argument("--gt-sample", type=int, default=0, metavar="N",
+    ag.add_argument("--gt-sample", type=cli_args.whole_number, default=0, metavar="N",
                     help="ground-truth sampling (fusion none): paste up to N labelled objects cut from other "
                          "training samples into each sample, at free places on its ground, hiding what they "
                          "occlude (e.g. 10)")
     ag.add_argument("--gt-min-points", type=_positive, default=5, metavar="N",
                     help="objects of the ground-truth database have at least N points (default 5)")
-    tr.add_argument("--pillar-m", type=float, default=0.8, metavar="M",
+    tr.add_argument("--pillar-m", type=cli_args.finite_float, default=0.8, metavar="M",
                     help="pillar size (default 0.8; e.g. 0.4, 0.32, 0.2: finer costs CPU, docs/learnability.md)")
-    tr.add_argument("--range-m", type=float, nargs=4, metavar=("XMIN", "XMAX", "YMIN", "YMAX"),
+    tr.add_argument("--range-m", type=cli_args.finite_float, nargs=4, metavar=("XMIN", "XMAX", "YMIN", "YMAX"),
                     help="the detection range in the ego LiDAR frame (default -140.8 140.8 -40 40, cosim eval's "
                          "area; KITTI-like front view: 0 70.4 -40 40)")
     tr.add_argument("--schedule", choices=SCHEDULES, default="cosine",
