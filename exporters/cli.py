@@ -22,7 +22,8 @@ def cmd_export(args: argparse.Namespace) -> int:
         result = run_export(Path(args.source), args.format, Path(args.out),
                             ExportOptions(every=args.every, masks=args.masks, raw_lidar=args.raw_lidar,
                                           objects_at_tick=args.objects_at_tick),
-                            split=args.split, workers=args.workers, progress=progress)
+                            split=args.split, workers=args.workers, progress=progress,
+                            agents=args.agents)
     finally:
         close()
     for p in result.written:
@@ -36,10 +37,11 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``export`` to the ``cosim`` command."""
-    p = sub.add_parser("export", help="episodes into the AirV2X-Perception or OPV2V/V2XSet layout (docs/exports.md)")
+    p = sub.add_parser("export", help="episodes into the AirV2X-Perception, OPV2V/V2XSet or KITTI object layout "
+                                      "(docs/exports.md)")
     p.add_argument("source", type=cli_args.path("input_path", "episode file or batch folder"),
                    help="episode file (.mcap) or batch folder (its manifest gives the splits)")
-    p.add_argument("--format", required=True, metavar="FORMAT", help="airv2x or opv2v")
+    p.add_argument("--format", required=True, metavar="FORMAT", help="airv2x, opv2v or kitti")
     p.add_argument("--out", required=True, type=cli_args.output_folder,
                    help="export root (no date-like YYYY_MM_DD_HH_MM_SS in its path)")
     p.add_argument("--split", help="split folder for every episode (default: the manifest's split, or train)")
@@ -57,5 +59,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     motion.add_argument("--object-motion", dest="objects_at_tick", action="store_false",
                         help="keep each object's own motion over the sweep (nuScenes-style): a moving object's "
                              "points trail its box by up to speed x 50 ms")
+    p.add_argument("--agents", metavar="WHO",
+                   help="kitti: the egos, one frame per ego and tick: vehicles (default), rsus, drones, all, or "
+                        "agent ids such as vehicle_0, comma-separated")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_export)

@@ -112,6 +112,9 @@ class ExportFormat:
     name: ClassVar[str] = ""
     #: cosim split name -> the folder name this format's loaders expect.
     split_names: ClassVar[dict[str, str]] = {}
+    #: A layout that is not one folder per sequence (KITTI's one folder of frames) runs its own driver, called
+    #: with :func:`run_export`'s arguments; None: the shared one.
+    driver: ClassVar[Callable[..., ExportResult] | None] = None
 
     def __init__(self, seq: SequenceInfo, options: ExportOptions, root: Path):
         self.seq = seq
@@ -162,7 +165,7 @@ def get_format(name: str) -> type[ExportFormat]:
 
 
 def _load_builtin_formats() -> None:
-    from cosim.exporters import airv2x, opv2v  # noqa: F401 (they register themselves)
+    from cosim.exporters import airv2x, kitti, opv2v  # noqa: F401 (they register themselves)
 
 
 # ------------------------------------------------------------------------------------- sources
@@ -506,8 +509,9 @@ def _static_raster(seq: SequenceInfo) -> Any:
 
 
 def agent_frames(ep: Episode, seq: SequenceInfo, ticks: Sequence[int], raw_lidar: bool = False,
-                 objects_at_tick: bool = False) -> Iterator[TickView]:
-    """A :class:`TickView` per exported tick in ``ticks`` (reads each tick once, in order)."""
+                 objects_at_tick: bool = False, topics: Sequence[str] | None = None) -> Iterator[TickView]:
+    """A :class:`TickView` per exported tick in ``ticks`` (reads each tick once, in order), holding ``topics``
+    (default all)."""
     cams = {a: ep.cameras(a) for a in seq.agents}
     wanted = set(ticks)
     if not wanted:
@@ -569,7 +573,7 @@ def check_output_dir(out: Path) -> None:
 
 def run_export(source: Path, fmt: str, out: Path, options: ExportOptions | None = None, *,
                split: str | None = None, workers: int = 1,
-               progress: Callable[[int, int], None] | None = None) -> ExportResult:
+               progress: Callable[[int, int], None] | None = None, agents: str | None = None) -> ExportResult:
     """Export SOURCE (an episode or a batch folder) in format ``fmt`` under ``out``.
 
     Each episode is written in ``ceil(ticks / workers)``-tick chunks by ``workers`` processes into
@@ -581,6 +585,11 @@ def run_export(source: Path, fmt: str, out: Path, options: ExportOptions | None 
     if options.raw_lidar and options.objects_at_tick:
         raise InputError("--objects-at-tick moves points of a compensated sweep; it cannot go with --raw-lidar")
     options = options.resolved()
+    if cls.driver is not None:
+        return cls.driver(Path(source), Path(out), options, split=split, workers=workers,
+                          progress=progress, agents=agents)
+    if agents is not None:
+        raise InputError(f"--agents chooses the egos of --format kitti; {fmt} exports every agent")
     if workers < 1:
         raise InputError(f"--workers must be >= 1, got {workers}")
     out = Path(out)

@@ -111,6 +111,46 @@ def smoke_batch(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.fixture(scope="session")
+def export_episode(tmp_path_factory) -> Path:
+    """A short full-rig episode (5 vehicles, 5 RSUs, 5 drones) at quarter image size, LiDAR noise off, the
+    vehicles' and RSUs' LiDARs off their agent's vertical axis (so composing poses as transforms instead of
+    component by component would misplace them). The exports' tests (tests/test_export*.py) read it."""
+    import yaml
+
+    from cosim.scenario import load_scenario
+
+    d = tmp_path_factory.mktemp("export_episode")
+    sc = load_scenario("default", ["duration_s=1", "sensors.image_scale=0.25", "map.size_m=300",
+                               "output.image_format=jpeg"]).scenario  # exports from a JPEG episode
+    doc = sc.model_dump(mode="json")
+    for kind in ("vehicle", "rsu", "drone"):
+        doc["sensors"][kind]["lidar"]["range_noise_m"] = 0.0
+        # A sweep's points smear over its period when agents move (motion distortion); these geometric checks
+        # compare points with boxes at the tick time, so they use instantaneous sweeps.
+        doc["sensors"][kind]["lidar"]["motion_distortion"] = False
+    doc["sensors"]["vehicle"]["lidar"]["mount"]["xyz_m"] = [1.0, 0.4, 1.9]
+    doc["sensors"]["rsu"]["lidar"]["mount"]["xyz_m"] = [0.6, -0.5, 0.3]
+    (d / "scenario.yaml").write_text(yaml.safe_dump(doc))
+    r = run_cli("run", str(d / "scenario.yaml"), "--out", str(d), "-q")
+    assert r.returncode == 0, r.stderr
+    return next(d.glob("*.mcap"))
+
+
+@pytest.fixture(scope="session")
+def smeared_episode(tmp_path_factory) -> Path:
+    """An episode with the default LiDARs (motion distortion on): two connected vehicles among parked cars,
+    an RSU and an escort drone just started; small camera images."""
+    d = tmp_path_factory.mktemp("smeared_episode")
+    r = run_cli("run", "town_urban_day_clear", "--out", str(d), "-q", "--duration", "1",
+                "--set", "sensors.image_scale=0.05", "--set", "map.size_m=300", "--set", "agents.vehicles.count=2",
+                "--set", "agents.rsus.count=1", "--set", "parked.density_veh_per_km=60",
+                "--set", "pedestrians.density_per_km=0",
+                "--set", 'agents.drones=[{strategy: escort, target: vehicle_0, altitude_m: 40, offset_m: [-8, 0]}]')
+    assert r.returncode == 0, r.stderr
+    return next(d.glob("*.mcap"))
+
+
 # ------------------------------------------------------------------------------ running on xdist workers
 
 

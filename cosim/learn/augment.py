@@ -206,7 +206,7 @@ def paste_objects(db: GtDatabase, points: np.ndarray, boxes: np.ndarray, labels:
                  np.array([[0.0, 0.0, 0.0, EGO_FOOTPRINT_M[0], EGO_FOOTPRINT_M[1], 1.0, 0.0]])]
     keep = np.ones(len(points), bool)
     pasted_boxes, pasted_labels, pasted_points = [], [], []
-    z = points[:, 2].astype(np.float64)
+    cells = _Cells(points[:, :2])
     for c in rng.integers(len(db), size=4 * count):
         if len(pasted_boxes) >= count:
             break
@@ -215,20 +215,22 @@ def paste_objects(db: GtDatabase, points: np.ndarray, boxes: np.ndarray, labels:
         box = db.boxes[c].copy()
         if bev_overlap(box[None], np.concatenate(obstacles), 0.1).any():
             continue
+        idx = cells.near(box[0], box[1], math.hypot(box[3], box[4]) / 2 + 1.0)  # every point within 1 m of it
+        sub = points[idx]
+        z = sub[:, 2].astype(np.float64)
         bottom = box[2] - box[5] / 2
-        near = _in_footprint(points, box, 1.0)
-        low = near & (z < bottom + 0.5) & (z > bottom - 1.0)
+        low = _in_footprint(sub, box, 1.0) & (z < bottom + 0.5) & (z > bottom - 1.0)
         if low.sum() < GROUND_MIN_POINTS:
             continue
         ground = float(np.median(z[low]))
-        standing = (_in_footprint(points, box, 0.2) & (z > ground + STANDING_M) & (z < ground + box[5] + 0.3))
+        standing = (_in_footprint(sub, box, 0.2) & (z > ground + STANDING_M) & (z < ground + box[5] + 0.3))
         if standing.any():
             continue
         dz = ground - bottom
         box[2] += dz
         obj = db.points[c].copy()
         obj[:, 2] += np.float32(dz)
-        keep &= ~points_in_boxes(points, box[None], 0.05)[:, 0]
+        keep[idx[points_in_boxes(sub, box[None], 0.05)[:, 0]]] = False
         obstacles.append(box[None])
         pasted_boxes.append(box)
         pasted_labels.append(db.labels[c])
@@ -241,6 +243,27 @@ def paste_objects(db: GtDatabase, points: np.ndarray, boxes: np.ndarray, labels:
     return (np.concatenate([points[keep], obj_all.astype(points.dtype)]),
             np.concatenate([np.asarray(boxes, np.float64).reshape(-1, 7), np.array(pasted_boxes)]),
             np.concatenate([labels, np.array(pasted_labels, labels.dtype)]))
+
+
+class _Cells:
+    """Points (N, 2+) hashed into square cells of ``size_m`` of x, y, for the points near a place."""
+
+    def __init__(self, xy: np.ndarray, size_m: float = 4.0):
+        self.size_m = size_m
+        c = np.floor(xy[:, :2].astype(np.float64) / size_m).astype(np.int64) + (1 << 20)
+        key = (c[:, 0] << 21) + c[:, 1]
+        self.order = np.argsort(key, kind="stable")
+        self.keys = key[self.order]
+
+    def near(self, x: float, y: float, radius_m: float) -> np.ndarray:
+        """(K,) indices of the points in the cells that the square of half side ``radius_m`` around (x, y)
+        touches (every point within ``radius_m``, and some more), ascending."""
+        lo = [math.floor((v - radius_m) / self.size_m) + (1 << 20) for v in (x, y)]
+        hi = [math.floor((v + radius_m) / self.size_m) + (1 << 20) for v in (x, y)]
+        parts = [self.order[np.searchsorted(self.keys, (cx << 21) + lo[1]):
+                            np.searchsorted(self.keys, (cx << 21) + hi[1], side="right")]
+                 for cx in range(lo[0], hi[0] + 1)]
+        return np.sort(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
 
 
 def _spherical(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
