@@ -109,6 +109,13 @@ def cmd_run(args: argparse.Namespace) -> int:
         f"{s.agents.rsus.count} RSUs, {len(s.agents.drones)} drones\n"
         f"wall     {result.wall_time_s:.1f} s, {_wall_per_sim_s(result.wall_time_s, result.sim_time_s)}"
     )
+    from cosim.io import open_episode
+    from cosim.io.info import altitude_notes, labels_and_altitudes
+
+    with open_episode(result.path) as ep:
+        _, drones, separation_m = labels_and_altitudes(ep)
+    for n, note in enumerate(altitude_notes(drones, separation_m)):
+        print(f"{'altitude' if n == 0 else '':<9}{note}")
     return EXIT_OK
 
 

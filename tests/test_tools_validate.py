@@ -375,3 +375,65 @@ def test_info_on_a_file_that_is_not_an_episode_exits_2(tmp_path, capsys):
         f = write_file(tmp_path, "x.mcap", content)
         status, _, err = cli(capsys, "info", str(f))
         assert status == 2 and "Traceback" not in err and f"{f}: not a readable MCAP file" in err, err
+
+
+def _raised_drone(tick, topic, msg, by_m: float = 45.0):
+    """A synthetic episode's edit: drone_0 (asked altitude_m 60) flies ``by_m`` higher."""
+    if topic == "/tf":
+        for t in msg.transforms:
+            if t.child_frame_id == "drone_0/base_link":
+                t.translation.z += by_m
+    return msg
+
+
+def test_info_counts_labels_per_class_and_says_when_a_drone_flies_far_from_its_altitude(tmp_path, capsys):
+    """`cosim info`: the objects of /labels/objects per class (distinct tracks, mean per tick), and a drone flying
+    farther than ALTITUDE_NOTE_M from its scenario's altitude_m named with both heights (nothing when it does
+    not)."""
+    from cosim.io import open_episode
+
+    path = write_synthetic_episode(tmp_path / "high.mcap", ticks=4, sensors=False, edit=_raised_drone)
+    tracks, per_tick = {}, {}
+    with open_episode(path) as ep:
+        for tick in ep.ticks(topics=["/labels/objects"]):
+            for cls, tid in zip(tick.labels.classes, tick.labels.track_ids, strict=True):
+                tracks.setdefault(cls, set()).add(int(tid))
+                per_tick[cls] = per_tick.get(cls, 0) + 1 / len(ep)
+    status, out, _ = cli(capsys, "info", str(path), "--no-bytes")
+    assert status == 0
+    lines = out.splitlines()
+    at = next(i for i, ln in enumerate(lines) if ln.startswith("labels "))
+    n_tracks = sum(map(len, tracks.values()))
+    assert lines[at] == f"labels       {n_tracks} tracks in {len(tracks)} classes (/labels/objects)"
+    rows = {ln.split()[0]: (int(ln.split()[1]), float(ln.split()[2])) for ln in lines[at + 2:at + 2 + len(tracks)]}
+    assert rows == {c: (len(t), round(per_tick[c], 1)) for c, t in tracks.items()} and len(rows) >= 2
+    assert "altitude     drone_0 (hover) flies at 105 m, 45 m above its altitude_m 60" in lines
+    assert any("agents.drone_separation_m" in ln for ln in lines)
+    info = json.loads(cli(capsys, "info", str(path), "--json", "--no-bytes")[1])
+    assert info["drones"] == [{"agent": "drone_0", "strategy": "hover", "asked_m": 60.0, "flown_m": 105.0,
+                               "far": True}]
+    assert info["objects"]["car"]["tracks"] == len(tracks["car"])
+
+    level = write_synthetic_episode(tmp_path / "level.mcap", ticks=4, sensors=False)
+    status, out, _ = cli(capsys, "info", str(level), "--no-bytes")
+    assert status == 0 and "altitude" not in out and "labels " in out
+
+
+def test_the_run_summary_says_when_a_drone_flies_far_from_its_altitude(tmp_path, capsys, monkeypatch):
+    """`cosim run`'s summary ends with the same altitude lines as `cosim info`, read from the episode it wrote
+    (here the engines are replaced by a written synthetic episode whose drone flies 45 m too high)."""
+    import cosim.runner
+    from cosim.runner import EpisodeResult
+
+    path = write_synthetic_episode(tmp_path / "high.mcap", ticks=3, sensors=False, edit=_raised_drone)
+
+    def fake_run(loaded, out_dir, **_kwargs):
+        return EpisodeResult(path=path, ticks=3, sim_time_s=0.6, actors=3, messages=1, size_bytes=path.stat().st_size,
+                             wall_time_s=1.0)
+
+    monkeypatch.setattr(cosim.runner, "run_episode", fake_run)
+    status, out, err = cli(capsys, "run", "default", "--no-sensors", "--out", str(tmp_path / "o"), "-q")
+    assert status == 0, err
+    lines = out.splitlines()
+    at = lines.index("altitude drone_0 (hover) flies at 105 m, 45 m above its altitude_m 60")
+    assert lines[at - 1].startswith("wall ") and "agents.drone_separation_m" in lines[at + 1]

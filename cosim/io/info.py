@@ -1,10 +1,11 @@
-"""``cosim info``: what an episode holds, from its metadata, summary and indexes (no message is read unless
-asked: ``full`` counts every family's bytes exactly and lists every topic)."""
+"""``cosim info``: what an episode holds, from its metadata, summary and indexes (``full`` counts every
+family's bytes exactly and lists every topic), with the labels per class (``/labels/objects``) and the
+drones' flown altitudes against their scenario's ``altitude_m`` (``/tf``), the two small topics it reads."""
 
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,37 @@ FAMILIES: dict[str, str] = {
     "/<agent>/bev": "bev", "/<agent>/visibility": "visibility",
 }
 BLOCK_BYTES = 4 * 1024 * 1024  # [bytes] the writer's chunk size: families are compressed in blocks of it
+#: [m] a drone whose median flight z is farther than this from its scenario ``altitude_m`` is pointed out
+ALTITUDE_NOTE_M = 10.0
+
+
+@dataclass(frozen=True)
+class ClassCount:
+    """Labelled objects of one class in ``/labels/objects``: distinct track ids, and objects per tick (mean)."""
+
+    tracks: int
+    per_tick: float
+
+
+@dataclass(frozen=True)
+class DroneAltitude:
+    """A drone's asked altitude (its scenario's ``altitude_m`` above the ground) against the z it flew (its
+    ``base_link`` in the map frame, median over the ticks) [m]."""
+
+    agent: str
+    strategy: str
+    asked_m: float
+    flown_m: float
+
+    @property
+    def far(self) -> bool:
+        return abs(self.flown_m - self.asked_m) > ALTITUDE_NOTE_M
+
+    def note(self) -> str:
+        """``drone_4 (escort) flies at 106 m, 61 m above its altitude_m 45``."""
+        off = self.flown_m - self.asked_m
+        return (f"{self.agent} ({self.strategy}) flies at {self.flown_m:.0f} m, {abs(off):.0f} m "
+                f"{'above' if off > 0 else 'below'} its altitude_m {self.asked_m:g}")
 
 
 @dataclass(frozen=True)
@@ -68,12 +100,17 @@ class EpisodeInfo:
     geo_origin: list[float]
     families: list[FamilyBytes]
     families_exact: bool = False  # families counted from every message (else estimated from the index)
+    objects: dict[str, ClassCount] = field(default_factory=dict)  # class -> counts, most tracks first
+    drones: list[DroneAltitude] = field(default_factory=list)
+    separation_m: float = 0.0  # the scenario's agents.drone_separation_m
 
     def as_dict(self) -> dict[str, Any]:
         d = dict(self.__dict__)
         d["path"] = str(self.path)
         d["topics"] = [t.__dict__ for t in self.topics]
         d["families"] = [f.__dict__ for f in self.families]
+        d["objects"] = {k: asdict(v) for k, v in self.objects.items()}
+        d["drones"] = [{**asdict(a), "far": a.far} for a in self.drones]
         return d
 
 
@@ -163,6 +200,48 @@ def family_bytes_from_index(ep: Episode) -> list[FamilyBytes]:
     return sorted(out, key=lambda f: (-f.stored_bytes, f.family))
 
 
+def labels_and_altitudes(ep: Episode) -> tuple[dict[str, ClassCount], list[DroneAltitude], float]:
+    """Objects per class (``/labels/objects``), each drone's altitude (``/tf`` against the ``scenario.yaml``
+    attachment) and the scenario's ``agents.drone_separation_m``; reads those two topics once."""
+    import numpy as np
+    import yaml
+
+    agents = (yaml.safe_load(ep.attachment("scenario.yaml")) if "scenario.yaml" in ep.attachments else {}) or {}
+    agents = agents.get("agents") or {}
+    specs = {f"drone_{i}": d for i, d in enumerate(agents.get("drones") or [])}
+    drones = [a for a in ep.agents if a in specs and "altitude_m" in specs[a]]
+    tracks: dict[str, set[int]] = {}
+    objects: dict[str, int] = {}
+    z: dict[str, list[float]] = {a: [] for a in drones}
+    ticks = 0
+    topics = [t for t in ("/labels/objects", "/tf") if t in ep.topics]
+    for tick in ep.ticks(topics=topics) if topics else ():
+        if "/labels/objects" in tick:
+            ticks += 1
+            labels = tick.labels
+            for cls, track in zip(labels.classes, labels.track_ids, strict=True):
+                tracks.setdefault(cls, set()).add(int(track))
+                objects[cls] = objects.get(cls, 0) + 1
+        if drones and "/tf" in tick:
+            tree = tick.transforms
+            for a in drones:
+                if f"{a}/base_link" in tree.frames:
+                    z[a].append(float(tree.to_root(f"{a}/base_link")[2, 3]))
+    counts = {c: ClassCount(len(t), objects[c] / ticks) for c, t in sorted(tracks.items(), key=lambda kv: -len(kv[1]))}
+    flown = [DroneAltitude(a, str(specs[a].get("strategy", "?")), float(specs[a]["altitude_m"]),
+                           float(np.median(z[a]))) for a in drones if z[a]]
+    return counts, flown, float(agents.get("drone_separation_m") or 0.0)
+
+
+def altitude_notes(drones: list[DroneAltitude], separation_m: float) -> list[str]:
+    """One line per drone flying more than :data:`ALTITUDE_NOTE_M` from its ``altitude_m``, and why it may."""
+    far = [d.note() for d in drones if d.far]
+    if not far:
+        return []
+    return [*far, f"(layers keep drones whose ways can meet agents.drone_separation_m = {separation_m:g} m apart;",
+            " drones also climb to clear the buildings below them by clearance_m)"]
+
+
 def _seed(value: object) -> int | None:
     try:
         return int(str(value))
@@ -182,6 +261,7 @@ def episode_info(path: str | Path, *, bytes_per_family: bool = True, full: bool 
             TopicLine(t.topic, t.schema_name, t.message_count, t.message_count / duration if duration else 0.0)
             for t in ep.topics.values()
         ]
+        objects, drones, separation_m = labels_and_altitudes(ep)
         return EpisodeInfo(
             path=path,
             size_bytes=path.stat().st_size,
@@ -204,6 +284,9 @@ def episode_info(path: str | Path, *, bytes_per_family: bool = True, full: bool 
             geo_origin=list(m.get("geo_origin") or []),
             families=(family_bytes(ep) if full else family_bytes_from_index(ep)) if bytes_per_family else [],
             families_exact=bytes_per_family and full,
+            objects=objects,
+            drones=drones,
+            separation_m=separation_m,
         )
 
 
@@ -237,6 +320,13 @@ def format_info(info: EpisodeInfo, *, all_topics: bool = False) -> str:
         f"geo origin   {', '.join(f'{v:g}' for v in info.geo_origin)}",
         f"attachments  {', '.join(info.attachments) or 'none'}",
     ]
+    if info.objects:
+        lines.append(f"labels       {sum(n.tracks for n in info.objects.values())} tracks in "
+                     f"{len(info.objects)} classes (/labels/objects)")
+        lines.append(f"  {'class':<18}  {'tracks':>8}  {'per tick':>8}")
+        lines.extend(f"  {c:<18}  {n.tracks:>8}  {n.per_tick:>8.1f}" for c, n in info.objects.items())
+    for n, note in enumerate(altitude_notes(info.drones, info.separation_m)):
+        lines.append(f"{'altitude' if n == 0 else '':<13}{note}")
     if info.families:
         total = sum(f.stored_bytes for f in info.families) or 1
         how = ("payloads; stored = compressed alone as the file's chunks are" if info.families_exact else
