@@ -19,7 +19,18 @@ from cosim.batch.sweep import SweepError, load_sweep
 from cosim.errors import InputError
 from cosim.io.manifest import deterministic_view, latest_records, read_records, sha256_file, verify
 from tests.fakes import fake_episode, niceness_episode, spawning_episode
-from tests.helpers import PAPER, REPO, SCENARIOS, SIX, killed_writer, run_cli, six_plan, write_file, write_sweep
+from tests.helpers import (
+    PAPER,
+    REPO,
+    SCENARIOS,
+    SIX,
+    batch_folder,
+    killed_writer,
+    run_cli,
+    six_plan,
+    write_file,
+    write_sweep,
+)
 from tests.helpers import cli_in_process as cli
 from tests.helpers import run_fake_batch as run
 
@@ -460,3 +471,36 @@ def test_a_batch_removes_partial_files_left_in_its_folders(tmp_path, monkeypatch
         runner.run_batch(plan, out, NoExecutor(), show_progress=False)
     assert not any(p.exists() for p in leftovers)
     assert sum("left by a run that was killed" in r.getMessage() for r in caplog.records) == 2
+
+
+# ---------------------------------------------------------------- cosim report: sizes per split and condition
+
+
+def test_report_gives_bytes_frames_and_visible_objects_per_split_and_condition(synthetic_episodes, tmp_path):
+    from cosim.batch.report import build_report
+    from cosim.io.reader import open_episode
+
+    root = batch_folder(tmp_path / "batch", synthetic_episodes, ["train", "val"])
+    report = build_report(root, md_path=tmp_path / "report.md", img_dir=tmp_path / "img")
+    rows = report.stats["size_per_split_condition"]
+    expected = {}
+    for ep, split in zip(synthetic_episodes, ["train", "val"], strict=True):
+        with open_episode(ep) as e:
+            md = e.metadata
+            visible = 0
+            for tick in e.ticks():
+                seen: set[int] = set()
+                for agent in e.agents:
+                    if f"/{agent}/visibility" in tick:
+                        seen.update(int(o["track_id"]) for o in tick[f"/{agent}/visibility"]["objects"])
+                visible += len(seen)
+            cond = f"{md['weather']}/{md['lighting']}/{md['environment']}"
+            expected[f"{split} {cond}"] = {"split": split, "condition": cond, "episodes": 1,
+                                           "bytes": ep.stat().st_size, "frames": len(e), "visible": visible,
+                                           "visible_per_frame": visible / len(e)}
+    assert rows == expected and all(r["visible"] > 0 for r in rows.values())
+    text = report.md_path.read_text()
+    assert "| split | condition (weather/lighting/environment) | episodes | bytes on disk | frames |" in text
+    r = expected[next(iter(expected))]
+    assert (f"| {r['split']} | {r['condition']} | 1 | {r['bytes']:,} | {r['frames']} | "
+            f"{r['visible_per_frame']:.1f} |") in text

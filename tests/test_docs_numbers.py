@@ -46,3 +46,17 @@ def test_an_unknown_table_name_is_refused_with_exit_status_2(capsys):
     err = capsys.readouterr().err
     assert "no_such_table" in err and "eval_coverage" in err
     assert DOCS.is_dir()
+
+
+# ------------------------------------------------------------------------------------------- pedestrian sizes
+
+
+def test_docs_pedestrian_sizes_are_the_labelled_boxes():
+    """docs/events.md's pedestrian sizes are what ``people.posed_box`` labels (issue 37: it said every box was
+    0.5 x 0.6 x 1.75 m while statures vary from child to tall adult)."""
+    from benchmarks.docs_numbers import DOCS, blocks, pedestrian_boxes
+
+    text = (DOCS / "events.md").read_text()
+    [(start, end)] = [(s, e) for name, s, e in blocks(text) if name == "pedestrian_boxes"]
+    assert text[start:end] == pedestrian_boxes()
+    assert "0.5 x 0.6 x 1.75" not in text

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import logging
 import math
 
 import numpy as np
@@ -13,6 +15,8 @@ from cosim.exporters.export_io import pcd_ascii
 
 from cosim.errors import InputError
 from cosim.geometry import quat_from_rpy, rotation_matrix
+from tests.helpers import batch_folder
+from tests.helpers import cli_in_process as cli
 
 F = np.diag([1.0, -1.0, 1.0])
 
@@ -133,3 +137,28 @@ def test_sequence_names_look_like_date_times_and_follow_the_content():
     for n in (a, b):
         assert len(n) == 19 and [len(x) for x in n.split("_")] == [4, 2, 2, 2, 2, 2]
     assert a != b and sequence_name("0" * 64) == a
+
+
+# ------------------------------------------------------------------------------ a batch folder without splits
+
+
+def test_export_of_a_sweep_without_splits_says_its_folder_is_not_read_and_names_the_sweep(synthetic_episodes, tmp_path,
+                                                                                          caplog, capsys):
+    from cosim.exporters.export import run_export
+
+    root = batch_folder(tmp_path / "batch", synthetic_episodes[:1], ["all"], sweep="night_sweep")
+    with caplog.at_level(logging.WARNING, logger="cosim.exporters.export"):
+        result = run_export(root, "airv2x", tmp_path / "x")
+    (seq,) = result.written
+    assert seq.parent.name == "all"
+    assert any("neither loader reads" in m and "--split" in m for m in caplog.messages), caplog.messages
+    cond = json.loads((seq / "conditions.json").read_text())
+    assert cond["scenario"] == cond["sweep"] == "night_sweep" and cond["episode"] == "night_sweep-0000"
+    assert cond["base_scenario"] == "synthetic"
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="cosim.exporters.export"):
+        status, out, err = cli(capsys, "export", str(root), "--format", "airv2x", "--out", str(tmp_path / "y"),
+                               "--split", "train")
+    assert status == 0 and (tmp_path / "y" / "train").is_dir() and "1 sequence(s) written" in out, err
+    assert not any("neither loader" in m for m in caplog.messages)
+    assert "export airv2x: agent-frame 6 of 6 (100 %), " in err, err  # stderr not a terminal: a plain line

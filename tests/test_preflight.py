@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import yaml
 
 from cosim.cli import main
 from cosim.scenario import load_scenario
@@ -132,3 +133,19 @@ def test_the_next_run_removes_what_a_killed_run_left_and_says_so(tmp_path, monke
     warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert any(str(stale) in w and "left by a run that was killed" in w for w in warned), warned
     assert any(str(legacy) in w for w in warned), warned
+
+
+# -------------------------------------------------------------------------------- the dry run's output folder
+
+
+def test_dry_run_prints_the_output_dir_that_will_be_used(tmp_path, capsys):
+    out = tmp_path / "elsewhere"
+    status, text, err = cli(capsys, "run", "default", "--dry-run", "--out", str(out))
+    assert status == 0, err
+    header, body = text.split("\n", 1)
+    assert header.startswith(f"# {out}/")
+    assert yaml.safe_load(body)["output"]["dir"] == str(out)
+    status, text, err = cli(capsys, "run", "default", "--dry-run")
+    assert status == 0 and yaml.safe_load(text.split("\n", 1)[1])["output"]["dir"] == "out"
+    status, text, err = cli(capsys, "run", "default", "--dry-run", "--progress-every", "-1")
+    assert status == 2 and err == "cosim: error: --progress-every must be >= 0 seconds, got -1\n"
