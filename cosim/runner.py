@@ -158,8 +158,8 @@ def run_episode(
     started = time.perf_counter()
     limit_malloc_arenas()  # before the render and writer threads start
     final = episode_path(loaded, out_dir)
+    check_scenario_inputs(loaded)  # before the output folder is made: a bad input leaves nothing behind
     check_output_dir(final.parent)
-    check_scenario_inputs(loaded)
     remove_stale_partials(final.parent)
     with tempfile.TemporaryDirectory(prefix="cosim-world-") as workdir:
         world = build_world(loaded, Path(workdir))

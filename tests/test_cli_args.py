@@ -25,7 +25,7 @@ import pytest
 from cosim import cli_args
 from cosim.cli import build_parser, main
 from cosim.cli_args import Check
-from tests.helpers import run_cli
+from tests.helpers import REPO, run_cli
 
 #: What the walk drives a number with; a check must refuse the non-finite ones and the text.
 NUMBERS = ("nan", "NaN", "inf", "-inf", "1e999", "-1", "0", "0.5", "x", "")
@@ -336,3 +336,23 @@ def test_export_and_train_check_their_folder_when_called_as_functions(episode, t
         with pytest.raises(InputError, match=f"^--out: .*{a_file.name}.* is a file, not a folder$"):
             run_export(episode, "opv2v", out)
     assert os.listdir(tmp_path) == ["a_file"]
+
+
+# ------------------------------------------------------- checks beyond a type: before anything is made
+
+def test_a_missing_map_file_leaves_no_output_folder(capsys, tmp_path):
+    """cosim run and cosim batch check the scenario's inputs before they make the output folder."""
+    sweep = tmp_path / "sweep.yaml"
+    sweep.write_text(f"name: b\nbase: {REPO / 'scenarios' / 'base' / 'paper.yaml'}\ncount: 1\n"
+                     "set:\n  map.kind: net\n  map.file: nowhere.net.xml\n")
+    for argv in (["run", "default", "--set", "map.kind=net", "--set", "map.file=nowhere.net.xml", "--out",
+                  str(tmp_path / "out")], ["batch", str(sweep), "--out", str(tmp_path / "out")]):
+        status, err = drive(capsys, argv)
+        assert one_line_naming(status, err, "nowhere.net.xml") is None, err
+        assert "not found" in err and not (tmp_path / "out").exists(), err
+
+
+def test_comm_with_a_tick_out_of_range_leaves_no_plot_folder(capsys, episode, tmp_path):
+    status, err = drive(capsys, ["comm", str(episode), "--out", str(tmp_path / "plots"), "--tick", "99"])
+    assert one_line_naming(status, err, "--tick 99") is None, err
+    assert not (tmp_path / "plots").exists()

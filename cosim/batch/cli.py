@@ -111,8 +111,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     plan = _plan(args)
+    check_plan_inputs(plan.episodes)  # before the output folder is made
     check_output_dir(out, create=not args.dry_run)  # one message (exit 2) for a folder that cannot take episodes
-    check_plan_inputs(plan.episodes)
     if args.backend == "ray":
         check_ray_installed()
     if args.dry_run:

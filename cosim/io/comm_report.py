@@ -192,6 +192,9 @@ def comm_report(path: Path, out_dir: Path | None, map_tick: int | None = None,
         written: list[Path] = []
         if out_dir is not None and ticks:
             out_dir.mkdir(parents=True, exist_ok=True)
+            k = len(ticks) // 2 if map_tick is None else map_tick
+            if not 0 <= k < len(ticks):  # before the folder is made
+                raise InputError(f"--tick {k} out of range: the episode has ticks 0..{len(ticks) - 1}")
             threshold = None
             try:
                 import yaml
@@ -201,8 +204,5 @@ def comm_report(path: Path, out_dir: Path | None, map_tick: int | None = None,
             except (KeyError, ValueError, TypeError) as exc:
                 log.warning("no SNR threshold drawn: %s", exc)
             written.append(plot_quality(ticks, ep.tick_ns / 1e9, out_dir / "comm_quality.png", threshold, dpi))
-            k = len(ticks) // 2 if map_tick is None else map_tick
-            if not 0 <= k < len(ticks):
-                raise InputError(f"--tick {k} out of range: the episode has ticks 0..{len(ticks) - 1}")
             written.append(plot_map(ep, ticks[k], out_dir / f"comm_map_t{ticks[k].tick}.png", dpi))
         return rows, len(ticks), written
