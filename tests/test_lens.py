@@ -361,3 +361,48 @@ def test_a_lens_the_renderer_cannot_invert_is_a_scenario_error_naming_the_camera
     assert "'front'" in str(err.value) and "one to one" in str(err.value)
     f.write_text(f.read_text().replace("110", "90").replace("-0.1, 0, 0, 0, 0", ", ".join(map(str, LENS))))
     assert load_scenario(f).scenario.sensors.vehicle.cameras[0].distortion == LENS
+
+
+# ---------------------------------------------------------------------- the calibration of a distorted camera
+
+
+def test_distorted_calibration_projects_a_point_where_the_renderer_put_it():
+    """A small block seen near the corner of a barrel-distorted camera: the centroid of its instance
+    pixels is where the calibration (K, D) projects its centre, within 0.5 px; D is in the calibration."""
+    from cosim.io.sensor_messages import calibration_message
+    from cosim.scenario.model import Mount
+    from cosim.snapshot import AgentState, WorldSnapshot
+    from cosim.world.types import Prism, StaticLayout, World
+
+    centre = np.array([12.0, 6.5, 4.5])
+    half = 0.25
+    foot = tuple((float(centre[0] + dx), float(centre[1] + dy)) for dx, dy in
+                 ((-half, -half), (half, -half), (half, half), (-half, half)))
+    prisms = (Prism("terrain", ((-300, -300), (300, -300), (300, 300), (-300, 300)), -1.0, 0.0),
+              Prism("pole", foot, centre[2] - half, centre[2] + half, 1_000_005))
+    world = World("synthetic", b"", b"", (-300, -300, 300, 300), (), (), StaticLayout(prisms), (37.0, -122.0, 10.0))
+    D = (-0.25, 0.06, 0.001, -0.002, 0.0)
+    frames = {}
+    for name, dist in (("pinhole", None), ("lens", D)):
+        cam = CameraSpec(name="front", width=480, height=360, fov_deg=90.0, distortion=dist,
+                         mount=Mount(xyz_m=(0.0, 0.0, 1.6)))
+        sc = synthetic_scenario(sensors=SensorsSpec(vehicle=RigSpec(lidar=None, cameras=[cam], gnss=None, imu=None)))
+        ego = AgentState("vehicle_0", "vehicle", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
+        with SensorSuite(sc, world, noise=False, encode_images=False) as suite:
+            frames[name] = suite.render(WorldSnapshot(0, 0, (), (ego,)), np.random.default_rng(0)).agents[
+                "vehicle_0"].cameras["front"]
+    from cosim.sensors.camera import project_points
+
+    f = frames["lens"]
+    calib = calibration_message("vehicle_0/front/optical", f, 0)
+    assert calib.distortion_model == "plumb_bob" and tuple(calib.D) == D
+    K = np.array(calib.K).reshape(3, 3)
+    got = {}
+    for name, fr in frames.items():
+        v, u = np.nonzero(fr.instance == 1_000_005)
+        assert len(u) > 50
+        got[name] = np.array([u.mean() + 0.5, v.mean() + 0.5])
+    uv, front = project_points(centre[None], f.pose, K, tuple(calib.D))
+    assert front[0]
+    assert np.linalg.norm(got["lens"] - uv[0]) <= 0.5, (got, uv)
+    assert np.linalg.norm(got["lens"] - got["pinhole"]) > 10  # the lens did move it
