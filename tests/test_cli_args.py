@@ -89,6 +89,8 @@ def place(tmp_path: Path) -> dict[str, str]:
     if os.geteuid() != 0:  # as root chmod 000 stops no read: the folder-for-a-file cases stand in for it
         (tmp_path / "locked").mkdir()
         (tmp_path / "locked").chmod(0)
+        (tmp_path / "locked_file").write_text("x")
+        (tmp_path / "locked_file").chmod(0)
     return {"file": str(tmp_path / "a_file"), "dir": str(tmp_path / "a_dir"),
             "under_file": str(tmp_path / "a_file" / "sub"), "file_under_file": str(tmp_path / "a_file" / "x.png"),
             "missing": str(tmp_path / "missing"), "good_file": str(tmp_path / "good.mcap"),
@@ -106,12 +108,15 @@ def refuses(check, value: str) -> bool:
 def bad_paths(kind: str, place: dict[str, str]) -> list[str]:
     """Values a path check of ``kind`` must refuse."""
     common = ["", place["root"] + "/a\x00b"]
-    locked = Path(place["root"]) / "locked"
-    unreadable = [str(locked)] if os.geteuid() != 0 and kind in ("input_folder", "input_path") else []
+    unreadable = []
+    if os.geteuid() != 0:  # unreadable inputs (as root, where chmod 000 stops no read, none)
+        unreadable = [str(Path(place["root"]) / name) for name in {
+            "input_file": ["locked_file"], "input_folder": ["locked"], "input_path": ["locked", "locked_file"]
+        }.get(kind, [])]
     return {
         "output_folder": [place["file"], place["under_file"]],
         "output_file": [place["dir"], place["file_under_file"]],
-        "input_file": [place["dir"], place["missing"]],
+        "input_file": [place["dir"], place["missing"], *unreadable],
         "input_folder": [place["file"], place["missing"], *unreadable],
         "input_path": [place["missing"], *unreadable],
     }[kind] + common
@@ -274,6 +279,16 @@ def test_the_checks_messages(place):
     assert cli_args.comma_list(cli_args.positive_int)("1, 2") == [1, 2]
     assert cli_args.finite_float("-1e3") == -1000.0 and math.isfinite(cli_args.finite_float("1e308"))
     assert cli_args.output_folder(place["new"]) == place["new"] and not Path(place["new"]).exists()
+
+
+def test_an_unreadable_input_is_named(place, monkeypatch):
+    """The permission check itself (as root, where the suite runs, chmod 000 stops no read: os.access is
+    made to say no)."""
+    monkeypatch.setattr(cli_args.os, "access", lambda path, mode: False)
+    for check, path in ((cli_args.input_file, place["good_file"]), (cli_args.input_folder, place["good_dir"]),
+                        (cli_args.input_path, place["good_dir"])):
+        with pytest.raises(argparse.ArgumentTypeError, match=f"^cannot read {re.escape(path)}: permission denied$"):
+            check(path)
 
 
 def test_library_callers_get_the_output_folder_check(place):
