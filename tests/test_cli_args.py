@@ -339,8 +339,9 @@ def test_export_into_a_regular_file_is_one_line(episode, tmp_path):
     assert out.read_text() == "mine" and os.listdir(tmp_path) == ["export"]
 
 
-def test_export_and_train_check_their_folder_when_called_as_functions(episode, tmp_path):
-    """The library calls refuse the same folders before they make anything (a script, not the CLI)."""
+def test_export_checks_its_folder_when_called_as_a_function(episode, tmp_path):
+    """run_export refuses the same folders before it makes anything (a script, not the CLI; cosim learn's
+    train() does the same with cosim.learn.train.check_run_folder)."""
     from cosim.exporters.export import run_export
 
     from cosim.errors import InputError
