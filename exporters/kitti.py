@@ -274,8 +274,9 @@ def cloud_xyz(agent: AgentView) -> np.ndarray:
 
 
 def build_frame(view: TickView, agent: AgentView, virtual: dict[str, Any]) -> Frame:
-    """One ego agent's frame at the tick: its cloud, the labels of every object it has a LiDAR return on
-    (DontCare for mapped objects it has none on that show in the front image), calib, camera."""
+    """One ego agent's frame at the tick: its cloud, the labels of every object it has a LiDAR return on (in
+    track order), then DontCare for the mapped objects it has none on that show in the front image; calib,
+    camera."""
     map_from_velo = agent.map_from_cloud
     imu_frame = f"{agent.agent_id}/imu"
     tf = agent.tick.transforms
@@ -294,6 +295,7 @@ def build_frame(view: TickView, agent: AgentView, virtual: dict[str, Any]) -> Fr
     velo_from_map = kf.rigid_inverse(map_from_velo)
     objects: list[kf.KittiObject] = []
     tracks: list[int] = []
+    regions: list[tuple[kf.KittiObject, int]] = []  # DontCare, written after every object (below)
     for i in np.argsort(labels.track_ids, kind="stable"):
         track, name = int(labels.track_ids[i]), labels.classes[i]
         if name not in KITTI_CLASS or track == agent.track_id:
@@ -305,8 +307,7 @@ def build_frame(view: TickView, agent: AgentView, virtual: dict[str, Any]) -> Fr
         bbox, truncated = image_box(kf.box_corners_velo(box[None])[0], calib, camera.width, camera.height)
         if int(seen.get(track, {}).get("lidar_points", 0)) <= 0:
             if bbox[2] > bbox[0] and bbox[3] > bbox[1]:
-                objects.append(kf.dont_care(bbox))
-                tracks.append(track)
+                regions.append((kf.dont_care(bbox), track))
             continue
         loc, ry = kf.boxes_from_velo(box[None], calib)
         occ = occlusion_level(occluded_share(xyz, point_labels["instance_id"], point_labels["class_id"], box, track))
@@ -314,7 +315,10 @@ def build_frame(view: TickView, agent: AgentView, virtual: dict[str, Any]) -> Fr
         objects.append(kf.KittiObject(KITTI_CLASS[name], truncated, occ, alpha, bbox, h=height, w=width, l=length,
                                       location=loc[0], rotation_y=float(ry[0])))
         tracks.append(track)
-    return Frame(points, point_labels, objects, tracks, calib, camera)
+    # KITTI's files list DontCare last, and OpenPCDet's info script relies on it (it takes the first lines up to
+    # the number of other objects as the boxes)
+    return Frame(points, point_labels, objects + [o for o, _ in regions], tracks + [t for _, t in regions], calib,
+                 camera)
 
 
 def write_frame(root: Path, stem: str, frame: Frame) -> None:

@@ -277,6 +277,8 @@ def _check_labels(root: Path, source: Path) -> int:
             frame = folder.frame(row["stem"])
             pairs = labelled(root, row["stem"])
             boxes = [(o, t) for o, t in pairs if not o.dont_care]
+            # DontCare last, as in KITTI's files (OpenPCDet relies on it)
+            assert not any(o.dont_care for o, _ in pairs[:len(boxes)])
             want = {int(t) for t, c in zip(labels.track_ids, labels.classes, strict=True)
                     if c in DOC_CLASSES and seen.get(int(t), 0) > 0 and int(t) != ego}
             assert {t for _, t in boxes} == want, row["stem"]
