@@ -183,6 +183,11 @@ def float_in(low: float, high: float, unit: str = "") -> Check:
     return Check("float", low=low, high=high, unit=unit)
 
 
+def int_in(low: int, high: int, unit: str = "") -> Check:
+    """A whole number from ``low`` to ``high`` (``unit`` in the message)."""
+    return Check("int", low=low, high=high, unit=unit)
+
+
 def at_least(low: float, unit: str = "", *, whole: bool = False, noun: str = "", above: bool = False) -> Check:
     """A finite number (a whole one with ``whole``) >= ``low`` (> ``low`` with ``above``); ``noun`` starts the
     message (``scale must be a finite number > 0``)."""

@@ -25,6 +25,7 @@ log = logging.getLogger(__name__)
 
 EXIT_OK, EXIT_PROBLEMS, EXIT_INTERRUPTED = 0, 1, 130
 EPISODE = cli_args.path("input_file", "episode file")
+DPI = cli_args.int_in(10, 600, "dpi")  # a figure of a few thousand pixels a side at most
 
 
 def _episode(path: str) -> Path:
@@ -264,7 +265,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, type=cli_args.output_folder, help="output folder")
     p.add_argument("--ticks", help="ticks: '0,10,20', '0:50:10' or '-1' (default: first, middle, last)")
     p.add_argument("--agents", nargs="+", metavar="AGENT", help="agents for contact sheets (default all)")
-    p.add_argument("--dpi", type=cli_args.positive_int, default=80, help="figure resolution (default 80)")
+    p.add_argument("--dpi", type=DPI, default=80, help="figure resolution (default 80; 10 to 600)")
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("comm", help="V2X links of an episode: summary per link type (LOS, SNR, delivery) and plots")
@@ -273,5 +274,5 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="folder for comm_quality.png and comm_map_t<tick>.png (default: no plots)")
     p.add_argument("--tick", type=cli_args.non_negative_int, help="tick of the link map (default: the middle one)")
     p.add_argument("--json", action="store_true", help="machine-readable summary")
-    p.add_argument("--dpi", type=cli_args.positive_int, default=80, help="figure resolution (default 80)")
+    p.add_argument("--dpi", type=DPI, default=80, help="figure resolution (default 80; 10 to 600)")
     p.set_defaults(func=cmd_comm)

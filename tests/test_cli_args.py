@@ -269,6 +269,7 @@ def test_the_checks_messages(place):
     assert message(cli_args.at_least(0, "seconds"), "-1") == "must be >= 0 seconds, got -1"
     assert message(cli_args.float_in(0, 180, "degrees"), "200") == "must be 0 to 180 degrees, got 200"
     assert message(cli_args.fraction, "1.5") == "must be 0 to 1, got 1.5"
+    assert message(cli_args.int_in(10, 600, "dpi"), "100000") == "must be 10 to 600 dpi, got 100000"
     assert message(cli_args.output_folder, place["file"]) == f"{place['file']} is a file, not a folder"
     assert message(cli_args.output_folder, place["under_file"]) == (
         f"cannot make {place['under_file']}: {place['file']} is a file, not a folder")

@@ -143,7 +143,7 @@ def plot_map(ep: Any, ls: LinkSet, path: Path, dpi: int = 80) -> Path:
     from matplotlib.collections import LineCollection
     from matplotlib.patches import Polygon
 
-    from cosim.io.render import AGENT_STYLE, _save, layout_polygons
+    from cosim.io.render import AGENT_STYLE, _save, layout_polygons, place_agent_labels
 
     labels = ep.tick(ls.tick, "/labels/objects").labels
     pos = {a["agent_id"]: np.asarray(a["position_m"], np.float64) for a in labels.agents}
@@ -168,13 +168,14 @@ def plot_map(ep: Any, ls: LinkSet, path: Path, dpi: int = 80) -> Path:
     for agent, p in pos.items():
         marker, colour = AGENT_STYLE.get(kinds[agent], ("o", "k"))
         ax.scatter([p[0]], [p[1]], marker=marker, c=colour, s=50, edgecolors="k", zorder=3)
-        ax.annotate(f"{agent} ({p[2]:.0f} m)", p[:2], fontsize=6, xytext=(3, 3), textcoords="offset points", zorder=4)
     ax.set_aspect("equal")
     ax.autoscale_view()
     ax.set_xlabel("x [m] (east)")
     ax.set_ylabel("y [m] (north)")
     ax.set_title(f"{ep.scenario}: links at tick {ls.tick} (t = {ls.t_ns / 1e9:g} s)", fontsize=9)
     fig.tight_layout()
+    place_agent_labels(ax, [(f"{agent} ({p[2]:.0f} m)", p[0], p[1]) for agent, p in pos.items()], fontsize=6,
+                       zorder=4)
     out = _save(fig, path, dpi)
     plt.close(fig)
     return out
@@ -191,7 +192,6 @@ def comm_report(path: Path, out_dir: Path | None, map_tick: int | None = None,
         rows = summarize(ticks)
         written: list[Path] = []
         if out_dir is not None and ticks:
-            out_dir.mkdir(parents=True, exist_ok=True)
             k = len(ticks) // 2 if map_tick is None else map_tick
             if not 0 <= k < len(ticks):  # before the folder is made
                 raise InputError(f"--tick {k} out of range: the episode has ticks 0..{len(ticks) - 1}")
