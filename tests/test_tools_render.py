@@ -269,3 +269,62 @@ def test_contact_sheet_width_scales_with_dpi(sheet_episode, tmp_path):
     assert widths[50] < widths[80] < widths[100]
     for dpi, w in widths.items():
         assert 16 * dpi <= w <= 18 * dpi, widths  # about 16 in of panels plus labels and a colour bar
+
+
+def _crowd(tick, topic, msg):
+    """Every agent of the synthetic episode within 2 m of vehicle_0 in /labels/objects (what the maps draw)."""
+    if topic != "/labels/objects":
+        return msg
+    name, schema, payload = msg
+    agents = [dict(a) for a in payload["agents"]]
+    x, y = next(a["position_m"][:2] for a in agents if a["agent_id"] == "vehicle_0")
+    for n, a in enumerate(agents):
+        a["position_m"] = [x + 0.7 * n, y + 0.4 * n, *a["position_m"][2:]]
+    return name, schema, {**payload, "agents": agents}
+
+
+def _no_overlap(boxes) -> bool:
+    return not any(a.overlaps(b) for i, a in enumerate(boxes) for b in boxes[i + 1:])
+
+
+def test_agent_names_are_stacked_not_overprinted(tmp_path, monkeypatch):
+    """Agents within a few metres of each other: their names in the BEV and in the comm map get boxes that do
+    not overlap (stacked a line apart, with a leader), each name once; a lone agent keeps its place."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.text import Text
+
+    import cosim.io.render as render
+    from cosim.io.comm_report import comm_report
+
+    fig, ax = plt.subplots(figsize=(4, 4))
+    ax.set_xlim(0, 500)
+    ax.set_ylim(0, 500)
+    names = [("vehicle_0", 100.0, 100.0), ("drone_0", 101.0, 100.5), ("rsu_0", 99.5, 101.0), ("drone_1", 400, 400)]
+    anns = render.place_agent_labels(ax, names, fontsize=8)
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    boxes = [Text.get_window_extent(a, renderer) for a in anns]  # the names as drawn (without their leaders)
+    assert [a.get_text() for a in anns] == [n for n, _, _ in names] and _no_overlap(boxes)
+    assert anns[0].xyann == anns[3].xyann == render.LABEL_OFFSET_PT and anns[1].xyann[1] > anns[0].xyann[1]
+    plt.close(fig)
+
+    placed = []
+    real = render.place_agent_labels
+
+    def recording(ax, labels, fontsize, zorder=6):
+        out = real(ax, labels, fontsize, zorder)
+        ax.figure.canvas.draw()
+        renderer = ax.figure.canvas.get_renderer()
+        placed.append(([a.get_text() for a in out], [Text.get_window_extent(a, renderer) for a in out]))
+        return out
+
+    monkeypatch.setattr(render, "place_agent_labels", recording)
+    path = write_synthetic_episode(tmp_path / "crowd.mcap", ticks=2, sensors=False, edit=_crowd)
+    assert main(["render", str(path), "--out", str(tmp_path / "r"), "--ticks", "0", "--dpi", "50"]) == 0
+    comm_report(path, tmp_path / "c", map_tick=0, dpi=50)
+    assert len(placed) == 2  # the BEV, then the comm map
+    for texts, boxes in placed:
+        assert sorted(t.split()[0] for t in texts) == ["drone_0", "rsu_0", "vehicle_0"] and _no_overlap(boxes)

@@ -195,6 +195,7 @@ def comm_report(path: Path, out_dir: Path | None, map_tick: int | None = None,
             k = len(ticks) // 2 if map_tick is None else map_tick
             if not 0 <= k < len(ticks):  # before the folder is made
                 raise InputError(f"--tick {k} out of range: the episode has ticks 0..{len(ticks) - 1}")
+            out_dir.mkdir(parents=True, exist_ok=True)
             threshold = None
             try:
                 import yaml

@@ -530,6 +530,51 @@ def layout_polygons(ep: Episode) -> list[tuple[str, np.ndarray]]:
     return sorted((o for o in out if o[1].ndim == 2 and len(o[1]) >= 3), key=lambda o: order[o[0]])
 
 
+#: [pt] where an agent's name starts, right of and above its marker
+LABEL_OFFSET_PT = (5.0, 5.0)
+#: a light box behind each agent's name: readable over LiDAR points and link lines
+_NAME_BACKGROUND = {"boxstyle": "square,pad=0.1", "facecolor": "white", "edgecolor": "none", "alpha": 0.6}
+
+
+def place_agent_labels(ax: Any, labels: Sequence[tuple[str, float, float]], fontsize: float,
+                       zorder: float = 6) -> list[Any]:
+    """Name each agent: ``labels`` are (text, x, y) in data coordinates [m, map]. Each name starts at
+    :data:`LABEL_OFFSET_PT` from its point; one whose box would overlap a name already placed (agents within a
+    few metres of each other at the plot's scale) moves up a line at a time, with a thin leader to its point:
+    co-located agents get a readable stack of names, not one smudge. Call it once the axes' limits and layout
+    are final (it measures the names as they will be drawn); returns the annotations, in ``labels`` order."""
+    renderer = ax.figure.canvas.get_renderer()
+    ax.apply_aspect()
+    line_pt = 1.25 * fontsize
+    placed, out = [], []
+    for text, x, y in labels:
+        dx, dy = LABEL_OFFSET_PT
+        style = {"fontsize": fontsize, "zorder": zorder, "annotation_clip": True, "bbox": _NAME_BACKGROUND}
+        ann = ax.annotate(text, (x, y), textcoords="offset points", xytext=(dx, dy), **style)
+        box = _name_box(ann, renderer)
+        for _ in range(len(labels)):
+            if not any(box.overlaps(b) for b in placed):
+                break
+            dy += line_pt
+            ann.xyann = (dx, dy)
+            box = _name_box(ann, renderer)
+        if dy > LABEL_OFFSET_PT[1]:  # moved up: drawn again with a leader to its point
+            ann.remove()
+            ann = ax.annotate(text, (x, y), textcoords="offset points", xytext=(dx, dy), **style,
+                              arrowprops={"arrowstyle": "-", "lw": 0.7, "color": "0.2", "shrinkA": 0, "shrinkB": 2})
+        placed.append(box)
+        out.append(ann)
+    return out
+
+
+def _name_box(ann: Any, renderer: Any) -> Any:
+    """Display box of an annotation's text alone (its own box also holds its leader), where it will be drawn."""
+    from matplotlib.text import Text
+
+    ann.update_positions(renderer)
+    return Text.get_window_extent(ann, renderer)
+
+
 def bev_plot(
     ep: Episode, tick: Tick, path: Path, dpi: int = 80, layout: list[tuple[str, np.ndarray]] | None = None,
     window_m: tuple[float, float, float] | None = None,
@@ -558,6 +603,7 @@ def bev_plot(
         else:
             ax.scatter(p[:, 0], p[:, 1], s=dot, c=p[:, 2], cmap="viridis", linewidths=0, rasterized=True)
     extent = [xyz[:, :2]]
+    names: list[tuple[str, float, float]] = []  # agent id, map x, y [m]: named once the layout is final
     if "/labels/objects" in tick:
         labels = tick.labels
         segments, colours, widths = [], [], []  # one collection for every box (one draw call, not two per box)
@@ -576,7 +622,7 @@ def bev_plot(
         for a in labels.agents:
             x, y = a["position_m"][0], a["position_m"][1]
             by_kind.setdefault(a.get("kind", "vehicle"), []).append((x, y))
-            ax.annotate(a["agent_id"], (x, y), textcoords="offset points", xytext=(5, 5), fontsize=8, zorder=6)
+            names.append((a["agent_id"], x, y))
         for kind, xy in by_kind.items():
             marker, colour = AGENT_STYLE.get(kind, ("x", "k"))
             pos = np.array(xy, float)
@@ -601,6 +647,7 @@ def bev_plot(
     )
     ax.grid(alpha=0.3)
     fig.tight_layout()
+    place_agent_labels(ax, names, fontsize=8)
     out = _save(fig, path, dpi)
     plt.close(fig)
     return out
