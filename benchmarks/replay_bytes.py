@@ -33,7 +33,7 @@ def main() -> None:
     with open_episode(args.episode) as ep:
         codec = PayloadCodec(ep.chunk_compression)
         duration_s = float(ep.metadata.get("duration_s") or ep.n_ticks / float(ep.metadata["tick_hz"]))
-        readme = set(ep.select(["/tf", "/labels/boxes", "/vehicle_0/*"]))
+        readme = {t for t in ep.topics if t in ("/tf", "/labels/boxes") or t.startswith("/vehicle_0/")}
         for m in ep.messages():
             payload, how = codec.encode(m.data, m.schema_name)
             websocket[m.topic] += len(m.data) + _WS_MESSAGE_HEADER_B + _ws_frame_header_b(len(m.data) + 13)
