@@ -56,9 +56,9 @@ def main() -> None:
         parts = topic.strip("/").split("/")
         per_agent[parts[0] if len(parts) > 1 and parts[0] in ep.agents else "episode topics"] += n
     print(f"Foxglove WebSocket at --rate 1 ({duration_s:g} s episode, a viewer subscribed to every topic): "
-          f"{sum(websocket.values()) / duration_s / 1e6:.0f} MB/s in all; "
+          f"{sum(websocket.values()) / duration_s / 1e6:.1f} MB/s in all; "
           f"--topics /tf /labels/boxes '/vehicle_0/*': "
-          f"{sum(n for t, n in websocket.items() if t in readme) / duration_s / 1e6:.0f} MB/s")
+          f"{sum(n for t, n in websocket.items() if t in readme) / duration_s / 1e6:.1f} MB/s")
     for who, n in sorted(per_agent.items(), key=lambda kv: -kv[1]):
         print(f"  {who:<16} {n / duration_s / 1e6:8.1f} MB/s")
 
