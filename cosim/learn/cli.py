@@ -29,6 +29,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from cosim.eval.dataset import VEHICLE_CLASSES, load_dataset
     from cosim.learn.data import Setup, split_episodes
     from cosim.learn.grid import make_grid
+    from cosim.learn.kitti import episodes_lidar_height_m
     from cosim.learn.train import TrainOptions, check_run_folder, device_of, train
 
     check_run_folder(Path(args.out), args.resume)  # before the dataset is read
@@ -38,16 +39,23 @@ def cmd_train(args: argparse.Namespace) -> int:
     setup = Setup(fusion=args.fusion, agents=args.agents or ("ego" if args.fusion == "none" else "all"),
                   classes=tuple(args.classes or VEHICLE_CLASSES), delivery=args.delivery, lidar=args.lidar,
                   fuse=args.fuse, encoders=args.encoders, grid=grid)
-    refs = load_dataset(Path(args.dataset))
-    train_refs = split_episodes(refs, args.split, "train", args.dataset)
-    val_refs = None
-    if not args.no_val and (args.val_split is not None or any(r.split == "val" for r in refs)):
-        val_refs = split_episodes(refs, args.val_split or "val", "val", args.dataset)
     opts = TrainOptions(epochs=args.epochs, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                         every=args.every, val_every_tick=args.val_every_tick, val_steps=args.val_steps,
                         save_every=args.save_every, keep_every=args.keep_every, seed=args.seed, width=args.width,
                         threads=args.threads, schedule=args.schedule, workers=args.workers, turn_deg=args.turn,
                         **augment)
+    if args.kitti or args.kitti_val or args.init:
+        from cosim.learn.kitti_cli import cmd_train as kitti_train
+
+        return kitti_train(args, setup, opts)
+    if not args.dataset:
+        raise InputError("cosim learn train: give a dataset or --kitti DIR")
+    refs = load_dataset(Path(args.dataset))
+    train_refs = split_episodes(refs, args.split, "train", args.dataset)
+    setup = dataclasses.replace(setup, lidar_height_m=episodes_lidar_height_m(train_refs))
+    val_refs = None
+    if not args.no_val and (args.val_split is not None or any(r.split == "val" for r in refs)):
+        val_refs = split_episodes(refs, args.val_split or "val", "val", args.dataset)
     summary = train(train_refs, val_refs, setup, opts, Path(args.out), resume=args.resume,
                     device=device_of(args.device), show_progress=not args.quiet,
                     cache=Path(args.cache) if args.cache else None)
@@ -95,6 +103,12 @@ def cmd_predict(args: argparse.Namespace) -> int:
     from cosim.learn.data import Samples, check_classes, split_episodes
     from cosim.learn.train import device_of, load_run, record_lines
 
+    if args.kitti:
+        from cosim.learn.kitti_cli import cmd_predict as kitti_predict
+
+        return kitti_predict(args)
+    if not args.dataset:
+        raise InputError("cosim learn predict: give a dataset or --kitti DIR")
     if not args.out.endswith(".jsonl"):
         raise InputError(f"--out {args.out}: predictions are a .jsonl file")
     device = device_of(args.device)
@@ -137,6 +151,12 @@ def cmd_validate(args: argparse.Namespace) -> int:
     from cosim.learn.data import split_episodes
     from cosim.learn.train import validate_checkpoints
 
+    if args.kitti:
+        from cosim.learn.kitti_cli import cmd_validate as kitti_validate
+
+        return kitti_validate(args)
+    if not args.dataset:
+        raise InputError("cosim learn validate: give a dataset or --kitti DIR")
     run = Path(args.run)
     refs = split_episodes(load_dataset(Path(args.dataset)), args.split, args.split, args.dataset)
     t0 = time.perf_counter()
@@ -167,6 +187,13 @@ def cmd_recall(args: argparse.Namespace) -> int:
     from cosim.learn.data import split_episodes
     from cosim.learn.recall import recall_rows, write_recall
 
+    if args.kitti:  # a KITTI folder: recall by range band (cosim learn score); the first positional is a file
+        from cosim.learn.kitti_cli import cmd_score
+
+        args.pred, args.dataset = ([args.dataset] if args.dataset else []) + list(args.pred), None
+        return cmd_score(args)
+    if not args.dataset:
+        raise InputError("cosim learn recall: give a dataset or --kitti DIR")
     refs = split_episodes(load_dataset(Path(args.dataset)), args.split, "test", args.dataset)
     files = [Path(f) for f in args.pred]
     for f in files:
@@ -188,6 +215,8 @@ def cmd_curves(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     from cosim.eval.predictions import SETTINGS
+    from cosim.learn.kitti_cli import add_kitti_options
+    from cosim.learn.kitti_cli import register as register_kitti
     from cosim.learn.samples import ENCODERS, FUSES, FUSIONS, LIDAR_MODES, SCHEDULES
 
     lidar_help = ("LiDAR motion compensation: tick (every sweep moved to the sensor pose at the tick, as the "
@@ -198,9 +227,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     lsub.required = True
 
     tr = lsub.add_parser("train", help="train a detector: cosim learn train DATASET --out RUN")
-    tr.add_argument("dataset", type=DATASET,
+    tr.add_argument("dataset", type=DATASET, nargs="?",
                     help="batch folder (its train split, or every episode when it has no splits), a "
-                         "folder of episodes or one episode")
+                         "folder of episodes or one episode (or --kitti DIR)")
     tr.add_argument("--out", required=True, type=cli_args.output_folder,
                     help="run folder: checkpoint.pt, log.jsonl, summary.json")
     tr.add_argument("--fusion", choices=FUSIONS, default="none",
@@ -272,12 +301,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                       "busy machine)")
     tr.add_argument("--device", help="torch device (default: cuda when present, else cpu)")
     tr.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_kitti_options(tr, "train")
     tr.set_defaults(func=cmd_train)
 
     pr = lsub.add_parser("predict", help="write predictions for cosim eval: cosim learn predict RUN DATASET --out F")
     pr.add_argument("run", type=RUN, help="a run folder of cosim learn train")
-    pr.add_argument("dataset", type=DATASET,
-                    help="batch folder (its test split by default), a folder of episodes or one episode")
+    pr.add_argument("dataset", type=DATASET, nargs="?",
+                    help="batch folder (its test split by default), a folder of episodes or one episode (or "
+                         "--kitti DIR)")
     pr.add_argument("--out", required=True, type=cli_args.output_file, help="predictions file (.jsonl)")
     pr.add_argument("--split", help="split to predict (default: test, or all episodes of a dataset without splits)")
     pr.add_argument("--every", type=_positive, default=1, help="predict ticks 0, every, 2 every... (default 1)")
@@ -291,19 +322,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     pr.add_argument("--device", help="torch device (default: cuda when present, else cpu)")
     pr.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's)")
     pr.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_kitti_options(pr, "predict")
     pr.set_defaults(func=cmd_predict)
 
     va = lsub.add_parser("validate", help="score every kept checkpoint of a run on a split (the learning curve "
                                           "in log.jsonl)")
     va.add_argument("run", type=RUN,
                     help="a run folder of cosim learn train (with checkpoint_<step>.pt from --keep-every)")
-    va.add_argument("dataset", type=DATASET, help="batch folder")
+    va.add_argument("dataset", type=DATASET, nargs="?", help="batch folder (or --kitti DIR)")
     va.add_argument("--split", default="val", help="split to score (default val)")
     va.add_argument("--every", type=_positive, default=10, help="ticks 0, every, 2 every... (default 10)")
     va.add_argument("--from-step", type=cli_args.non_negative_int, default=0, metavar="STEP",
                     help="only the checkpoints at this step or later (e.g. the last 20 %% of the steps)")
     va.add_argument("--cache", type=CACHE, help="a folder of cosim learn cache to read the samples from")
     va.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's)")
+    add_kitti_options(va, "validate")
     va.set_defaults(func=cmd_validate)
 
     ca = lsub.add_parser("cache", help="cache a dataset's samples (one .npz per episode): cosim learn cache "
@@ -319,7 +352,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     rc = lsub.add_parser("recall", help="objects the ego has no return on, found by each model (one prediction "
                                         "file per setting)")
-    rc.add_argument("dataset", type=DATASET, help="batch folder")
+    rc.add_argument("dataset", type=DATASET, nargs="?", help="batch folder (or --kitti DIR)")
     rc.add_argument("pred", nargs="+", type=cli_args.path("input_file", "prediction file"),
                     help="prediction files of cosim learn predict (.jsonl)")
     rc.add_argument("--out", required=True, type=cli_args.output_folder, help="folder for recall.md and recall.json")
@@ -329,6 +362,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="predictions of at least this score (default 0.3)")
     rc.add_argument("--by", help="one row per file and value of this episode condition (lighting, weather, "
                                  "environment or strategy)")
+    add_kitti_options(rc, "recall")
     rc.set_defaults(func=cmd_recall)
 
     cu = lsub.add_parser("curves", help="plot validation AP against steps of one or more runs (PNG)")
@@ -336,4 +370,5 @@ def register(sub: argparse._SubParsersAction) -> None:
     cu.add_argument("--out", required=True, type=cli_args.output_file, help="PNG file")
     cu.add_argument("--title", default="validation AP (vehicle) against training steps")
     cu.set_defaults(func=cmd_curves)
+    register_kitti(lsub)
 

@@ -10,16 +10,18 @@ number (``000076.bin``: 76); the ego is ``ego``.
 
 Rules (all in the velodyne frame: x forward, y left, z up, metres):
 
-- **Labels.** KITTI ``Car`` and ``Van`` (and ``Truck``, ``Tram`` when chosen: :data:`KITTI_CLASSES`) are the
-  model's vehicle classes ``car``, ``van``, ``truck``, ``bus``. ``DontCare`` regions (image rectangles),
-  ``Misc``, ``Pedestrian``, ``Person_sitting``, ``Cyclist`` and the unchosen vehicle types are neither targets
-  nor false positives: a detection on one of them (overlapping it more than any scored box) is left out of
-  scoring.
+- **Labels.** KITTI ``Car`` and ``Van`` (and ``Truck``, ``Tram``, ``Cyclist`` when chosen:
+  :data:`KITTI_CLASSES`) are the model's vehicle classes ``car``, ``van`` (``truck``, ``bus``, ``bicycle``).
+  ``DontCare`` regions (image rectangles), ``Misc``, ``Pedestrian``, ``Person_sitting``, the unchosen types
+  and labels with fewer than ``min_points`` points are neither targets nor false positives: a detection on one
+  of them (overlapping it more than any scored box, or centred in a DontCare rectangle) is left out of scoring.
 - **Field of view.** KITTI labels objects only inside the front camera's image, so scoring counts only
   boxes and predictions whose centre projects into ``image_2`` (through ``P2``; the image's width from its
   PNG, else :data:`KITTI_IMAGE_WIDTH_PX`) and lies within the range asked; ``fov="front90"`` takes the front
-  90 deg instead, ``"all"`` every direction (cosim's own export, scored as ``cosim eval`` scores). Training
-  crops each scan to the same field of view: unlabelled cars behind the car must not be taught as background.
+  90 deg instead. ``"all"`` scores cosim's own export as ``cosim eval`` scores its episodes: every direction
+  within cosim eval's area (x +-140.8, y +-40 m), nothing left out (a detection that matches no label is
+  false). Training crops each scan to the camera's view: unlabelled cars behind the car must not be taught as
+  background.
 - **Sensor height.** A model stores the height of the LiDAR above the road it was trained at
   (:attr:`cosim.learn.samples.Setup.lidar_height_m`; cosim's episodes: the rig's mount height). A scan from
   a sensor at height ``h`` is moved up by ``h - H`` for a model of height ``H`` (its road then lies where the
@@ -48,10 +50,11 @@ from cosim.errors import InputError
 from cosim.eval.ap import THRESHOLDS, DetectionAccumulator
 from cosim.eval.boxes import footprints, iou_matrix
 from cosim.io.kitti import KittiFolder, boxes_to_velo, read_labels, read_velodyne
+from cosim.learn.grid import AREA_HALF_M
 from cosim.learn.samples import quantise
 
 #: KITTI object types that can be targets, and the cosim class each becomes.
-KITTI_CLASSES: dict[str, str] = {"Car": "car", "Van": "van", "Truck": "truck", "Tram": "bus"}
+KITTI_CLASSES: dict[str, str] = {"Car": "car", "Van": "van", "Truck": "truck", "Tram": "bus", "Cyclist": "bicycle"}
 #: The targets by default (KITTI's "Car" benchmark counts vans as not-false-positives; here they are cars).
 DEFAULT_TYPES: tuple[str, ...] = ("Car", "Van")
 #: Width of KITTI's rectified colour images [px] when a folder has no ``image_2`` (they are 1224-1242).
@@ -228,10 +231,10 @@ def box_point_counts(xyz: np.ndarray, boxes: np.ndarray, margin_m: float = 0.1, 
 
 def in_view(xyz: np.ndarray, frame: Scan, fov: str) -> np.ndarray:
     """(N,) bool: points or box centres (N, >=3, velodyne frame) inside the field of view ``fov``
-    (:data:`FOVS`; ``camera`` without P2 is the front 90 deg)."""
+    (:data:`FOVS`; ``camera`` without P2 is the front 90 deg; ``all``: cosim eval's evaluation area)."""
     xyz = np.asarray(xyz, np.float64).reshape(len(xyz), -1)
     if fov == "all":
-        return np.ones(len(xyz), bool)
+        return (np.abs(xyz[:, 0]) <= AREA_HALF_M[0]) & (np.abs(xyz[:, 1]) <= AREA_HALF_M[1])
     if fov == "camera" and frame.image_from_velo is not None:
         uvw = np.column_stack([xyz[:, :3], np.ones(len(xyz))]) @ frame.image_from_velo.T
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -362,7 +365,7 @@ class ScoreOptions:
     iou: float = 0.3
     bands_m: tuple[tuple[float, float], ...] = BANDS_M
     thresholds: tuple[float, ...] = THRESHOLDS
-    ignore: bool = True  # leave out detections on DontCare, other types and labels under min_points
+    ignore: bool = True  # leave out detections on DontCare, other types and labels under min_points (not for "all")
 
     def __post_init__(self) -> None:
         if self.fov not in FOVS:
@@ -441,7 +444,7 @@ def score_frame(frame: Scan, types: Sequence[str], det_boxes: np.ndarray, det_sc
     det_boxes, det_scores, d_rng = det_boxes[keep], det_scores[keep], d_rng[keep]
     det_fp = footprints(det_boxes[:, :2], det_boxes[:, 3:5], det_boxes[:, 6])
     gt_fp = footprints(boxes[scored, :2], boxes[scored, 3:5], boxes[scored, 6])
-    if o.ignore and len(det_boxes):
+    if o.ignore and o.fov != "all" and len(det_boxes):
         iou_gt = iou_matrix(det_fp, gt_fp).max(axis=1) if scored.any() else np.zeros(len(det_boxes))
         ig_fp = footprints(boxes[ignored, :2], boxes[ignored, 3:5], boxes[ignored, 6])
         iou_ig = iou_matrix(det_fp, ig_fp).max(axis=1) if ignored.any() else np.zeros(len(det_boxes))
@@ -521,7 +524,7 @@ def write_score(rows: list[dict[str, Any]], out: Path, o: ScoreOptions, title: s
     md = out / "score.md"
     md.write_text("\n".join(lines) + "\n")
     js = out / "score.json"
-    js.write_text(json.dumps({"options": options_dict(o), "rows": rows}, indent=1) + "\n")
+    js.write_text(json.dumps(finite({"options": options_dict(o), "rows": rows}), indent=1) + "\n")
     return md, js
 
 
@@ -677,3 +680,14 @@ def episodes_lidar_height_m(refs: Sequence[Any]) -> float | None:
             except (KeyError, TypeError, IndexError):
                 continue
     return round(float(np.median(heights)), 3) if heights else None
+
+
+def finite(v: Any) -> Any:
+    """``v`` (dicts, lists, numbers) with NaN and infinities as None, for strict JSON."""
+    if isinstance(v, dict):
+        return {k: finite(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [finite(x) for x in v]
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
