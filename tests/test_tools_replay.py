@@ -478,6 +478,8 @@ def test_foxglove_replay_waits_for_a_viewer_then_sends_it_every_message_from_the
                     got.append((topic_of[sub_id], log_time_ns, frame[13:]))
         assert replay.line_starting("replayed").startswith(f"replayed {len(expected)} messages")
         assert replay.proc.wait(timeout=60) == 0
+        err = replay.proc.stderr.read()
+        assert "ERROR" not in err and "Traceback" not in err, err  # e.g. a listener callback the SDK lacks
     finally:
         replay.close()
     assert got == expected

@@ -209,7 +209,7 @@ class _Foxglove:
         self.subscribed = threading.Event()  # set at a viewer's first subscription
         try:
             self._server = foxglove.start_server(port=port, host=host, context=context, name="cosim replay",
-                                                 server_listener=_SubscriptionListener(self.subscribed))
+                                                 server_listener=_subscription_listener(self.subscribed))
         except Exception as exc:  # the SDK raises its own error types
             raise InputError(f"cannot serve Foxglove on {host}:{port}: {exc}") from None
         self.url = foxglove_url(host, self._server.port)
@@ -247,15 +247,16 @@ class _Foxglove:
         _close_within(stop_server, "the Foxglove server")
 
 
-class _SubscriptionListener:
-    """foxglove-sdk server listener (its ``ServerListener`` protocol): sets ``subscribed`` when a client
-    subscribes to a channel."""
+def _subscription_listener(subscribed: threading.Event) -> Any:
+    """A foxglove-sdk server listener that sets ``subscribed`` when a client subscribes to a channel (the SDK's
+    ``ServerListener`` answers every other callback with nothing)."""
+    from foxglove.websocket import ServerListener
 
-    def __init__(self, subscribed: threading.Event):
-        self._subscribed = subscribed
+    class SubscriptionListener(ServerListener):
+        def on_subscribe(self, client: Any, channel: Any) -> None:
+            subscribed.set()
 
-    def on_subscribe(self, client: Any, channel: Any) -> None:
-        self._subscribed.set()
+    return SubscriptionListener()
 
 
 _CLIENT = re.compile(r"client (\S+?):? ")
