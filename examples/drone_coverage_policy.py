@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cosim import cli_args
 from cosim.client import actions, connect
 from cosim.io import open_episode
 from cosim.transport import free_loopback_endpoint
@@ -100,9 +101,10 @@ def coverage(path: Path) -> tuple[list[float], list[float]]:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenario", default="town_urban_day_clear")
-    p.add_argument("--duration", type=float, default=60.0, help="simulated seconds")
-    p.add_argument("--image-scale", type=float, default=0.1, help="sensors.image_scale (visibility needs cameras)")
-    p.add_argument("--out", default="out/coverage")
+    p.add_argument("--duration", type=cli_args.positive_float, default=60.0, help="simulated seconds")
+    p.add_argument("--image-scale", type=cli_args.positive_float, default=0.1,
+                   help="sensors.image_scale (visibility needs cameras)")
+    p.add_argument("--out", default="out/coverage", type=cli_args.output_folder)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="more scenario overrides")
     args = p.parse_args()
     from cosim.scenario import load_scenario

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cosim import cli_args
 from cosim.io import open_episode
 
 
@@ -61,8 +62,8 @@ def describe(path: Path, max_ticks: int) -> None:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("episode", nargs="?", help="episode file (default: a synthetic one)")
-    p.add_argument("--ticks", type=int, default=3, help="how many ticks to print (default 3)")
+    p.add_argument("episode", nargs="?", type=cli_args.input_file, help="episode file (default: a synthetic one)")
+    p.add_argument("--ticks", type=cli_args.positive_int, default=3, help="how many ticks to print (default 3)")
     args = p.parse_args()
     if args.episode:
         describe(Path(args.episode), args.ticks)

@@ -16,6 +16,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from cosim import cli_args
 from cosim.io.dataset import CooperativeDataset
 
 
@@ -31,10 +32,10 @@ def batches(ds: CooperativeDataset, batch: int) -> Iterator[list[dict]]:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("episodes", nargs="+")
-    p.add_argument("--steps", type=int, default=10)
-    p.add_argument("--batch", type=int, default=2)
-    p.add_argument("--lr", type=float, default=0.5)
+    p.add_argument("episodes", nargs="+", type=cli_args.input_file)
+    p.add_argument("--steps", type=cli_args.positive_int, default=10)
+    p.add_argument("--batch", type=cli_args.positive_int, default=2)
+    p.add_argument("--lr", type=cli_args.positive_float, default=0.5)
     args = p.parse_args()
 
     ds = CooperativeDataset(args.episodes)
