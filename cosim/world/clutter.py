@@ -39,8 +39,9 @@ from cosim.world.network import RoadNetwork
 from cosim.world.types import Prism
 
 CLUTTER_KINDS = ("none", "kitti")
-#: [m] from an edge's outer border (sidewalk or road) to the property line (parked boxes stay within 2.8 m)
-PROPERTY_OFFSET_M = 3.1
+#: [m] from an edge's outer border (sidewalk or road) to the property line: parked boxes, grown by their
+#: clearance, stay within 2.8 m of it, and the occupancy grid's 0.5 m cells must leave them that strip
+PROPERTY_OFFSET_M = 3.6
 RUN_M = (4.0, 14.0)  # [m] length of one run along the property line
 #: what a run is: wall, fence, hedge, bushes, open (shares)
 RUN_SHARES = {"wall": 0.2, "fence": 0.2, "hedge": 0.3, "bushes": 0.15, "open": 0.15}
@@ -125,9 +126,11 @@ class _Clutter:
         elif what == "bushes":
             n = max(1, int(geom.polyline_length(piece) / 2.5))
             for k in range(n):
-                p = geom.point_at(piece, (k + 0.5) * geom.polyline_length(piece) / n)
+                along = (k + 0.5) * geom.polyline_length(piece) / n
+                p, yaw = geom.point_at(piece, along), geom.direction_at(piece, along)
                 r = 0.4 + 0.6 * ((u[0] + 0.37 * k) % 1.0)
-                self._put([("vegetation", geom.regular_polygon(p[0], p[1], r, 8, 0.3 * k), GROUND_Z,
+                x, y = p[0] + r * math.sin(yaw), p[1] - r * math.cos(yaw)  # behind the line
+                self._put([("vegetation", geom.regular_polygon(x, y, r, 8, 0.3 * k), GROUND_Z,
                             0.5 + 1.3 * ((u[1] + 0.61 * k) % 1.0))])
         # behind the line: a shrub or small tree of its own height (vegetation of several heights)
         if u[2] < 0.5:
