@@ -11,7 +11,9 @@ the intensity histogram over :data:`BINS` and its total-variation distance to th
 (``--reference-hist`` in %, else the first real folder's). ``--fit-kitti``: the gain and exponent of the ``kitti``
 intensity transfer that bring episodes rendered with ``intensity_transfer: linear`` closest to the reference.
 ``--detector RUN[:HEIGHT_M]``: instead, a ``cosim learn`` model (ego only) run on the real frames: vehicles
-found, missed and false positives in the front 90 deg (DontCare regions of the image excluded).
+found, missed and false positives in the front 90 deg (DontCare regions of the image excluded); on ``--kitti``
+folders scored by ``cosim.learn.kitti`` (``cosim learn score``'s rules: recall by range, false positives per
+frame, BEV AP).
 
 Real scans are read from a KITTI object folder (``velodyne/*.bin``, ``label_2/*.txt``, ``calib/*.txt``) that
 you put in a scratch folder; none ship with cosim. KITTI scans have no ring field: rings are split where the
@@ -252,29 +254,6 @@ def fit_kitti(scans: list[Scan], reference: np.ndarray, sample: int = 100_000) -
 MATCH_M = 2.0  # [m] a detection within this of a vehicle's centre (bird's eye) finds it
 
 
-def _kitti_frame(folder: Path, stem: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, list, np.ndarray | None]:
-    """Points (N, 4), vehicle boxes (M, 7) and other labelled objects' boxes (K, 7) in the velodyne frame,
-    DontCare image rectangles, and image <- velodyne (3, 4) (None without P2)."""
-    raw = np.fromfile(folder / "velodyne" / f"{stem}.bin", np.float32).reshape(-1, 4)
-    calib_path, label = folder / "calib" / f"{stem}.txt", folder / "label_2" / f"{stem}.txt"
-    cam_from_velo = _calib(calib_path)
-    rows = {k.strip(): v for k, _, v in (ln.partition(":") for ln in calib_path.read_text().splitlines())}
-    p2 = np.array([float(x) for x in rows["P2"].split()]).reshape(3, 4) @ cam_from_velo if "P2" in rows else None
-    velo_from_cam = np.linalg.inv(cam_from_velo)
-    vehicles, others, dontcare = [], [], []
-    for line in label.read_text().splitlines():
-        f = line.split()
-        if not f:
-            continue
-        if f[0] == "DontCare":
-            dontcare.append([float(v) for v in f[4:8]])
-            continue
-        h, w, ln, x, y, z, ry = (float(v) for v in f[8:15])
-        c = velo_from_cam @ np.array([x, y - h / 2, z, 1.0])
-        (vehicles if f[0] in KITTI_VEHICLES else others).append([c[0], c[1], c[2], ln, w, h, -ry - math.pi / 2])
-    return (raw, np.array(vehicles).reshape(-1, 7), np.array(others).reshape(-1, 7), dontcare, p2)
-
-
 #: cosim vehicles with fewer LiDAR points than this are not counted as missed (nor their detections as false)
 MIN_POINTS_COSIM = 5
 
@@ -288,14 +267,8 @@ def _cosim_frames(episodes: list[Path]):
             yield cloud, s.boxes[seen], s.boxes[~seen], [], None
 
 
-def _kitti_frames(folders: list[Path]):
-    for folder in folders:
-        for binf in sorted((folder / "velodyne").glob("*.bin")):
-            yield _kitti_frame(folder, binf.stem)
-
-
 def detect(run: Path, frames, shift_z_m: float, score_min: float) -> dict[str, object]:
-    """A ``cosim learn`` model (ego only) on ``frames`` (:func:`_kitti_frames`, :func:`_cosim_frames`): vehicles in
+    """A ``cosim learn`` model (ego only) on ``frames`` (:func:`_cosim_frames`): vehicles in
     the front 90 deg and the model's range are found when a detection of score >= ``score_min`` lies within
     :data:`MATCH_M` (best score first, one detection per vehicle); other detections in the front 90 deg are
     false positives unless they fall in a DontCare rectangle of the image or on another labelled object (for
@@ -336,6 +309,27 @@ def detect(run: Path, frames, shift_z_m: float, score_min: float) -> dict[str, o
                     continue
             false_pos += 1
     return {"found": found, "missed": missed, "false_positives": false_pos, "best_scores": best_scores}
+
+
+def kitti_detect(run: Path, folder: Path, kitti_height_m: float, model_height_m: float | None,
+                 score_min: float) -> dict[str, object]:
+    """A ``cosim learn`` model on a KITTI folder, scored by :mod:`cosim.learn.kitti` (front 90 deg, 40 m, vehicles
+    with >= 5 points): the scans at ``kitti_height_m`` moved to the model's height (``model_height_m``, else the
+    one its checkpoint records)."""
+    import dataclasses
+
+    from cosim.learn.kitti import KittiSource, ScoreOptions, predict_source, score_source
+    from cosim.learn.train import device_of, load_run
+
+    device = device_of("cpu")
+    model, setup, _ = load_run(run, device)
+    if model_height_m is not None:
+        setup = dataclasses.replace(setup, lidar_height_m=model_height_m)
+    source = KittiSource(folder, height_m=kitti_height_m)
+    preds = {t: p[:2] for t, p in predict_source(model, setup, source, device).items()}
+    out = score_source(source, preds, ScoreOptions(fov="front90", min_score=score_min)).summary()
+    out["shift_m"] = 0.0 if setup.lidar_height_m is None else kitti_height_m - setup.lidar_height_m
+    return out
 
 
 # -------------------------------------------------------------------------------------------- picture
@@ -398,12 +392,14 @@ def main() -> None:
     if args.detector:
         for spec in args.detector:
             run, _, height = spec.partition(":")
-            shift = args.kitti_height_m - float(height) if height else 0.0
-            if args.kitti:
-                r = detect(Path(run), _kitti_frames(args.kitti), shift, args.score_min)
-                print(f"{run} on KITTI (points moved {shift:+.2f} m): found {r['found']} of "
-                      f"{r['found'] + r['missed']}, missed {r['missed']}, false positives {r['false_positives']} at "
-                      f"score >= {args.score_min:g}; best score near each vehicle {r['best_scores']}")
+            for folder in args.kitti:
+                s = kitti_detect(Path(run), folder, args.kitti_height_m, float(height) if height else None,
+                                 args.score_min)
+                print(f"{run} on {folder} (cosim.learn.kitti, as cosim learn score scores it in the front 90 deg "
+                      f"within 40 m: points moved {s['shift_m']:+.2f} m): {s['cars']} vehicles, recall "
+                      f"{s['recall 0-40 m']} (0-20 m {s['recall 0-20 m']}, 20-40 m {s['recall 20-40 m']}), "
+                      f"{s['false positives per frame']} false positives per frame at score >= {args.score_min:g}, "
+                      f"BEV AP30 {s['AP30']:.1f} / AP50 {s['AP50']:.1f}")
             if args.episode:
                 r = detect(Path(run), _cosim_frames(args.episode), 0.0, args.score_min)
                 print(f"{run} on {', '.join(p.stem for p in args.episode)}: found {r['found']} of "

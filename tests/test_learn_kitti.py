@@ -365,3 +365,52 @@ def test_predictions_on_cosims_kitti_export_score_as_cosim_eval_on_the_episode(e
     for key in ("AP30", "AP50", "AP70"):
         assert mine[key] == pytest.approx(float(theirs[key]), abs=0.01), (key, mine, theirs)
     assert 5 < mine["AP30"] < 95
+
+
+# ------------------------------------------------------------------------------------------ the raw converter
+
+CAM_TO_CAM = """calib_time: x
+S_rect_02: 1.242000e+03 3.750000e+02
+R_rect_00: 1 0 0 0 1 0 0 0 1
+P_rect_00: {p}
+P_rect_01: {p}
+P_rect_02: {p}
+P_rect_03: {p}
+"""
+TRACKLET = """<item><objectType>{kind}</objectType><h>1.5</h><w>1.8</w><l>4.2</l><first_frame>{first}</first_frame>
+<poses><count>{n}</count>{poses}</poses></item>"""
+POSE = """<item><tx>{x}</tx><ty>{y}</ty><tz>{z}</tz><rx>0</rx><ry>0</ry><rz>{yaw}</rz><state>2</state>
+<occlusion>{occ}</occlusion><occlusion_kf>0</occlusion_kf><truncation>{trunc}</truncation></item>"""
+
+
+def test_raw_tracklets_become_object_labels_in_the_cameras_view(tmp_path):
+    from benchmarks.kitti_raw import main
+
+    day, drive = tmp_path / "day", tmp_path / "day" / "drive_sync"
+    (drive / "velodyne_points" / "data").mkdir(parents=True)
+    p = " ".join(f"{v:g}" for v in P2.ravel())
+    (day / "calib_cam_to_cam.txt").write_text(CAM_TO_CAM.format(p=p))
+    (day / "calib_velo_to_cam.txt").write_text("calib_time: x\nR: 0 -1 0 0 0 -1 1 0 0\nT: 0 0 0\n")
+    (day / "calib_imu_to_velo.txt").write_text("calib_time: x\nR: 1 0 0 0 1 0 0 0 1\nT: 0 0 0\n")
+    for k in range(2):
+        write_velodyne(drive / "velodyne_points" / "data" / f"{k:010d}.bin",
+                       np.c_[road(), np.full(len(road()), 0.3)].astype(np.float32))
+    ahead = [POSE.format(x=12 + k, y=1.0, z=-HEIGHT_M, yaw=0.2, occ=[0, -1][k], trunc=0) for k in range(2)]
+    behind = [POSE.format(x=-10, y=0, z=-HEIGHT_M, yaw=0, occ=0, trunc=0)]
+    outside = [POSE.format(x=15, y=-3, z=-HEIGHT_M, yaw=0, occ=0, trunc=2)]
+    items = [TRACKLET.format(kind="Car", first=0, n=2, poses="".join(ahead)),
+             TRACKLET.format(kind="Van", first=1, n=1, poses="".join(behind)),
+             TRACKLET.format(kind="Car", first=1, n=1, poses="".join(outside))]
+    (drive / "tracklet_labels.xml").write_text(f"<boost_serialization><tracklets><count>3</count>{''.join(items)}"
+                                               "</tracklets></boost_serialization>")
+    out = tmp_path / "out"
+    assert main(["--drive", str(drive), "--calib", str(day), "--out", str(out)]) == 0
+    src = KittiSource(out, height_m=HEIGHT_M, split="train")
+    assert src.stems == ["000000", "000001"]
+    for k, stem in enumerate(src.stems):  # the car ahead only: the van behind and the pose out of the image are left
+        scan = src.frame(stem)
+        assert scan.types == ["Car"]
+        assert scan.boxes[0] == pytest.approx([12 + k, 1.0, -HEIGHT_M + 0.75, 4.2, 1.8, 1.5, 0.2], abs=1e-3)
+    second = (out / "training" / "label_2" / "000001.txt").read_text().split()
+    assert (second[1], second[2]) == ("0.0000", "3")  # in the image: not truncated; occlusion -1: unknown (3)
+    assert main(["--drive", str(tmp_path / "none"), "--calib", str(day), "--out", str(tmp_path / "o2")]) == 2
