@@ -193,6 +193,10 @@ def test_height_is_estimated_from_the_ground_and_scans_move_to_the_models_height
     cloud, (boxes, _labels) = item["clouds"][0], item["targets"][0]
     assert np.median(cloud[:, 2]) == pytest.approx(-1.9, abs=0.011)  # the road where the model's was
     assert np.sort(boxes[:, 2]) == pytest.approx(np.sort([car(0, 0)[2] - 0.17] * 3), abs=1e-5)
+    assert np.unique(cloud[:, 3]) == pytest.approx([102 / 255])  # reflectance 0.4 in counts of 1/255
+    bright = KittiSource(folder, height_m=HEIGHT_M, intensity_scale=3.0)
+    lit = kitti_samples([bright], Setup(), crop_fov=None).item(0)["clouds"][0]
+    assert np.unique(lit[:, 3]) == pytest.approx([1.0])  # 0.4 x 3, clipped to 1
     front = kitti_samples([src], Setup(lidar_height_m=HEIGHT_M), crop_fov="camera").item(0)
     assert front["clouds"][0][:, 0].min() > 0  # cropped to the camera's view: the car behind is no background
     assert len(front["targets"][0][0]) == 2

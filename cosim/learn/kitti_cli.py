@@ -134,10 +134,11 @@ def cmd_train(args: argparse.Namespace, setup: Any, opts: Any) -> int:
     refs = None
     if args.dataset:
         from cosim.eval.dataset import load_dataset
-        from cosim.learn.data import Samples, split_episodes
+        from cosim.learn.data import Samples, check_classes, split_episodes
 
         all_refs = load_dataset(Path(args.dataset))
         refs = split_episodes(all_refs, args.split, "train", args.dataset)
+        check_classes(refs, setup.classes, "the model")
         if height is None:
             height = episodes_lidar_height_m(refs)
     elif height is None:
