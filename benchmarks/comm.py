@@ -1,6 +1,11 @@
 """Link model cost per tick for the paper's full 5+5+5 rig, against the sensor frame time.
 
     PYTHONPATH=. .venv/bin/python benchmarks/comm.py [--frames 3] [--ticks 50] [--background 40]
+    PYTHONPATH=. .venv/bin/python benchmarks/comm.py --smoke
+
+``--smoke`` runs every step on a small input (a 300 m map, cameras at 1/20 of their size, one frame, two
+ticks, five road users) so that the suite sees the script work (tests/test_benchmarks.py); its numbers mean
+nothing.
 
 World: what ``build_world`` makes for scenarios/default.yaml; agents: 5 vehicles, 5 RSUs, 5 drones
 (``benchmarks/sensors.py``'s rig) among ``--background`` other road users, placed by
@@ -36,10 +41,12 @@ from cosim.comm.los import LinkScene
 from cosim.world.build import build_world
 
 ROOT = Path(__file__).resolve().parents[1]
+#: What ``--smoke`` sets: a small map and small cameras.
+SMOKE_SETS = ("map.size_m=300", "sensors.image_scale=0.05")
 
 
 def run(args: argparse.Namespace) -> None:
-    loaded = paper_rig_scenario(ROOT / "scenarios" / "default.yaml")
+    loaded = paper_rig_scenario(ROOT / "scenarios" / "default.yaml", overrides=SMOKE_SETS if args.smoke else ())
     sc = loaded.scenario
     with tempfile.TemporaryDirectory() as tmp:
         world = build_world(loaded, Path(tmp))
@@ -83,7 +90,10 @@ def main() -> None:
     p.add_argument("--frames", type=int, default=3, help="snapshots rendered (default 3)")
     p.add_argument("--ticks", type=int, default=50, help="link model ticks timed (default 50)")
     p.add_argument("--background", type=int, default=40, help="other road users (default 40)")
+    p.add_argument("--smoke", action="store_true", help="a small input, one frame, two ticks: checks the script runs")
     args = p.parse_args()
+    if args.smoke:
+        args.frames, args.ticks, args.background = 1, 2, 5
     logging.basicConfig(level=logging.WARNING)
     run(args)
 
