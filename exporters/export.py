@@ -157,15 +157,11 @@ def register_format(cls: type[ExportFormat]) -> type[ExportFormat]:
 
 
 def get_format(name: str) -> type[ExportFormat]:
-    _load_builtin_formats()
+    """The format registered as ``name`` (the built-in ones register when :mod:`cosim.exporters` is imported)."""
     try:
         return FORMATS[name]
     except KeyError:
         raise InputError(f"unknown export format {name!r}; known: {', '.join(sorted(FORMATS))}") from None
-
-
-def _load_builtin_formats() -> None:
-    from cosim.exporters import airv2x, kitti, opv2v  # noqa: F401 (they register themselves)
 
 
 # ------------------------------------------------------------------------------------- sources
