@@ -217,7 +217,22 @@ def image_box(corners_velo: np.ndarray, calib: kf.KittiCalib, width: int, height
     return clipped, float(np.clip(1.0 - inside / full, 0.0, 1.0))
 
 
-def occluded_share(xyz_m: np.ndarray, instance_id: np.ndarray, class_id: np.ndarray, box: np.ndarray,
+@dataclass(frozen=True)
+class Polar:
+    """A cloud's points seen from the LiDAR: azimuth and elevation [rad], range [m], each (N,)."""
+
+    azimuth_rad: np.ndarray
+    elevation_rad: np.ndarray
+    range_m: np.ndarray
+
+    @classmethod
+    def of(cls, xyz_m: np.ndarray) -> Polar:
+        horizontal = np.hypot(xyz_m[:, 0], xyz_m[:, 1])
+        return cls(np.arctan2(xyz_m[:, 1], xyz_m[:, 0]), np.arctan2(xyz_m[:, 2], horizontal),
+                   np.hypot(horizontal, xyz_m[:, 2]))
+
+
+def occluded_share(polar: Polar, instance_id: np.ndarray, class_id: np.ndarray, box: np.ndarray,
                    track: int) -> float:
     """Share of the LiDAR returns in a box's angular window (its corners' azimuth and elevation span seen from
     the LiDAR) that hit something else nearer than the object's own nearest return (less
@@ -225,18 +240,15 @@ def occluded_share(xyz_m: np.ndarray, instance_id: np.ndarray, class_id: np.ndar
     own = instance_id == track
     if not own.any():
         return 1.0
-    corners = kf.box_corners_velo(box[None])[0]
+    corners = Polar.of(kf.box_corners_velo(box[None])[0])
     az_c = math.atan2(box[1], box[0])
-    rel = kf.wrap_rad(np.arctan2(corners[:, 1], corners[:, 0]) - az_c)
-    el = np.arctan2(corners[:, 2], np.hypot(corners[:, 0], corners[:, 1]))
-    p_rel = kf.wrap_rad(np.arctan2(xyz_m[:, 1], xyz_m[:, 0]) - az_c)
-    p_el = np.arctan2(xyz_m[:, 2], np.hypot(xyz_m[:, 0], xyz_m[:, 1]))
-    window = (p_rel >= rel.min()) & (p_rel <= rel.max()) & (p_el >= el.min()) & (p_el <= el.max())
-    rng = np.linalg.norm(xyz_m, axis=1)
-    near = rng[own].min() - OCCLUDER_MARGIN_M
-    occluders = window & ~own & (rng < near) & ~np.isin(class_id, list(GROUND_CLASSES))
-    n_own = int(own.sum())
-    return float(occluders.sum()) / (n_own + float(occluders.sum()))
+    rel = kf.wrap_rad(corners.azimuth_rad - az_c)
+    p_rel = kf.wrap_rad(polar.azimuth_rad - az_c)
+    window = ((p_rel >= rel.min()) & (p_rel <= rel.max()) & (polar.elevation_rad >= corners.elevation_rad.min())
+              & (polar.elevation_rad <= corners.elevation_rad.max()))
+    near = polar.range_m[own].min() - OCCLUDER_MARGIN_M
+    occluders = int((window & ~own & (polar.range_m < near) & ~np.isin(class_id, list(GROUND_CLASSES))).sum())
+    return occluders / (int(own.sum()) + occluders)
 
 
 def occlusion_level(share: float) -> int:
@@ -293,6 +305,7 @@ def build_frame(view: TickView, agent: AgentView, virtual: dict[str, Any]) -> Fr
     labels = view.labels
     seen = agent.visibility()
     velo_from_map = kf.rigid_inverse(map_from_velo)
+    polar = Polar.of(xyz)
     objects: list[kf.KittiObject] = []
     tracks: list[int] = []
     regions: list[tuple[kf.KittiObject, int]] = []  # DontCare, written after every object (below)
@@ -310,7 +323,8 @@ def build_frame(view: TickView, agent: AgentView, virtual: dict[str, Any]) -> Fr
                 regions.append((kf.dont_care(bbox), track))
             continue
         loc, ry = kf.boxes_from_velo(box[None], calib)
-        occ = occlusion_level(occluded_share(xyz, point_labels["instance_id"], point_labels["class_id"], box, track))
+        occ = occlusion_level(occluded_share(polar, point_labels["instance_id"], point_labels["class_id"], box,
+                                             track))
         alpha = float(kf.wrap_rad(ry[0] - math.atan2(loc[0, 0], loc[0, 2])))
         objects.append(kf.KittiObject(KITTI_CLASS[name], truncated, occ, alpha, bbox, h=height, w=width, l=length,
                                       location=loc[0], rotation_y=float(ry[0])))

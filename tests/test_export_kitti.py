@@ -432,6 +432,55 @@ def test_the_egos_are_chosen_by_kind_and_an_episode_without_one_is_an_input_erro
         ego_agents(agents, kinds, lidar, "vehicles,boats", "ep")
 
 
+def test_occlusion_counts_the_returns_nearer_than_the_object_in_its_window():
+    from cosim.exporters.kitti import Polar, occluded_share, occlusion_level
+
+    from cosim.classes import SEMANTIC_ID
+
+    box = np.array([10.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0])  # its near face at x = 8 m, y within +-1 m
+    own = np.c_[np.full(10, 8.0), np.linspace(-0.9, 0.9, 10), np.full(10, -1.0)]
+    wall = np.c_[np.full(5, 5.0), np.linspace(-0.5, 0.5, 5), np.full(5, -0.6)]  # in the window, nearer
+    road = np.c_[np.full(3, 6.5), np.zeros(3), np.full(3, -1.3)]  # in the window, nearer, but ground
+    behind = np.c_[np.full(4, 20.0), np.zeros(4), np.full(4, -1.0)]  # in the window, farther
+    aside = np.c_[np.full(4, 5.0), np.full(4, 4.0), np.full(4, -0.6)]  # nearer, outside the window
+    xyz = np.r_[own, wall, road, behind, aside]
+    ids = np.r_[np.full(10, 7), np.full(5, 1_000_001), np.zeros(3), np.zeros(4), np.full(4, 9)].astype(np.uint32)
+    classes = np.r_[np.full(10, SEMANTIC_ID["car"]), np.full(5, SEMANTIC_ID["building"]),
+                    np.full(3, SEMANTIC_ID["road"]), np.full(8, SEMANTIC_ID["building"])].astype(np.uint8)
+    share = occluded_share(Polar.of(xyz), ids, classes, box, 7)
+    assert share == pytest.approx(5 / 15) and occlusion_level(share) == 1
+    assert occluded_share(Polar.of(own), ids[:10], classes[:10], box, 7) == 0.0
+    assert occluded_share(Polar.of(xyz), ids, classes, box, 8) == 1.0
+    assert [occlusion_level(v) for v in (0.0, 0.19, 0.2, 0.59, 0.6, 1.0)] == [0, 0, 1, 1, 2, 2]
+
+
+def test_2d_boxes_and_truncation_from_the_projected_3d_box():
+    from cosim.exporters.kitti import image_box
+
+    calib = hand_calib()
+    box = np.array([[20.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0]])  # straight ahead
+    bbox, truncated = image_box(kitti.box_corners_velo(box)[0], calib, 1240, 380)
+    assert truncated == 0.0
+    # the near face (x = 18 m, y = +-1 m) is the widest: u = 620 + 700 (-+1 + 0.06) / (18 - 0.27)
+    np.testing.assert_allclose(bbox[[0, 2]], [620 + 700 * (-1.0 + 0.06) / 17.73, 620 + 700 * (1.0 + 0.06) / 17.73])
+    behind = box.copy()
+    behind[0, 0] = -20.0
+    bbox, truncated = image_box(kitti.box_corners_velo(behind)[0], calib, 1240, 380)
+    assert bbox.tolist() == [0.0, 0.0, 0.0, 0.0] and truncated == 1.0
+    side = box.copy()
+    side[0, :2] = [3.0, 3.0]  # beside the camera, half of it left of the image
+    bbox, truncated = image_box(kitti.box_corners_velo(side)[0], calib, 1240, 380)
+    assert bbox[0] == 0.0 and 0.0 < truncated < 1.0 and bbox[2] < 1239.0
+
+
+def test_agents_is_refused_for_the_formats_that_export_every_agent(tmp_path):
+    from cosim.exporters.export import run_export
+
+    with pytest.raises(InputError, match="--agents chooses the egos of --format kitti; opv2v exports every agent"):
+        run_export(tmp_path / "no-such.mcap", "opv2v", tmp_path / "out", agents="all")
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.integration
 @pytest.mark.parametrize("case", ["out is a file", "no such agent"])
 def test_bad_input_exits_2_with_one_line_and_writes_nothing(case, smeared_episode, tmp_path):
