@@ -16,7 +16,7 @@ from typing import Any, ClassVar
 import numpy as np
 from cosim.exporters import carla_frames as cf
 from cosim.exporters.export import AgentView, ExportFormat, SequenceInfo, TickView, register_format
-from cosim.exporters.export_io import json_text, pickle_bytes, plain, png_bytes, write_bytes
+from cosim.exporters.export_io import depth_png, json_text, pickle_bytes, plain, png_bytes, write_bytes
 
 from cosim.errors import CosimError
 from cosim.io import Episode
@@ -111,7 +111,7 @@ class AirV2XFormat(ExportFormat):
             meta["lidar"] = {"lidar_pose": cf.relative_pose(cf.carla_pose_of_matrix(lidar_t), ego_pos)}
             pcd, labels = agent.lidar_files()
             write_bytes(folder / "lidar.pcd", pcd)
-            write_bytes(folder / "lidar_labels.npy", labels)
+            write_bytes(folder / "lidar_labels.npz", labels)
         devkit = CAMERA_NAMES[agent.kind]
         for cam in agent.cameras(view.camera_names[agent.agent_id]):
             entry = {
@@ -127,11 +127,11 @@ class AirV2XFormat(ExportFormat):
             else:
                 cosim_meta["cameras"][cam.name] = entry
                 key = base = f"cosim_{cam.name}"
-            write_bytes(folder / f"{key}.png", cam.rgb_png())
+            write_bytes(folder / f"{key}.png", cam.image_file(keep_jpeg=not self.options.png_images))
             if cam.lens is not None:
                 cosim_meta.setdefault("undistorted", {})[cam.name] = list(cam.lens.D)
             if cam.has("depth"):
-                write_bytes(folder / f"{base}_depth.png", png_bytes(cf.encode_depth_rgb24(cam.depth_m())))
+                write_bytes(folder / f"{base}_depth.png", depth_png(cam.depth_m()))
             if self.options.masks and cam.has("semantic"):
                 write_bytes(folder / f"{base}_semantic.png", png_bytes(cam.semantic().astype(np.uint8)))
             if self.options.masks and cam.has("instance"):

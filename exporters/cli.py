@@ -21,7 +21,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     try:
         result = run_export(Path(args.source), args.format, Path(args.out),
                             ExportOptions(every=args.every, masks=args.masks, raw_lidar=args.raw_lidar,
-                                          objects_at_tick=args.objects_at_tick),
+                                          objects_at_tick=args.objects_at_tick, png_images=args.png_images),
                             split=args.split, workers=args.workers, progress=progress,
                             agents=args.agents)
     finally:
@@ -32,6 +32,8 @@ def cmd_export(args: argparse.Namespace) -> int:
         print(f"skipped  {p} (already complete)")
     print(f"{len(result.written)} sequence(s) written, {len(result.skipped)} skipped, "
           f"{result.agent_frames} agent-frames")
+    for line in result.warnings:
+        print(f"warning: {line}")
     return EXIT_OK
 
 
@@ -50,6 +52,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=cli_args.positive_int, default=1, metavar="N",
                    help="processes writing ticks (default 1)")
     p.add_argument("--masks", action="store_true", help="also semantic and instance images (AirV2X)")
+    p.add_argument("--png-images", action="store_true",
+                   help="camera files as lossless PNG where the episode stored JPEG (the default keeps its JPEG "
+                        "bytes under the layouts' .png names: the same pixels, an eighth of the bytes)")
     p.add_argument("--raw-lidar", action="store_true",
                    help="LiDAR points as fired (each in its firing's sensor frame), not compensated to the tick pose")
     motion = p.add_mutually_exclusive_group()

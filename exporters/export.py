@@ -33,7 +33,15 @@ from typing import Any, ClassVar
 
 import numpy as np
 from cosim.exporters import carla_frames as cf
-from cosim.exporters.export_io import is_rgb8_png, json_text, npy_bytes, pcd_ascii, png_bytes, write_bytes
+from cosim.exporters.export_io import (
+    is_rgb8_png,
+    jpeg_components,
+    json_text,
+    npz_bytes,
+    pcd_binary,
+    png_bytes,
+    write_bytes,
+)
 from cosim.exporters.undistort import PinholeRemap, pinhole_remap
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -94,6 +102,8 @@ class ExportOptions(BaseModel):
     # (cosim.io.deskew.objects_to_tick; docs/exports.md), as CARLA's LiDAR (one instant per sweep) recorded both
     # datasets; False keeps the objects' own motion over the sweep (nuScenes-style); None: True unless raw_lidar
     objects_at_tick: bool | None = None
+    # camera files as lossless PNG even where the episode stored JPEG (8 times the bytes; the same pixels)
+    png_images: bool = False
 
     def resolved(self) -> ExportOptions:
         """These options with the defaults that depend on others filled in (what the marker records)."""
@@ -137,6 +147,10 @@ class ExportFormat:
 
     def write_sequence(self, ep: Episode) -> None:
         """Files once per sequence (conditions, protocol), written before any tick."""
+
+    def warnings(self) -> list[str]:
+        """What a user of this sequence's loader must know (one line each; ``cosim export`` prints them)."""
+        return []
 
     def write_tick(self, view: TickView) -> None:
         raise NotImplementedError
@@ -319,6 +333,19 @@ class CameraView:
         rgb = np.ascontiguousarray(a[..., :3]) if a.ndim == 3 else np.stack([a] * 3, -1)
         return png_bytes(rgb if self.lens is None else self.lens.bilinear(rgb))
 
+    def image_file(self, keep_jpeg: bool = True) -> bytes:
+        """The RGB image as the layouts' camera file (named ``.png``): the episode's own JPEG bytes when it stored
+        a 3-channel JPEG, the camera has no lens distortion to undo and ``keep_jpeg`` (the loaders open camera
+        files with Pillow or OpenCV, which decode by content: the same pixels as a PNG of the decoded JPEG, at
+        an eighth of its bytes and none of its encoding time; docs/exports.md); else :meth:`rgb_png`."""
+        if keep_jpeg and self.lens is None:
+            raw = self.tick.raw(f"/{self.agent_id}/{self.name}/image")
+            if raw.schema_name == "foxglove.CompressedImage":
+                msg = parse_proto(raw.schema_name, raw.data, raw.schema_data)
+                if msg.format == "jpeg" and jpeg_components(msg.data) == 3:
+                    return bytes(msg.data)
+        return self.rgb_png()
+
     def has(self, what: str) -> bool:
         return f"/{self.agent_id}/{self.name}/{what}" in self.tick
 
@@ -373,10 +400,10 @@ class AgentView:
         return self.tick.points(self.agent_id).points if f"/{self.agent_id}/lidar" in self.tick else None
 
     def lidar_files(self) -> tuple[bytes, bytes]:
-        """The sweep as an ASCII PCD in the CARLA axes of :attr:`map_from_cloud` (intensity in red) and its
-        per-point labels (``.npy`` of :data:`LIDAR_LABELS_DTYPE`, same order). Points are compensated to the
-        sensor pose at the tick (:func:`cosim.io.deskew.deskew_tick`) unless the export's ``raw_lidar`` asks
-        for them as fired."""
+        """The sweep as a binary PCD in the CARLA axes of :attr:`map_from_cloud` (intensity in red) and its
+        per-point labels (``.npz`` of the fields of :data:`LIDAR_LABELS_DTYPE`, one array each, same order).
+        Points are compensated to the sensor pose at the tick (:func:`cosim.io.deskew.deskew_tick`) unless the
+        export's ``raw_lidar`` asks for them as fired."""
         pts = self.points
         raw = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
         xyz = raw if self.raw_lidar else deskew_tick(self.tick, self.agent_id)
@@ -385,11 +412,10 @@ class AgentView:
         lidar, cloud = self.map_from_lidar, self.map_from_cloud
         if cloud is not lidar:
             xyz = xyz @ (cloud[:3, :3].T @ lidar[:3, :3]).T  # same origin: a rotation into the level frame
-        labels = np.zeros(len(pts), LIDAR_LABELS_DTYPE)
-        for f in LIDAR_LABELS_DTYPE.names or ():
-            if f in (pts.dtype.names or ()):
-                labels[f] = pts[f]
-        return pcd_ascii(cf.carla_points(xyz), pts["intensity"]), npy_bytes(labels)
+        names = pts.dtype.names or ()
+        labels = {f: (pts[f] if f in names else np.zeros(len(pts))).astype(LIDAR_LABELS_DTYPE[f])
+                  for f in LIDAR_LABELS_DTYPE.names or ()}
+        return pcd_binary(cf.carla_points(xyz), pts["intensity"]), npz_bytes(labels)
 
     def cameras(self, names: Sequence[str]) -> list[CameraView]:
         out = []
@@ -517,6 +543,14 @@ def agent_frames(ep: Episode, seq: SequenceInfo, ticks: Sequence[int], raw_lidar
             yield TickView(seq, tick, cams, raw_lidar, objects_at_tick)
 
 
+def export_topics(ep: Episode, options: ExportOptions) -> list[str]:
+    """The episode's topics the AirV2X and OPV2V writers read: all but the agents' BEV grids (the maps are rendered
+    from the tick's snapshot) and, without ``masks``, the semantic and instance images, which are most of an
+    episode's bytes once decompressed (about four fifths of a default episode's)."""
+    skipped = ("/bev",) if options.masks else ("/bev", "/semantic", "/instance")
+    return [t for t in ep.topics if not t.endswith(skipped)]
+
+
 # ------------------------------------------------------------------------------------- driver
 
 
@@ -527,6 +561,8 @@ class ExportResult:
     written: tuple[Path, ...]
     skipped: tuple[Path, ...]
     agent_frames: int
+    #: Lines for the user about the written sequences (e.g. more agents than a loader reads by default).
+    warnings: tuple[str, ...] = ()
 
 
 def marker_content(fmt: str, source: Source, options: ExportOptions, seq_name: str) -> dict[str, Any]:
@@ -549,7 +585,8 @@ def _export_chunk(fmt: str, source: Source, seq_name: str, options: ExportOption
         seq = sequence_info(ep, source, seq_name, options.every)
         writer = cls(seq, options, Path(root))
         n = 0
-        for view in agent_frames(ep, seq, ticks, options.raw_lidar, options.objects_at_tick):
+        for view in agent_frames(ep, seq, ticks, options.raw_lidar, options.objects_at_tick,
+                                 export_topics(ep, options)):
             writer.write_tick(view)
             n += len(seq.agents)
     return n
@@ -599,6 +636,7 @@ def run_export(source: Path, fmt: str, out: Path, options: ExportOptions | None 
     jobs = []
     skipped: list[Path] = []
     total = 0
+    warnings: list[str] = []
     for src, name in zip(sources, names, strict=True):
         final = out / cls.split_dir(src.split) / name
         marker = marker_content(fmt, src, options, name)
@@ -613,7 +651,9 @@ def run_export(source: Path, fmt: str, out: Path, options: ExportOptions | None 
                 if stale.exists():
                     shutil.rmtree(stale)
             partial.mkdir(parents=True)
-            cls(seq, options, partial).write_sequence(ep)
+            writer = cls(seq, options, partial)
+            writer.write_sequence(ep)
+            warnings.extend(writer.warnings())
         jobs.append((src, name, seq, partial, final, marker))
         total += len(seq.ticks) * len(seq.agents)
     done = 0
@@ -648,7 +688,7 @@ def run_export(source: Path, fmt: str, out: Path, options: ExportOptions | None 
                     job = pending.pop(f)
                     finished(job, f.result())
     _tidy_partial(out)
-    return ExportResult(tuple(written), tuple(skipped), done)
+    return ExportResult(tuple(written), tuple(skipped), done, tuple(warnings))
 
 
 def _finalise(cls: type[ExportFormat], out: Path, job: tuple) -> Path:

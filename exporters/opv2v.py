@@ -3,6 +3,7 @@ documented in ``docs/md_files/data_intro.md``); docs/exports.md describes every 
 
 ```
 <out>/<split>/<YYYY_MM_DD_HH_MM_SS>/data_protocol.yaml
+    <tick:06d>_cosim.json
     <agent>/<tick:06d>.yaml  <tick:06d>.pcd  <tick:06d>_camera0.png .. _camera3.png  <tick:06d>_<camera>.png
 <out>/additional/<split>/<YYYY_MM_DD_HH_MM_SS>/<agent>/<tick:06d>_bev_{dynamic,static,lane}.png
 ```
@@ -17,7 +18,7 @@ import numpy as np
 import yaml
 from cosim.exporters import carla_frames as cf
 from cosim.exporters.export import AgentView, ExportFormat, SequenceInfo, TickView, register_format
-from cosim.exporters.export_io import plain, png_bytes, write_bytes, yaml_text
+from cosim.exporters.export_io import json_text, plain, png_bytes, write_bytes, yaml_text
 
 from cosim.io import Episode
 
@@ -29,6 +30,13 @@ CAMERA_INDEX: dict[str, dict[str, int]] = {
     "rsu": {"front": 0, "right": 1, "left": 2, "rear": 3},
     "drone": {},
 }
+#: Beside each tick's agent folders: ``<sequence>/<tick:06d>_cosim.json``, cosim's extras of the tick (every
+#: object, each agent's ids, other cameras and returns per object). A file, not a folder: OpenCOOD takes every
+#: folder of a sequence for an agent; and once per tick, not in each agent's yaml, which OpenCOOD parses whole.
+TICK_FILE_SUFFIX = "_cosim.json"
+#: OpenCOOD's default ``train_params.max_cav``: it reads the first this many agent folders (in string order) of
+#: a sequence, prints ``too many cavs`` and drops the rest.
+OPENCOOD_MAX_CAV = 7
 
 
 def agent_folders(seq: SequenceInfo) -> dict[str, str]:
@@ -79,21 +87,46 @@ class Opv2vFormat(ExportFormat):
             "cosim": {"generator": self.seq.metadata.get("generator"), "format": "opv2v"},
             "conditions": self.seq.conditions(),
             "agent_folders": dict(self.folders),
+            "opencood": {"agent_folders": len(self.folders), "default_max_cav": OPENCOOD_MAX_CAV,
+                         "note": self.max_cav_note() or f"every agent folder within OpenCOOD's default max_cav "
+                                                         f"({OPENCOOD_MAX_CAV})"},
             "scenario": scenario,
         }
         write_bytes(self.root / "data_protocol.yaml", yaml_text(plain(protocol)).encode())
 
-    def write_tick(self, view: TickView) -> None:
-        rots = view.object_rotations()
-        labels = view.labels
-        view.for_each_agent(lambda agent: self.write_agent(view, agent, rots, labels))
+    def max_cav_note(self) -> str | None:
+        """The line saying that OpenCOOD's default ``max_cav`` drops agents of this sequence, or None."""
+        n = len(self.folders)
+        if n <= OPENCOOD_MAX_CAV:
+            return None
+        dropped = sorted(self.folders.values())[OPENCOOD_MAX_CAV:]
+        return (f"{n} agent folders; OpenCOOD reads the first {OPENCOOD_MAX_CAV} (default max_cav) in string "
+                f"order, prints 'too many cavs' and drops {', '.join(dropped)}: set train_params.max_cav: {n} "
+                "(docs/exports.md)")
 
-    def write_agent(self, view: TickView, agent: AgentView, rots: list[np.ndarray], labels: Any) -> None:
+    def warnings(self) -> list[str]:
+        note = self.max_cav_note()
+        return [f"{self.seq.name}: {note}"] if note else []
+
+    def write_tick(self, view: TickView) -> None:
+        labels = view.labels
+        boxes = {int(labels.track_ids[i]): box_entry(view, i, rot) for i, rot in enumerate(view.object_rotations())}
+        extras: dict[str, dict[str, Any]] = {}
+        view.for_each_agent(lambda agent: extras.__setitem__(agent.agent_id, self.write_agent(view, agent, boxes)))
+        doc = {
+            "tick": view.index,
+            "objects": {track: {**boxes[track], "class": labels.classes[i]}
+                        for i, track in enumerate(int(t) for t in labels.track_ids)},
+            "agents": {self.folders[a]: extras[a] for a in self.seq.agents},
+        }
+        write_bytes(self.root / f"{view.index:06d}{TICK_FILE_SUFFIX}", json_text(plain(doc)).encode())
+
+    def write_agent(self, view: TickView, agent: AgentView, boxes: dict[int, dict[str, Any]]) -> dict[str, Any]:
+        """Write one agent's files of the tick; return its entry of the tick's ``_cosim.json``."""
         folder = self.root / self.folders[agent.agent_id]
         stem = f"{view.index:06d}"
         ego_pos = cf.carla_pose_of_matrix(agent.map_from_base)
         lidar_t = agent.map_from_cloud
-        seen = agent.visibility()
         doc: dict[str, Any] = {}
         extra_cams: dict[str, Any] = {}
         index = CAMERA_INDEX[agent.kind]
@@ -107,12 +140,13 @@ class Opv2vFormat(ExportFormat):
                 "extrinsic": (cf.lidar_to_camera(lidar_t, cam.map_from_camera) if lidar_t is not None
                               else np.eye(4)).tolist(),
             }
+            image = cam.image_file(keep_jpeg=not self.options.png_images)
             if cam.name in index:
                 doc[f"camera{index[cam.name]}"] = entry
-                write_bytes(folder / f"{stem}_camera{index[cam.name]}.png", cam.rgb_png())
+                write_bytes(folder / f"{stem}_camera{index[cam.name]}.png", image)
             else:
                 extra_cams[cam.name] = entry
-                write_bytes(folder / f"{stem}_{cam.name}.png", cam.rgb_png())
+                write_bytes(folder / f"{stem}_{cam.name}.png", image)
         doc = dict(sorted(doc.items()))
         doc["ego_speed"] = cf.speed_kmh(agent.velocity_mps)
         doc["lidar_pose"] = cf.carla_pose_of_matrix(lidar_t if lidar_t is not None else agent.map_from_base)
@@ -120,26 +154,22 @@ class Opv2vFormat(ExportFormat):
         doc["predicted_ego_pos"] = ego_pos
         doc["true_ego_pos"] = ego_pos
         doc["RSU"] = agent.kind == "rsu"
-        vehicles: dict[int, Any] = {}
-        objects: dict[int, Any] = {}
-        for i, rot in enumerate(rots):
-            track = int(labels.track_ids[i])
-            entry = box_entry(view, i, rot)
-            points = int(seen.get(track, {}).get("lidar_points", 0))
-            objects[track] = {**entry, "class": labels.classes[i], "lidar_points": points}
-            if labels.classes[i] in VEHICLE_CLASSES and points > 0 and track != agent.track_id:
-                vehicles[track] = entry
-        doc["vehicles"] = vehicles
-        doc["cosim"] = {"agent_id": agent.agent_id, "kind": agent.kind, "track_id": agent.track_id,
-                        "cameras": extra_cams, "objects": objects}
-        if undistorted:
-            doc["cosim"]["undistorted"] = undistorted
+        seen = {t: int(v.get("lidar_points", 0)) for t, v in agent.visibility().items()}
+        classes = dict(zip((int(t) for t in view.labels.track_ids), view.labels.classes, strict=True))
+        doc["vehicles"] = {t: boxes[t] for t in boxes
+                           if classes[t] in VEHICLE_CLASSES and seen.get(t, 0) > 0 and t != agent.track_id}
         write_bytes(folder / f"{stem}.yaml", yaml_text(plain(doc)).encode())
         if lidar_t is not None:
             pcd, lidar_labels = agent.lidar_files()
             write_bytes(folder / f"{stem}.pcd", pcd)
-            write_bytes(folder / f"{stem}_lidar_labels.npy", lidar_labels)
+            write_bytes(folder / f"{stem}_lidar_labels.npz", lidar_labels)
         self.write_bev(view, agent, stem)
+        extra: dict[str, Any] = {"agent_id": agent.agent_id, "kind": agent.kind, "track_id": agent.track_id,
+                                 "cameras": extra_cams,
+                                 "lidar_points": {t: n for t, n in sorted(seen.items()) if n > 0 and t in boxes}}
+        if undistorted:
+            extra["undistorted"] = undistorted
+        return extra
 
     def write_bev(self, view: TickView, agent: AgentView, stem: str) -> None:
         layers = view.bev_maps(agent)

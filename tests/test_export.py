@@ -103,6 +103,15 @@ def load_yaml(path: Path):
     return yaml.load(path.read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
 
 
+def tick_extras(seq: Path, tick: int) -> dict:
+    """docs/exports.md: the tick's ``<tick>_cosim.json`` beside the agent folders, with its track ids as ints."""
+    doc = json.loads((seq / f"{tick:06d}_cosim.json").read_text())
+    doc["objects"] = {int(t): o for t, o in doc["objects"].items()}
+    for extra in doc["agents"].values():
+        extra["lidar_points"] = {int(t): n for t, n in extra["lidar_points"].items()}
+    return doc
+
+
 def wrap_deg(a):
     return (np.asarray(a) + 180.0) % 360.0 - 180.0
 
@@ -209,7 +218,7 @@ def test_airv2x_lidar_points_land_in_their_boxes_through_the_loaders_pose_compos
         for f in sorted(p for p in stamp.iterdir() if p.is_dir()):
             meta = pickle.loads((f / "metadata.pkl").read_bytes())
             pts = read_pcd(f / "lidar.pcd")
-            ids = np.load(f / "lidar_labels.npy")["instance_id"]
+            ids = np.load(f / "lidar_labels.npz")["instance_id"]
             assert len(ids) == len(pts) and (pts[:, 3] >= 0).all() and pts[:, 3].max() <= 1
             lidar_world = add_poses(meta["lidar"]["lidar_pose"], meta["odometry"]["ego_pos"])
             world = (x_to_world(lidar_world) @ np.c_[pts[:, :3], np.ones(len(pts))].T).T[:, :3]
@@ -288,7 +297,7 @@ def test_airv2x_bev_dynamic_layers_agree_with_boxes_and_lidar(airv2x):
             pixels += int(sel.sum())
         # LiDAR returns of vehicles, moved into the map's frame, fall on their class's pixels
         pts = read_pcd(f / "lidar.pcd")
-        ids = np.load(f / "lidar_labels.npy")["instance_id"]
+        ids = np.load(f / "lidar_labels.npz")["instance_id"]
         lidar_world = add_poses(meta["lidar"]["lidar_pose"], ego)
         world = (x_to_world(lidar_world) @ np.c_[pts[:, :3], np.ones(len(pts))].T).T[:, :3]
         dx, dy = world[:, 0] - ego[0], world[:, 1] - ego[1]
@@ -327,7 +336,7 @@ def test_opv2v_layout_ego_is_a_vehicle_and_files_parse(opv2v, labels):
         assert stems == [f"{k:06d}" for k in sorted(by_tick)]
         doc = yaml.safe_load((seq / name / f"{stems[0]}.yaml").read_text())
         assert doc["RSU"] == (int(name) < 0)
-        if doc["cosim"]["kind"] in ("vehicle", "rsu"):
+        if tick_extras(seq, int(stems[0]))["agents"][name]["kind"] in ("vehicle", "rsu"):
             assert all((seq / name / f"{stems[0]}_camera{i}.png").is_file() for i in range(4))
             assert [f"camera{i}" for i in range(4)] == [k for k in doc if k.startswith("camera")]
         assert len(read_pcd(seq / name / f"{stems[0]}.pcd")) > 100
@@ -340,12 +349,13 @@ def test_opv2v_boxes_round_trip_and_vehicles_are_the_seen_road_users(opv2v, labe
     for name in sorted(p.name for p in seq.iterdir() if p.is_dir()):
         for tick, objs in by_tick.items():
             doc = load_yaml(seq / name / f"{tick:06d}.yaml")
-            every = doc["cosim"]["objects"]
+            extras = tick_extras(seq, tick)
+            every, agent = extras["objects"], extras["agents"][name]
             assert_boxes_match(every, objs)
             for i, track in enumerate(objs.track_ids):
                 assert every[int(track)]["class"] == objs.classes[i]
             seen = {t for t, o in every.items()
-                    if o["class"] in ROAD_USERS and o["lidar_points"] > 0 and t != doc["cosim"]["track_id"]}
+                    if o["class"] in ROAD_USERS and agent["lidar_points"].get(t, 0) > 0 and t != agent["track_id"]}
             assert set(doc["vehicles"]) == seen
             for t, v in doc["vehicles"].items():
                 assert v == {k: every[t][k] for k in ("location", "center", "angle", "extent", "speed")}
@@ -357,15 +367,92 @@ def test_opv2v_points_land_in_their_boxes_with_the_yaml_lidar_pose(opv2v):
     for name in sorted(p.name for p in seq.iterdir() if p.is_dir()):
         doc = load_yaml(seq / name / "000002.yaml")
         pts = read_pcd(seq / name / "000002.pcd")
-        ids = np.load(seq / name / "000002_lidar_labels.npy")["instance_id"]
+        ids = np.load(seq / name / "000002_lidar_labels.npz")["instance_id"]
         world = (x_to_world(doc["lidar_pose"]) @ np.c_[pts[:, :3], np.ones(len(pts))].T).T[:, :3]
+        every = tick_extras(seq, 2)["objects"]
         for track in np.unique(ids[(ids > 0) & (ids < 1_000_000)]):
             sel = ids == track
-            inside += int(inside_box(doc["cosim"]["objects"][int(track)], world[sel], 0.1).sum())
+            inside += int(inside_box(every[int(track)], world[sel], 0.1).sum())
             checked += int(sel.sum())
     # several hundred object points in one tick: the ray-drop model (glass, dark and far surfaces) and the
     # hulls' windows return fewer points than the old boxes did
     assert checked > 500 and inside >= 0.99 * checked, (checked, inside)
+
+
+#: The keys of an agent's ``<tick>.yaml`` that OpenCOOD reads (docs/exports.md): nothing else goes in it.
+OPENCOOD_YAML_KEYS = {"camera0", "camera1", "camera2", "camera3", "ego_speed", "lidar_pose", "plan_trajectory",
+                      "predicted_ego_pos", "true_ego_pos", "RSU", "vehicles"}
+
+
+def test_opv2v_agent_yamls_hold_only_what_opencood_reads_and_the_tick_file_holds_the_objects(opv2v, labels):
+    by_tick, agents = labels
+    seq = only(opv2v / "validate")
+    folders = sorted(p.name for p in seq.iterdir() if p.is_dir())
+    assert sorted(p.name for p in seq.glob("*_cosim.json")) == [f"{k:06d}_cosim.json" for k in sorted(by_tick)]
+    for tick, objs in by_tick.items():
+        extras = tick_extras(seq, tick)
+        assert extras["tick"] == tick and sorted(extras["agents"]) == folders
+        assert sorted(extras["objects"]) == sorted(int(t) for t in objs.track_ids)
+        assert sorted(a["agent_id"] for a in extras["agents"].values()) == sorted(agents)
+        for name in folders:
+            doc = load_yaml(seq / name / f"{tick:06d}.yaml")
+            assert set(doc) <= OPENCOOD_YAML_KEYS, set(doc) - OPENCOOD_YAML_KEYS
+            assert set(doc["vehicles"]) <= set(extras["agents"][name]["lidar_points"])
+
+
+def test_opv2v_export_says_where_opencood_drops_agents_beyond_its_default_max_cav(episode, labels, smeared, tmp_path):
+    """15 agents: the summary prints one warning line naming the folders OpenCOOD's default ``max_cav`` (7) drops,
+    and ``data_protocol.yaml`` says it too; a 4-agent episode gets no warning."""
+    from cosim.exporters.export import ExportOptions, run_export
+
+    n = len(labels[1])
+    r = run_cli("export", str(episode), "--format", "opv2v", "--out", str(tmp_path / "full"), "--every", "5")
+    assert r.returncode == 0, r.stderr
+    warnings = [line for line in r.stdout.splitlines() if line.startswith("warning: ")]
+    seq = only(tmp_path / "full" / "train")
+    folders = sorted(p.name for p in seq.iterdir() if p.is_dir())
+    assert len(warnings) == 1 and seq.name in warnings[0] and "too many cavs" in warnings[0], r.stdout
+    assert f"set train_params.max_cav: {n}" in warnings[0]
+    assert warnings[0].split("drops ")[1].split(":")[0] == ", ".join(folders[7:])
+    opencood = yaml.safe_load((seq / "data_protocol.yaml").read_text())["opencood"]
+    assert opencood["agent_folders"] == n and opencood["default_max_cav"] == 7
+    assert f"max_cav: {n}" in opencood["note"]
+    small = run_export(smeared, "opv2v", tmp_path / "small", ExportOptions(every=5))
+    assert small.warnings == ()
+    small_note = yaml.safe_load((only(tmp_path / "small" / "train") / "data_protocol.yaml").read_text())["opencood"]
+    assert small_note["agent_folders"] < 7 and "within" in small_note["note"]
+
+
+def test_camera_files_keep_the_episodes_jpeg_or_with_png_images_are_png_of_the_same_pixels(episode, opv2v, airv2x,
+                                                                                          tmp_path):
+    """The loaders open camera files with Pillow or OpenCV, which decode by content: by default a camera file is
+    the episode's JPEG bytes; ``png_images`` writes a PNG of the same pixels."""
+    from cosim.exporters.export import ExportOptions, run_export
+
+    from cosim.io.decode import parse_proto
+
+    run_export(episode, "opv2v", tmp_path, ExportOptions(every=5, png_images=True))
+    seq, png_seq = only(opv2v / "validate"), only(tmp_path / "train")
+    folders = yaml.safe_load((seq / "data_protocol.yaml").read_text())["agent_folders"]
+    air = only(airv2x / "train") / "timestamp_000000"
+    numbers = json.loads((air.parent / "conditions.json").read_text())["agent_numbers"]
+    with open_episode(episode) as ep:
+        tick = ep.tick(0)
+        for agent, cam, opv2v_name, airv2x_name in (("vehicle_0", "front", "camera0", "front_camera"),
+                                                    ("rsu_1", "rear", "camera3", "back_camera"),
+                                                    ("drone_0", "down", "down", "bev_camera")):
+            raw = tick.raw(f"/{agent}/{cam}/image")
+            jpeg = bytes(parse_proto(raw.schema_name, raw.data, raw.schema_data).data)
+            assert jpeg[:2] == b"\xff\xd8"
+            kept = seq / folders[agent] / f"000000_{opv2v_name}.png"
+            assert kept.read_bytes() == jpeg
+            assert (air / f"agent_{numbers[agent]:06d}" / f"{airv2x_name}.png").read_bytes() == jpeg
+            png = png_seq / folders[agent] / f"000000_{opv2v_name}.png"
+            assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+            pixels = np.asarray(Image.open(png))
+            assert pixels.ndim == 3 and pixels.shape[2] == 3
+            assert np.array_equal(np.asarray(Image.open(kept).convert("RGB")), pixels)
+            assert np.array_equal(tick.image(agent, cam).array[..., :3], pixels)
 
 
 # ------------------------------------------------------------------------------- determinism, options, CLI
@@ -539,13 +626,13 @@ def exported_clouds(root: Path, layout: str):
                 meta = pickle.loads((f / "metadata.pkl").read_bytes())
                 pose = add_poses(meta["lidar"]["lidar_pose"], meta["odometry"]["ego_pos"])
                 yield (meta["agent_type"], pose, read_pcd(f / "lidar.pcd")[:, :3],
-                       np.load(f / "lidar_labels.npy")["instance_id"], table, lambda o: float(o["speed"]))
+                       np.load(f / "lidar_labels.npz")["instance_id"], table, lambda o: float(o["speed"]))
     else:
         for agent in sorted(p for p in seq.iterdir() if p.is_dir()):
             for y in sorted(agent.glob("*.yaml")):
-                doc = load_yaml(y)
-                yield (doc["cosim"]["kind"], doc["lidar_pose"], read_pcd(y.with_suffix(".pcd"))[:, :3],
-                       np.load(agent / f"{y.stem}_lidar_labels.npy")["instance_id"], doc["cosim"]["objects"],
+                doc, extras = load_yaml(y), tick_extras(seq, int(y.stem))
+                yield (extras["agents"][agent.name]["kind"], doc["lidar_pose"], read_pcd(y.with_suffix(".pcd"))[:, :3],
+                       np.load(agent / f"{y.stem}_lidar_labels.npz")["instance_id"], extras["objects"],
                        lambda o: float(o["speed"]) / 3.6)
 
 

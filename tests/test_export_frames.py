@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 import math
@@ -11,7 +12,8 @@ import open3d as o3d
 import pytest
 from cosim.exporters import carla_frames as cf
 from cosim.exporters.export import FORMATS, ExportFormat, get_format, register_format, sequence_name
-from cosim.exporters.export_io import pcd_ascii
+from cosim.exporters.export_io import depth_png, jpeg_components, npz_bytes, pcd_binary, png_bytes
+from PIL import Image
 
 from cosim.errors import InputError
 from cosim.geometry import quat_from_rpy, rotation_matrix
@@ -103,20 +105,62 @@ def test_depth_and_id_rgb24_round_trip():
         cf.encode_id_rgb24(np.array([-1]))
 
 
-def test_the_ascii_pcd_reads_back_through_open3d_with_intensity_in_red(tmp_path):
+def test_the_binary_pcd_reads_back_through_open3d_exactly_with_intensity_in_red(tmp_path):
     rng = np.random.default_rng(3)
-    xyz = rng.uniform(-150, 150, (2000, 3))
-    xyz[0] = (-9999.9994, 0.0004, 9999.9994)
+    xyz = rng.uniform(-150, 150, (2000, 3)).astype(np.float32)
+    xyz[0] = (-9999.9994, 0.0004, 123456.7)  # float32 holds what the ASCII form's millimetres could not
     intensity = rng.uniform(0, 1, 2000)
+    intensity[:3] = (0.0, 1.0, 0.5 / 255)
     path = tmp_path / "a.pcd"
-    path.write_bytes(pcd_ascii(xyz, intensity))
+    data = pcd_binary(xyz, intensity)
+    assert b"DATA binary\n" in data[:300] and len(data) - data.index(b"DATA binary\n") - 12 == 16 * len(xyz)
+    path.write_bytes(data)
     pcd = o3d.io.read_point_cloud(str(path))
-    assert np.abs(np.asarray(pcd.points) - xyz).max() <= 0.0005 + 1e-9
+    assert np.array_equal(np.asarray(pcd.points), xyz.astype(np.float64))
     colours = np.asarray(pcd.colors)
     assert np.abs(colours[:, 0] - intensity).max() <= 0.5 / 255 + 1e-9
+    assert np.array_equal(np.rint(colours[:, 0] * 255), np.rint(intensity * 255))  # the 8-bit code, as before
     assert (colours[:, 1:] == 0).all()
-    with pytest.raises(ValueError, match="beyond"):
-        pcd_ascii(np.array([[10_001.0, 0.0, 0.0]]), np.zeros(1))
+    assert pcd_binary(xyz, intensity) == data  # deterministic
+    with pytest.raises(ValueError, match="finite"):
+        pcd_binary(np.array([[np.nan, 0.0, 0.0]]), np.zeros(1))
+
+
+def test_npz_labels_read_back_with_np_load_and_are_byte_deterministic():
+    rng = np.random.default_rng(4)
+    arrays = {"class_id": rng.integers(0, 30, 5000).astype(np.uint8),
+              "instance_id": rng.integers(0, 2_000_000, 5000).astype(np.uint32),
+              "ring": rng.integers(0, 128, 5000).astype(np.uint16)}
+    data = npz_bytes(arrays)
+    assert npz_bytes(arrays) == data
+    with np.load(io.BytesIO(data)) as back:
+        assert back.files == list(arrays)
+        for name, a in arrays.items():
+            assert back[name].dtype == a.dtype and np.array_equal(back[name], a)
+
+
+def test_the_depth_png_kernel_gives_the_bytes_of_the_numpy_reference():
+    """``depth_png`` (one compiled pass) equals ``png_bytes(encode_depth_rgb24(...))`` byte for byte, NaN, infinities,
+    negatives and depths beyond the far plane included, and decodes back to the depth within one code."""
+    rng = np.random.default_rng(5)
+    d = rng.uniform(-5.0, 1200.0, (37, 53)).astype(np.float32)
+    d[rng.random(d.shape) < 0.1] = np.nan
+    d[0, :6] = [np.inf, -np.inf, 0.0, 999.99994, 1000.0, 0.5 / cf.DEPTH_LEVELS * cf.DEPTH_FAR_M]
+    assert depth_png(d) == png_bytes(cf.encode_depth_rgb24(d))
+    back = cf.decode_depth_rgb24(np.asarray(Image.open(io.BytesIO(depth_png(d)))))
+    ok = np.isfinite(d) & (d >= 0) & (d <= cf.DEPTH_FAR_M)
+    assert np.abs(back[ok] - d[ok]).max() <= cf.DEPTH_FAR_M / cf.DEPTH_LEVELS
+    assert (back[np.isnan(d)] == cf.DEPTH_FAR_M).all()
+
+
+def test_jpeg_components_reads_the_frame_header():
+    from cosim.sensors.encoding import encode_jpeg
+
+    assert jpeg_components(encode_jpeg(np.zeros((16, 24, 3), np.uint8))) == 3
+    grey = io.BytesIO()
+    Image.fromarray(np.zeros((8, 8), np.uint8)).save(grey, "JPEG")
+    assert jpeg_components(grey.getvalue()) == 1
+    assert jpeg_components(b"\x89PNG\r\n\x1a\n") == 0 and jpeg_components(b"\xff\xd8\xff") == 0
 
 
 def test_the_format_registry_lists_known_formats_and_refuses_duplicates():
