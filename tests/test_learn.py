@@ -356,6 +356,35 @@ def test_late_fusion_detects_per_agent_and_merges(tiny_batch, tmp_path):
 @needs_torch
 @pytest.mark.integration
 @pytest.mark.timeout(900)
+def test_augmented_finer_front_view_model_trains_and_predicts_from_the_cli(tiny_batch, tmp_path):
+    """Every augmentation of issue 48 on, 0.4 m pillars over a front view, width 32, on real episodes, through
+    the commands a user types; the run records its grid and options, predict rebuilds them
+    (tests/test_learn_augment.py checks each transform)."""
+    from cosim.eval.predictions import read_predictions
+
+    run, preds = tmp_path / "run", tmp_path / "preds.jsonl"
+    r = run_cli("learn", "train", str(tiny_batch), "--out", str(run), "--steps", "3", "--batch-size", "2",
+                "--every", "2", "--threads", "1", "--turn", "45", "--scale", "0.95", "1.05", "--translate-m", "0.2",
+                "--height-jitter-m", "0.2", "--point-drop", "0.1", "--intensity-scale", "2", "--intensity-noise",
+                "0.05", "--gt-sample", "4", "--pillar-m", "0.4", "--range-m", "0", "70.4", "-40", "40", "--width",
+                "32", "-q")
+    assert r.returncode == 0, r.stderr[-3000:]
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["setup"]["grid"]["pillar_m"] == 0.4 and summary["setup"]["grid"]["x_range"] == [0.0, 70.4]
+    assert summary["options"]["gt_sample"] == 4 and summary["options"]["width"] == 32
+    assert summary["gt_database_objects"] > 0
+    r = run_cli("learn", "predict", str(run), str(tiny_batch), "--split", "train", "--every", "2", "--out",
+                str(preds), "-q")
+    assert r.returncode == 0, r.stderr[-3000:]
+    records = read_predictions(preds)
+    x = np.concatenate([rec.centers_m[:, 0] for rec in records])
+    assert len(records) > 0 and len(x) > 0
+    assert x.min() >= -0.8  # the front view's boxes: ahead of the sensor (up to one output cell of offset)
+
+
+@needs_torch
+@pytest.mark.integration
+@pytest.mark.timeout(900)
 def test_bad_input_one_message_exit_2(trained, tiny_batch, tmp_path, capsys):
     import torch
 
