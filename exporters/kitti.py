@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import csv
 import functools
+import json
 import logging
 import math
 import multiprocessing
@@ -426,13 +427,18 @@ def run_kitti_export(source: Path, out: Path, options: ExportOptions, *, split: 
     """Export SOURCE (an episode or a batch folder) as one KITTI object folder ``out`` (the module's layout).
     ``agents`` chooses the egos (:func:`parse_agents`; vehicles by default). The export is written under
     ``out/.cosim-partial/kitti`` and moved to ``out/training`` and ``out/ImageSets`` when complete, replacing
-    an earlier export; an export whose marker names the same sources and options is skipped."""
+    an earlier export (never folders of those names that no export of cosim's wrote: an InputError); an export
+    whose marker names the same sources and options is skipped."""
     out = Path(out)
     parse_agents(agents)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out}: a file, not a folder (the KITTI export is a folder)")
     if workers < 1:
         raise InputError(f"--workers must be >= 1, got {workers}")
+    theirs = [sub for sub in ("training", "ImageSets") if (out / sub).exists()]
+    if theirs and not _ours(out):
+        raise InputError(f"--out {out}: holds {' and '.join(theirs)}/ that no cosim KITTI export wrote (no "
+                         f"{MARKER} of one); give a new or empty folder (the export replaces these folders whole)")
     sources = find_sources(Path(source), split)
     marker = kitti_marker(sources, options, agents)
     if is_complete(out, marker) and (out / "training").is_dir():
@@ -487,6 +493,14 @@ def run_kitti_export(source: Path, out: Path, options: ExportOptions, *, split: 
     write_bytes(out / MARKER, json_text(marker).encode())
     log.info("exported %d frame(s) of %d episode(s) -> %s", len(rows), len(sources), out)
     return ExportResult((out,), (), done)
+
+
+def _ours(out: Path) -> bool:
+    """Whether ``out`` holds a KITTI export of cosim's (its marker), which a new export may replace."""
+    try:
+        return json.loads((out / MARKER).read_text()).get("format") == "kitti"
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 def frames_csv(rows: Sequence[dict]) -> str:

@@ -473,6 +473,16 @@ def test_2d_boxes_and_truncation_from_the_projected_3d_box():
     assert bbox[0] == 0.0 and 0.0 < truncated < 1.0 and bbox[2] < 1239.0
 
 
+def test_an_out_folder_holding_someone_elses_kitti_folders_is_refused(tmp_path):
+    from cosim.exporters.export import run_export
+
+    out = tmp_path / "kitti"
+    (out / "training" / "velodyne").mkdir(parents=True)
+    with pytest.raises(InputError, match="holds training/ that no cosim KITTI export wrote"):
+        run_export(tmp_path / "no-such.mcap", "kitti", out)
+    assert sorted(p.name for p in out.iterdir()) == ["training"]
+
+
 def test_agents_is_refused_for_the_formats_that_export_every_agent(tmp_path):
     from cosim.exporters.export import run_export
 
