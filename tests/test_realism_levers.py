@@ -234,3 +234,30 @@ def test_clutter_kind_is_checked_on_load():
     with pytest.raises(Exception) as e:
         load_scenario_data({"name": "t", "map": {"clutter": "dense"}})
     assert "map.clutter" in str(e.value)
+
+
+# ------------------------------------------------------------------------------- the gap measurement
+
+
+def test_the_gap_measurement_finds_a_blind_sector_in_a_kitti_layout_scan(tmp_path):
+    """benchmarks/realism_levers.py reads a KITTI scan laser by laser (each one's azimuth wraps once, behind):
+    a synthetic scan, its lowest ring blind 60 deg behind and the next 20 deg ahead, gives those sectors."""
+    from benchmarks.realism_levers import RINGS, kitti_gaps
+
+    rows = []
+    for k in range(64):  # file order: the top laser first
+        elev = math.radians(2.0 - 0.4 * k)
+        az = np.radians(np.concatenate([np.arange(0.1, 180.0, 0.2), np.arange(-179.9, 0.0, 0.2)]))
+        if k == 63:
+            az = az[np.abs(np.degrees(az)) < 150.0]  # 60 deg blind behind
+        if k == 62:
+            az = az[np.abs(np.degrees(az)) > 10.0]  # 20 deg blind ahead
+        r = 10.0
+        rows.append(np.stack([r * np.cos(elev) * np.cos(az), r * np.cos(elev) * np.sin(az), r * np.sin(elev) + 0 * az,
+                              np.zeros_like(az)], 1))
+    scan = np.concatenate(rows).astype(np.float32)
+    scan.tofile(tmp_path / "000000.bin")
+    gaps = kitti_gaps([tmp_path / "000000.bin"])
+    assert len(gaps) == RINGS
+    assert gaps[0][0] == pytest.approx(2.0 - 0.4 * 63, abs=0.01) and gaps[0][2:] == (0, 60)
+    assert gaps[1][2:] == (20, 0) and gaps[2][2:] == (0, 0)
