@@ -5,8 +5,9 @@ the training options; written every ``save_every`` steps and at the end), ``best
 best validation AP50 so far, which ``predict`` uses when present), ``log.jsonl`` (one line per step with the
 loss, one per validation with AP30/AP50/AP70 of the vehicle group in percent) and ``summary.json`` (sizes and
 wall times). Training is deterministic on CPU: the same data, options and seed give the same weights (the
-sample order and the augmentation of step k are drawn from (seed, epoch) and (seed, k), and each step's batch
-is made from those alone, so worker processes and a resumed run change nothing).
+sample order and the augmentation of step k are drawn from (seed, epoch), (seed, k) and (seed, k, sample, n),
+and each step's batch is made from those and the ground-truth database alone, so worker processes and a
+resumed run change nothing).
 
 Only numpy, torch and the numpy-only parts of cosim learn are imported at module import (no MCAP reader),
 so that benchmarks/learn_device.py trains from a cache on a machine without cosim's dependencies.
