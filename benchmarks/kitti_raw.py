@@ -5,7 +5,9 @@ folder that ``cosim learn --kitti`` reads (docs/realism.md, "Scoring a model on 
         --drive /work/scratch/raw/data/2011_09_26/2011_09_26_drive_0001_sync \
         --calib /work/scratch/raw/data/2011_09_26 --out /work/scratch/kitti_raw_0001
 
-writes ``OUT/training/{velodyne,label_2,calib}/<frame:06d>`` and ``OUT/ImageSets/train.txt`` (every frame).
+writes ``OUT/training/{velodyne,label_2,calib}/<frame:06d>`` and ``OUT/ImageSets/``: ``trainval.txt`` (every
+frame), ``val.txt`` (the last ``--val-share``, 0.2, of the frames: a held-out stretch of the drive to choose a
+checkpoint on) and ``train.txt`` (the others).
 KITTI data is non-commercial: write it to a scratch folder, never into the repository.
 
 - **calib** (the same for every frame): ``P0``-``P3`` are the day's ``P_rect_00``-``P_rect_03``, ``R0_rect`` its
@@ -127,8 +129,10 @@ def frame_labels(tracklets: list[dict], frame: int, calib: KittiCalib, size: tup
     return out
 
 
-def convert(drive: Path, day: Path, out: Path) -> dict[str, int]:
+def convert(drive: Path, day: Path, out: Path, val_share: float = 0.2) -> dict[str, int]:
     """Write the KITTI object folder ``out/training`` of a synced raw drive; returns counts."""
+    if not 0.0 <= val_share < 1.0:
+        raise InputError(f"--val-share {val_share}: the share of frames held out must be 0 to below 1")
     scans = sorted((drive / "velodyne_points" / "data").glob("*.bin"))
     if not scans:
         raise InputError(f"{drive}: no velodyne_points/data/*.bin")
@@ -152,8 +156,11 @@ def convert(drive: Path, day: Path, out: Path) -> dict[str, int]:
         (data / "label_2" / f"{stem}.txt").write_text("".join(format_label(o, 4) + "\n" for o in objs))
         labels += len(objs)
         stems.append(stem)
-    (out / "ImageSets" / "train.txt").write_text("".join(s + "\n" for s in stems))
-    return {"frames": len(stems), "labels": labels, "tracklets": len(tracklets)}
+    n_val = int(len(stems) * val_share)
+    splits = {"trainval": stems, "train": stems[: len(stems) - n_val], "val": stems[len(stems) - n_val:]}
+    for name, part in splits.items():
+        (out / "ImageSets" / f"{name}.txt").write_text("".join(s + "\n" for s in part))
+    return {"frames": len(stems), "labels": labels, "tracklets": len(tracklets), "val": n_val}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -162,14 +169,15 @@ def main(argv: list[str] | None = None) -> int:
                                                               "tracklet_labels.xml)")
     ap.add_argument("--calib", type=Path, required=True, help="the recording day's folder with calib_*.txt")
     ap.add_argument("--out", type=Path, required=True, help="the KITTI object folder to write (training/ in it)")
+    ap.add_argument("--val-share", type=float, default=0.2, help="the last frames held out as ImageSets/val.txt")
     args = ap.parse_args(argv)
     try:
-        n = convert(args.drive, args.calib, args.out)
+        n = convert(args.drive, args.calib, args.out, args.val_share)
     except InputError as exc:
         print(f"kitti_raw: error: {exc}", file=sys.stderr)
         return 2
-    print(f"{args.out}/training: {n['frames']} frames, {n['labels']} labels in the front camera's view from "
-          f"{n['tracklets']} tracklets")
+    print(f"{args.out}/training: {n['frames']} frames ({n['val']} of them in ImageSets/val.txt), {n['labels']} labels "
+          f"in the front camera's view from {n['tracklets']} tracklets")
     return 0
 
 

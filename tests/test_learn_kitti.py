@@ -408,9 +408,10 @@ def test_raw_tracklets_become_object_labels_in_the_cameras_view(tmp_path):
     (drive / "tracklet_labels.xml").write_text(f"<boost_serialization><tracklets><count>3</count>{''.join(items)}"
                                                "</tracklets></boost_serialization>")
     out = tmp_path / "out"
-    assert main(["--drive", str(drive), "--calib", str(day), "--out", str(out)]) == 0
-    src = KittiSource(out, height_m=HEIGHT_M, split="train")
+    assert main(["--drive", str(drive), "--calib", str(day), "--out", str(out), "--val-share", "0.5"]) == 0
+    src = KittiSource(out, height_m=HEIGHT_M)
     assert src.stems == ["000000", "000001"]
+    assert KittiSource(out, height_m=HEIGHT_M, split="val").stems == ["000001"]  # the drive's last frames held out
     for k, stem in enumerate(src.stems):  # the car ahead only: the van behind and the pose out of the image are left
         scan = src.frame(stem)
         assert scan.types == ["Car"]
