@@ -66,13 +66,16 @@ def objects_to_tick(xyz: np.ndarray, t_offset_ns: np.ndarray, instance_id: np.nd
     where that surface is at the sweep's end (the renderer moves actors with their velocity, constant over the
     sweep, in time slices: what is left is the slice's half width times the speed)."""
     out = np.array(xyz, np.float64, copy=True)
-    tau = np.asarray(t_offset_ns, np.float64) * 1e-9
-    ids = np.asarray(instance_id)
     to_sensor = np.asarray(sensor_to_map, np.float64)[:3, :3].T
-    for track, v in velocities_mps.items():
-        sel = ids == track
-        if sel.any() and np.any(v):
-            out[sel] -= tau[sel, None] * (to_sensor @ np.asarray(v, np.float64))[None, :]
+    moving = sorted((int(t), v) for t, v in velocities_mps.items() if np.any(v))
+    if not moving:
+        return out
+    tracks = np.array([t for t, _ in moving], np.int64)
+    shift = np.array([to_sensor @ np.asarray(v, np.float64) for _, v in moving])  # (M, 3) per track, in the sensor
+    ids = np.asarray(instance_id).astype(np.int64)
+    at = np.minimum(np.searchsorted(tracks, ids), len(tracks) - 1)  # one lookup for all points, not one pass a track
+    sel = tracks[at] == ids
+    out[sel] -= (np.asarray(t_offset_ns, np.float64) * 1e-9)[sel, None] * shift[at[sel]]
     return out
 
 
