@@ -6,6 +6,7 @@ circle hides it, it does not untie it)."""
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from collections import defaultdict
 from pathlib import Path
@@ -34,8 +35,13 @@ def _is_type_checking(node: ast.If) -> bool:
 def imports_of(module: str, path: Path) -> list[tuple[str, bool]]:
     """(imported module or name, at module level) of every cosim import in ``path``; ``from a import b`` gives
     ``a`` and ``a.b`` (b may be a submodule). Imports under ``if TYPE_CHECKING:`` are not run: left out."""
-    tree = ast.parse(path.read_text(), str(path))
-    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    return list(_imports_in(module, str(path), path.read_text()))
+
+
+@functools.cache  # the checks below read the same files: each text is parsed once
+def _imports_in(module: str, path: str, text: str) -> tuple[tuple[str, bool], ...]:
+    tree = ast.parse(text, path)
+    package = module if path.endswith("__init__.py") else module.rpartition(".")[0]
     skipped = {id(n) for top in ast.walk(tree) if isinstance(top, ast.If) and _is_type_checking(top)
                for n in ast.walk(top)}
     top_level = {id(n) for n in tree.body}
@@ -54,7 +60,7 @@ def imports_of(module: str, path: Path) -> list[tuple[str, bool]]:
         else:
             continue
         out += [(n, id(node) in top_level) for n in names if n == "cosim" or n.startswith("cosim.")]
-    return out
+    return tuple(out)
 
 
 def module_edges(modules: dict[str, Path]) -> dict[str, set[str]]:
