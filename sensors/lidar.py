@@ -33,9 +33,7 @@ a beam's footprint straddles a near object's edge or a rain drop, the beam repor
 
 from __future__ import annotations
 
-import hashlib
 import math
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
@@ -50,7 +48,6 @@ from cosim.snapshot import AgentState
 from . import kernels
 from .environment import Atmosphere
 from .lidar_models import needs_retro, report_intensity, ring_elevations_deg
-from .raycast import build
 from .rig import Pose, body_rotation, mount_rotation, rotate, sensor_pose
 from .scene import StaticHits, TickScene, cast
 
@@ -62,10 +59,11 @@ REACH_SLACK_M = 1.0
 RETURN_SINGLE, RETURN_STRONGEST, RETURN_LAST = 0, 1, 2
 DUAL_MIN_SEPARATION_M = 1.0  # [m] a second surface nearer than this behind the first is the same return
 OWN_FACES_MAX = 12  # faces of its own shape a ray may cross (then the rest counts as a hit on nothing)
-#: [m] height of a LiDAR's optical centre above its own body's top for self-occlusion, whatever the mount's
-#: height and the vehicle's: the sensor stands on the roof (KITTI's on a rack); fitted to the gaps of
-#: KITTI's lowest rings (benchmarks/lidar_self_occlusion.py, docs/lidar_models.md)
-ROOF_CLEARANCE_M = 0.7
+#: self-occlusion's body (:func:`own_body_range`): its top this far [m] under the sensor, and this share of the
+#: own box's length; fitted to the blind sectors of KITTI's lowest rings (benchmarks/realism_levers.py gaps,
+#: docs/lidar_models.md section 4)
+BODY_DEPTH_M = 0.9
+BODY_LENGTH_SHARE = 0.98
 
 
 @dataclass(frozen=True)
@@ -492,43 +490,32 @@ def render_lidar(
     )
 
 
-#: (own body's vertices in the sensor frame to 1 mm, triangles, beam directions) digest -> :func:`own_body_range`
-_OWN_BODY: dict[bytes, np.ndarray] = {}
-_OWN_BODY_MAX = 32
-_OWN_BODY_LOCK = threading.Lock()
-
-
 def own_body_range(scene: TickScene, track: int, pose: Pose, d_sensor: np.ndarray,
-                   roof_clearance_m: float = ROOF_CLEARANCE_M) -> np.ndarray | None:
-    """Range (N,) float32 [m] from the sensor along each beam ``d_sensor`` (N, 3) (unit vectors, sensor frame)
-    to the own body of the actor ``track`` (its shape at the tick, ``scene``), inf where the beam clears it;
-    None when the scene has no such actor. The body moves with the sensor, so the ranges are those of the
-    tick for every firing of the sweep (cached by the body's shape in the sensor frame, to 1 mm). The body
-    counts as standing with its top :data:`ROOF_CLEARANCE_M` under the sensor (``roof_clearance_m``)."""
+                   depth_m: float = BODY_DEPTH_M) -> np.ndarray | None:
+    """Range (N,) float64 [m] from the sensor along each beam ``d_sensor`` (N, 3) (unit vectors, sensor frame)
+    to the own body of the actor ``track`` (its shape at the tick in ``scene``), inf where the beam clears it;
+    None when the scene has no such actor.
+
+    The body a roof LiDAR sees is its car below the windows (bonnet, boot, shoulders, mirrors; the sensor on
+    its rack looks over the roof's crown): a slab of the own shape's tight box in the sensor frame, its full
+    width and :data:`BODY_LENGTH_SHARE` of its length about the box's centre, its top ``depth_m`` under the
+    sensor whatever the mount and the model (both fitted to KITTI's lowest rings). The body moves with the
+    sensor, so the ranges hold for every firing of the sweep."""
     own = scene.actor_track == track
     if not own.any():
         return None
-    tris = scene.actors.triangles[own]
-    used, inverse = np.unique(tris, return_inverse=True)
+    used = np.unique(scene.actors.triangles[own])
     v = rotate(np.asarray(scene.actors.vertices[used], np.float64) - pose.position_m, pose.rotation.T)
-    v[:, 2] -= float(v[:, 2].max()) + roof_clearance_m
-    v_mm = np.rint(v * 1000.0).astype(np.int32)
-    tri = inverse.reshape(-1, 3).astype(np.uint32)
-    key = hashlib.blake2b(v_mm.tobytes() + tri.tobytes() + np.ascontiguousarray(d_sensor).tobytes(),
-                          digest_size=16).digest()
-    with _OWN_BODY_LOCK:
-        hit = _OWN_BODY.get(key)
-    if hit is None:
-        rays = np.zeros((len(d_sensor), 6), np.float32)
-        rays[:, 3:] = d_sensor
-        body = build(scene.static.backend, (v_mm / 1000.0).astype(np.float32), tri, "low")
-        hit, _ = cast(body, rays)
-        hit.flags.writeable = False
-        with _OWN_BODY_LOCK:
-            if len(_OWN_BODY) >= _OWN_BODY_MAX:
-                _OWN_BODY.pop(next(iter(_OWN_BODY)))
-            _OWN_BODY[key] = hit
-    return hit
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    centre_x, half_x = 0.5 * (lo[0] + hi[0]), 0.5 * BODY_LENGTH_SHARE * (hi[0] - lo[0])
+    d = np.asarray(d_sensor, np.float64)
+    out = np.full(len(d), np.inf)
+    down = np.nonzero(d[:, 2] < 0)[0]
+    s = depth_m / -d[down, 2]
+    x, y = s * d[down, 0], s * d[down, 1]
+    on = (np.abs(x - centre_x) <= half_x) & (y >= lo[1]) & (y <= hi[1])
+    out[down[on]] = s[on]
+    return out
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,13 @@ import math
 import numpy as np
 import pytest
 from cosim.sensors import SensorSuite
-from cosim.sensors.lidar import DETECTION_EXPONENT, ROOF_CLEARANCE_M, drop_probability, own_body_range
+from cosim.sensors.lidar import (
+    BODY_DEPTH_M,
+    BODY_LENGTH_SHARE,
+    DETECTION_EXPONENT,
+    drop_probability,
+    own_body_range,
+)
 from cosim.sensors.meshes import empty_mesh
 from cosim.sensors.rig import sensor_pose
 from cosim.sensors.scene import StaticScene, TickScene
@@ -90,14 +96,20 @@ def test_self_occlusion_drops_exactly_the_beams_whose_first_hit_is_the_own_body(
     assert not blocked[side].any()
 
 
-def test_own_body_counts_as_its_clearance_under_the_sensor():
-    """The body stands with its top ROOF_CLEARANCE_M under the sensor: straight down, that is the range."""
+def test_own_body_is_a_slab_of_the_own_box_under_the_sensor():
+    """The body's top lies BODY_DEPTH_M under the sensor over the own box's width and BODY_LENGTH_SHARE of its
+    length: straight down that is the range; 30 deg down, the beam meets it behind the sensor, not beside."""
     scene = TickScene.build(StaticScene(empty_mesh()), (_ego_actor(),))
-    spec = _spec(model="hdl64e")
-    down = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
-    t = own_body_range(scene, 1, sensor_pose(_ego(), spec.mount), down)
-    assert t[0] == pytest.approx(ROOF_CLEARANCE_M, abs=2e-3) and not np.isfinite(t[1])
-    assert own_body_range(scene, 99, sensor_pose(_ego(), spec.mount), down) is None  # no such actor
+    pose = sensor_pose(_ego(), _spec(model="hdl64e").mount)
+    c, s = math.cos(math.radians(30.0)), math.sin(math.radians(30.0))
+    beams = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [-c, 0.0, -s], [0.0, c, -s], [0.0, 0.0, 1.0]])
+    t = own_body_range(scene, 1, pose, beams)
+    assert t[0] == pytest.approx(BODY_DEPTH_M)
+    reach = BODY_DEPTH_M / math.tan(math.radians(30.0))  # where the 30 deg beams reach the body's top
+    assert reach < BODY_LENGTH_SHARE * ESTATE[0] / 2 and reach > ESTATE[1] / 2  # so: behind yes, beside no
+    assert t[2] == pytest.approx(BODY_DEPTH_M / s)
+    assert not np.isfinite(t[[1, 3, 4]]).any()
+    assert own_body_range(scene, 99, pose, beams) is None  # no such actor
 
 
 def test_presets_and_defaults_of_self_occlusion():
