@@ -67,7 +67,7 @@ def connected_traffic(loaded: LoadedScenario, world: World, workdir: Path, n_tic
     sc = loaded.scenario
     sim = TrafficSim(sc, world, workdir)
     try:
-        return [[v for v in sim.step_to(k * sc.tick_ns) if v.agent_id] for k in range(n_ticks)]
+        return [[v for v in sim.step_to(k * sc.tick_ns, pedestrians=False) if v.agent_id] for k in range(n_ticks)]
     finally:
         sim.close()
 

@@ -317,3 +317,22 @@ def test_hazard_lamps_glow_amber_in_a_night_camera():
     assert np.all((off[:, 0] > 150) & (off[:, 1] < 0.5 * off[:, 0]))  # the tail lights: red
     cols = np.flatnonzero(diff.any(axis=0))
     assert np.any(np.diff(cols) > 5)  # two separate lamp units, left and right
+
+
+@pytest.mark.integration  # real SUMO, a second run of the fixture's town
+def test_stepping_without_the_pedestrians_states_leaves_the_simulation_as_it_was(run, tmp_path):
+    """``step_to(t, pedestrians=False)`` (what the drones' flights and the traffic statistics use: the pedestrians'
+    posed boxes are most of a town's step) gives every other state of every tick unchanged."""
+    from cosim.traffic import TrafficSim
+    from cosim.world import build_world
+
+    loaded = _scenario()
+    sc = loaded.scenario
+    sim = TrafficSim(sc, build_world(loaded, tmp_path / "w"), tmp_path / "s")
+    try:
+        without = [sim.step_to(k * sc.tick_ns, pedestrians=False) for k in range(sc.n_ticks)]
+    finally:
+        sim.close()
+    for (states, *_), other in zip(run["ticks"], without, strict=True):
+        assert other == [s for s in states if s.cls != "pedestrian"]
+    assert any(s.cls == "pedestrian" for states, *_ in run["ticks"] for s in states)

@@ -231,8 +231,11 @@ class TrafficSim:
                 self._route_len[vid] = len(v.getRoute(vid))
                 break
 
-    def step_to(self, t_ns: int) -> list[VehicleState]:
-        """Advance to episode time ``t_ns`` and return every vehicle, sorted by SUMO id."""
+    def step_to(self, t_ns: int, pedestrians: bool = True) -> list[VehicleState]:
+        """Advance to episode time ``t_ns`` and return every vehicle, sorted by SUMO id, then the events' obstacles
+        and the pedestrians. ``pedestrians=False`` leaves the pedestrians out (the simulation is the same: their
+        states are only read, and their posed label boxes are most of a town's step) for callers that need the
+        vehicles alone."""
         if self._closed:
             raise WorkerError("traffic", "step_to after close")
         steps = Fraction(t_ns, 1_000_000_000) * self.step_hz
@@ -244,7 +247,7 @@ class TrafficSim:
         self._advance_to(target)
         hidden = self.timeline.hidden() | self.pedestrians.blockers()
         vehicles = [self._read(v, t_ns) for v in sorted(libsumo.vehicle.getIDList()) if v not in hidden]
-        return vehicles + self.timeline.obstacles() + self.pedestrians.states(t_ns)
+        return vehicles + self.timeline.obstacles() + (self.pedestrians.states(t_ns) if pedestrians else [])
 
     def events(self) -> list[dict[str, object]]:
         """The scenario's events as they stand (records of the ``/events`` topic, SUMO ids)."""
