@@ -67,7 +67,7 @@ def town_traffic() -> dict[str, dict]:
     return out
 
 
-@pytest.mark.timeout(900)  # the fixture's 2 x 120 s of SUMO take ~40 s on a quiet machine, minutes on a busy one
+@pytest.mark.timeout(900)  # the fixture's 2 x 120 s of SUMO take ~12 CPU-s on a quiet machine, minutes on a busy one
 @pytest.mark.parametrize("name", TOWNS)
 def test_traffic_lights_do_not_stall_the_town(town_traffic, name):
     """Stopped share <= STOPPED_SHARE_BOUND at every tick of 120 s, no connected vehicle still for more than 30 s."""

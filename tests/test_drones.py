@@ -570,7 +570,7 @@ def shipped_flights(tmp_path_factory):
 
 
 @pytest.mark.integration
-@pytest.mark.timeout(900)  # the module fixture flies every shipped scenario (about 35 s of CPU on a quiet machine)
+@pytest.mark.timeout(900)  # the module fixture flies every shipped scenario (about 15 s of CPU on a quiet machine)
 def test_shipped_scenarios_keep_drones_apart(shipped_flights):
     assert len(shipped_flights) >= 12
     for name, m in shipped_flights.items():
