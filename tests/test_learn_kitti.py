@@ -323,6 +323,7 @@ def test_bad_kitti_input_one_line_exit_2(tmp_path, capsys):
 # ------------------------------------------------------------------------------- cosim's own export, two ways
 
 
+@pytest.mark.integration
 def test_predictions_on_cosims_kitti_export_score_as_cosim_eval_on_the_episode(export_episode, tmp_path):
     """The same detections scored on the episode by cosim eval (ego only, LiDAR-visible ground truth) and on its
     KITTI export by cosim learn score (--fov all, every vehicle type, no point threshold): the same AP."""
