@@ -370,6 +370,34 @@ def test_predictions_on_cosims_kitti_export_score_as_cosim_eval_on_the_episode(e
     for key in ("AP30", "AP50", "AP70"):
         assert mine[key] == pytest.approx(float(theirs[key]), abs=0.01), (key, mine, theirs)
     assert 5 < mine["AP30"] < 95
+    if HAVE_TORCH:  # and a model sees the same scans both ways: its detections on the export are those on the episode
+        _a_model_detects_the_same_on_the_export(export_episode, src, rows[:4])
+
+
+def _a_model_detects_the_same_on_the_export(episode: Path, src: KittiSource, rows: list[dict]) -> None:
+    import torch
+
+    from cosim.eval.dataset import load_dataset
+    from cosim.learn.data import Samples
+    from cosim.learn.kitti import predict_source
+    from cosim.learn.samples import Setup
+    from cosim.learn.train import TrainOptions, new_model, predict_sample
+
+    cpu = torch.device("cpu")
+    setup = Setup()  # no LiDAR height recorded: the export's scans are not moved
+    model = new_model(setup, TrainOptions(seed=3), cpu).eval()
+    on_export = predict_source(model, setup, src, cpu)
+    samples = Samples(load_dataset(episode), setup, every=2)
+    index = {key: i for i, key in enumerate(samples.src.keys)}
+    found = 0
+    for row in rows:
+        item = samples.item(index[(row["episode"], int(row["tick"]), row["agent_id"])])
+        boxes, scores, _cls = predict_sample(model, item, setup, cpu)
+        k_boxes, k_scores, _k_cls = on_export[int(row["stem"])]
+        assert k_boxes == pytest.approx(boxes, abs=1e-4) and k_scores == pytest.approx(scores, abs=1e-5), row
+        found += len(boxes)
+    samples.close()
+    assert found > 0
 
 
 # ------------------------------------------------------------------------------------------ the raw converter
