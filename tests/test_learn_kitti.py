@@ -157,6 +157,8 @@ def test_scoring_counts_the_camera_view_and_ignores_dontcare_other_types_and_spa
     assert sparse["cars"] == 3 and sparse["recall 20-40 m"] == 0.5 and sparse["false positives"] == 1
     strict = score_source(src, preds, ScoreOptions(ignore=False)).summary()
     assert strict["false positives"] == 4  # the pedestrian's, the DontCare one, FEW's and FALSE
+    none = score_source(src, _dets(), ScoreOptions()).summary()  # a frame without detections: all missed
+    assert (none["cars"], none["recall 0-20 m"], none["false positives"], none["AP30"]) == (2, 0.0, 0, 0.0)
     near = score_source(src, preds, ScoreOptions(max_range_m=20)).summary()
     assert near["cars"] == 1 and near["AP30"] == pytest.approx(100.0)
 

@@ -232,7 +232,8 @@ def box_point_counts(xyz: np.ndarray, boxes: np.ndarray, margin_m: float = 0.1, 
 def in_view(xyz: np.ndarray, frame: Scan, fov: str) -> np.ndarray:
     """(N,) bool: points or box centres (N, >=3, velodyne frame) inside the field of view ``fov``
     (:data:`FOVS`; ``camera`` without P2 is the front 90 deg; ``all``: cosim eval's evaluation area)."""
-    xyz = np.asarray(xyz, np.float64).reshape(len(xyz), -1)
+    xyz = np.asarray(xyz, np.float64)
+    xyz = xyz.reshape(len(xyz), -1) if xyz.size else np.zeros((0, 3))
     if fov == "all":
         return (np.abs(xyz[:, 0]) <= AREA_HALF_M[0]) & (np.abs(xyz[:, 1]) <= AREA_HALF_M[1])
     if fov == "camera" and frame.image_from_velo is not None:

@@ -12,6 +12,7 @@ green, missed: red, ignored: grey) and the detections (true: blue, false: orange
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 from typing import Any
@@ -83,8 +84,11 @@ def transfer(runs: list[tuple[str, Path]], sources: list[Any], o: Any, device: A
     for s in sources:
         rows = [r for r in per_run if r["folder"] == s.id]
         first = rows[0]
+        nothing = {int(t): (np.zeros((0, 7)), np.zeros(0)) for t in s.stems}
+        front = score_source(s, nothing, dataclasses.replace(o, fov="front90")).summary()["cars"]
         folder = {"folder": s.id, "scans": len(s), "height_m": s.height_m, "height_given": s.height_given,
-                  "cars": first["cars"], **{k: first[k] for k in first if k.startswith("cars ")}, "names": {}}
+                  "cars": first["cars"], **{k: first[k] for k in first if k.startswith("cars ")},
+                  "cars front 90 deg": front, "names": {}}
         for n in names:
             mine = [r for r in rows if r["name"] == n]
             folder["names"][n] = {"seeds": len(mine), **{c: spread([r[c] for r in mine]) for c in cols}}
@@ -119,11 +123,13 @@ def markdown(report: dict[str, Any]) -> str:
     cols = (*REPORT_COLUMNS[:3], f"recall 0-{o.max_range_m:g} m", *REPORT_COLUMNS[3:])
     lines = ["# Transfer to real scans", "", score_title(o) + "; mean over seeds (lowest-highest).", ""]
     for f in report["folders"]:
-        bands = ", ".join(f"{k.removeprefix('cars ')}: {v}" for k, v in f.items() if k.startswith("cars "))
+        bands = ", ".join(f"{k.removeprefix('cars ')}: {v}" for k, v in f.items()
+                          if k.startswith("cars ") and k.endswith(" m"))
         lines += [f"## {f['folder']}", "",
                   f"{f['scans']} scans, LiDAR {f['height_m']:.3f} m above the road "
                   f"({'given' if f['height_given'] else 'estimated'}); {f['cars']} vehicles within "
-                  f"{o.max_range_m:g} m ({bands}).", "",
+                  f"{o.max_range_m:g} m ({bands}); {f['cars front 90 deg']} in the front 90 deg within "
+                  f"{o.max_range_m:g} m.", "",
                   "| model | seeds | " + " | ".join(cols) + " |", "|---|---:" + "|---:" * len(cols) + "|"]
         for n, row in f["names"].items():
             lines.append(f"| {n} | {row['seeds']} | " + " | ".join(_fmt(row[c], c.startswith("AP")) for c in cols)
