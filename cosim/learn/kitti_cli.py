@@ -174,7 +174,7 @@ def cmd_train(args: argparse.Namespace, setup: Any, opts: Any) -> int:
     what = f"{len(refs)} episodes" if refs is not None else ", ".join(s.id for s in train_src)
     print(f"run      {args.out}\n"
           f"data     {summary['train_samples']} samples from {what} "
-          f"(val: {', '.join(s.id for s in val_src) or 'none'})\n"
+          f"(val: {', '.join(s.id for s in val_src) or (f'{len(val.refs)} episodes' if val is not None else 'none')})\n"
           f"steps    {summary['steps']}, final loss "
           f"{'-' if summary['final_loss'] is None else format(summary['final_loss'], '.4g')} "
           "(summary.json: unrounded)\n"
