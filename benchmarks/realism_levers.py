@@ -174,12 +174,12 @@ def picture(args) -> None:
     real = np.fromfile(args.kitti, np.float32).reshape(-1, 4)[:, :3].astype(np.float64)
     panels = [(_sweep_points(eps / "off", args.tick), "cosim hdl64e, levers off"),
               (_sweep_points(eps / "on", args.tick), "cosim hdl64e, self-occlusion + clutter (kitti)"),
-              (real, f"KITTI {Path(args.kitti).name} (real HDL-64E)")]
+              (real, f"KITTI {Path(args.kitti).name}, a real HDL-64E")]
     fig, axes = plt.subplots(1, 3, figsize=(18, 6.4), sharex=True, sharey=True)
     for ax, (p, title) in zip(axes, panels, strict=True):
         keep = np.hypot(p[:, 0], p[:, 1]) < 30.0
         ax.scatter(p[keep, 0], p[keep, 1], s=0.15, c=np.clip(p[keep, 2], -2.0, 1.5), cmap="turbo", vmin=-2.0, vmax=1.5)
-        ax.set_title(f"{title}: {len(p):,} points")
+        ax.set_title(f"{title}\n{len(p):,} points", fontsize=10)
         ax.set_xlim(-30, 30)
         ax.set_ylim(-30, 30)
         ax.set_aspect("equal")
