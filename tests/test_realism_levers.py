@@ -164,11 +164,9 @@ def worlds(tmp_path_factory):
 
     data = {"name": "c", "seed": 4, "map": {"kind": "urban", "size_m": 200}, "parked": {"density_veh_per_km": 60}}
     off = build_world(load_scenario_data(data), tmp_path_factory.mktemp("off"))
-    none = build_world(load_scenario_data({**data, "map": {**data["map"], "clutter": "none"}}),
-                       tmp_path_factory.mktemp("none"))
     on = build_world(load_scenario_data({**data, "map": {**data["map"], "clutter": "kitti"}}),
                      tmp_path_factory.mktemp("on"))
-    return off, none, on
+    return data, off, on
 
 
 def _samples(poly: np.ndarray, step_m: float = 0.1) -> np.ndarray:
@@ -187,8 +185,10 @@ def test_clutter_is_off_the_road_and_out_of_every_label_box(worlds):
     from cosim.world.layout import road_polygons
     from cosim.world.network import read_network
 
-    off, none, on = worlds
-    assert off.to_wire() == none.to_wire()  # absent and none: the same world
+    data, off, on = worlds
+    none = load_scenario_data({**data, "map": {**data["map"], "clutter": "none"}})
+    assert none.scenario == load_scenario_data(data).scenario  # absent and none: the same scenario
+    assert "clutter" not in none.resolved["map"]  # and the same resolved scenario (the world's input)
     n = len(off.layout.prisms)
     assert on.layout.prisms[:n] == off.layout.prisms  # clutter only adds, after everything the layout placed
     clutter = on.layout.prisms[n:]
@@ -210,8 +210,8 @@ def test_clutter_is_off_the_road_and_out_of_every_label_box(worlds):
 
 @pytest.mark.integration
 def test_clutter_classes_and_heights(worlds):
-    _, _, on = worlds
-    n = len(worlds[0].layout.prisms)
+    _, off, on = worlds
+    n = len(off.layout.prisms)
     clutter = on.layout.prisms[n:]
     veg = [p.z1_m for p in clutter if p.cls == "vegetation"]
     assert min(veg) < 1.5 and max(veg) > 3.0  # vegetation of several heights
