@@ -165,8 +165,9 @@ def test_jpeg_components_reads_the_frame_header():
 
 def test_the_format_registry_lists_known_formats_and_refuses_duplicates():
     assert get_format("airv2x").name == "airv2x" and get_format("opv2v").split_dir("val") == "validate"
-    with pytest.raises(InputError, match="known: airv2x, opv2v"):
-        get_format("kitti")
+    assert get_format("kitti").name == "kitti"
+    with pytest.raises(InputError, match="known: airv2x, kitti, opv2v"):
+        get_format("nuscenes")
 
     class Duplicate(ExportFormat):
         name = "airv2x"

@@ -235,8 +235,9 @@ def test_learn_without_torch_says_how_to_install(tmp_path):
     fake.mkdir(parents=True)
     (fake / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'torch'\", name='torch')\n")
     env = {"PYTHONPATH": f"{tmp_path / 'site'}:{REPO}"}
+    (tmp_path / "trained").mkdir()  # predict's RUN must exist: the argument check comes before torch is needed
     for args in (["learn", "train", str(tmp_path), "--out", str(tmp_path / "run")],
-                 ["learn", "predict", str(tmp_path / "run"), str(tmp_path), "--out", str(tmp_path / "p.jsonl")]):
+                 ["learn", "predict", str(tmp_path / "trained"), str(tmp_path), "--out", str(tmp_path / "p.jsonl")]):
         r = run_cli(*args, env=env)
         assert r.returncode == 2, r.stderr
         assert "pip install -e '.[learn]'" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
