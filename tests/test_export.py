@@ -532,7 +532,8 @@ def test_bad_input_is_one_message_and_exit_status_2(episode, tmp_path, capsys):
     from cosim.cli import main
 
     for args, needle in [
-        (["--format", "kitti", "--out", str(tmp_path)], "unknown export format 'kitti'; known: airv2x, opv2v"),
+        (["--format", "nuscenes", "--out", str(tmp_path)],
+         "unknown export format 'nuscenes'; known: airv2x, kitti, opv2v"),
         (["--format", "airv2x", "--out", str(tmp_path / "2024_01_02_03_04_05")], "date-like"),
         (["--format", "airv2x", "--out", str(tmp_path), "--every", "0"], "--every must be >= 1"),
         (["--format", "opv2v", "--out", str(tmp_path), "--raw-lidar", "--objects-at-tick"],
