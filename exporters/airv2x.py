@@ -16,7 +16,15 @@ from typing import Any, ClassVar
 import numpy as np
 from cosim.exporters import carla_frames as cf
 from cosim.exporters.export import AgentView, ExportFormat, SequenceInfo, TickView, register_format
-from cosim.exporters.export_io import depth_png, json_text, pickle_bytes, plain, png_bytes, write_bytes
+from cosim.exporters.export_io import (
+    SPARSE_PNG_LEVEL,
+    depth_png,
+    json_text,
+    pickle_bytes,
+    plain,
+    png_bytes,
+    write_bytes,
+)
 
 from cosim.errors import CosimError
 from cosim.io import Episode
@@ -159,10 +167,10 @@ class AirV2XFormat(ExportFormat):
         road = layers.get("road", zero) & ~lane
         background = ~(lane | road)
         for name, img in zip(STATIC_MAPS, (background, lane, road), strict=True):
-            write_bytes(folder / f"map_static_{name}.png", png_bytes(img))
+            write_bytes(folder / f"map_static_{name}.png", png_bytes(img, SPARSE_PNG_LEVEL))
         for k in range(7):
             img = zero.copy()
             for name, layer in layers.items():
                 if CLASS_IDS.get(name) == k:
                     img |= layer
-            write_bytes(folder / f"map_dynamic_bev_layer_{k}.png", png_bytes(img))
+            write_bytes(folder / f"map_dynamic_bev_layer_{k}.png", png_bytes(img, SPARSE_PNG_LEVEL))

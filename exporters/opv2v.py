@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 from cosim.exporters import carla_frames as cf
 from cosim.exporters.export import AgentView, ExportFormat, SequenceInfo, TickView, register_format
-from cosim.exporters.export_io import json_text, plain, png_bytes, write_bytes, yaml_text
+from cosim.exporters.export_io import SPARSE_PNG_LEVEL, json_text, plain, png_bytes, write_bytes, yaml_text
 
 from cosim.io import Episode
 
@@ -180,4 +180,4 @@ class Opv2vFormat(ExportFormat):
         static = layers.get("road", zero) | layers.get("lane_marking", zero)
         folder = self.staged(self.extra_roots(self.seq.split, self.seq.name)[0]) / self.folders[agent.agent_id]
         for name, img in (("dynamic", dynamic), ("static", static), ("lane", layers.get("lane_marking", zero))):
-            write_bytes(folder / f"{stem}_bev_{name}.png", png_bytes(img))
+            write_bytes(folder / f"{stem}_bev_{name}.png", png_bytes(img, SPARSE_PNG_LEVEL))

@@ -12,7 +12,14 @@ import open3d as o3d
 import pytest
 from cosim.exporters import carla_frames as cf
 from cosim.exporters.export import FORMATS, ExportFormat, get_format, register_format, sequence_name
-from cosim.exporters.export_io import depth_png, jpeg_components, npz_bytes, pcd_binary, png_bytes
+from cosim.exporters.export_io import (
+    SPARSE_PNG_LEVEL,
+    depth_png,
+    jpeg_components,
+    npz_bytes,
+    pcd_binary,
+    png_bytes,
+)
 from PIL import Image
 
 from cosim.errors import InputError
@@ -146,7 +153,7 @@ def test_the_depth_png_kernel_gives_the_bytes_of_the_numpy_reference():
     d = rng.uniform(-5.0, 1200.0, (37, 53)).astype(np.float32)
     d[rng.random(d.shape) < 0.1] = np.nan
     d[0, :6] = [np.inf, -np.inf, 0.0, 999.99994, 1000.0, 0.5 / cf.DEPTH_LEVELS * cf.DEPTH_FAR_M]
-    assert depth_png(d) == png_bytes(cf.encode_depth_rgb24(d))
+    assert depth_png(d) == png_bytes(cf.encode_depth_rgb24(d), SPARSE_PNG_LEVEL)
     back = cf.decode_depth_rgb24(np.asarray(Image.open(io.BytesIO(depth_png(d)))))
     ok = np.isfinite(d) & (d >= 0) & (d <= cf.DEPTH_FAR_M)
     assert np.abs(back[ok] - d[ok]).max() <= cf.DEPTH_FAR_M / cf.DEPTH_LEVELS
