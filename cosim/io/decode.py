@@ -92,9 +92,8 @@ class Image:
             m = a.astype(np.float32) / 1000.0
             m[(a == 0) | (a == np.iinfo(a.dtype).max)] = np.nan
             return m
-        m = a.astype(np.float32)
-        m[~np.isfinite(m) | (m <= 0)] = np.nan
-        return m
+        m = a if a.dtype == np.float32 else a.astype(np.float32)
+        return np.where((m > 0) & (m < np.inf), m, np.float32(np.nan))  # one new array, not a copy and a masked write
 
 
 @dataclass(frozen=True)
