@@ -598,6 +598,7 @@ def _chunks(ticks: Sequence[int], n: int) -> list[tuple[int, ...]]:
 
 
 def check_output_dir(out: Path) -> None:
+    check_output_folder(out)  # a file, or under one: one message before .cosim-partial is made
     m = DATE_LIKE.search(str(out.resolve()))
     if m:
         raise InputError(f"--out {out}: the path holds the date-like {m.group(0)!r}; the devkit's evaluation takes "
@@ -635,8 +636,8 @@ def run_export(source: Path, fmt: str, out: Path, options: ExportOptions | None 
     names = sequence_names(sources)
     jobs = []
     skipped: list[Path] = []
-    total = 0
     warnings: list[str] = []
+    total = 0
     for src, name in zip(sources, names, strict=True):
         final = out / cls.split_dir(src.split) / name
         marker = marker_content(fmt, src, options, name)
