@@ -257,7 +257,8 @@ def test_cli_exits_2_with_one_message_on_malformed_predictions(tmp_path):
     f = tmp_path / "bad.jsonl"
     f.write_text('{"episode": "e", "tick": 0, "ego": "vehicle_0", "boxes": [{"center_m": [0, 0, 0], '
                  '"size_m": [4, 2, 1], "yaw_rad": "north", "class": "car", "score": 1}]}\n')
-    r = run_cli("eval", "--gt", str(tmp_path / "nothing.mcap"), "--pred", str(f), "--out", str(tmp_path / "o"))
+    (tmp_path / "gt").mkdir()  # exists (the argument check passes); the predictions are read before it is
+    r = run_cli("eval", "--gt", str(tmp_path / "gt"), "--pred", str(f), "--out", str(tmp_path / "o"))
     assert r.returncode == 2
     assert r.stderr.strip().splitlines() == [f"cosim: error: {f}:1: boxes[0].yaw_rad: must be a finite number "
                                              "[rad], got 'north'"]
