@@ -238,6 +238,19 @@ def _train_samples(grid: Grid | None = None) -> _Samples:
 
 
 @needs_torch
+def test_a_front_view_grid_is_never_mirrored_in_x():
+    from cosim.learn.train import TrainOptions, step_batch
+
+    grid = make_grid(0.8, (0.0, 70.4), (-40.0, 40.0))
+    samples = _train_samples(grid)
+    order = np.arange(len(samples))
+    for step in range(8):  # each step draws both mirrors; the x mirror would put every point behind the sensor
+        b = step_batch(samples, order, 0, TrainOptions(batch_size=2, seed=0), step)
+        assert b["t_mask"].sum() == sum(len(samples.item(j % len(samples))["targets"][0][0]) for j in (0, 1))
+        assert (b["feats"][:, 0] >= 0).all()
+
+
+@needs_torch
 def test_every_augmentation_is_repeatable_from_the_seed():
     from cosim.learn.train import TrainOptions, step_batch
 

@@ -279,11 +279,15 @@ def step_batch(samples: Any, order: np.ndarray, start: int, opts: TrainOptions, 
     database of ``opts.gt_sample``."""
     rng = np.random.default_rng([opts.seed, step])
     setup = samples.setup
+    g = setup.grid
+    mirrors = np.array([g.x_range[0] == -g.x_range[1], g.y_range[0] == -g.y_range[1]])
     clouds, tgts, per_sample, poses, kinds = [], [], [], [], []
     for j in range(opts.batch_size):
         item = samples.item(int(order[(start + j) % len(order)]))
         k = int(rng.integers(len(item["clouds"])))  # late fusion: one agent's cloud of the sample
-        flip = rng.random(2) < 0.5
+        # a mirror stays only where the grid is symmetric about that axis: a front-view grid (x from 0) mirrored
+        # in x would see nothing of a camera-view scan (and lose its targets); the draw is kept either way
+        flip = (rng.random(2) < 0.5) & mirrors
         # drawn only when turning, so that runs without it keep their batches
         turn = math.radians(opts.turn_deg) * rng.uniform(-1.0, 1.0) if opts.turn_deg else 0.0
         streams = [np.random.default_rng([opts.seed, step, j, n]) for n in (1, 2, 3)] if opts.augments() else None
