@@ -46,6 +46,7 @@ from cosim.exporters.export import (
     ExportResult,
     Source,
     TickView,
+    _replace_dir,
     agent_frames,
     find_sources,
     is_complete,
@@ -488,7 +489,7 @@ def run_kitti_export(source: Path, out: Path, options: ExportOptions, *, split: 
         write_bytes(partial / "ImageSets" / f"{name}.txt", "".join(f"{s}\n" for s in stems).encode())
     (out / MARKER).unlink(missing_ok=True)
     for sub in ("training", "ImageSets"):
-        _replace(partial / sub, out / sub)
+        _replace_dir(partial / sub, out / sub)
     shutil.rmtree(out / PARTIAL_DIR)
     write_bytes(out / MARKER, json_text(marker).encode())
     log.info("exported %d frame(s) of %d episode(s) -> %s", len(rows), len(sources), out)
@@ -512,18 +513,6 @@ def frames_csv(rows: Sequence[dict]) -> str:
     w.writeheader()
     w.writerows(rows)
     return buf.getvalue()
-
-
-def _replace(src: Path, dst: Path) -> None:
-    if dst.exists():
-        old = dst.parent / f".{dst.name}.old"
-        if old.exists():
-            shutil.rmtree(old)
-        dst.rename(old)
-        src.rename(dst)
-        shutil.rmtree(old)
-    else:
-        src.rename(dst)
 
 
 @register_format

@@ -637,14 +637,10 @@ def validate_checkpoints(run: Path, sources: Sequence[KittiSource], o: ScoreOpti
     before skipped. Yields (step, AP dict)."""
     import torch
 
-    from cosim.learn.train import CHECKPOINT, _append_log, device_of, load_run, read_log
+    from cosim.learn.train import _append_log, device_of, load_run, read_log, run_checkpoints
 
     run = Path(run)
-    files = sorted(run.glob("checkpoint_*.pt"))
-    if (run / CHECKPOINT).is_file():
-        files.append(run / CHECKPOINT)
-    if not files:
-        raise InputError(f"{run}: no checkpoints (train with --keep-every N to keep some)")
+    files = run_checkpoints(run)
     if threads:
         torch.set_num_threads(threads)
     split = "kitti:" + ",".join(s.id for s in sources)

@@ -617,6 +617,16 @@ def init_weights(model: PillarDetector, run: Path, setup: Setup, device: torch.d
     model.load_state_dict(theirs)
 
 
+def run_checkpoints(run: Path) -> list[Path]:
+    """A run's kept ``checkpoint_<step>.pt`` files in order, then its last checkpoint; none is an error."""
+    files = sorted(run.glob("checkpoint_*.pt"))
+    if (run / CHECKPOINT).is_file():
+        files.append(run / CHECKPOINT)
+    if not files:
+        raise InputError(f"{run}: no checkpoints (train with --keep-every N to keep some)")
+    return files
+
+
 def validate_checkpoints(run: Path, refs: list[EpisodeRef], every: int, split: str, threads: int | None = None,
                          cache: Path | None = None, from_step: int = 0):
     """Score ``checkpoint_<step>.pt`` of a run (and its last checkpoint) at steps >= ``from_step`` on
@@ -624,11 +634,7 @@ def validate_checkpoints(run: Path, refs: list[EpisodeRef], every: int, split: s
     ``split`` with the same ``every``; each result is appended to the run's ``log.jsonl`` as ``{"step",
     "val", "split", "every"}`` (the training's own validations have no ``split``). Yields (step, AP dict)."""
     run = Path(run)
-    files = sorted(run.glob("checkpoint_*.pt"))
-    if (run / CHECKPOINT).is_file():
-        files.append(run / CHECKPOINT)
-    if not files:
-        raise InputError(f"{run}: no checkpoints (train with --keep-every N to keep some)")
+    files = run_checkpoints(run)
     if threads:
         torch.set_num_threads(threads)
     device = device_of(None)
