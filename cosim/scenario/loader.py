@@ -365,29 +365,38 @@ def _model_at(path: Sequence[str | int], data: Any) -> type[BaseModel] | None:
     """The pydantic model class that validates the mapping at ``path`` (for key suggestions)."""
     from cosim.scenario import model as m
 
+    drone_of = {"hover": m.HoverDrone, "patrol": m.PatrolDrone, "escort": m.EscortDrone}
     cls: Any = Scenario
     node = data
+    items: Any = None  # the model of the values of a mapping field (``rigs``): the next part is a key
     for part in path:
         if isinstance(part, int):
             node = node[part] if isinstance(node, list) and part < len(node) else None
+            if items == "drones":
+                cls = drone_of.get(node.get("strategy", "hover")) if isinstance(node, dict) else None
+            items = None
+            continue
+        node = node.get(part) if isinstance(node, dict) else None
+        if items is not None:
+            cls, items = items, None
             continue
         if not (isinstance(cls, type) and issubclass(cls, BaseModel)) or part not in cls.model_fields:
             return None
-        node = node.get(part) if isinstance(node, dict) else None
         ann = cls.model_fields[part].annotation
         if part == "drones":
-            cls = None
+            cls, items = None, "drones"
             continue
         cls = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
         if cls is None and ann is not None:
             for arg in getattr(ann, "__args__", ()):
                 if isinstance(arg, type) and issubclass(arg, BaseModel):
                     cls = arg
+            if getattr(ann, "__origin__", None) is dict:
+                cls, items = None, cls
     if cls is None and isinstance(node, dict) and "strategy" in node:
-        cls = {"hover": m.HoverDrone, "patrol": m.PatrolDrone, "escort": m.EscortDrone}.get(node["strategy"])
+        cls = drone_of.get(node["strategy"])
     if cls is None and len(path) >= 2 and path[-2] == "drones" and isinstance(node, dict):
-        cls = {"hover": m.HoverDrone, "patrol": m.PatrolDrone, "escort": m.EscortDrone}.get(
-            node.get("strategy", "hover"))
+        cls = drone_of.get(node.get("strategy", "hover"))
     return cls
 
 

@@ -206,13 +206,43 @@ class TrafficSpec(Model):
 # -------------------------------------------------------------------------------------- agents
 
 
-class VehicleAgents(Model):
+class AgentRigs(Model):
+    """What a group of counted agents (vehicles, RSUs) shares: ``rigs``, one agent's own rig by agent id
+    (``vehicle_1: {lidar: {model: vlp16}}``, ``vehicle_2: {lidar: null}``), given partly and completed field
+    by field from its kind's rig ``sensors.<kind>`` (:func:`complete_agent_rigs`). Left out of the resolved
+    scenario while empty (:meth:`_dump`), so episodes without per-agent rigs keep their bytes."""
+
     count: int = Field(4, ge=0, le=32)
+    rigs: dict[str, RigSpec] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _rig_ids_exist(self) -> AgentRigs:
+        prefix = AGENT_KIND_OF_GROUP[type(self).__name__]
+        for agent_id in self.rigs:
+            stem, _, index = agent_id.rpartition("_")
+            if stem != prefix or not index.isdigit() or str(int(index)) != index:
+                raise RuleError(f"rigs.{agent_id}", f"{agent_id!r} is not a {prefix} id (expected {prefix}_0, "
+                                                    f"{prefix}_1, ...)")
+            if int(index) >= self.count:
+                have = (f"{self.count} ({prefix}_0..{prefix}_{self.count - 1})" if self.count else
+                        f"none (agents.{prefix}s.count is 0)")
+                raise RuleError(f"rigs.{agent_id}", f"no agent {agent_id!r}: the scenario's {prefix} agents are "
+                                                    f"{have}")
+        return self
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: Any) -> Any:
+        out = handler(self)
+        if not self.rigs:
+            out.pop("rigs", None)
+        return out
+
+
+class VehicleAgents(AgentRigs):
     vclass: ObjectClass = "car"
 
 
-class RsuAgents(Model):
-    count: int = Field(4, ge=0, le=32)
+class RsuAgents(AgentRigs):
     height_m: tuple[float, float] = (6.0, 10.0)  # [m] pole height range, drawn per RSU
 
     @model_validator(mode="after")
@@ -223,6 +253,10 @@ class RsuAgents(Model):
         return self
 
 
+#: The agent kind (id prefix) of each group of counted agents.
+AGENT_KIND_OF_GROUP = {"VehicleAgents": "vehicle", "RsuAgents": "rsu"}
+
+
 class DroneBase(Model):
     backend: DynamicsBackend | None = None  # None = agents.drone_backend
     altitude_m: float = Field(60.0, ge=5.0, le=300.0)  # [m] above ground
@@ -230,6 +264,16 @@ class DroneBase(Model):
     start: MapXY | None = None  # [m] map x, y; None = chosen by the strategy
     clearance_m: float = Field(10.0, ge=0.0, le=200.0)  # [m] kept above obstacle tops along the path
     plan_altitude: bool = True  # False: fly at altitude_m whatever is below (can collide; for tests)
+    #: this drone's own rig, given partly and completed field by field from ``sensors.drone``
+    #: (:func:`complete_agent_rigs`); None: ``sensors.drone`` itself (left out of the resolved scenario)
+    rig: RigSpec | None = None
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: Any) -> Any:
+        out = handler(self)
+        if self.rig is None:
+            out.pop("rig", None)
+        return out
 
 
 class HoverDrone(DroneBase):
@@ -289,8 +333,8 @@ class AgentsSpec(Model):
     #: connected vehicles as a group on one shared route, stands the RSUs at the junctions of that route and
     #: sends hover and patrol drones over it; ``spread`` draws every agent independently over the map
     layout: Literal["cooperative", "spread"] = "cooperative"
-    vehicles: VehicleAgents = VehicleAgents()
-    rsus: RsuAgents = RsuAgents()
+    vehicles: VehicleAgents = Field(default_factory=VehicleAgents)
+    rsus: RsuAgents = Field(default_factory=RsuAgents)
     drones: list[DroneSpec] = Field(
         default_factory=lambda: [HoverDrone(), PatrolDrone(), EscortDrone(target="vehicle_0")]
     )
@@ -530,6 +574,51 @@ def complete_rigs(sensors: Any, lidar: bool = True) -> Any:
     return out
 
 
+def complete_agent_rigs(data: Any) -> Any:
+    """Scenario ``data`` with every per-agent rig (``agents.vehicles.rigs.<id>``, ``agents.rsus.rigs.<id>``,
+    ``agents.drones.<i>.rig``) completed field by field from its kind's rig ``sensors.<kind>``, as
+    :func:`complete_rigs` completes a kind's rig from the kind's default: ``vehicle_1: {lidar: {model:
+    vlp16}}`` keeps the vehicle rig's cameras, GNSS, IMU and LiDAR mount and levers and takes the preset's
+    rings and ranges (:func:`cosim.scenario.lidar_presets.expand_lidar`, with the kind's LiDAR, or the kind's
+    default LiDAR where the kind has none, beneath it); ``{lidar: null}`` drops the LiDAR. A kind's rig that
+    is itself invalid is reported at ``sensors.<kind>`` alone: its agents' rigs are then completed from the
+    kind's default rig. Anything not a mapping is left for validation to report."""
+    if not isinstance(data, dict) or not isinstance(data.get("agents"), dict):
+        return data
+    agents = dict(data["agents"])
+    kinds = complete_rigs(data.get("sensors", {}))
+    kinds = kinds if isinstance(kinds, dict) else {}
+    bases: dict[str, dict[str, Any]] = {}
+
+    def complete(kind: str, given: Any) -> Any:
+        if not isinstance(given, dict):
+            return given
+        if kind not in bases:
+            bases[kind] = _valid_rig(kinds.get(kind)) or DEFAULT_RIGS[kind]().model_dump(mode="json")
+        base = bases[kind]
+        if isinstance(given.get("lidar"), dict):
+            under = base["lidar"] or DEFAULT_RIGS[kind]().model_dump(mode="json")["lidar"]
+            given = {**given, "lidar": expand_lidar(kind, under, given["lidar"])}
+        return merge_fields(base, given)
+
+    for group, kind in (("vehicles", "vehicle"), ("rsus", "rsu")):
+        spec = agents.get(group)
+        if isinstance(spec, dict) and isinstance(spec.get("rigs"), dict):
+            agents[group] = {**spec, "rigs": {k: complete(kind, v) for k, v in spec["rigs"].items()}}
+    if isinstance(agents.get("drones"), list):
+        agents["drones"] = [{**d, "rig": complete("drone", d["rig"])} if isinstance(d, dict) and "rig" in d else d
+                            for d in agents["drones"]]
+    return {**data, "agents": agents}
+
+
+def _valid_rig(data: Any) -> dict[str, Any] | None:
+    """``data`` as a complete rig's JSON when it is a valid rig, else None."""
+    try:
+        return RigSpec.model_validate(data).model_dump(mode="json")
+    except ValueError:
+        return None
+
+
 class SensorsSpec(Model):
     """Per agent type rigs. ``enabled: false`` turns all sensor rendering off (labels only). A partly given rig
     is completed from its kind's default rig field by field (:func:`complete_rigs`)."""
@@ -767,6 +856,11 @@ class Scenario(Model):
     comm: CommSpec = CommSpec()
     clients: list[ClientSpec] = Field(default_factory=list)
 
+    @model_validator(mode="before")
+    @classmethod
+    def _complete_agent_rigs(cls, data: Any) -> Any:
+        return complete_agent_rigs(data)
+
     @field_validator("clients")
     @classmethod
     def _unique_clients(cls, clients: list[ClientSpec]) -> list[ClientSpec]:
@@ -823,9 +917,13 @@ class Scenario(Model):
         )
 
     def rig_for(self, agent_id: str) -> RigSpec:
-        """The sensor rig of an agent (by id prefix), with ``sensors.image_scale`` applied to its cameras."""
-        kind = agent_id.rsplit("_", 1)[0]
-        rig = {"vehicle": self.sensors.vehicle, "rsu": self.sensors.rsu, "drone": self.sensors.drone}[kind]
+        """The sensor rig of an agent: its own (``agents.vehicles.rigs``, ``agents.rsus.rigs``, a drone's
+        ``rig``), else its kind's (by id prefix); with ``sensors.image_scale`` applied to its cameras."""
+        kind, _, index = agent_id.rpartition("_")
+        own = {"vehicle": lambda: self.agents.vehicles.rigs.get(agent_id),
+               "rsu": lambda: self.agents.rsus.rigs.get(agent_id),
+               "drone": lambda: self.agents.drones[int(index)].rig}[kind]()
+        rig = own if own is not None else {"vehicle": self.sensors.vehicle, "rsu": self.sensors.rsu, "drone": self.sensors.drone}[kind]
         scale = self.sensors.image_scale
         if scale == 1.0:
             return rig
