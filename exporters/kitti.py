@@ -154,12 +154,13 @@ def _mount_matrix(xyz_m: Sequence[float], rpy_deg: Sequence[float]) -> np.ndarra
     return out
 
 
-def virtual_front(scenario: dict[str, Any], kind: str) -> dict[str, Any]:
-    """The front camera's spec (width, height, fov_deg, mount) of the episode's rig for ``kind``, or the
-    default vehicle rig's (cosim/scenario/model.py) when that rig has none."""
-    from cosim.scenario.model import CameraSpec, default_vehicle_rig
+def virtual_front(scenario: dict[str, Any], agent_id: str) -> dict[str, Any]:
+    """The front camera's spec (width, height, fov_deg, mount) of the agent's rig in the episode (its own rig
+    or its kind's, :func:`cosim.scenario.model.rig_data_of`), or the default vehicle rig's
+    (cosim/scenario/model.py) when that rig has none."""
+    from cosim.scenario.model import CameraSpec, default_vehicle_rig, rig_data_of
 
-    cams = (((scenario.get("sensors") or {}).get(kind) or {}).get("cameras") or [])
+    cams = rig_data_of(scenario, agent_id).get("cameras") or []
     spec = next((CameraSpec(**c) for c in cams if c.get("name") == "front"), None)
     spec = spec or next(c for c in default_vehicle_rig().cameras if c.name == "front")
     return {"width": spec.width, "height": spec.height, "fov_deg": spec.fov_deg,
@@ -384,7 +385,7 @@ def _export_kitti_chunk(plan: Plan, options: ExportOptions, root: str, ticks: tu
     with open_episode(plan.source.path) as ep:
         seq = sequence_info(ep, plan.source, plan.sequence, options.every)
         scenario = yaml.safe_load(ep.attachment("scenario.yaml")) if "scenario.yaml" in ep.attachments else {}
-        virtual = {a: virtual_front(scenario or {}, seq.kinds[a]) for a in plan.egos}
+        virtual = {a: virtual_front(scenario or {}, a) for a in plan.egos}
         topics = ["/tf", "/labels/objects"] + [f"/{a}/{what}" for a in plan.egos for what in EGO_TOPICS]
         topics = [t for t in topics if t in ep.topics]
         for view in agent_frames(ep, seq, ticks, options.raw_lidar, options.objects_at_tick, topics):

@@ -619,6 +619,20 @@ def _valid_rig(data: Any) -> dict[str, Any] | None:
         return None
 
 
+def rig_data_of(resolved: dict[str, Any], agent_id: str) -> dict[str, Any]:
+    """The plain data of an agent's rig in a resolved scenario (an episode's ``scenario.yaml``): its own rig
+    where it has one (``agents.vehicles.rigs``, ``agents.rsus.rigs``, a drone's ``rig``), else its kind's
+    ``sensors.<kind>``; ``{}`` where the data holds neither (a reader's fallback to the defaults)."""
+    kind, _, index = agent_id.rpartition("_")
+    agents = resolved.get("agents") or {}
+    if kind == "drone":
+        drones = agents.get("drones") or []
+        own = (drones[int(index)] or {}).get("rig") if index.isdigit() and int(index) < len(drones) else None
+    else:
+        own = ((agents.get(f"{kind}s") or {}).get("rigs") or {}).get(agent_id)
+    return own or (resolved.get("sensors") or {}).get(kind) or {}
+
+
 class SensorsSpec(Model):
     """Per agent type rigs. ``enabled: false`` turns all sensor rendering off (labels only). A partly given rig
     is completed from its kind's default rig field by field (:func:`complete_rigs`)."""
