@@ -586,15 +586,15 @@ def complete_agent_rigs(data: Any) -> Any:
     if not isinstance(data, dict) or not isinstance(data.get("agents"), dict):
         return data
     agents = dict(data["agents"])
-    kinds = complete_rigs(data.get("sensors", {}))
-    kinds = kinds if isinstance(kinds, dict) else {}
     bases: dict[str, dict[str, Any]] = {}
 
     def complete(kind: str, given: Any) -> Any:
         if not isinstance(given, dict):
             return given
         if kind not in bases:
-            bases[kind] = _valid_rig(kinds.get(kind)) or DEFAULT_RIGS[kind]().model_dump(mode="json")
+            kinds = complete_rigs(data.get("sensors", {}))
+            own = kinds.get(kind) if isinstance(kinds, dict) else None
+            bases[kind] = _valid_rig(own) or DEFAULT_RIGS[kind]().model_dump(mode="json")
         base = bases[kind]
         if isinstance(given.get("lidar"), dict):
             under = base["lidar"] or DEFAULT_RIGS[kind]().model_dump(mode="json")["lidar"]
