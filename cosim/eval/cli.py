@@ -56,9 +56,21 @@ def cmd_eval(args: argparse.Namespace) -> int:
     result = evaluate(refs, predictions, options, progress=_log_progress("eval"))
     written = write_eval(result, out, title)
     print(eval_tables(result)[0].markdown(), end="")
+    for setting, (frames, sent) in bytes_per_setting(predictions).items():
+        print(f"sent     {sent / frames:.0f} bytes per ego frame from the collaborators ({setting}, {frames} frames)")
     for p in written:
         print(p)
     return EXIT_OK
+
+
+def bytes_per_setting(predictions: list) -> dict[str, tuple[int, int]]:
+    """Frames and bytes sent per collaboration setting, over the records that say what was sent."""
+    out: dict[str, tuple[int, int]] = {}
+    for r in predictions:
+        if r.bytes_sent is not None:
+            frames, sent = out.get(r.agents, (0, 0))
+            out[r.agents] = (frames + 1, sent + r.bytes_sent)
+    return out
 
 
 def cmd_coverage(args: argparse.Namespace) -> int:

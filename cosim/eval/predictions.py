@@ -11,7 +11,9 @@ PREDICTIONS is a ``.jsonl`` file or a folder of them (read in name order). One l
 Boxes are in the ego's LiDAR frame (``<ego>/lidar``, FLU); ``agents`` (default ``all``) names which
 agent types the model used (:data:`SETTINGS`); ``bev`` (optional) is an ``.npz`` file, relative to
 the ``.jsonl`` file, with one (rows, columns) array per BEV layer name, in the grid of the episode's
-``/<ego>/bev``. A malformed file raises one :class:`PredictionError` naming file, line and field.
+``/<ego>/bev``; ``bytes_sent`` (optional, an integer) the bytes the collaborators sent the ego for the frame
+(``cosim learn predict`` writes it; ``cosim eval`` reports its mean beside AP). A malformed file raises one
+:class:`PredictionError` naming file, line and field.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ SETTINGS: dict[str, tuple[str, ...]] = {
     "vehicles+drones": ("vehicle", "drone"),
     "all": ("vehicle", "rsu", "drone"),
 }
-RECORD_KEYS = {"episode", "tick", "ego", "agents", "boxes", "bev"}
+RECORD_KEYS = {"episode", "tick", "ego", "agents", "boxes", "bev", "bytes_sent"}
 BOX_KEYS = {"center_m", "size_m", "yaw_rad", "class", "score"}
 
 
@@ -64,6 +66,7 @@ class FramePrediction:
     bev_path: Path | None
     source: str
     line: int
+    bytes_sent: int | None = None  # what the collaborators sent the ego for this frame [bytes], when told
 
     @property
     def key(self) -> tuple[str, int, str, str]:
@@ -129,6 +132,9 @@ def parse_record(obj: Any, source: Path, line: int) -> FramePrediction:
             if not _number(b["score"]):
                 raise ValueError(where + "score", f"must be a finite number, got {b['score']!r}")
             scores.append(float(b["score"]))
+        sent = obj.get("bytes_sent")
+        if sent is not None and (not isinstance(sent, int) or isinstance(sent, bool) or sent < 0):
+            raise ValueError("bytes_sent", f"must be an integer >= 0 (bytes), got {sent!r}")
         bev = obj.get("bev")
         if bev is not None and (not isinstance(bev, str) or not bev.endswith(".npz")):
             raise ValueError("bev", f"must be the path of an .npz file relative to {source.name}, got {bev!r}")
@@ -139,7 +145,7 @@ def parse_record(obj: Any, source: Path, line: int) -> FramePrediction:
         obj["episode"], tick, obj["ego"], agents,
         np.array(centers, np.float64).reshape(-1, 3), np.array(sizes, np.float64).reshape(-1, 3),
         np.array(yaws, np.float64), tuple(classes), np.array(scores, np.float64),
-        (source.parent / bev) if bev else None, str(source), line,
+        (source.parent / bev) if bev else None, str(source), line, sent,
     )
 
 
@@ -179,7 +185,8 @@ def read_predictions(path: Path) -> list[FramePrediction]:
 
 
 def record_json(episode: str, tick: int, ego: str, agents: str, centers_m: np.ndarray, sizes_m: np.ndarray,
-                yaws_rad: np.ndarray, classes: Iterable[str], scores: np.ndarray, bev: str | None = None) -> str:
+                yaws_rad: np.ndarray, classes: Iterable[str], scores: np.ndarray, bev: str | None = None,
+                bytes_sent: int | None = None) -> str:
     """One JSON line of the format (numbers rounded to 1 mm / 1e-5 rad, so files are compact and stable)."""
     boxes = [
         {"center_m": [round(float(v), 3) for v in c], "size_m": [round(float(v), 3) for v in s],
@@ -189,6 +196,8 @@ def record_json(episode: str, tick: int, ego: str, agents: str, centers_m: np.nd
     rec: dict[str, Any] = {"episode": episode, "tick": int(tick), "ego": ego, "agents": agents, "boxes": boxes}
     if bev:
         rec["bev"] = bev
+    if bytes_sent is not None:
+        rec["bytes_sent"] = int(bytes_sent)
     return json.dumps(rec, separators=(",", ":"))
 
 

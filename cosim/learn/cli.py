@@ -6,12 +6,17 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from cosim import cli_args
 from cosim.errors import InputError
+
+if TYPE_CHECKING:
+    from cosim.learn.samples import Perturb
 
 EXIT_OK = 0
 
@@ -20,6 +25,55 @@ _positive = cli_args.positive_int
 DATASET = cli_args.path("input_path", "dataset")
 RUN = cli_args.path("input_folder", "run folder")
 CACHE = cli_args.path("input_folder", "cache folder")
+
+
+def pose_noise(text: str) -> tuple[float, float]:
+    """``POS_M,ROT_DEG``: two numbers >= 0 (the standard deviations of a collaborator's x, y and yaw error)."""
+    parts = text.split(",")
+    if len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"must be POS_M,ROT_DEG (two numbers >= 0, e.g. 0.2,0.2), got "
+                                         f"{cli_args.shown(text)!r}")
+    return tuple(cli_args.non_negative_float(v.strip()) for v in parts)  # type: ignore[return-value]
+
+
+def latency(text: str) -> int | str:
+    """``links`` or a whole number of milliseconds >= 0."""
+    return "links" if text == "links" else cli_args.Check("int", low=0, unit="ms")(text)
+
+
+def loss(text: str) -> float | str:
+    """``links`` or a probability from 0 to 1."""
+    return "links" if text == "links" else cli_args.fraction(text)
+
+
+def perturb_of(args: argparse.Namespace) -> Perturb:
+    """The :class:`~cosim.learn.samples.Perturb` of a command's ``--pose-noise``, ``--latency``, ``--loss``
+    (``--delivery``: ``--loss links``) and ``--perturb-seed``."""
+    from cosim.learn.samples import Perturb
+
+    pos_m, rot_deg = args.pose_noise or (0.0, 0.0)
+    lat = args.latency or 0
+    drop = "links" if getattr(args, "delivery", False) else (args.loss or 0.0)
+    return Perturb(pose_m=pos_m, pose_deg=rot_deg, latency_ms=0 if lat == "links" else lat,
+                   latency_links=lat == "links", loss=0.0 if drop == "links" else drop, loss_links=drop == "links",
+                   seed=args.perturb_seed)
+
+
+def add_perturb_options(p: argparse.ArgumentParser, when: str) -> None:
+    """The perturbation flags (docs/learnability.md, "Collaboration as deployed"), applied ``when``."""
+    g = p.add_argument_group(f"collaboration as deployed, {when} (docs/learnability.md; each off by default)")
+    g.add_argument("--pose-noise", type=pose_noise, metavar="POS_M,ROT_DEG",
+                   help="Gaussian error on each collaborator's pose: POS_M metres on x and y, ROT_DEG degrees on "
+                        "yaw (standard deviations; e.g. 0.2,0.2)")
+    g.add_argument("--latency", type=latency, metavar="MS|links",
+                   help="each collaborator's data from MS milliseconds before the ego's tick (a whole number of "
+                        "ticks), placed with its pose of then; 'links': its /comm/links delay rounded up to ticks")
+    g.add_argument("--loss", type=loss, metavar="P|links",
+                   help="each collaborator's message lost with probability P; 'links': with one minus its "
+                        "/comm/links delivery probability")
+    g.add_argument("--delivery", action="store_true", help="the same as --loss links (deprecated)")
+    g.add_argument("--perturb-seed", type=cli_args.non_negative_int, default=0, metavar="S",
+                   help="the perturbations' seed: the same seed, the same draws (default 0)")
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -37,7 +91,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     grid = make_grid(args.pillar_m, *((args.range_m[:2], args.range_m[2:]) if args.range_m else (None, None)))
 
     setup = Setup(fusion=args.fusion, agents=args.agents or ("ego" if args.fusion == "none" else "all"),
-                  classes=tuple(args.classes or VEHICLE_CLASSES), delivery=args.delivery, lidar=args.lidar,
+                  classes=tuple(args.classes or VEHICLE_CLASSES), perturb=perturb_of(args), lidar=args.lidar,
                   fuse=args.fuse, encoders=args.encoders, grid=grid)
     opts = TrainOptions(epochs=args.epochs, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                         every=args.every, val_every_tick=args.val_every_tick, val_steps=args.val_steps,
@@ -120,8 +174,7 @@ def cmd_predict(args: argparse.Namespace) -> int:
             raise InputError(f"the model in {args.run} was trained for fusion {setup.fusion}: intermediate fusion "
                              "needs a model trained for it (and such a model predicts with intermediate only)")
         setup = setup.with_agents(args.fusion, args.agents)
-    if args.delivery:
-        setup = dataclasses.replace(setup, delivery=True)
+    setup = dataclasses.replace(setup, perturb=perturb_of(args))  # the test's perturbation, never the training's
     if args.lidar:
         setup = dataclasses.replace(setup, lidar=args.lidar)
     refs = split_episodes(load_dataset(Path(args.dataset)), args.split, "test", args.dataset)
@@ -138,8 +191,11 @@ def cmd_predict(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("".join(line + "\n" for line in lines))
+    sent = [json.loads(line).get("bytes_sent", 0) for line in lines]
     print(f"predictions {out}: {len(lines)} records from {len(refs)} episodes, fusion {setup.fusion}, agents "
-          f"{setup.agents}, lidar {setup.lidar} ({time.perf_counter() - t0:.1f} s)")
+          f"{setup.agents}, lidar {setup.lidar} ({time.perf_counter() - t0:.1f} s)\n"
+          f"sent     {sum(sent) / max(1, len(sent)):.0f} bytes per ego frame from the collaborators; perturbation "
+          f"{setup.perturb.describe()}")
     return EXIT_OK
 
 
@@ -161,8 +217,10 @@ def cmd_validate(args: argparse.Namespace) -> int:
     refs = split_episodes(load_dataset(Path(args.dataset)), args.split, args.split, args.dataset)
     t0 = time.perf_counter()
     for step, ap in validate_checkpoints(run, refs, args.every, args.split, threads=args.threads,
-                                         cache=Path(args.cache) if args.cache else None, from_step=args.from_step):
-        print(f"step {step}: {args.split} AP30 {ap['AP30']:.1f}  AP50 {ap['AP50']:.1f}  AP70 {ap['AP70']:.1f}")
+                                         cache=Path(args.cache) if args.cache else None, from_step=args.from_step,
+                                         perturb=perturb_of(args)):
+        print(f"step {step}: {args.split} AP30 {ap['AP30']:.1f}  AP50 {ap['AP50']:.1f}  AP70 {ap['AP70']:.1f}  "
+              f"sent {ap['bytes_per_frame']:.0f} bytes per ego frame")
     print(f"wall     {time.perf_counter() - t0:.1f} s")
     return EXIT_OK
 
@@ -277,8 +335,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                                     "fusion none, all otherwise)")
     tr.add_argument("--classes", nargs="+", metavar="CLASS", help="object classes to detect (default: the six "
                                                                   "vehicle classes)")
-    tr.add_argument("--delivery", action="store_true", help="apply /comm/links: drop a collaborator's data for "
-                                                            "a tick when its link to the ego does not deliver")
+    add_perturb_options(tr, "at training (and its own validation)")
     tr.add_argument("--epochs", type=_positive, default=1, help="passes over the training samples (default 1)")
     tr.add_argument("--steps", type=_positive, help="optimiser steps in total (overrides --epochs)")
     tr.add_argument("--batch-size", type=_positive, default=8)
@@ -316,7 +373,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                       "ego-only model: each agent's cloud detected alone)")
     pr.add_argument("--agents", choices=list(SETTINGS), help="collaborating agent kinds at prediction time "
                                                              "(default: the model's)")
-    pr.add_argument("--delivery", action="store_true", help="apply /comm/links delivery (see train)")
+    add_perturb_options(pr, "at test (never the model's training perturbation)")
     pr.add_argument("--lidar", choices=LIDAR_MODES, help="LiDAR compensation (default: the model's)")
     pr.add_argument("--cache", type=CACHE, help="a folder of cosim learn cache to read the samples from")
     pr.add_argument("--device", help="torch device (default: cuda when present, else cpu)")
@@ -336,6 +393,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="only the checkpoints at this step or later (e.g. the last 20 %% of the steps)")
     va.add_argument("--cache", type=CACHE, help="a folder of cosim learn cache to read the samples from")
     va.add_argument("--threads", type=_positive, help="torch CPU threads (default: torch's)")
+    add_perturb_options(va, "at test")
     add_kitti_options(va, "validate")
     va.set_defaults(func=cmd_validate)
 

@@ -4,9 +4,9 @@ samples by :mod:`cosim.learn.samples`. No torch here.
 
 Collaborators are the agents of the chosen kinds (:data:`cosim.eval.predictions.SETTINGS`: ``vehicles``,
 ``vehicles+rsus``, ``vehicles+drones``, ``all``) within the paper's communication range of the ego (120 m
-for vehicles and RSUs, 180 m for drones). With ``delivery`` on, each collaborator's data reaches the ego only
-if its ``/comm/links`` link to the ego delivers at that tick (drawn with the link's ``delivery``
-probability, seeded by episode, tick and link, so it is repeatable).
+for vehicles and RSUs, 180 m for drones). The setup's :class:`~cosim.learn.samples.Perturb` perturbs what
+reaches the ego of each collaborator's message (pose error, latency, loss: docs/learnability.md, "Collaboration
+as deployed"); with latency, a sample also reads the records of earlier ticks.
 
 Every cloud loses its points on the ego's own body (inside the ego's box, grown by :data:`EGO_MARGIN_M`):
 collaborators see the ego, which is never ground truth. Training targets of a cloud are the boxes of the
@@ -29,6 +29,7 @@ from cosim.learn.samples import (  # noqa: F401  (the names the rest of cosim le
     EGO_MARGIN_M,
     FUSIONS,
     CachedEpisodes,
+    Perturb,
     Setup,
     augment,
     cache_meta_path,
@@ -39,6 +40,9 @@ from cosim.learn.samples import (  # noqa: F401  (the names the rest of cosim le
     write_episode_cache,
 )
 from cosim.learn.samples import delivered as _delivered  # noqa: F401
+
+#: Learn records a :class:`Samples` keeps at hand: the egos of a tick and, with a latency, the earlier ticks.
+_RECORDS_KEPT = 8
 
 
 def split_episodes(refs: list[EpisodeRef], split: str | None, role: str, dataset: Path | str) -> list[EpisodeRef]:
@@ -83,10 +87,13 @@ class McapRecords:
         ep = self.ds._episode(path)
         if "/comm/links" in ep.topics:
             links = ep.tick(tick, topics=["/comm/links"]).links()
-        return learn_record(self.ds.read_tick(path, tick), links)
+        return learn_record(self.ds.read_tick(path, tick), links, ep.tick_ns)
 
     def __getstate__(self) -> dict[str, Any]:
         return dict(self.__dict__)
+
+    def tick_ns(self, episode: str) -> int | None:
+        return self.ds._episode(self.refs[episode].path).tick_ns
 
     def close(self) -> None:
         self.ds.close()
@@ -104,7 +111,7 @@ class CacheRecords:
         if not Grid.from_dict(cache.meta["grid"]).covers(self_grid):
             raise InputError(f"{cache.root} was cropped to a smaller range than the model's grid: cache the data again")
         ids = [r if isinstance(r, str) else r.id for r in refs]
-        cached_every = int(cache.meta["every"])
+        cached_every = self.every = int(cache.meta["every"])
         if every % cached_every:
             raise InputError(f"{cache.root} holds every {cached_every}-th tick: --every must be a multiple of it")
         self.keys = []
@@ -116,6 +123,9 @@ class CacheRecords:
 
     def record(self, episode: str, tick: int) -> dict[str, Any]:
         return self.cache.record(episode, tick)
+
+    def tick_ns(self, episode: str) -> int | None:
+        return self.cache.tick_ns(episode)
 
     def close(self) -> None:
         self.cache.close()
@@ -142,22 +152,58 @@ class Samples:
             self.src = McapRecords(refs, setup.lidar, every)
         if len(self.src.keys) == 0:
             raise InputError(f"no samples in {len(refs)} episode(s): they have no connected vehicles to serve as ego")
-        self._last: tuple[tuple[str, int], dict[str, Any]] | None = None
+        if setup.perturb.latency:
+            self._check_latency(setup.perturb)
+        self._records: dict[tuple[str, int], dict[str, Any]] = {}
+
+    def _check_latency(self, perturb: Perturb) -> None:
+        """InputError unless every episode's earlier ticks that ``perturb``'s latency asks for can be read: a
+        latency in ms a whole number of each episode's ticks, and in the cache's ticks when read from one."""
+        cached_every = getattr(self.src, "every", 1)
+        if perturb.latency_links and cached_every > 1:
+            raise InputError(f"--latency links takes each link's own delay in ticks: it needs every tick, and the "
+                             f"cache holds one tick in {cached_every} (cosim learn cache --every 1)")
+        for ref in self.refs:
+            tick_ns = self.src.tick_ns(ref.id)
+            if perturb.latency_links or not tick_ns:
+                continue
+            ticks, rest = divmod(perturb.latency_ms * 1_000_000, tick_ns)
+            if rest:
+                raise InputError(f"--latency {perturb.latency_ms}: not a whole number of ticks of episode {ref.id} "
+                                 f"({tick_ns / 1e6:g} ms a tick): give a multiple of {tick_ns / 1e6:g} ms")
+            if ticks % cached_every:
+                raise InputError(f"--latency {perturb.latency_ms}: {ticks} tick{'s' if ticks > 1 else ''}, but the "
+                                 f"cache holds one tick in {cached_every}: give a multiple of {cached_every} ticks "
+                                 "or cache every tick (cosim learn cache --every 1)")
 
     def __len__(self) -> int:
         return len(self.src.keys)
 
     def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "_last": None}
+        return {**self.__dict__, "_records": {}}
 
     def close(self) -> None:
         self.src.close()
 
+    def _record(self, episode: str, tick: int) -> dict[str, Any] | None:
+        """The learn record of a tick, kept while it is among the last few read (the egos of a tick share its
+        record; a latency reads earlier ones again); None for a tick the source does not hold."""
+        key = (episode, tick)
+        if key not in self._records:
+            if len(self._records) >= _RECORDS_KEPT:
+                del self._records[next(iter(self._records))]
+            try:
+                self._records[key] = self.src.record(episode, tick)
+            except InputError:
+                if not self.setup.perturb.latency:
+                    raise
+                return None
+        return self._records[key]
+
     def item(self, index: int) -> dict[str, Any]:
         episode, tick, ego = self.src.keys[index]
-        if self._last is None or self._last[0] != (episode, tick):  # the egos of a tick share its record
-            self._last = ((episode, tick), self.src.record(episode, tick))
-        return make_item(self._last[1], ego, self.setup, episode)
+        history = (lambda t: self._record(episode, t)) if self.setup.perturb.latency else None
+        return make_item(self._record(episode, tick), ego, self.setup, episode, history)
 
 
 def write_cache(refs: list[EpisodeRef], out: Path, lidar: str, every: int,

@@ -345,7 +345,7 @@ def kitti_samples(sources: Sequence[KittiSource], setup: Any, crop_fov: str | No
     samples.refs = list(sources)
     samples.setup = setup
     samples.src = KittiRecords(sources, setup.lidar_height_m, crop_fov)
-    samples._last = None
+    samples._records = {}
     return samples
 
 

@@ -4,7 +4,8 @@ cache of records (:class:`CachedEpisodes`) and the flips of training.
 
 A record holds what every ego's sample of one tick needs: the agents, their LiDAR poses in ``map``, each
 agent's sweep (compensated as :attr:`Setup.lidar` says, then rounded to 1 cm: :func:`quantise`), how many
-returns each agent has on each labelled track, the labels, and the ``/comm/links`` delivery probabilities.
+returns each agent has on each labelled track, the labels, and the ``/comm/links`` delivery probabilities and
+delays.
 :class:`cosim.learn.data.Samples` makes records from MCAP through :class:`cosim.io.dataset.CooperativeDataset`,
 or reads them from a cache written by ``cosim learn cache``; both give the same samples, bit for bit (tested).
 
@@ -16,6 +17,10 @@ A sample is one (episode, tick, ego vehicle). Its inputs depend on the fusion mo
 - ``intermediate``: one cloud per agent in that agent's bird's-eye frame (its x, y and heading, the ego's
   z), with the pose of that frame in the ego's (``poses``: yaw, x, y); the model encodes each into its own
   BEV map, warps the maps into the ego frame and fuses them per cell.
+
+A :class:`Perturb` makes the collaboration as deployed (docs/learnability.md, "Collaboration as deployed"): each
+collaborator's pose with a Gaussian error, its data from an earlier tick with its pose of that tick, its message
+lost; every draw is seeded by (seed, episode, tick, agents), so the same seed gives the same perturbation.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from __future__ import annotations
 import json
 import math
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -55,19 +61,90 @@ EGO_MARGIN_M = 0.3
 #: Points are stored (and, uncached, rounded) to this step: 1 cm, int16 in the agent's LiDAR frame.
 QUANTUM_M = 0.01
 _QMAX = 32767
+#: Bytes a collaborator sends per ego frame (docs/learnability.md, "Bytes sent"): early fusion, a point as float32
+#: x, y, z, intensity; intermediate fusion, a pillar of its BEV feature map as float32 channels and int16 row,
+#: column (:func:`pillar_bytes`); late fusion, a box as 7 float32 (centre, size, yaw), a float32 score, a uint8 class.
+POINT_BYTES = 16
+BOX_BYTES = 33
+
+
+def pillar_bytes(width: int) -> int:
+    """Bytes of one pillar of an intermediate-fusion feature map of ``width`` channels, as sent."""
+    return 4 * width + 4
+
+
+@dataclass(frozen=True)
+class Perturb:
+    """How each collaborator's message reaches the ego (the ego's own data is never perturbed):
+
+    - ``pose_m``, ``pose_deg``: standard deviations of a Gaussian error on the collaborator's pose in ``map``
+      (x and y [m], yaw [deg]: V2X-ViT's and CoAlign's protocol), with which its data is placed in the ego frame;
+    - ``latency_ms``: its data from that long before the ego's tick (a whole number of ticks), or with
+      ``latency_links`` its ``/comm/links`` link's own ``delay_ms`` rounded up to ticks; placed with the pose
+      the message carried (the collaborator's at that earlier tick); labels stay the ego tick's;
+    - ``loss``: the message lost with this probability, or with ``loss_links`` with one minus its link's
+      ``delivery`` (what ``--delivery`` did);
+    - ``seed``: the draws' seed.
+    """
+
+    pose_m: float = 0.0
+    pose_deg: float = 0.0
+    latency_ms: int = 0
+    latency_links: bool = False
+    loss: float = 0.0
+    loss_links: bool = False
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name, v in (("pose noise POS_M", self.pose_m), ("pose noise ROT_DEG", self.pose_deg)):
+            if not (math.isfinite(v) and v >= 0):
+                raise InputError(f"--pose-noise: {name} must be a finite number >= 0, got {v!r}")
+        if not (isinstance(self.latency_ms, int) and self.latency_ms >= 0):
+            raise InputError(f"--latency: a whole number of milliseconds >= 0 or 'links', got {self.latency_ms!r}")
+        if not (math.isfinite(self.loss) and 0.0 <= self.loss <= 1.0):
+            raise InputError(f"--loss: a probability from 0 to 1 or 'links', got {self.loss!r}")
+        if self.latency_links and self.latency_ms:
+            raise InputError("--latency: give milliseconds or 'links', not both")
+        if self.loss_links and self.loss:
+            raise InputError("--loss: give a probability or 'links', not both")
+
+    def __bool__(self) -> bool:
+        return self != Perturb(seed=self.seed)
+
+    @property
+    def latency(self) -> bool:
+        return bool(self.latency_ms) or self.latency_links
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Perturb:
+        return cls(**{k: v for k, v in d.items() if k in cls.__dataclass_fields__})
+
+    def describe(self) -> str:
+        """The perturbation in the words of the flags (``none`` when there is none)."""
+        parts = []
+        if self.pose_m or self.pose_deg:
+            parts.append(f"pose noise {self.pose_m:g} m, {self.pose_deg:g} deg")
+        if self.latency:
+            parts.append("latency links" if self.latency_links else f"latency {self.latency_ms} ms")
+        if self.loss or self.loss_links:
+            parts.append("loss links" if self.loss_links else f"loss {self.loss:g}")
+        return ", ".join(parts) + f" (seed {self.seed})" if parts else "none"
 
 
 @dataclass(frozen=True)
 class Setup:
     """What a model is trained for: fusion mode, collaborating agent kinds (a :data:`SETTINGS` name),
-    object classes, grid, ``/comm/links`` delivery, the target rule, LiDAR compensation, and for
-    intermediate fusion how maps are fused and encoded."""
+    object classes, grid, the collaborators' perturbation (:class:`Perturb`), the target rule, LiDAR
+    compensation, and for intermediate fusion how maps are fused and encoded."""
 
     fusion: str = "none"
     agents: str = "ego"
     classes: tuple[str, ...] = VEHICLE_CLASSES
     grid: Grid = field(default_factory=Grid)
-    delivery: bool = False
+    perturb: Perturb = field(default_factory=Perturb)
     min_points: int = 1
     lidar: str = "tick"
     fuse: str = "max"
@@ -98,14 +175,16 @@ class Setup:
 
     def to_dict(self) -> dict[str, Any]:
         return {"fusion": self.fusion, "agents": self.agents, "classes": list(self.classes),
-                "grid": self.grid.to_dict(), "delivery": self.delivery, "min_points": self.min_points,
+                "grid": self.grid.to_dict(), "perturb": self.perturb.to_dict(), "min_points": self.min_points,
                 "lidar": self.lidar, "fuse": self.fuse, "encoders": self.encoders,
                 "lidar_height_m": self.lidar_height_m}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Setup:
-        # checkpoints from before the compensation option were trained on raw sweeps
-        return cls(d["fusion"], d["agents"], tuple(d["classes"]), Grid.from_dict(d["grid"]), bool(d["delivery"]),
+        # checkpoints from before the compensation option were trained on raw sweeps; from before the
+        # perturbations, with a /comm/links delivery flag (now loss links)
+        perturb = Perturb.from_dict(d["perturb"]) if "perturb" in d else Perturb(loss_links=bool(d.get("delivery")))
+        return cls(d["fusion"], d["agents"], tuple(d["classes"]), Grid.from_dict(d["grid"]), perturb,
                    int(d["min_points"]), d.get("lidar", "raw"), d.get("fuse", "max"), d.get("encoders", "shared"),
                    d.get("lidar_height_m"))
 
@@ -134,10 +213,11 @@ def dequantise(q: np.ndarray, intensity: np.ndarray) -> np.ndarray:
     return out
 
 
-def learn_record(rec: dict[str, Any], links: Any = None) -> dict[str, Any]:
+def learn_record(rec: dict[str, Any], links: Any = None, tick_ns: int | None = None) -> dict[str, Any]:
     """The learn record of a :meth:`cosim.io.dataset.CooperativeDataset.read_tick` record (and the tick's
-    ``/comm/links`` :class:`~cosim.comm.message.LinkSet`, or None): points rounded to 1 cm with intensity in
-    counts of 1/255 (as stored), per-agent hit counts per track instead of per-point ids."""
+    ``/comm/links`` :class:`~cosim.comm.message.LinkSet`, or None; the episode's ``tick_ns``): points rounded to
+    1 cm with intensity in counts of 1/255 (as stored), per-agent hit counts per track instead of per-point ids,
+    each link's delivery probability (``links``) and delay (``link_delay_ms``) by ``"<tx>><rx>"``."""
     points, intensity, hits = [], [], []
     for cloud, inst in zip(rec["lidar"], rec["lidar_instance"], strict=True):
         q, keep = quantise(cloud[:, :3])
@@ -147,9 +227,11 @@ def learn_record(rec: dict[str, Any], links: Any = None) -> dict[str, Any]:
         hits.append(np.stack([tracks, counts]).astype(np.int64))
     out = {k: rec[k] for k in ("tick", "t_ns", "agents", "map_from", "label_track_ids", "label_classes",
                                "label_centers", "label_rotations", "label_sizes", "agent_tracks")}
-    out.update({"points": points, "intensity": intensity, "hits": hits})
+    out.update({"points": points, "intensity": intensity, "hits": hits, "tick_ns": tick_ns})
     out["links"] = (None if links is None else
                     {f"{a}>{b}": float(p) for a, b, p in zip(links.tx, links.rx, links.delivery, strict=True)})
+    out["link_delay_ms"] = (None if links is None else
+                            {f"{a}>{b}": float(d) for a, b, d in zip(links.tx, links.rx, links.delay_ms, strict=True)})
     return out
 
 
@@ -173,9 +255,48 @@ def crop_record(rec: dict[str, Any], egos: list[str], grid: Grid) -> dict[str, A
     return out
 
 
-def delivered(episode: str, tick: int, tx: str, rx: str, probability: float) -> bool:
-    seed = zlib.crc32(f"{episode}|{tick}|{tx}|{rx}".encode())
-    return bool(np.random.default_rng(seed).random() < probability)
+def delivered(episode: str, tick: int, tx: str, rx: str, probability: float, seed: int = 0) -> bool:
+    """Whether the message of ``tx`` to ``rx`` sent at ``tick`` arrives, with ``probability``: one uniform draw
+    seeded by (episode, tick, link) and ``seed`` (seed 0: the draw ``--delivery`` made before seeds)."""
+    key = f"{episode}|{tick}|{tx}|{rx}" + (f"|{seed}" if seed else "")
+    return bool(np.random.default_rng(zlib.crc32(key.encode())).random() < probability)
+
+
+def pose_error(perturb: Perturb, episode: str, tick: int, agent: str) -> tuple[float, float, float]:
+    """The error (dx [m], dy [m], dyaw [rad]) on ``agent``'s pose at ``tick``: Gaussian with ``perturb``'s
+    standard deviations, seeded by (seed, episode, tick, agent), so every ego that receives the message gets the
+    same error."""
+    rng = np.random.default_rng([perturb.seed, zlib.crc32(f"{episode}|{tick}|{agent}|pose".encode())])
+    dx, dy, dyaw = rng.normal(0.0, 1.0, 3)
+    return float(dx * perturb.pose_m), float(dy * perturb.pose_m), float(dyaw * math.radians(perturb.pose_deg))
+
+
+def with_pose_error(pose: np.ndarray, dx: float, dy: float, dyaw: float) -> np.ndarray:
+    """A 4x4 pose ``map <- frame`` moved by (dx, dy) [m] along map x, y and turned by ``dyaw`` [rad] about the
+    vertical through its own origin."""
+    c, s = math.cos(dyaw), math.sin(dyaw)
+    out = np.array(pose, np.float64)
+    out[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ out[:3, :3]
+    out[0, 3] += dx
+    out[1, 3] += dy
+    return out
+
+
+def latency_ticks(perturb: Perturb, rec: dict[str, Any], tx: str, rx: str) -> int:
+    """How many ticks before ``rec``'s the message of ``tx`` to ``rx`` was captured: ``latency_ms`` in ticks, or
+    the link's ``delay_ms`` at that tick rounded up to ticks (InputError without ``/comm/links``)."""
+    if not perturb.latency:
+        return 0
+    tick_ns = rec.get("tick_ns")
+    if not tick_ns:
+        raise InputError("--latency needs the episodes' tick length: cache the data again with this cosim")
+    if not perturb.latency_links:
+        return perturb.latency_ms * 1_000_000 // int(tick_ns)
+    delays = rec.get("link_delay_ms")
+    if delays is None:
+        raise InputError("--latency links needs /comm/links with delays: episodes with comm.enabled, cached again "
+                         "with this cosim")
+    return math.ceil(round(delays.get(f"{tx}>{rx}", 0.0) * 1_000_000) / int(tick_ns))
 
 
 def inside_box(xy: np.ndarray, boxes: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
@@ -213,11 +334,14 @@ def to_bev_frame(cloud: np.ndarray, pose: np.ndarray) -> np.ndarray:
     return out
 
 
-def make_item(rec: dict[str, Any], ego: str, setup: Setup, episode: str) -> dict[str, Any]:
+def make_item(rec: dict[str, Any], ego: str, setup: Setup, episode: str,
+              history: Callable[[int], dict[str, Any] | None] | None = None) -> dict[str, Any]:
     """The sample of ego ``ego`` from a learn record: ``episode`` (id), ``tick``, ``ego``, ``clouds`` (list
     of (N, 4) float32), ``sources`` (the agents of each cloud), ``targets`` (boxes (M, 7), class indices (M,)
-    per target set: one per cloud for late fusion, else one), and for intermediate fusion ``poses`` (J, 3)
-    and ``kinds`` (J,) (indices into :data:`KINDS`)."""
+    per target set: one per cloud for late fusion, else one), ``sent`` (the points each collaborator of
+    ``sources`` sends: its cloud inside the ego's range), and for intermediate fusion ``poses`` (J, 3) and
+    ``kinds`` (J,) (indices into :data:`KINDS`). ``setup.perturb`` perturbs each collaborator's message;
+    with latency, ``history(tick)`` gives the learn record of an earlier tick of the episode (None: not at hand)."""
     agents = rec["agents"]
     map_from = dict(zip(agents, rec["map_from"], strict=True))
     ego_from_map = np.linalg.inv(map_from[ego])
@@ -226,36 +350,41 @@ def make_item(rec: dict[str, Any], ego: str, setup: Setup, episode: str) -> dict
     chosen = [ego] + [a for a in agents if a != ego and kind_of(a) in kinds
                       and np.linalg.norm(map_from[a][:3, 3] - ego_xyz) <= COMM_RANGE_M.get(kind_of(a), np.inf)]
     use = chosen[:1] if setup.fusion == "none" else chosen
-    if setup.delivery and len(use) > 1:
-        if rec["links"] is None:
-            raise InputError(f"episode {episode} has no /comm/links (comm.enabled false): train without --delivery")
-        use = [ego] + [a for a in use[1:]
-                       if delivered(episode, rec["tick"], a, ego, rec["links"].get(f"{a}>{ego}", 0.0))]
+    sent_by = {ego: rec}  # each agent's record: the one of the tick its message was captured
+    if setup.perturb and len(use) > 1:
+        use, sent_by = _arrived(rec, ego, use, setup.perturb, episode, history)
     boxes, track_ids, classes = _boxes(rec, ego_from_map, setup)
     own = [i for i, t in enumerate(track_ids) if t == rec["agent_tracks"].get(ego)]
     ego_box = boxes[own[0]] if own else None
     if own:  # the ego's own box: never a target (nor ground truth in cosim eval)
         rest = [i for i in range(len(boxes)) if i != own[0]]
         boxes, track_ids, classes = boxes[rest], track_ids[rest], [classes[i] for i in rest]
-    clouds_by_agent, poses = [], []
+    clouds_by_agent, poses, sent, hits_by_agent = [], [], [], []
+    pose_noise = setup.perturb.pose_m or setup.perturb.pose_deg
     for a in use:
-        i = agents.index(a)
-        t = ego_from_map @ map_from[a]
-        p = dequantise(rec["points"][i], rec["intensity"][i])
+        src = sent_by.get(a, rec)
+        i = src["agents"].index(a)
+        pose = src["map_from"][i]
+        if a != ego and pose_noise:
+            pose = with_pose_error(pose, *pose_error(setup.perturb, episode, int(src["tick"]), a))
+        t = ego_from_map @ pose
+        p = dequantise(src["points"][i], src["intensity"][i])
         xyz = p[:, :3] @ t[:3, :3].T.astype(np.float32) + t[:3, 3].astype(np.float32)
-        cloud = np.concatenate([xyz, p[:, 3:4]], axis=1).astype(np.float32)
+        cloud = setup.grid.crop(np.concatenate([xyz, p[:, 3:4]], axis=1).astype(np.float32))
+        sent.append(len(cloud))
         if ego_box is not None:  # the ego knows its own body: collaborators' returns on it are not an object
             cloud = cloud[~inside_box(cloud[:, :2], ego_box[None], EGO_MARGIN_M)[:, 0]]
-        clouds_by_agent.append(setup.grid.crop(cloud))
+        clouds_by_agent.append(cloud)
         poses.append(bev_pose(t))
+        hits_by_agent.append(src["hits"][i])
     groups = [[k] for k in range(len(use))] if setup.fusion == "late" else [list(range(len(use)))]
     labels = np.array([setup.classes.index(c) for c in classes], np.int64)
     item: dict[str, Any] = {"episode": episode, "tick": int(rec["tick"]), "ego": ego, "clouds": [],
-                            "sources": [], "targets": []}
+                            "sources": [], "targets": [], "sent": sent[1:]}
     for g in groups:
         hits: dict[int, int] = {}
         for k in g:
-            for track, n in rec["hits"][agents.index(use[k])].T.tolist():
+            for track, n in hits_by_agent[k].T.tolist():
                 hits[track] = hits.get(track, 0) + n
         seen = np.array([hits.get(int(t), 0) >= setup.min_points for t in track_ids], bool)
         if len(boxes):
@@ -270,6 +399,34 @@ def make_item(rec: dict[str, Any], ego: str, setup: Setup, episode: str) -> dict
         item["poses"] = np.array(poses, np.float64).reshape(-1, 3)
         item["kinds"] = np.array([KINDS.index(kind_of(a)) if kind_of(a) in KINDS else 0 for a in use], np.int64)
     return item
+
+
+def _arrived(rec: dict[str, Any], ego: str, use: list[str], perturb: Perturb, episode: str,
+             history: Callable[[int], dict[str, Any] | None] | None) -> tuple[list[str], dict[str, dict[str, Any]]]:
+    """The agents of ``use`` (the ego first) whose message reaches the ego at ``rec``'s tick under ``perturb``,
+    and the record each message was captured in: ``latency_ticks`` earlier (none before the episode's first
+    tick), then lost with ``perturb.loss`` or one minus its link's delivery at the tick it was sent."""
+    tick = int(rec["tick"])
+    kept, sent_by = [ego], {ego: rec}
+    for a in use[1:]:
+        k = latency_ticks(perturb, rec, a, ego)
+        if tick - k < 0:  # captured before the episode began: nothing has arrived yet
+            continue
+        src = rec if k == 0 else (history(tick - k) if history is not None else None)
+        if src is None:
+            raise InputError(f"episode {episode}: the record of tick {tick - k} ({k} ticks before {tick}) is not at "
+                             "hand for --latency: cache every tick (cosim learn cache --every 1) or read the episodes")
+        if perturb.loss_links:
+            if src["links"] is None:
+                raise InputError(f"episode {episode} has no /comm/links (comm.enabled false): no --loss links")
+            p_arrive = src["links"].get(f"{a}>{ego}", 0.0)
+        else:
+            p_arrive = 1.0 - perturb.loss
+        if p_arrive < 1.0 and not delivered(episode, tick - k, a, ego, p_arrive, perturb.seed):
+            continue
+        kept.append(a)
+        sent_by[a] = src
+    return kept, sent_by
 
 
 def _boxes(rec: dict[str, Any], ego_from_map: np.ndarray, setup: Setup) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -360,7 +517,8 @@ def write_episode_cache(path: Path, records: list[dict[str, Any]]) -> None:
         for k in ("label_track_ids", "label_centers", "label_rotations", "label_sizes"):
             arrays[f"{t}/{k}"] = rec[k]
         meta.append({"tick": t, "t_ns": rec["t_ns"], "agents": rec["agents"], "label_classes": rec["label_classes"],
-                     "agent_tracks": rec["agent_tracks"], "links": rec["links"]})
+                     "agent_tracks": rec["agent_tracks"], "links": rec["links"], "tick_ns": rec.get("tick_ns"),
+                     "link_delay_ms": rec.get("link_delay_ms")})
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     tmp = path.with_suffix(".tmp.npz")
     np.savez(tmp, **arrays)
@@ -399,8 +557,19 @@ class CachedEpisodes:
                 raise InputError(f"{self.root}: episode {episode} is not in the cache")
             z = np.load(self.root / e["file"])
             self._open[episode] = z
-            self._index[episode] = {m["tick"]: m for m in json.loads(z["meta"].tobytes())}
+            index = {m["tick"]: m for m in json.loads(z["meta"].tobytes())}
+            # caches from before the perturbations lack the tick's length: the ticks' times give it
+            tick_ns = next((m["t_ns"] // m["tick"] for m in index.values() if m["tick"] > 0), None)
+            for m in index.values():
+                m.setdefault("tick_ns", tick_ns)
+                m.setdefault("link_delay_ms", None)
+            self._index[episode] = index
         return self._open[episode]
+
+    def tick_ns(self, episode: str) -> int | None:
+        """The episode's tick length [ns] (None for an episode of a single cached tick from before it was kept)."""
+        self._npz(episode)
+        return next(iter(self._index[episode].values()))["tick_ns"]
 
     def ticks(self, episode: str) -> list[int]:
         self._npz(episode)

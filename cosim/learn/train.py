@@ -22,7 +22,7 @@ import shutil
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -44,7 +44,17 @@ from cosim.learn.augment import (
 from cosim.learn.grid import decode, targets, voxelise, warp_index
 from cosim.learn.model import PillarDetector, focal_loss, peaks, regression_loss
 from cosim.learn.nms import circle_nms
-from cosim.learn.samples import SCHEDULES, Setup, agent_grid, augment, augment_poses  # noqa: F401 (SCHEDULES: here too)
+from cosim.learn.samples import (  # noqa: F401 (SCHEDULES: here too)
+    BOX_BYTES,
+    POINT_BYTES,
+    SCHEDULES,
+    Perturb,
+    Setup,
+    agent_grid,
+    augment,
+    augment_poses,
+    pillar_bytes,
+)
 
 if TYPE_CHECKING:
     from cosim.eval.dataset import EpisodeRef
@@ -222,36 +232,54 @@ def predict_sample(model: PillarDetector, item: dict[str, Any], setup: Setup, de
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Boxes (N, 7), scores (N,), class indices (N,) of one sample in the ego LiDAR frame. Late fusion:
     each agent's cloud is detected alone and the boxes of all of them merged by circle NMS."""
+    return predict_and_send(model, item, setup, device, score_min, nms_radius_m, max_boxes)[:3]
+
+
+@torch.no_grad()
+def predict_and_send(model: PillarDetector, item: dict[str, Any], setup: Setup, device: torch.device,
+                     score_min: float = 0.05, nms_radius_m: float = 2.0, max_boxes: int = 100
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """:func:`predict_sample` and the bytes the collaborators sent for it (docs/learnability.md, "Bytes sent"):
+    early fusion their points (:data:`POINT_BYTES` each), intermediate fusion the pillars of their BEV feature
+    maps (:func:`pillar_bytes` of the model's width), late fusion their boxes (:data:`BOX_BYTES` each, at most
+    ``max_boxes`` an agent); 0 for the ego alone."""
     clouds = item["clouds"]
     if setup.fusion == "intermediate":
-        batch = to_device(batch_arrays(clouds, setup, [len(clouds)], [item["poses"]], [item["kinds"]]), device)
+        arrays = batch_arrays(clouds, setup, [len(clouds)], [item["poses"]], [item["kinds"]])
+        sent = int((arrays["coords"][:, 0] != 0).sum()) * pillar_bytes(model.pfn.out_features)
+        batch = to_device(arrays, device)
         n = 1
     else:
         batch = to_device(batch_arrays(clouds, setup), device)
         n = len(clouds)
+        sent = POINT_BYTES * int(sum(item.get("sent", ()))) if setup.fusion == "early" else 0
     heat, reg = run_model(model, batch, n)
     heat = peaks(heat).cpu().numpy()
     reg = reg.cpu().numpy()
     parts = [decode(heat[b], reg[b], setup.grid, score_min=score_min) for b in range(n)]
+    if setup.fusion == "late":
+        sent = BOX_BYTES * sum(min(len(p[0]), max_boxes) for p in parts[1:])
     boxes = np.concatenate([p[0] for p in parts])
     scores = np.concatenate([p[1] for p in parts])
     cls = np.concatenate([p[2] for p in parts])
     keep = circle_nms(boxes[:, :2], scores, nms_radius_m)[:max_boxes]
-    return boxes[keep], scores[keep], cls[keep]
+    return boxes[keep], scores[keep], cls[keep], sent
 
 
 def record_lines(model: PillarDetector, samples: Any, device: torch.device,
                  progress: Callable[[int, int], None] | None = None) -> list[str]:
-    """One prediction record (docs/evaluation.md) per sample."""
+    """One prediction record (docs/evaluation.md) per sample, with the bytes its collaborators sent
+    (``bytes_sent``, collaborative fusion only)."""
     setup = samples.setup
     was_training = model.training
     model.eval()
     lines = []
     for i in range(len(samples)):
         item = samples.item(i)
-        boxes, scores, cls = predict_sample(model, item, setup, device)
+        boxes, scores, cls, sent = predict_and_send(model, item, setup, device)
         lines.append(record_json(item["episode"], item["tick"], item["ego"], setup.agents, boxes[:, :3],
-                                 boxes[:, 3:6], boxes[:, 6], [setup.classes[k] for k in cls], scores))
+                                 boxes[:, 3:6], boxes[:, 6], [setup.classes[k] for k in cls], scores,
+                                 bytes_sent=None if setup.fusion == "none" else sent))
         if progress:
             progress(i + 1, len(samples))
     model.train(was_training)
@@ -260,14 +288,17 @@ def record_lines(model: PillarDetector, samples: Any, device: torch.device,
 
 def validate(model: PillarDetector, samples: Samples, device: torch.device) -> dict[str, float]:
     """AP30, AP50 and AP70 (%) of the vehicle group on the samples (``cosim eval``'s scoring,
-    ``--visible-only`` when the episodes have visibility topics)."""
+    ``--visible-only`` when the episodes have visibility topics) and the mean bytes the collaborators sent per
+    ego frame (``bytes_per_frame``)."""
     from cosim.eval.evaluate import EvalOptions, evaluate
 
     lines = record_lines(model, samples, device)
     records = [parse_record(json.loads(line), Path("val.jsonl"), n + 1) for n, line in enumerate(lines)]
     result = evaluate(samples.refs, records, EvalOptions(visible_only=True))
     det = result.metrics(samples.setup.agents)["detection"].get("vehicle", {})
-    return {k: round(float(det.get(k, float("nan"))), 2) for k in ("AP30", "AP50", "AP70")}
+    out = {k: round(float(det.get(k, float("nan"))), 2) for k in ("AP30", "AP50", "AP70")}
+    out["bytes_per_frame"] = round(sum(r.bytes_sent or 0 for r in records) / max(1, len(records)), 1)
+    return out
 
 
 def step_batch(samples: Any, order: np.ndarray, start: int, opts: TrainOptions, step: int,
@@ -517,7 +548,8 @@ def fit(samples: Any, val_fn: Callable[[PillarDetector], dict[str, float]] | Non
             raise InputError(f"{run} was trained with fusion {old.fusion}, agents {old.agents}, classes "
                              f"{', '.join(old.classes)}, lidar {old.lidar}, pillars {old.grid.pillar_m:g} m over x "
                              f"{old.grid.x_range[0]:g} to {old.grid.x_range[1]:g}, y {old.grid.y_range[0]:g} to "
-                             f"{old.grid.y_range[1]:g}: resume it with the same options")
+                             f"{old.grid.y_range[1]:g}, perturbation {old.perturb.describe()}: resume it with the "
+                             "same options")
         old_opts = TrainOptions.from_dict(ckpt["options"])
         differ = [f"{k} {getattr(old_opts, k)} (now {getattr(opts, k)})" for k in RESUME_FIELDS
                   if getattr(old_opts, k) != getattr(opts, k)]
@@ -628,18 +660,22 @@ def run_checkpoints(run: Path) -> list[Path]:
 
 
 def validate_checkpoints(run: Path, refs: list[EpisodeRef], every: int, split: str, threads: int | None = None,
-                         cache: Path | None = None, from_step: int = 0):
+                         cache: Path | None = None, from_step: int = 0, perturb: Perturb | None = None):
     """Score ``checkpoint_<step>.pt`` of a run (and its last checkpoint) at steps >= ``from_step`` on
-    ``refs`` (ticks 0, every, 2 every...; read from ``cache`` when given), except steps already scored on
-    ``split`` with the same ``every``; each result is appended to the run's ``log.jsonl`` as ``{"step",
-    "val", "split", "every"}`` (the training's own validations have no ``split``). Yields (step, AP dict)."""
+    ``refs`` (ticks 0, every, 2 every...; read from ``cache`` when given) under the test perturbation
+    ``perturb`` (none by default, whatever the training's), except steps already scored on ``split`` with the
+    same ``every`` and perturbation; each result is appended to the run's ``log.jsonl`` as ``{"step", "val",
+    "split", "every"}`` and ``"perturb"`` when there is one (the training's own validations have no ``split``).
+    Yields (step, AP dict)."""
+    perturb = perturb or Perturb()
+    tag = perturb.to_dict() if perturb else None
     run = Path(run)
     files = run_checkpoints(run)
     if threads:
         torch.set_num_threads(threads)
     device = device_of(None)
     done = {int(r["step"]) for r in read_log(run)  # scored before
-            if "val" in r and r.get("split") == split and r.get("every") == every}
+            if "val" in r and r.get("split") == split and r.get("every") == every and r.get("perturb") == tag}
     samples = None
     for f in files:
         named = f.stem.removeprefix("checkpoint_")  # checkpoint_<step>.pt names its step: skip it unloaded
@@ -654,9 +690,10 @@ def validate_checkpoints(run: Path, refs: list[EpisodeRef], every: int, split: s
             from cosim.learn.data import Samples, check_classes
 
             check_classes(refs, setup.classes, f"the model in {run}")
-            samples = Samples(refs, setup, every=every, cache=cache)
+            samples = Samples(refs, replace(setup, perturb=perturb), every=every, cache=cache)
         ap = validate(model, samples, device)
-        _append_log(run / "log.jsonl", {"step": step, "val": ap, "split": split, "every": every})
+        _append_log(run / "log.jsonl", {"step": step, "val": ap, "split": split, "every": every,
+                                        **({"perturb": tag} if tag else {})})
         yield step, ap
     if samples is not None:
         samples.close()
