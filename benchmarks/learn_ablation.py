@@ -31,7 +31,13 @@ runs ``cosim learn recall`` on the seed-0 predictions (objects the ego has no re
 setting), over the whole test split and per environment and drone strategy; and writes ``OUT/ablation.md``
 and ``OUT/ablation.json``. ``--use NAME=DIR`` takes a setting from another run's folder instead
 (``ego=out/ablation3600``: ego only trained for more steps, and late fusion with those models), ``--to DIR``
-writes the report there; the overall table gives each setting's steps.
+writes the report there; the overall table gives each setting's steps and the bytes the collaborators sent per
+ego frame (docs/learnability.md, "Bytes sent").
+
+Collaboration as deployed (issue 49): ``run`` and ``report`` with ``--pose-noise POS_M,ROT_DEG``, ``--latency
+MS|links``, ``--loss P|links`` (and ``--perturb-seed S``) predict and score the test split under that
+perturbation with the trained models (a prediction each, no training), into ``OUT/pred-<tag>`` and
+``OUT/ablation-<tag>.md``; the same command without them is the clean grid.
 """
 
 from __future__ import annotations
@@ -152,21 +158,42 @@ def tail_cmd(run: Path, args: argparse.Namespace) -> list[str]:
                  "--threads", "1")
 
 
+def perturb_flags(args: argparse.Namespace) -> list[str]:
+    """The test perturbation's ``cosim learn predict`` flags (none: the clean grid)."""
+    flags = [(f, getattr(args, a, None)) for f, a in (("--pose-noise", "pose_noise"), ("--latency", "latency"),
+                                                       ("--loss", "loss"))]
+    out = [x for f, v in flags if v is not None for x in (f, str(v))]
+    return [*out, "--perturb-seed", str(args.perturb_seed)] if out else []
+
+
+def perturb_tag(args: argparse.Namespace) -> str:
+    """The perturbation's name in folder and job names (``pose-0.2,0.2+latency-100+loss-links+perturb-0``), or ""."""
+    flags = perturb_flags(args)
+    return "+".join(f"{flags[i].lstrip('-').split('-')[0]}-{flags[i + 1]}" for i in range(0, len(flags), 2))
+
+
+def pred_dir(args: argparse.Namespace, folder: Path | None = None) -> Path:
+    tag = perturb_tag(args)
+    return (folder or args.out) / (f"pred-{tag}" if tag else "pred")
+
+
 def predict_jobs(args: argparse.Namespace) -> list[tuple[str, list[str]]]:
     jobs = []
+    tag = perturb_tag(args)
+    suffix = f" [{tag}]" if tag else ""
     for name, (_f, _a, _fu, seeds) in SETTINGS.items():
         for s in seeds:
             run = args.out / "runs" / f"{name}-s{s}"
-            jobs.append((f"predict {name}/s{s}", cosim(
+            jobs.append((f"predict {name}/s{s}{suffix}", cosim(
                 "learn", "predict", str(run), str(args.dataset), "--split", "test", "--every", str(TEST_EVERY),
-                "--cache", str(cache_dir(args)), "--threads", "1", "--quiet",
-                "--out", str(args.out / "pred" / f"{name}-s{s}.jsonl"))))
+                "--cache", str(cache_dir(args)), "--threads", "1", "--quiet", *perturb_flags(args),
+                "--out", str(pred_dir(args) / f"{name}-s{s}.jsonl"))))
     late, base, agents = LATE
     for s in LATE_SEEDS:
-        jobs.append((f"predict {late}/s{s}", cosim(
+        jobs.append((f"predict {late}/s{s}{suffix}", cosim(
             "learn", "predict", str(args.out / "runs" / f"{base}-s{s}"), str(args.dataset), "--split", "test",
             "--every", str(TEST_EVERY), "--cache", str(cache_dir(args)), "--fusion", "late", "--agents", agents,
-            "--threads", "1", "--quiet", "--out", str(args.out / "pred" / f"{late}-s{s}.jsonl"))))
+            "--threads", "1", "--quiet", *perturb_flags(args), "--out", str(pred_dir(args) / f"{late}-s{s}.jsonl"))))
     return jobs
 
 
@@ -183,7 +210,7 @@ def run_all(args: argparse.Namespace) -> int:
     out = args.out
     (out / "logs").mkdir(parents=True, exist_ok=True)
     (out / "runs").mkdir(exist_ok=True)
-    (out / "pred").mkdir(exist_ok=True)
+    pred_dir(args).mkdir(exist_ok=True)
     done = jobs_done(out)
     if args.cache is None and "cache" not in done:
         rc, cpu, wall = timed(cosim("learn", "cache", str(args.dataset), "--out", str(out / "cache"),
@@ -206,7 +233,8 @@ def run_all(args: argparse.Namespace) -> int:
                 shutil.rmtree(run)
             chain.append((f"train {key}", train_cmd(name, int(seed), args, run) + (["--resume"] if resume else [])))
         late = name == LATE[1] and int(seed) in LATE_SEEDS
-        for job in (f"predict {key}", *([f"predict {LATE[0]}/s{seed}"] if late else [])):
+        suffix = f" [{perturb_tag(args)}]" if perturb_tag(args) else ""
+        for job in (f"predict {key}{suffix}", *([f"predict {LATE[0]}/s{seed}{suffix}"] if late else [])):
             if job not in done:
                 chain.append((job, preds[job]))
         if f"tail {key}" not in done:
@@ -275,6 +303,7 @@ def score(refs, path: Path) -> dict[str, dict[str, dict]]:
 
     recs = read_predictions(path)
     setting = recs[0].agents
+    sent = sum(r.bytes_sent or 0 for r in recs) / len(recs)
     both = recs if setting == "all" else [*recs, *(replace(r, agents="all") for r in recs)]
     result = evaluate(refs, both, EvalOptions(visible_only=True, metrics=("detection",)))
     keys = [("overall", "all"), *sorted({(b, v) for _s, b, v in result.cells if b in CONDITIONS})]
@@ -285,6 +314,7 @@ def score(refs, path: Path) -> dict[str, dict[str, dict]]:
             m = result.metrics(agents, b, v)
             det = m["detection"].get("vehicle", {})
             tables[name][f"{b}={v}"] = {k: det.get(k) for k in ("AP30", "AP50", "AP70")} | {"frames": m["frames"]}
+    tables["bytes_per_frame"] = round(sent, 1)  # what the collaborators sent per ego frame
     return tables
 
 
@@ -346,6 +376,7 @@ def report(args: argparse.Namespace) -> int:
         print(e, file=sys.stderr)
         return 2
     out = args.to or args.out
+    tag = perturb_tag(args)
     (out / "logs").mkdir(parents=True, exist_ok=True)
     refs = [r for r in load_dataset(args.dataset) if r.split == "test"]
     done = {folder: jobs_done(folder) for folder in set(src.values())}
@@ -360,10 +391,11 @@ def report(args: argparse.Namespace) -> int:
     results: dict[str, dict] = {}
     for name, s in models:
         base = LATE[1] if name == LATE[0] else name
-        pred = src[name] / "pred" / f"{name}-s{s}.jsonl"
+        pred = pred_dir(args, src[name]) / f"{name}-s{s}.jsonl"
         if not pred.is_file():
             continue
-        cached = src[name] / "scores" / f"{name}-s{s}.json"  # the scores of a prediction file, made once
+        # the scores of a prediction file, made once
+        cached = src[name] / (f"scores-{tag}" if tag else "scores") / f"{name}-s{s}.json"
         if cached.is_file() and cached.stat().st_mtime > pred.stat().st_mtime:
             scored = json.loads(cached.read_text())
         else:
@@ -379,22 +411,24 @@ def report(args: argparse.Namespace) -> int:
             **scored, "curve": curve if name != LATE[0] else {}, "best_step": curve.get("best_step"),
             "steps": curve["steps"][-1] if curve else None, "folder": str(src[name]),
             "train_cpu_s": train.get("cpu_s"), "train_wall_s": train.get("wall_s"),
-            "predict_cpu_s": own.get(f"predict {name}/s{s}", {}).get("cpu_s"),
+            "predict_cpu_s": own.get(f"predict {name}/s{s}" + (f" [{tag}]" if tag else ""), {}).get("cpu_s"),
             "tail_cpu_s": own.get(f"tail {base}/s{s}", {}).get("cpu_s") if name != LATE[0] else None}
-    first = [src[n] / "pred" / f"{n}-s0.jsonl" for n in [*SETTINGS, LATE[0]]
-             if (src[n] / "pred" / f"{n}-s0.jsonl").is_file()]
+    first = [pred_dir(args, src[n]) / f"{n}-s0.jsonl" for n in [*SETTINGS, LATE[0]]
+             if (pred_dir(args, src[n]) / f"{n}-s0.jsonl").is_file()]
     recall = []
     for by in (None, *RECALL_BY):  # the whole test split, then per environment and per drone strategy
-        name = "recall" if by is None else f"recall-{by}"
+        name = ("recall" if by is None else f"recall-{by}") + (f"-{tag}" if tag else "")
         rc, cpu, wall = timed(cosim("learn", "recall", str(args.dataset), *map(str, first), "--out", str(out / name),
                                     *(["--by", by] if by else [])), out / "logs" / f"{name}.log")
         jobs[name] = {"job": name, "rc": rc, "cpu_s": round(cpu, 1), "wall_s": round(wall, 1)}
         recall.append((out / name / "recall.md").read_text() if rc == 0
                       else f"recall failed: {out / 'logs' / f'{name}.log'}\n")
-    (out / "ablation.json").write_text(json.dumps({"results": results, "jobs": jobs}, indent=1) + "\n")
-    (out / "ablation.md").write_text(f"{tables(results, jobs)}\n## Where collaboration helps (seed 0, `cosim learn "
-                                     f"recall`)\n\n" + "\n".join(recall))
-    print(out / "ablation.md")
+    stem = f"ablation-{tag}" if tag else "ablation"
+    (out / f"{stem}.json").write_text(json.dumps({"results": results, "jobs": jobs, "perturb": tag or None},
+                                                 indent=1) + "\n")
+    (out / f"{stem}.md").write_text(f"{tables(results, jobs, tag)}\n## Where collaboration helps (seed 0, `cosim "
+                                    f"learn recall`)\n\n" + "\n".join(recall))
+    print(out / f"{stem}.md")
     return 0
 
 
@@ -410,6 +444,12 @@ def _cell(results: dict, name: str, ref: str, key: str, metric: str) -> str:
         return "-"
     n = sum(v is not None for v in vals)
     return f"{m:.1f}" + (f" ± {spread:.1f}" if n > 1 else "")
+
+
+def _bytes(rs: list[dict]) -> str:
+    """The mean bytes sent per ego frame over a setting's seeds (prediction files without the field: -)."""
+    vals = [r["bytes_per_frame"] for r in rs if r.get("bytes_per_frame") is not None]
+    return f"{sum(vals) / len(vals):,.0f}" if vals else "-"
 
 
 #: the drones' gain: (with drones, without), both intermediate fusion with max
@@ -441,7 +481,7 @@ def gains(results: dict) -> list[str]:
     return lines if len(lines) > 5 else []
 
 
-def tables(results: dict, jobs: dict) -> str:
+def tables(results: dict, jobs: dict, tag: str = "") -> str:
     names = [n for n in [*SETTINGS, LATE[0]] if any(k.split("/s")[0] == n for k in results)]
 
     def label(n: str) -> str:
@@ -455,11 +495,12 @@ def tables(results: dict, jobs: dict) -> str:
         return sum(k.split("/s")[0] == n for k in results)
 
     lines = ["# cosim learn ablation (benchmarks/learn_ablation.py)", "",
-             "AP of the vehicle group in %, mean ± half the range over seeds where there are several.", ""]
+             "AP of the vehicle group in %, mean ± half the range over seeds where there are several.",
+             f"Test perturbation: {tag or 'none'}.", ""]
     lines += ["## Overall", "", "| setting | seeds | steps | own visible AP30 | AP50 | common AP30 | AP50 | AP70 |"
-              " best step | val AP30 change over the last validations (from <= 80 % of the steps) | the same, every"
-              f" cached tick (every {DENSE_EVERY}) | train CPU-s |",
-              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+              " bytes sent per ego frame | best step | val AP30 change over the last validations (from <= 80 % of "
+              f"the steps) | the same, every cached tick (every {DENSE_EVERY}) | train CPU-s |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for n in names:
         rs = [r for k, r in results.items() if k.split("/s")[0] == n]
         steps = ", ".join(sorted({str(r.get("steps")) for r in rs if r.get("steps")})) or "-"
@@ -471,7 +512,8 @@ def tables(results: dict, jobs: dict) -> str:
                      f"{_cell(results, n, 'own', 'overall=all', 'AP50')} | "
                      f"{_cell(results, n, 'common', 'overall=all', 'AP30')} | "
                      f"{_cell(results, n, 'common', 'overall=all', 'AP50')} | "
-                     f"{_cell(results, n, 'common', 'overall=all', 'AP70')} | {', '.join(best) or '-'} | "
+                     f"{_cell(results, n, 'common', 'overall=all', 'AP70')} | {_bytes(rs)} | "
+                     f"{', '.join(best) or '-'} | "
                      f"{', '.join(f'{c:.1f}' for c in change) or '-'} | "
                      f"{', '.join('-' if c is None else f'{c:.1f}' for c in dense) or '-'} | "
                      f"{', '.join(f'{c:.0f}' for c in cpu) or '-'} |")
@@ -516,6 +558,11 @@ def main() -> int:
     r.add_argument("--only", nargs="*", help="only these settings (names of SETTINGS)")
     r.add_argument("--cache", type=Path, help="an existing cache to train from (another run's OUT/cache), made\n"
                    "with --every 2 on the same dataset (default: OUT/cache, made when missing)")
+    for q in (r, rp):  # the test perturbation (cosim learn predict checks the values)
+        q.add_argument("--pose-noise", metavar="POS_M,ROT_DEG", help="predict and score with this pose error")
+        q.add_argument("--latency", metavar="MS|links", help="... with this latency")
+        q.add_argument("--loss", metavar="P|links", help="... with this message loss")
+        q.add_argument("--perturb-seed", type=int, default=0, help="the perturbations' seed (default 0)")
     args = p.parse_args()
     return run_all(args) if args.cmd == "run" else report(args)
 

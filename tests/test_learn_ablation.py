@@ -65,3 +65,18 @@ def test_run_refuses_an_unknown_setting_or_cache_before_making_anything(tmp_path
     assert la.run_all(argparse.Namespace(**base, only=None, cache=tmp_path / "nocache")) == 2
     assert "not a cache" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_test_perturbation_predicts_into_its_own_folder_with_its_flags(tmp_path):
+    base = dict(dataset=tmp_path, out=tmp_path / "ablation", cache=None, perturb_seed=0)
+    clean = argparse.Namespace(**base, pose_noise=None, latency=None, loss=None)
+    assert la.perturb_flags(clean) == [] and la.perturb_tag(clean) == ""
+    jobs = dict(la.predict_jobs(clean))
+    assert "predict ego/s0" in jobs and str(tmp_path / "ablation" / "pred" / "ego-s0.jsonl") in jobs["predict ego/s0"]
+    noisy = argparse.Namespace(**{**base, "perturb_seed": 2}, pose_noise="0.2,0.2", latency=None, loss="links")
+    assert la.perturb_flags(noisy) == ["--pose-noise", "0.2,0.2", "--loss", "links", "--perturb-seed", "2"]
+    tag = la.perturb_tag(noisy)
+    assert tag == "pose-0.2,0.2+loss-links+perturb-2"
+    cmd = dict(la.predict_jobs(noisy))[f"predict inter-VID/s1 [{tag}]"]
+    assert cmd[-1] == str(tmp_path / "ablation" / f"pred-{tag}" / "inter-VID-s1.jsonl")
+    assert cmd[cmd.index("--pose-noise") + 1] == "0.2,0.2" and cmd[cmd.index("--loss") + 1] == "links"
