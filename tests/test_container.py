@@ -126,16 +126,34 @@ def _disk_problem() -> str | None:
     return None
 
 
-def _dependencies_key() -> str:
+#: Packaging tools: the build stage brings its own (the project's build-system.requires), never the host's.
+UNPINNED = {"cosim", "pip", "setuptools", "wheel"}
+
+
+def host_pins() -> str:
+    """The host environment's distributions as pip constraints (``name==version``, one a line): the image is
+    built from the very versions the host runs, so that an episode made in it can equal the host's byte for
+    byte. Pinning by the dependency list alone let a wheelhouse cached from older releases (numpy, numba)
+    give last-digit differences in float results after the host's environment moved on."""
+    from importlib import metadata
+
+    pins = {(d.metadata["Name"] or "").lower().replace("_", "-"): d.version for d in metadata.distributions()}
+    return "".join(f"{name}=={version}\n" for name, version in sorted(pins.items())
+                   if name and name not in UNPINNED)
+
+
+def _dependencies_key(pins: str) -> str:
     project = tomllib.loads((REPO / "pyproject.toml").read_text())
-    deps = [project["build-system"]["requires"], project["project"]["dependencies"]]
+    deps = [project["build-system"]["requires"], project["project"]["dependencies"], pins]
     return hashlib.sha256(json.dumps(deps).encode()).hexdigest()[:16]
 
 
 @pytest.fixture(scope="module")
 def wheelhouse() -> Path:
-    """Every dependency as a wheel, built once per dependency list (the network is needed only then)."""
-    path = CACHE / f"wheelhouse-{_dependencies_key()}"
+    """Every dependency as a wheel, at the host's versions, built once per dependency list and set of host
+    versions (the network is needed only then)."""
+    pins = host_pins()
+    path = CACHE / f"wheelhouse-{_dependencies_key(pins)}"
     for old in CACHE.glob("wheelhouse-*"):  # made for another dependency list
         if old != path:
             shutil.rmtree(old, ignore_errors=True)
@@ -143,10 +161,11 @@ def wheelhouse() -> Path:
         return path
     tmp = CACHE / f".wheelhouse-{uuid.uuid4().hex[:8]}"
     tmp.mkdir(parents=True)
+    (tmp / "constraints.txt").write_text(pins)
     try:
         r = subprocess.run(["nice", "-n", "10", sys.executable, "-m", "pip", "wheel", "--quiet", "--wheel-dir",
-                            str(tmp), str(REPO), "setuptools>=77", "wheel"], capture_output=True, text=True,
-                           timeout=1800)
+                            str(tmp), "-c", str(tmp / "constraints.txt"), str(REPO), "setuptools>=77", "wheel"],
+                           capture_output=True, text=True, timeout=1800)
         assert r.returncode == 0, f"pip wheel failed: {r.stderr[-3000:]}"
         for w in tmp.glob("cosim-*.whl"):
             w.unlink()  # the project itself is built from the context, the wheelhouse holds dependencies
@@ -206,6 +225,21 @@ def objects_of(path: Path) -> list[tuple[int, bytes]]:
 
     with open(path, "rb") as f:
         return [(m.log_time, m.data) for _s, _c, m in make_reader(f).iter_messages(topics=["/labels/objects"])]
+
+
+def test_the_image_runs_the_hosts_version_of_every_package_it_has(image):
+    """What makes the image's episodes equal the host's: the same releases (a numpy or numba of another
+    release may differ in the last digit of a float)."""
+    listing = ("import importlib.metadata as m; "
+               "print('\\n'.join(sorted(f\"{d.metadata['Name'].lower().replace('_', '-')}=={d.version}\" "
+               "for d in m.distributions())))")
+    r = docker("run", "--rm", "--entrypoint", "python", image, "-c", listing, timeout=120)
+    inside = dict(line.split("==", 1) for line in r.stdout.split())
+    host = dict(line.split("==", 1) for line in host_pins().split())
+    assert {"numpy", "numba", "open3d-cpu", "libsumo", "mcap"} <= inside.keys()
+    differ = {name: (version, host.get(name)) for name, version in inside.items()
+              if name not in UNPINNED and host.get(name) != version}
+    assert not differ, f"image against host versions: {differ}"
 
 
 def test_episode_in_a_container_validates_and_matches_the_host(image, tmp_path):
