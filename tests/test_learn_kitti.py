@@ -450,3 +450,17 @@ def test_raw_tracklets_become_object_labels_in_the_cameras_view(tmp_path):
     second = (out / "training" / "label_2" / "000001.txt").read_text().split()
     assert (second[1], second[2]) == ("0.0000", "3")  # in the image: not truncated; occlusion -1: unknown (3)
     assert main(["--drive", str(tmp_path / "none"), "--calib", str(day), "--out", str(tmp_path / "o2")]) == 2
+
+
+def test_the_lidar_height_comes_from_each_vehicles_own_rig():
+    from cosim.learn.kitti import vehicle_lidar_heights_m
+
+    def lidar(z):
+        return {"model": "hdl64e", "mount": {"xyz_m": [0.0, 0.0, z]}}
+
+    resolved = {"agents": {"vehicles": {"count": 3, "rigs": {"vehicle_1": {"lidar": lidar(1.2)},
+                                                             "vehicle_2": {"lidar": None}}}},
+                "sensors": {"vehicle": {"lidar": lidar(1.73)}}}
+    assert vehicle_lidar_heights_m(resolved) == [1.73, 1.2]  # vehicle_2 is camera-only
+    resolved["sensors"]["vehicle"]["lidar"] = None
+    assert vehicle_lidar_heights_m(resolved) == [1.2]

@@ -660,10 +660,26 @@ def validate_checkpoints(run: Path, sources: Sequence[KittiSource], o: ScoreOpti
         yield step, ap
 
 
+def vehicle_lidar_heights_m(resolved: dict[str, Any]) -> list[float]:
+    """The LiDAR mount heights above the road [m] of a resolved scenario's connected vehicles, each from its
+    own rig (``agents.vehicles.rigs``) or the kind's (``sensors.vehicle``); camera-only vehicles give none."""
+    from cosim.scenario.model import rig_data_of
+
+    count = int(((resolved.get("agents") or {}).get("vehicles") or {}).get("count") or 0)
+    heights = []
+    for i in range(count):
+        lidar = rig_data_of(resolved, f"vehicle_{i}").get("lidar")
+        try:
+            heights.append(float(lidar["mount"]["xyz_m"][2]))
+        except (KeyError, TypeError, IndexError):
+            continue
+    return heights
+
+
 def episodes_lidar_height_m(refs: Sequence[Any]) -> float | None:
-    """The vehicles' LiDAR mount height above the road [m] of cosim episodes (their resolved scenario's
-    ``sensors.vehicle.lidar.mount.xyz_m`` z; the vehicle's base_link is on the road): the median over the
-    episodes, None when none has a vehicle LiDAR."""
+    """The vehicles' LiDAR mount height above the road [m] of cosim episodes (each vehicle's rig's
+    ``lidar.mount.xyz_m`` z in the resolved scenario; the vehicle's base_link is on the road): the median over
+    the episodes' vehicles, None when none has a LiDAR."""
     import yaml
 
     from cosim.io import open_episode
@@ -671,11 +687,7 @@ def episodes_lidar_height_m(refs: Sequence[Any]) -> float | None:
     heights = []
     for r in refs:
         with open_episode(r.path) as ep:
-            try:
-                resolved = yaml.safe_load(ep.attachment("scenario.yaml"))
-                heights.append(float(resolved["sensors"]["vehicle"]["lidar"]["mount"]["xyz_m"][2]))
-            except (KeyError, TypeError, IndexError):
-                continue
+            heights += vehicle_lidar_heights_m(yaml.safe_load(ep.attachment("scenario.yaml")) or {})
     return round(float(np.median(heights)), 3) if heights else None
 
 
