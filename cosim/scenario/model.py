@@ -934,10 +934,14 @@ class Scenario(Model):
         """The sensor rig of an agent: its own (``agents.vehicles.rigs``, ``agents.rsus.rigs``, a drone's
         ``rig``), else its kind's (by id prefix); with ``sensors.image_scale`` applied to its cameras."""
         kind, _, index = agent_id.rpartition("_")
+        drones = self.agents.drones
         own = {"vehicle": lambda: self.agents.vehicles.rigs.get(agent_id),
                "rsu": lambda: self.agents.rsus.rigs.get(agent_id),
-               "drone": lambda: self.agents.drones[int(index)].rig}[kind]()
-        rig = own if own is not None else {"vehicle": self.sensors.vehicle, "rsu": self.sensors.rsu, "drone": self.sensors.drone}[kind]
+               # an id beyond the scenario's drones (a sensor rendered for a test or a tool) has its kind's rig
+               "drone": lambda: drones[int(index)].rig if index.isdigit() and int(index) < len(drones) else None,
+               }[kind]()
+        kinds = {"vehicle": self.sensors.vehicle, "rsu": self.sensors.rsu, "drone": self.sensors.drone}
+        rig = own if own is not None else kinds[kind]
         scale = self.sensors.image_scale
         if scale == 1.0:
             return rig
