@@ -15,10 +15,12 @@ SYSTEM_LIBS := libusb-1.0-0 libgl1 libegl1 libgomp1 libatomic1 libxrender1
 APT_LINE    := apt-get update && apt-get install -y --no-install-recommends $(SYSTEM_LIBS)
 SCENARIO    ?= scenarios/default.yaml
 PYTEST_ARGS ?=
-# pytest-xdist workers (2: the product's machine has two cores); tests/conftest.py keeps tests that share a
-# module or session fixture, or a resource, on one worker, and runs `exclusive` tests alone. PYTEST_ARGS='-n 0'
-# runs one test at a time.
-TEST_WORKERS ?= 2
+# pytest-xdist workers: 4 on the product's 2-core machine, because most of a test's wall time is spent waiting
+# (processes starting, Zenoh handshakes, SUMO and the engines loading: a tiny `cosim run` keeps about a third of
+# one core busy), so two workers per core keep both cores busy. tests/conftest.py keeps tests that share a
+# module or session fixture, or a resource, on one worker, runs `exclusive` tests (timing deadlines) alone, and
+# every time bound in a test grows with the measured load. PYTEST_ARGS='-n 0' runs one test at a time.
+TEST_WORKERS ?= 4
 XDIST       := -n $(TEST_WORKERS) --dist loadgroup
 # make image: BASE is the image to build on (docker/base.sh makes cosim-base:bookworm without a
 # registry); WHEELHOUSE=1 (default) fills wheelhouse/ on the host first so the build needs no network;
