@@ -37,7 +37,11 @@ ego frame (docs/learnability.md, "Bytes sent").
 Collaboration as deployed (issue 49): ``run`` and ``report`` with ``--pose-noise POS_M,ROT_DEG``, ``--latency
 MS|links``, ``--loss P|links`` (and ``--perturb-seed S``) predict and score the test split under that
 perturbation with the trained models (a prediction each, no training), into ``OUT/pred-<tag>`` and
-``OUT/ablation-<tag>.md``; the same command without them is the clean grid.
+``OUT/ablation-<tag>.md``; the same command without them is the clean grid. ``robustness`` does that for every
+level of the protocol (pose error 0.2 to 0.6 m and deg, latency 200 and 400 ms, ``--links``: the simulated
+links) and writes ``OUT/robustness.md`` and ``.json``: AP against each level, against bytes sent, and with
+``--mixed DIR`` mixed LiDARs against uniform ones (docs/learnability.md, "The benchmark of collaboration as
+deployed").
 """
 
 from __future__ import annotations
@@ -54,29 +58,47 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-#: name -> (fusion, agents, fuse, seeds): the paper's agent ablation with intermediate fusion (its models
-#: are all intermediate), its fusion ablation on V+I+D, three seeds for ego only and V+I+D. Late fusion is
+class Setting(NamedTuple):
+    """One trained setting of the grid: ``cosim learn train --fusion FUSION --agents AGENTS --fuse FUSE`` with
+    ``train`` flags added, once per seed."""
+
+    fusion: str
+    agents: str
+    fuse: str
+    seeds: tuple[int, ...]
+    train: tuple[str, ...] = ()
+
+
+#: name -> setting: the paper's agent ablation with intermediate fusion (its models are all intermediate),
+#: its fusion ablation on V+I+D, three seeds for ego only and V+I+D, two for the rest of V+I+D. Late fusion is
 #: predicted with each ego-only model (:data:`LATE`). Intermediate V+I+D is trained with both per-cell
-#: fusions: max (F-Cooper, every other intermediate setting) and attention (AttFuse), one seed.
-SETTINGS: dict[str, tuple[str, str, str, tuple[int, ...]]] = {
-    "ego": ("none", "ego", "max", (0, 1, 2)),
-    "inter-VID": ("intermediate", "all", "max", (0, 1, 2)),
-    "inter-V": ("intermediate", "vehicles", "max", (0,)),
-    "inter-VI": ("intermediate", "vehicles+rsus", "max", (0,)),
-    "inter-VD": ("intermediate", "vehicles+drones", "max", (0,)),
-    "early-VID": ("early", "all", "max", (0,)),
-    "inter-VID-att": ("intermediate", "all", "attention", (0,)),
+#: fusions: max (F-Cooper, every other intermediate setting) and attention (AttFuse). Collaboration as
+#: deployed (issue 49) adds two: the robust variant, trained under V2X-ViT's and CoAlign's pose error of the
+#: middle level (0.4 m, 0.4 deg), and one pillar encoder per agent kind (for the mixed LiDARs of
+#: ``robustness --mixed``).
+SETTINGS: dict[str, Setting] = {
+    "ego": Setting("none", "ego", "max", (0, 1, 2)),
+    "inter-VID": Setting("intermediate", "all", "max", (0, 1, 2)),
+    "inter-V": Setting("intermediate", "vehicles", "max", (0,)),
+    "inter-VI": Setting("intermediate", "vehicles+rsus", "max", (0,)),
+    "inter-VD": Setting("intermediate", "vehicles+drones", "max", (0,)),
+    "early-VID": Setting("early", "all", "max", (0, 1)),
+    "inter-VID-att": Setting("intermediate", "all", "attention", (0, 1)),
+    "inter-VID-pose": Setting("intermediate", "all", "max", (0, 1), ("--pose-noise", "0.4,0.4")),
+    "inter-VID-kind": Setting("intermediate", "all", "max", (0, 1), ("--encoders", "kind")),
 }
 #: late fusion: each ego-only model on every agent's cloud
 LATE = ("late-VID", "ego", "all")
 LATE_SEEDS = (0, 1, 2)
 #: the order training jobs start in: a long and a short one side by side, the first seed of everything first
 ORDER = ("inter-VID/s0", "ego/s0", "inter-V/s0", "inter-VI/s0", "inter-VD/s0", "early-VID/s0", "inter-VID/s1",
-         "ego/s1", "inter-VID/s2", "ego/s2", "inter-VID-att/s0")
+         "ego/s1", "inter-VID/s2", "ego/s2", "inter-VID-att/s0", "early-VID/s1", "inter-VID-att/s1",
+         "inter-VID-pose/s0", "inter-VID-pose/s1", "inter-VID-kind/s0", "inter-VID-kind/s1")
 CONDITIONS = ("environment", "strategy", "lighting")
 RECALL_BY = ("environment", "strategy")  # the recall table again per value of these (where drones add sight)
 AGENT_LABEL = {"ego": "ego only", "vehicles": "V", "vehicles+rsus": "V+I", "vehicles+drones": "V+D", "all": "V+I+D"}
@@ -139,9 +161,9 @@ def cache_dir(args: argparse.Namespace) -> Path:
 
 
 def train_cmd(name: str, seed: int, args: argparse.Namespace, run: Path) -> list[str]:
-    fusion, agents, fuse, _seeds = SETTINGS[name]
-    return cosim("learn", "train", str(args.dataset), "--out", str(run), "--fusion", fusion, "--agents", agents,
-                 "--fuse", fuse, "--cache", str(cache_dir(args)), "--every", str(CACHE_EVERY),
+    st = SETTINGS[name]
+    return cosim("learn", "train", str(args.dataset), "--out", str(run), "--fusion", st.fusion, "--agents", st.agents,
+                 "--fuse", st.fuse, *st.train, "--cache", str(cache_dir(args)), "--every", str(CACHE_EVERY),
                  "--steps", str(args.steps), "--batch-size", "8", "--lr", str(args.lr), "--schedule", "onecycle",
                  "--val-steps", str(args.val_steps), "--val-every-tick", "10", "--keep-every", str(args.val_steps),
                  "--threads", "1", "--seed", str(seed), "--quiet")
@@ -177,23 +199,27 @@ def pred_dir(args: argparse.Namespace, folder: Path | None = None) -> Path:
     return (folder or args.out) / (f"pred-{tag}" if tag else "pred")
 
 
-def predict_jobs(args: argparse.Namespace) -> list[tuple[str, list[str]]]:
+def predict_jobs(args: argparse.Namespace, folders: dict[str, Path] | None = None) -> list[tuple[str, list[str]]]:
+    """Every prediction of the test split (under ``args``' perturbation), each setting's run and prediction
+    file in ``args.out`` or the results folder ``folders`` names for it (``report --use``)."""
+    folders = folders or {}
     jobs = []
     tag = perturb_tag(args)
     suffix = f" [{tag}]" if tag else ""
-    for name, (_f, _a, _fu, seeds) in SETTINGS.items():
-        for s in seeds:
-            run = args.out / "runs" / f"{name}-s{s}"
-            jobs.append((f"predict {name}/s{s}{suffix}", cosim(
-                "learn", "predict", str(run), str(args.dataset), "--split", "test", "--every", str(TEST_EVERY),
-                "--cache", str(cache_dir(args)), "--threads", "1", "--quiet", *perturb_flags(args),
-                "--out", str(pred_dir(args) / f"{name}-s{s}.jsonl"))))
+
+    def one(name: str, base: str, s: int, extra: tuple[str, ...] = ()) -> tuple[str, list[str]]:
+        run = folders.get(base, args.out) / "runs" / f"{base}-s{s}"
+        pred = pred_dir(args, folders.get(name, args.out)) / f"{name}-s{s}.jsonl"
+        cache = [] if getattr(args, "mcap", False) else ["--cache", str(cache_dir(args))]
+        return (f"predict {name}/s{s}{suffix}", cosim(
+            "learn", "predict", str(run), str(args.dataset), "--split", "test", "--every", str(TEST_EVERY),
+            *cache, *extra, "--threads", "1", "--quiet", *perturb_flags(args),
+            "--out", str(pred)))
+
+    for name, st in SETTINGS.items():
+        jobs += [one(name, name, s) for s in st.seeds]
     late, base, agents = LATE
-    for s in LATE_SEEDS:
-        jobs.append((f"predict {late}/s{s}{suffix}", cosim(
-            "learn", "predict", str(args.out / "runs" / f"{base}-s{s}"), str(args.dataset), "--split", "test",
-            "--every", str(TEST_EVERY), "--cache", str(cache_dir(args)), "--fusion", "late", "--agents", agents,
-            "--threads", "1", "--quiet", *perturb_flags(args), "--out", str(pred_dir(args) / f"{late}-s{s}.jsonl"))))
+    jobs += [one(late, base, s, ("--fusion", "late", "--agents", agents)) for s in LATE_SEEDS]
     return jobs
 
 
@@ -367,7 +393,9 @@ def sources(args: argparse.Namespace) -> dict[str, Path]:
     return {name: use.get(name, args.out) for name in [*SETTINGS, LATE[0]]}
 
 
-def report(args: argparse.Namespace) -> int:
+def report(args: argparse.Namespace, recall_tables: bool = True) -> int:
+    """Score every prediction file of ``args``' perturbation and write ``ablation[-TAG].md`` and ``.json``;
+    ``recall_tables``: with the ``cosim learn recall`` tables of the seed-0 predictions."""
     from cosim.eval.dataset import load_dataset
 
     try:
@@ -386,7 +414,7 @@ def report(args: argparse.Namespace) -> int:
             name = job.split(" ")[-1].split("/s")[0]  # "train ego/s1" -> "ego"; "cache" stays "cache"
             if src.get(name, args.out) == folder:
                 jobs[job if folder == args.out else f"{job} ({folder})"] = r
-    models = [(n, s) for n, (_f, _a, _fu, seeds) in SETTINGS.items() for s in seeds]
+    models = [(n, s) for n, st in SETTINGS.items() for s in st.seeds]
     models += [(LATE[0], s) for s in LATE_SEEDS]
     results: dict[str, dict] = {}
     for name, s in models:
@@ -416,7 +444,7 @@ def report(args: argparse.Namespace) -> int:
     first = [pred_dir(args, src[n]) / f"{n}-s0.jsonl" for n in [*SETTINGS, LATE[0]]
              if (pred_dir(args, src[n]) / f"{n}-s0.jsonl").is_file()]
     recall = []
-    for by in (None, *RECALL_BY):  # the whole test split, then per environment and per drone strategy
+    for by in (None, *RECALL_BY) if recall_tables else ():  # the whole split, per environment, per strategy
         name = ("recall" if by is None else f"recall-{by}") + (f"-{tag}" if tag else "")
         rc, cpu, wall = timed(cosim("learn", "recall", str(args.dataset), *map(str, first), "--out", str(out / name),
                                     *(["--by", by] if by else [])), out / "logs" / f"{name}.log")
@@ -426,8 +454,8 @@ def report(args: argparse.Namespace) -> int:
     stem = f"ablation-{tag}" if tag else "ablation"
     (out / f"{stem}.json").write_text(json.dumps({"results": results, "jobs": jobs, "perturb": tag or None},
                                                  indent=1) + "\n")
-    (out / f"{stem}.md").write_text(f"{tables(results, jobs, tag)}\n## Where collaboration helps (seed 0, `cosim "
-                                    f"learn recall`)\n\n" + "\n".join(recall))
+    where = ("\n## Where collaboration helps (seed 0, `cosim learn recall`)\n\n" + "\n".join(recall)) if recall else ""
+    (out / f"{stem}.md").write_text(tables(results, jobs, tag) + where)
     print(out / f"{stem}.md")
     return 0
 
@@ -476,20 +504,27 @@ def gains(results: dict) -> list[str]:
         for key in keys:
             d = [_mean(results, with_d, key, m) - _mean(results, without, key, m) for m in ("AP30", "AP50")]
             cells.append(" / ".join("-" if math.isnan(x) else f"{x:+.1f}" for x in d))
-        label = f"{AGENT_LABEL[SETTINGS[with_d][1]]} - {AGENT_LABEL[SETTINGS[without][1]]}"
+        label = f"{AGENT_LABEL[SETTINGS[with_d].agents]} - {AGENT_LABEL[SETTINGS[without].agents]}"
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return lines if len(lines) > 5 else []
+
+
+def setting_label(name: str) -> str:
+    """A setting's name in the tables: ``intermediate (max), V+I+D, trained with pose error 0.4,0.4``."""
+    if name == LATE[0]:
+        return "late, V+I+D (ego-only models)"
+    st = SETTINGS[name]
+    kind = {"none": "", "early": "early, ", "intermediate": f"intermediate ({st.fuse}), "}[st.fusion]
+    train = dict(zip(st.train[::2], st.train[1::2], strict=True))
+    extra = ([f"trained with pose error {train['--pose-noise']}"] if "--pose-noise" in train else []) + \
+        (["an encoder per kind"] if train.get("--encoders") == "kind" else [])
+    return ", ".join([f"{kind}{AGENT_LABEL[st.agents]}", *extra])
 
 
 def tables(results: dict, jobs: dict, tag: str = "") -> str:
     names = [n for n in [*SETTINGS, LATE[0]] if any(k.split("/s")[0] == n for k in results)]
 
-    def label(n: str) -> str:
-        if n == LATE[0]:
-            return "late, V+I+D (ego-only models)"
-        fusion, agents, fuse, _s = SETTINGS[n]
-        kind = {"none": "", "early": "early, ", "intermediate": f"intermediate ({fuse}), "}[fusion]
-        return f"{kind}{AGENT_LABEL[agents]}"
+    label = setting_label
 
     def seeds(n: str) -> int:
         return sum(k.split("/s")[0] == n for k in results)
@@ -539,18 +574,216 @@ def tables(results: dict, jobs: dict, tag: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
+# -------------------------------------------------------------------------------------------- robustness
+
+#: issue 49's test-time grid (V2X-ViT's, CoAlign's and Griffin's levels): pose error POS_M,ROT_DEG and
+#: latency in ms (whole ticks: the learnability sweep's 5 Hz has no 100 ms, a 10 Hz one does); level 0 of each
+#: is the clean grid's own predictions
+POSE_LEVELS = ("0.2,0.2", "0.4,0.4", "0.6,0.6")
+LATENCY_LEVELS = ("200", "400")
+#: the rows of the robustness tables: every fusion mode on V+I+D, ego only, and the robust variants
+ROBUST_ROWS = ("ego", "early-VID", "inter-VID", "inter-VID-att", "late-VID", "inter-VID-pose", "inter-VID-kind")
+
+
+def level(args: argparse.Namespace, pose: str | None = None, latency: str | None = None,
+          loss: str | None = None) -> argparse.Namespace:
+    """``args`` with one test perturbation (the others off). A latency reads earlier ticks: its predictions
+    read ``--latency-cache`` (a cache made with ``--every 1``), or the episodes' MCAP without one (the grid's
+    cache holds every second tick only)."""
+    a = argparse.Namespace(**{**vars(args), "pose_noise": pose, "latency": latency, "loss": loss})
+    if latency is not None:
+        a.cache, a.mcap = args.latency_cache, args.latency_cache is None
+    return a
+
+
+def levels(args: argparse.Namespace) -> dict[str, list[tuple[str, argparse.Namespace]]]:
+    """The sweeps of ``robustness``: name -> [(column, the perturbation's args)], each from the clean grid."""
+    clean = ("0", level(args))
+    out = {"pose": [clean, *((p, level(args, pose=p)) for p in args.pose_levels)],
+           "latency": [clean, *((f"{ms} ms", level(args, latency=ms)) for ms in args.latency_levels)]}
+    if args.links:
+        out["links"] = [("ideal", clean[1]), ("links", level(args, latency="links", loss="links"))]
+    return out
+
+
+def robustness(args: argparse.Namespace) -> int:
+    """Predict the test split under every level of :func:`levels` with the trained models (no training),
+    score each level (``report`` without its recall tables), and write ``robustness.md``, ``.json`` and, with
+    ``--picture``, AP30 against pose error and latency."""
+    try:
+        src = sources(args)
+    except ValueError as e:
+        print(e, file=sys.stderr)
+        return 2
+    if args.mixed is not None and not (args.mixed / "ablation.json").is_file():
+        print(f"--mixed {args.mixed}: no ablation.json (run `report` on the mixed-LiDAR data's results first)",
+              file=sys.stderr)
+        return 2
+    out = args.to or args.out
+    sweeps = levels(args)
+    perturbed = {perturb_tag(a): a for cols in sweeps.values() for _c, a in cols if perturb_tag(a)}
+    done = {folder: jobs_done(folder) for folder in set(src.values())}
+    for a in perturbed.values():  # the predictions, in the folder of each setting's results
+        by_folder: dict[Path, list[list[tuple[str, list[str]]]]] = {}
+        for job, cmd in predict_jobs(a, src):
+            name, s = job.split(" ")[1].split("/s")
+            folder, base = src[name], LATE[1] if name == LATE[0] else name
+            if job in done[folder] or not (src[base] / "runs" / f"{base}-s{s}" / "best.pt").is_file():
+                continue  # done already, or a setting not trained
+            pred_dir(a, folder).mkdir(parents=True, exist_ok=True)
+            (folder / "logs").mkdir(exist_ok=True)
+            by_folder.setdefault(folder, []).append([(job, cmd)])
+        for folder, chains in by_folder.items():
+            failed, stopped = run_chains(chains, args.parallel, folder)
+            if stopped:
+                print("stopped by a signal: run the same command again to continue", file=sys.stderr)
+                return 130
+            if failed:
+                print(f"failed: {', '.join(failed)} (logs in {folder / 'logs'})", file=sys.stderr)
+                return 1
+    scored = {}
+    for tag, a in {"": level(args), **perturbed}.items():
+        rc = report(a, recall_tables=False)
+        if rc:
+            return rc
+        scored[tag] = json.loads((out / (f"ablation-{tag}.json" if tag else "ablation.json")).read_text())["results"]
+    mixed = json.loads((args.mixed / "ablation.json").read_text())["results"] if args.mixed else None
+    grid = {name: [(col, scored[perturb_tag(a)]) for col, a in cols] for name, cols in sweeps.items()}
+    (out / "robustness.json").write_text(json.dumps({"sweeps": {n: [c for c, _r in cols] for n, cols in grid.items()},
+                                                     "results": {t or "clean": r for t, r in scored.items()},
+                                                     "mixed": mixed}, indent=1) + "\n")
+    (out / "robustness.md").write_text(robustness_tables(grid, mixed))
+    if args.picture:
+        robustness_picture(grid, args.picture)
+    print(out / "robustness.md")
+    return 0
+
+
+def _ap(results: dict, name: str, key: str = "overall=all") -> str:
+    """``AP30 / AP50`` of a setting (mean over its seeds, ± half the range of AP30), common reference."""
+    a30, spread = mean_spread(_seed_values(results, name, "common", key, "AP30"))
+    a50, _ = mean_spread(_seed_values(results, name, "common", key, "AP50"))
+    if math.isnan(a30):
+        return "-"
+    n = sum(v is not None for v in _seed_values(results, name, "common", key, "AP30"))
+    return f"{a30:.1f}" + (f" ± {spread:.1f}" if n > 1 else "") + f" / {a50:.1f}"
+
+
+def robustness_tables(grid: dict[str, list[tuple[str, dict]]], mixed: dict | None = None) -> str:
+    """The markdown of ``robustness``: AP against each sweep's levels (with the fall from the clean column),
+    the links as simulated per environment, AP against bytes sent, and mixed LiDARs against uniform ones."""
+    first = grid["pose"][0][1]
+    rows = [n for n in ROBUST_ROWS if any(k.split("/s")[0] == n for cols in grid.values() for _c, r in cols
+                                          for k in r)]
+    seeds = {n: sum(k.split("/s")[0] == n for k in first) for n in rows}
+    lines = ["# Collaboration as deployed (benchmarks/learn_ablation.py robustness)", "",
+             "AP30 / AP50 of the vehicle group in % (common reference: the objects any agent of V+I+D sees), the mean "
+             "over seeds with ± half the range of AP30; every model trained on clean data unless its name says "
+             "otherwise, each perturbation applied at test only.", ""]
+    titles = {"pose": "Against pose error (each collaborator's x, y and yaw; POS_M,ROT_DEG standard deviations)",
+              "latency": "Against latency (each collaborator's data from that long before the ego's tick)"}
+    for name in ("pose", "latency"):
+        cols = grid[name]
+        lines += [f"## {titles[name]}", "",
+                  "| setting | seeds | " + " | ".join(c for c, _r in cols) + " | AP30 fall at the last level |",
+                  "|---|---:|" + "---:|" * (len(cols) + 1)]
+        for n in rows:
+            fall = mean_spread(_seed_values(cols[0][1], n, "common", "overall=all", "AP30"))[0] - \
+                mean_spread(_seed_values(cols[-1][1], n, "common", "overall=all", "AP30"))[0]
+            lines.append(f"| {setting_label(n)} | {seeds[n]} | " + " | ".join(_ap(r, n) for _c, r in cols) +
+                         f" | {'-' if math.isnan(fall) else f'{fall:.1f}'} |")
+        lines.append("")
+    if "links" in grid:
+        (_i, ideal), (_l, links) = grid["links"]
+        envs = sorted({k.split("=", 1)[1] for r in ideal.values() for k in r["common"] if k.startswith("environment=")})
+        lines += ["## The links as simulated (`--latency links --loss links`) against ideal links, per environment",
+                  "", "| setting | " + " | ".join(f"{e}: ideal | {e}: links" for e in ["all", *envs]) + " |",
+                  "|---|" + "---:|" * (2 * len(envs) + 2)]
+        for n in rows:
+            keys = ["overall=all", *(f"environment={e}" for e in envs)]
+            lines.append(f"| {setting_label(n)} | " + " | ".join(f"{_ap(ideal, n, k)} | {_ap(links, n, k)}"
+                                                                  for k in keys) + " |")
+        lines.append("")
+    lines += ["## AP against bytes sent per ego frame (clean links)", "",
+              "| setting | bytes sent per ego frame | AP30 / AP50 |", "|---|---:|---:|"]
+    for n in rows:
+        lines.append(f"| {setting_label(n)} | {_bytes([r for k, r in first.items() if k.split('/s')[0] == n])} | "
+                     f"{_ap(first, n)} |")
+    if mixed is not None:
+        lines += ["", "## Mixed LiDARs against uniform ones (the same scenes and seeds)", "",
+                  "| setting | uniform | mixed | AP30 change |", "|---|---:|---:|---:|"]
+        for n in rows:
+            if not any(k.split("/s")[0] == n for k in mixed):
+                continue
+            d = mean_spread(_seed_values(mixed, n, "common", "overall=all", "AP30"))[0] - \
+                mean_spread(_seed_values(first, n, "common", "overall=all", "AP30"))[0]
+            lines.append(f"| {setting_label(n)} | {_ap(first, n)} | {_ap(mixed, n)} | "
+                         f"{'-' if math.isnan(d) else f'{d:+.1f}'} |")
+    return "\n".join(lines) + "\n"
+
+
+def robustness_picture(grid: dict[str, list[tuple[str, dict]]], path: Path) -> None:
+    """AP30 (mean, the seeds' range as error bars) against pose error and latency, a line per setting."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    for ax, name, xlabel in ((axes[0], "pose", "pose error [m, deg] (standard deviation)"),
+                             (axes[1], "latency", "latency [ms]")):
+        cols = grid[name]
+        xs = [float(c.split(",")[0].split(" ")[0]) for c, _r in cols]
+        for n in ROBUST_ROWS:
+            vals = [[v for v in _seed_values(r, n, "common", "overall=all", "AP30") if v is not None] for _c, r in cols]
+            if not any(vals):
+                continue
+            pts = [(x, sum(v) / len(v), min(v), max(v)) for x, v in zip(xs, vals, strict=True) if v]
+            ax.errorbar([p[0] for p in pts], [p[1] for p in pts], yerr=[[p[1] - p[2] for p in pts],
+                                                                        [p[3] - p[1] for p in pts]],
+                        marker="o", capsize=3, label=setting_label(n))
+        ax.set_xlabel(xlabel)
+        ax.set_xticks(xs)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("AP30 [%] (common reference)")
+    axes[1].legend(fontsize=7, loc="lower left")
+    fig.suptitle("cosim learn: collaboration as deployed (trained clean, perturbed at test)")
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run", help="cache, train and predict every setting")
     rp = sub.add_parser("report", help="score the predictions and write OUT/ablation.md and .json")
-    for q in (r, rp):
+    rb = sub.add_parser("robustness", help="predict and score under pose error, latency and the simulated links;\n"
+                                           "write OUT/robustness.md and .json (issue 49)")
+    for q in (r, rp, rb):
         q.add_argument("dataset", type=Path, help="batch folder of sweeps/learnability.yaml")
         q.add_argument("--out", type=Path, required=True)
-    rp.add_argument("--use", nargs="*", metavar="NAME=DIR",
-                    help="take these settings from another run's folder (e.g. ego=out/ablation3600: ego only, and\n"
-                         "late fusion with its models, trained for more steps)")
-    rp.add_argument("--to", type=Path, help="write the report and recall tables here (default: --out)")
+    for q in (rp, rb):
+        q.add_argument("--use", nargs="*", metavar="NAME=DIR",
+                       help="take these settings from another run's folder (e.g. ego=out/ablation3600: ego only,\n"
+                            "and late fusion with its models, trained for more steps)")
+        q.add_argument("--to", type=Path, help="write the report and recall tables here (default: --out)")
+    rb.add_argument("--pose-levels", nargs="*", default=list(POSE_LEVELS), metavar="POS_M,ROT_DEG",
+                    help=f"pose errors beside the clean grid (default {' '.join(POSE_LEVELS)})")
+    rb.add_argument("--latency-levels", nargs="*", default=list(LATENCY_LEVELS), metavar="MS",
+                    help=f"latencies beside the clean grid, whole ticks (default {' '.join(LATENCY_LEVELS)}: 5 Hz\n"
+                         "data; 100 needs a sweep at --set tick_hz=10)")
+    rb.add_argument("--latency-cache", type=Path, metavar="DIR",
+                    help="a `cosim learn cache --every 1` of the dataset for the latency and links predictions\n"
+                         "(default: they read the MCAP files)")
+    rb.add_argument("--links", action="store_true", help="also --latency links --loss links (the simulated links)")
+    rb.add_argument("--mixed", type=Path, metavar="DIR",
+                    help="a results folder of `run` and `report` on the same sweep with mixed LiDARs (per-agent rigs)")
+    rb.add_argument("--parallel", type=int, default=2)
+    rb.add_argument("--cache", type=Path, help="the cache the models were trained from (default: OUT/cache)")
+    rb.add_argument("--perturb-seed", type=int, default=0, help="the perturbations' seed (default 0)")
+    rb.add_argument("--picture", type=Path, help="write AP30 against pose error and latency here (PNG)")
     r.add_argument("--steps", type=int, default=800)
     r.add_argument("--lr", type=float, default=3e-3)
     r.add_argument("--val-steps", type=int, default=200)
@@ -564,7 +797,7 @@ def main() -> int:
         q.add_argument("--loss", metavar="P|links", help="... with this message loss")
         q.add_argument("--perturb-seed", type=int, default=0, help="the perturbations' seed (default 0)")
     args = p.parse_args()
-    return run_all(args) if args.cmd == "run" else report(args)
+    return {"run": run_all, "report": report, "robustness": robustness}[args.cmd](args)
 
 
 if __name__ == "__main__":

@@ -80,3 +80,97 @@ def test_a_test_perturbation_predicts_into_its_own_folder_with_its_flags(tmp_pat
     cmd = dict(la.predict_jobs(noisy))[f"predict inter-VID/s1 [{tag}]"]
     assert cmd[-1] == str(tmp_path / "ablation" / f"pred-{tag}" / "inter-VID-s1.jsonl")
     assert cmd[cmd.index("--pose-noise") + 1] == "0.2,0.2" and cmd[cmd.index("--loss") + 1] == "links"
+
+
+def test_every_settings_seed_trains_once_with_its_own_flags(tmp_path):
+    planned = [(n, s) for n, st in la.SETTINGS.items() for s in st.seeds]
+    assert sorted(la.ORDER) == sorted(f"{n}/s{s}" for n, s in planned)
+    assert len(set(la.ORDER)) == len(la.ORDER)
+    args = argparse.Namespace(dataset=tmp_path, out=tmp_path / "a", cache=None, steps=10, lr=3e-3, val_steps=5)
+    robust = la.train_cmd("inter-VID-pose", 1, args, tmp_path / "run")
+    assert robust[robust.index("--pose-noise") + 1] == "0.4,0.4" and robust[robust.index("--seed") + 1] == "1"
+    assert "--encoders" not in robust and "--pose-noise" not in la.train_cmd("inter-VID", 0, args, tmp_path / "r")
+    kind = la.train_cmd("inter-VID-kind", 0, args, tmp_path / "run")
+    assert kind[kind.index("--encoders") + 1] == "kind"
+    assert la.setting_label("inter-VID-pose") == "intermediate (max), V+I+D, trained with pose error 0.4,0.4"
+
+
+def _robust_args(tmp_path, **kw) -> argparse.Namespace:
+    base = dict(dataset=tmp_path / "data", out=tmp_path / "ablation", use=None, to=None, cache=None,
+                pose_levels=["0.2,0.2", "0.6,0.6"], latency_levels=["200"], links=True, mixed=None, parallel=1,
+                latency_cache=None,
+                perturb_seed=3, picture=None, pose_noise=None, latency=None, loss=None)
+    return argparse.Namespace(**{**base, **kw})
+
+
+def test_robustness_predicts_the_trained_models_under_every_level_and_tabulates_the_fall(tmp_path, monkeypatch):
+    args = _robust_args(tmp_path, picture=tmp_path / "robust.png")
+    out = args.out
+    for run in ("ego-s0", "ego-s1", "inter-VID-s0"):  # trained: best.pt; every other setting was not
+        (out / "runs" / run).mkdir(parents=True)
+        (out / "runs" / run / "best.pt").write_bytes(b"")
+    done_tag = "pose-0.2,0.2+perturb-3"
+    (out / "jobs.jsonl").write_text(json.dumps({"job": f"predict ego/s0 [{done_tag}]", "rc": 0, "cpu_s": 1.0,
+                                                "wall_s": 1.0}) + "\n")
+    ran: list[str] = []
+
+    def fake_run_chains(chains, parallel, folder):
+        assert folder == out and all(len(chain) == 1 for chain in chains)
+        for chain in chains:
+            for job, cmd in chain:  # latency reads earlier ticks: from MCAP (no --latency-cache), not the cache
+                assert ("--cache" in cmd) == ("latency" not in job), job
+                ran.append(job)
+        return [], False
+
+    monkeypatch.setattr(la, "run_chains", fake_run_chains)
+    # the scores each level's report would give: AP30 falls by 10 per level for inter-VID, 1 for ego
+    ap = {"": 0, done_tag: 1, "pose-0.6,0.6+perturb-3": 3, "latency-200+perturb-3": 2,
+          "latency-links+loss-links+perturb-3": 1}
+    reported = []
+
+    def fake_report(a, recall_tables=True):
+        tag = la.perturb_tag(a)
+        reported.append((tag, recall_tables))
+        k = ap[tag]
+        results = {"ego/s0": _scores(50.0 - k, 30.0), "ego/s1": _scores(52.0 - k, 32.0),
+                   "inter-VID/s0": _scores(80.0 - 10 * k, 60.0 - 10 * k, **{"environment=urban": (70.0 - k, 50.0)}),
+                   "late-VID/s0": _scores(60.0 - 5 * k, 40.0)}
+        for r in results.values():
+            r["bytes_per_frame"] = 4096.0
+        (a.out / (f"ablation-{tag}.json" if tag else "ablation.json")).write_text(json.dumps({"results": results}))
+        return 0
+
+    monkeypatch.setattr(la, "report", fake_report)
+    assert la.robustness(args) == 0
+    # predictions: every perturbed level of the trained models (late fusion from ego's), none done twice
+    assert f"predict ego/s0 [{done_tag}]" not in ran and f"predict ego/s1 [{done_tag}]" in ran
+    assert "predict late-VID/s1 [latency-links+loss-links+perturb-3]" in ran
+    assert not any("early-VID" in job or "late-VID/s2" in job for job in ran)
+    assert len(ran) == 4 * 5 - 1  # 4 levels x (ego s0, s1, inter-VID s0, late s0, s1), less the one done
+    assert sorted(t for t, _r in reported) == sorted(ap) and not any(r for _t, r in reported)
+    md = (out / "robustness.md").read_text()
+    pose = md.split("## Against pose error")[1].split("##")[0]
+    assert "| setting | seeds | 0 | 0.2,0.2 | 0.6,0.6 | AP30 fall at the last level |" in pose
+    assert "| intermediate (max), V+I+D | 1 | 80.0 / 60.0 | 70.0 / 50.0 | 50.0 / 30.0 | 30.0 |" in pose
+    assert "| ego only | 2 | 51.0 ± 1.0 / 31.0 | 50.0 ± 1.0 / 31.0 | 48.0 ± 1.0 / 31.0 | 3.0 |" in pose
+    latency = md.split("## Against latency")[1].split("##")[0]
+    assert "| intermediate (max), V+I+D | 1 | 80.0 / 60.0 | 60.0 / 40.0 | 20.0 |" in latency
+    links = md.split("## The links as simulated")[1].split("##")[0]
+    assert "| intermediate (max), V+I+D | 80.0 / 60.0 | 70.0 / 50.0 | 70.0 / 50.0 | 69.0 / 50.0 |" in links
+    assert "| late, V+I+D (ego-only models) | 4,096 | 60.0 / 40.0 |" in md
+    saved = json.loads((out / "robustness.json").read_text())
+    assert saved["sweeps"]["latency"] == ["0", "200 ms"] and saved["mixed"] is None
+    assert (tmp_path / "robust.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_robustness_compares_mixed_lidars_with_uniform_ones_and_refuses_a_folder_without_a_report(tmp_path,
+                                                                                                  capsys):
+    args = _robust_args(tmp_path, mixed=tmp_path / "mixed")
+    assert la.robustness(args) == 2
+    assert "--mixed" in capsys.readouterr().err and not args.out.exists()
+    uniform = {"inter-VID/s0": _scores(80.0, 60.0), "inter-VID-kind/s0": _scores(79.0, 59.0)}
+    mixed = {"inter-VID/s0": _scores(70.0, 50.0), "inter-VID-kind/s0": _scores(76.0, 56.0)}
+    grid = {"pose": [("0", uniform)], "latency": [("0", uniform)]}
+    md = la.robustness_tables(grid, mixed).split("## Mixed LiDARs")[1]
+    assert "| intermediate (max), V+I+D | 80.0 / 60.0 | 70.0 / 50.0 | -10.0 |" in md
+    assert "| intermediate (max), V+I+D, an encoder per kind | 79.0 / 59.0 | 76.0 / 56.0 | -3.0 |" in md
