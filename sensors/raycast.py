@@ -34,6 +34,7 @@ from typing import Any, Literal, Protocol
 
 import numpy as np
 
+from cosim.errors import InputError
 from cosim.registry import Registry
 
 Quality = Literal["low", "medium", "high"]
@@ -58,8 +59,10 @@ DEFAULT_BACKEND = "embree"
 
 def ray_backend(name: str = DEFAULT_BACKEND) -> RayBackend:
     """The backend registered as ``name`` (importing its module on first use); an unknown name is an
-    :class:`~cosim.errors.InputError` listing the known ones."""
-    if name not in RAY_BACKENDS and name in _MODULES:
+    :class:`~cosim.errors.InputError` listing the known ones (the built-in ones too, imported or not)."""
+    if name not in RAY_BACKENDS:
+        if name not in _MODULES:
+            raise InputError(f"unknown {RAY_BACKENDS.what} {name!r}; known: {', '.join(backend_names())}")
         importlib.import_module(_MODULES[name])
     return RAY_BACKENDS.get(name)
 

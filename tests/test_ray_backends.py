@@ -3,6 +3,8 @@ each one rendered, and the scenario key is checked like every other."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from typing import get_args
 
 import numpy as np
@@ -15,7 +17,7 @@ from cosim.sensors.synthetic import synthetic_scenario, synthetic_snapshot, synt
 
 from cosim.errors import InputError
 from cosim.scenario.model import CameraSpec, LidarSpec, RigSpec, SensorsSpec, default_rsu_rig, default_vehicle_rig
-from tests.helpers import run_cli
+from tests.helpers import REPO, run_cli
 
 BACKENDS = ("open3d", "embree")
 
@@ -64,6 +66,17 @@ def test_the_scenario_key_lists_every_registered_backend():
 def test_an_unknown_backend_is_an_input_error_listing_the_known_ones():
     with pytest.raises(InputError, match="unknown ray backend 'optix'; known: embree, open3d"):
         ray_backend("optix")
+
+
+def test_the_known_backends_are_listed_before_any_of_them_is_imported():
+    """In a fresh process neither backend module is imported yet (they load their engines when chosen): the
+    message still lists both (it listed the registered ones only, so what it said hung on earlier imports)."""
+    code = ("import sys; from cosim.sensors.raycast import ray_backend\n"
+            "assert 'cosim.sensors.ray_open3d' not in sys.modules\n"
+            "try:\n    ray_backend('optix')\nexcept Exception as e:\n    print(e)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "unknown ray backend 'optix'; known: embree, open3d"
 
 
 @pytest.mark.integration  # a `cosim run` process, refused before any engine starts
