@@ -84,7 +84,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from cosim.learn.data import Setup, split_episodes
     from cosim.learn.grid import make_grid
     from cosim.learn.kitti import episodes_lidar_height_m
-    from cosim.learn.train import TrainOptions, check_run_folder, device_of, train
+    from cosim.learn.train import TrainOptions, check_run_folder, device_of, summary_text, train
 
     check_run_folder(Path(args.out), args.resume)  # before the dataset is read
     augment = _augment_options(args)
@@ -113,14 +113,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     summary = train(train_refs, val_refs, setup, opts, Path(args.out), resume=args.resume,
                     device=device_of(args.device), show_progress=not args.quiet,
                     cache=Path(args.cache) if args.cache else None)
-    print(f"run      {args.out}\n"
-          f"data     {summary['train_samples']} samples from {summary['train_episodes']} episodes "
-          f"(val: {summary['val_episodes']} episodes)\n"
-          f"steps    {summary['steps']}, final loss "
-          f"{'-' if summary['final_loss'] is None else format(summary['final_loss'], '.4g')} "
-          "(summary.json: unrounded)\n"
-          f"wall     {summary['train_s']:.1f} s training ({summary['val_s']:.1f} s of it validation) on "
-          f"{summary['device']}, {summary['cpu_s']:.0f} CPU-s (workers included)")
+    print(summary_text(args.out, summary, f"{summary['train_episodes']} episodes "
+                                          f"(val: {summary['val_episodes']} episodes)"))
     return EXIT_OK
 
 

@@ -635,26 +635,12 @@ def validate_checkpoints(run: Path, sources: Sequence[KittiSource], o: ScoreOpti
     KITTI sources, as :func:`cosim.learn.train.validate_checkpoints` does on episodes: each result appended
     to the run's ``log.jsonl`` as ``{"step", "val", "split": "kitti:<ids>", "every": 1}``, steps scored
     before skipped. Yields (step, AP dict)."""
-    import torch
-
-    from cosim.learn.train import _append_log, device_of, load_run, read_log, run_checkpoints
+    from cosim.learn.train import _append_log, unscored_checkpoints
 
     run = Path(run)
-    files = run_checkpoints(run)
-    if threads:
-        torch.set_num_threads(threads)
     split = "kitti:" + ",".join(s.id for s in sources)
-    device = device_of(None)
-    done = {int(r["step"]) for r in read_log(run) if "val" in r and r.get("split") == split}
-    for f in files:
-        named = f.stem.removeprefix("checkpoint_")
-        if named.isdigit() and (int(named) in done or int(named) < from_step):
-            continue
-        model, setup, ckpt = load_run(f, device)
-        step = int(ckpt["step"])
-        if step in done or step < from_step:
-            continue
-        done.add(step)
+    for model, setup, step, device in unscored_checkpoints(run, threads, lambda r: r.get("split") == split,
+                                                           from_step):
         ap = ap_of(score_model(model, setup, sources, device, o))
         _append_log(run / "log.jsonl", {"step": step, "val": ap, "split": split, "every": 1})
         yield step, ap

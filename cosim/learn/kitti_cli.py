@@ -118,7 +118,7 @@ def _no_dataset(args: argparse.Namespace, command: str) -> None:
 def cmd_train(args: argparse.Namespace, setup: Any, opts: Any) -> int:
     """``cosim learn train --kitti DIR`` (or a dataset validated on ``--kitti-val``), with ``--init``."""
     from cosim.learn.kitti import episodes_lidar_height_m, kitti_samples, run_training, val_fn
-    from cosim.learn.train import device_of, load_run
+    from cosim.learn.train import device_of, load_run, summary_text
 
     if args.dataset and args.kitti:
         raise InputError("cosim learn train: give a dataset or --kitti, not both")
@@ -172,14 +172,8 @@ def cmd_train(args: argparse.Namespace, setup: Any, opts: Any) -> int:
         if val is not None:
             val.close()
     what = f"{len(refs)} episodes" if refs is not None else ", ".join(s.id for s in train_src)
-    print(f"run      {args.out}\n"
-          f"data     {summary['train_samples']} samples from {what} "
-          f"(val: {', '.join(s.id for s in val_src) or (f'{len(val.refs)} episodes' if val is not None else 'none')})\n"
-          f"steps    {summary['steps']}, final loss "
-          f"{'-' if summary['final_loss'] is None else format(summary['final_loss'], '.4g')} "
-          "(summary.json: unrounded)\n"
-          f"wall     {summary['train_s']:.1f} s training ({summary['val_s']:.1f} s of it validation) on "
-          f"{summary['device']}, {summary['cpu_s']:.0f} CPU-s (workers included)")
+    val_what = ", ".join(s.id for s in val_src) or (f"{len(val.refs)} episodes" if val is not None else "none")
+    print(summary_text(args.out, summary, f"{what} (val: {val_what})"))
     return EXIT_OK
 
 

@@ -649,6 +649,17 @@ def init_weights(model: PillarDetector, run: Path, setup: Setup, device: torch.d
     model.load_state_dict(theirs)
 
 
+def summary_text(out: Path | str, summary: dict[str, Any], data: str) -> str:
+    """What ``cosim learn train`` prints at the end: the run folder, ``data`` (where the samples came from),
+    steps and final loss, wall time and CPU (``summary.json`` keeps the unrounded values)."""
+    loss = "-" if summary["final_loss"] is None else format(summary["final_loss"], ".4g")
+    return (f"run      {out}\n"
+            f"data     {summary['train_samples']} samples from {data}\n"
+            f"steps    {summary['steps']}, final loss {loss} (summary.json: unrounded)\n"
+            f"wall     {summary['train_s']:.1f} s training ({summary['val_s']:.1f} s of it validation) on "
+            f"{summary['device']}, {summary['cpu_s']:.0f} CPU-s (workers included)")
+
+
 def run_checkpoints(run: Path) -> list[Path]:
     """A run's kept ``checkpoint_<step>.pt`` files in order, then its last checkpoint; none is an error."""
     files = sorted(run.glob("checkpoint_*.pt"))
@@ -657,6 +668,27 @@ def run_checkpoints(run: Path) -> list[Path]:
     if not files:
         raise InputError(f"{run}: no checkpoints (train with --keep-every N to keep some)")
     return files
+
+
+def unscored_checkpoints(run: Path, threads: int | None, scored: Callable[[dict], bool], from_step: int = 0):
+    """The models of a run's kept checkpoints and its last one (:func:`run_checkpoints`) at steps >=
+    ``from_step`` whose step has no line of ``log.jsonl`` for which ``scored(line)`` holds: yields (model,
+    setup, step, device), a ``checkpoint_<step>.pt`` that names a skipped step left unloaded."""
+    files = run_checkpoints(run)
+    if threads:
+        torch.set_num_threads(threads)
+    device = device_of(None)
+    done = {int(r["step"]) for r in read_log(run) if "val" in r and scored(r)}
+    for f in files:
+        named = f.stem.removeprefix("checkpoint_")
+        if named.isdigit() and (int(named) in done or int(named) < from_step):
+            continue
+        model, setup, ckpt = load_run(f, device)
+        step = int(ckpt["step"])
+        if step in done or step < from_step:
+            continue
+        done.add(step)
+        yield model, setup, step, device
 
 
 def validate_checkpoints(run: Path, refs: list[EpisodeRef], every: int, split: str, threads: int | None = None,
@@ -670,22 +702,10 @@ def validate_checkpoints(run: Path, refs: list[EpisodeRef], every: int, split: s
     perturb = perturb or Perturb()
     tag = perturb.to_dict() if perturb else None
     run = Path(run)
-    files = run_checkpoints(run)
-    if threads:
-        torch.set_num_threads(threads)
-    device = device_of(None)
-    done = {int(r["step"]) for r in read_log(run)  # scored before
-            if "val" in r and r.get("split") == split and r.get("every") == every and r.get("perturb") == tag}
     samples = None
-    for f in files:
-        named = f.stem.removeprefix("checkpoint_")  # checkpoint_<step>.pt names its step: skip it unloaded
-        if named.isdigit() and (int(named) in done or int(named) < from_step):
-            continue
-        model, setup, ckpt = load_run(f, device)
-        step = int(ckpt["step"])
-        if step in done or step < from_step:
-            continue
-        done.add(step)
+    for model, setup, step, device in unscored_checkpoints(  # the steps scored before skipped
+            run, threads, lambda r: r.get("split") == split and r.get("every") == every and r.get("perturb") == tag,
+            from_step):
         if samples is None:
             from cosim.learn.data import Samples, check_classes
 
