@@ -15,9 +15,9 @@ SYSTEM_LIBS := libusb-1.0-0 libgl1 libegl1 libgomp1 libatomic1 libxrender1
 APT_LINE    := apt-get update && apt-get install -y --no-install-recommends $(SYSTEM_LIBS)
 SCENARIO    ?= scenarios/default.yaml
 PYTEST_ARGS ?=
-# pytest-xdist workers: 4 on the product's 2-core machine, because most of a test's wall time is spent waiting
-# (processes starting, Zenoh handshakes, SUMO and the engines loading: a tiny `cosim run` keeps about a third of
-# one core busy), so two workers per core keep both cores busy. tests/conftest.py keeps tests that share a
+# pytest-xdist workers: 4 on the product's 2-core machine: a test waits part of its time (processes starting,
+# Zenoh handshakes, SUMO and the engines loading: a tiny `cosim run` keeps about a third of one core busy), and
+# with two workers per core both cores stay busy (load average about 6; 931 s for the suite on a quiet machine). tests/conftest.py keeps tests that share a
 # module or session fixture, or a resource, on one worker, runs `exclusive` tests (timing deadlines) alone, and
 # every time bound in a test grows with the measured load. PYTEST_ARGS='-n 0' runs one test at a time.
 TEST_WORKERS ?= 4
