@@ -36,7 +36,8 @@ STOPPED_MPS = 0.1  # [m/s] below this a road user counts as stopped
 
 
 def low_res_cameras(loaded: Any, image_scale: float) -> Any:
-    """``loaded`` with instance-only cameras at ``image_scale``, no LiDAR, BEV, sun shadows or surface detail."""
+    """``loaded`` with instance-only RSU and vehicle cameras at ``image_scale`` (the drones' are not counted: none),
+    no LiDAR, BEV, sun shadows or surface detail."""
     from cosim.scenario.loader import load_scenario_data
 
     data = json.loads(json.dumps(loaded.resolved))
@@ -45,6 +46,7 @@ def low_res_cameras(loaded: Any, image_scale: float) -> Any:
         sensors[kind]["lidar"] = None
         for cam in sensors[kind]["cameras"]:
             cam["outputs"] = ["instance"]
+    sensors["drone"]["cameras"] = []
     sensors.update(image_scale=image_scale, bev=False, sun_shadows=False, surface_detail=False)
     data["comm"]["enabled"] = False
     out = load_scenario_data(data)

@@ -173,6 +173,25 @@ def _shared_fixtures(item: pytest.Item) -> set[str]:
     return found
 
 
+_WARM_LINE = ""
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """The numba kernels compiled once before the workers start (tests/warm_kernels.py); not in the fast
+    lane, which starts no episode, nor in a worker (xdist starts them after this hook)."""
+    global _WARM_LINE
+    if FAST_LANE or hasattr(session.config, "workerinput"):
+        return
+    from tests.warm_kernels import warm_kernels
+
+    _WARM_LINE = warm_kernels()
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
+    if _WARM_LINE:
+        terminalreporter.write_line(_WARM_LINE)
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """One ``xdist_group`` per set of tests linked by a shared fixture or a ``resource`` mark (union-find);

@@ -220,7 +220,7 @@ def test_example_drone_coverage_policy_compares_with_hovering_drones(tmp_path):
     small = ["--set", "map.size_m=300", "--set", "agents.vehicles.count=2", "--set", "agents.rsus.count=0",
              "--set", "traffic.density_veh_per_km=20", "--set", "sensors.vehicle.lidar.channels=16",
              "--set", "sensors.drone.lidar.channels=16"]
-    r = subprocess.run([sys.executable, str(REPO / "examples/drone_coverage_policy.py"), "--duration", "1.2",
+    r = subprocess.run([sys.executable, str(REPO / "examples/drone_coverage_policy.py"), "--duration", "0.6",
                         "--image-scale", "0.1", "--out", str(tmp_path), *small],
                        cwd=REPO, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
@@ -229,7 +229,7 @@ def test_example_drone_coverage_policy_compares_with_hovering_drones(tmp_path):
     assert set(shares) == {"hovering", "coverage"} and all(0.0 <= v <= 100.0 for v in shares.values())
     with open_episode(tmp_path / "policy/episode.mcap") as policy, open_episode(tmp_path / "hover/episode.mcap") as h:
         assert "/actions" in policy.topics and "/actions" not in h.topics
-        assert policy.n_ticks == h.n_ticks == 6 and any(t.endswith("/visibility") for t in policy.topics)
+        assert policy.n_ticks == h.n_ticks == 3 and any(t.endswith("/visibility") for t in policy.topics)
 
 
 def test_repeated_client_names_are_bad_input(tmp_path):

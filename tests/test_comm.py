@@ -377,7 +377,7 @@ def test_a_higher_drone_has_line_of_sight_more_often_over_a_real_episode(tmp_pat
     shares = {}
     for h in (30, 150):
         out = tmp_path / f"h{h}"
-        r = run_cli("run", "scenarios/town_urban_day_clear.yaml", "--no-sensors", "--duration", "2", "-q",
+        r = run_cli("run", "scenarios/town_urban_day_clear.yaml", "--no-sensors", "--duration", "1", "-q",
                     "--set", "map.size_m=300", "--set", f"agents.drones={drones.replace('H', str(h))}",
                     "--out", str(out))
         assert r.returncode == 0, r.stderr

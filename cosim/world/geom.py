@@ -9,7 +9,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from matplotlib.path import Path as MplPath
 from PIL import Image, ImageDraw, ImageFilter
 
 
@@ -111,6 +110,8 @@ def strip(line: np.ndarray, width_m: float) -> np.ndarray:
 
 def points_in_polygon(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
     """Bool (M,) whether each point (M, 2) lies inside polygon (N, 2) (boundary counts as inside)."""
+    from matplotlib.path import Path as MplPath  # half a second to import: only the processes that need it
+
     return MplPath(poly).contains_points(points, radius=1e-9) | MplPath(poly[::-1]).contains_points(points, radius=1e-9)
 
 
