@@ -17,7 +17,8 @@ SCENARIO    ?= scenarios/default.yaml
 PYTEST_ARGS ?=
 # pytest-xdist workers: 4 on the product's 2-core machine: a test waits part of its time (processes starting,
 # Zenoh handshakes, SUMO and the engines loading: a tiny `cosim run` keeps about a third of one core busy), and
-# with two workers per core both cores stay busy (load average about 6; 818 s for the suite from a fresh clone on a quiet machine). tests/conftest.py keeps tests that share a
+# with two workers per core both cores stay busy (load average about 6; 818 s for the suite from a fresh clone
+# on a quiet machine). tests/conftest.py keeps tests that share a
 # module or session fixture, or a resource, on one worker, runs `exclusive` tests (timing deadlines) alone, and
 # every time bound in a test grows with the measured load. PYTEST_ARGS='-n 0' runs one test at a time.
 TEST_WORKERS ?= 4

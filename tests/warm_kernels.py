@@ -17,7 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from tests.helpers import REPO
+from tests.helpers import REPO, run_cli
 
 #: Kernels whose cache shows the others are warm too (each module's compiled last in the warm-up episode).
 _PROBES = (
@@ -39,27 +39,22 @@ def kernels_cached() -> bool:
     return True
 
 
-def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cosim.cli", *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=900)
-
-
 def warm_kernels() -> str:
-    """Fill the kernel cache unless it is warm; returns one line saying what was done (for the suite's header).
-    A failure here is not the suite's to report: the tests that need the kernels say it themselves."""
+    """Fill the kernel cache unless it is warm; returns one line saying what was done (the suite prints it in
+    its summary). A failure here is not the suite's to report: the tests that need the kernels say it themselves."""
     if kernels_cached():
         return "numba kernels: cached"
     start = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="cosim-warm-") as tmp:
         episode = Path(tmp) / "default_s0.mcap"
-        run = _cli("run", "scenarios/default.yaml", "--duration", "0.4", "--set", "map.size_m=300",
-                   "--set", "sensors.image_scale=0.05", "--out", tmp, "-q")
+        run = run_cli("run", "scenarios/default.yaml", "--duration", "0.4", "--set", "map.size_m=300",
+                      "--set", "sensors.image_scale=0.05", "--out", tmp, "-q", timeout=900)
         if run.returncode != 0 or not episode.exists():
             return f"numba kernels: the warm-up episode failed ({run.stderr.strip()[-300:]})"
         export = subprocess.Popen([sys.executable, "-m", "cosim.cli", "export", str(episode), "--format", "airv2x",
                                    "--out", str(Path(tmp) / "airv2x"), "-q"], cwd=REPO, stdout=subprocess.DEVNULL,
                                   stderr=subprocess.DEVNULL)
-        _cli("validate", str(episode))
+        run_cli("validate", str(episode))
         export.wait(timeout=900)
     return f"numba kernels: compiled in {time.monotonic() - start:.0f} s (cache was cold)"
 
