@@ -4,19 +4,21 @@
 cheap, :func:`pytest_collection_modifyitems` gives each test an ``xdist_group``, so that tests which share a
 module- or session-scoped fixture (an episode generated once, the smoke batch) run on one worker (the fixture
 is built once, not once per worker), and so do tests marked ``resource(NAME)`` with the same name (a thing
-two of them must not use at once). Tests marked ``exclusive`` (timing deadlines) run while no other test of
-the run does: :func:`pytest_runtest_protocol` holds a shared or an exclusive file lock around every test.
+two of them must not use at once); then it orders the units xdist hands out. :func:`pytest_runtest_protocol`
+holds the suite lock around every test: tests marked ``exclusive`` (timing deadlines) run beside no heavy
+test and at most one light one, and heavy ones wait for the numba kernels compiled in the controlling process
+(tests/scheduling.py says how and why).
 """
 
 from __future__ import annotations
 
-import fcntl
 import os
 import subprocess
 from pathlib import Path
 
 import pytest
 
+from tests import scheduling
 from tests.helpers import REPO, load_factor, run_cli
 
 #: ``make test-fast`` sets this: the lane of unit tests (``-m "not integration ..."``) must start no engine.
@@ -173,29 +175,57 @@ def _shared_fixtures(item: pytest.Item) -> set[str]:
     return found
 
 
-_WARM_LINE = ""
+_WARM_UP = scheduling.KernelWarmUp()
 
 
+def _run_folder(config: pytest.Config) -> Path:
+    """The run's temporary folder, which its workers share (each worker's own is a folder in it)."""
+    base = config._tmp_path_factory.getbasetemp()
+    return base.parent if hasattr(config, "workerinput") else base
+
+
+def _controls_workers(config: pytest.Config) -> bool:
+    return config.pluginmanager.hasplugin("dsession")  # xdist's controlling process (-n N, N >= 1)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """xdist hands the units out in the order :func:`pytest_collection_modifyitems` leaves them in (its default
+    sorts them by their number of tests)."""
+    if _controls_workers(config):
+        config.option.loadscopereorder = False
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist starts the workers (its hook is trylast)
 def pytest_sessionstart(session: pytest.Session) -> None:
-    """The numba kernels compiled once before the workers start (tests/warm_kernels.py); not in the fast
-    lane, which starts no episode, nor in a worker (xdist starts them after this hook)."""
-    global _WARM_LINE
-    if FAST_LANE or hasattr(session.config, "workerinput"):
+    """The numba kernels compiled once (tests/warm_kernels.py): in the background while xdist's workers start
+    and run light tests, else before the first test; not in the fast lane, which starts no episode, nor in a
+    worker, which makes its own compilations wait for the controller's instead."""
+    config = session.config
+    if FAST_LANE:
         return
-    from tests.warm_kernels import warm_kernels
+    if hasattr(config, "workerinput"):
+        _WARM_UP.hold_compilations(_run_folder(config))
+        return
+    from tests.warm_kernels import kernels_cached, warm_kernels
 
-    _WARM_LINE = warm_kernels()
+    if kernels_cached():
+        _WARM_UP.line = "numba kernels: cached"
+    elif _controls_workers(config):
+        _WARM_UP.start(_run_folder(config), warm_kernels)
+    else:
+        _WARM_UP.line = warm_kernels()
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
-    if _WARM_LINE:
-        terminalreporter.write_line(_WARM_LINE)
+    if line := _WARM_UP.join():
+        terminalreporter.write_line(line)
 
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """One ``xdist_group`` per set of tests linked by a shared fixture or a ``resource`` mark (union-find);
-    a test linked to none stays free: xdist's loadgroup hands it to whichever worker is idle."""
+    a test linked to none stays free: xdist's loadgroup hands it to whichever worker is idle. On a worker, the
+    units (a group, or a free test) in :func:`tests.scheduling.order_units`'s order, which xdist keeps."""
     if not config.pluginmanager.hasplugin("xdist"):  # -p no:xdist: no such mark to give
         return
     parent: dict[str, str] = {}
@@ -209,14 +239,31 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     keys = {}
     for item in items:
         own = _shared_fixtures(item) | {f"resource:{m.args[0]}" for m in item.iter_markers("resource")}
-        if _exclusive(item):  # one after the other on one worker: the other worker waits once, not each time
+        if item.get_closest_marker("exclusive"):  # one after the other on one worker: the lock is taken once
             own.add("resource:exclusive")
         keys[item] = sorted(own)
         for other in keys[item][1:]:
             parent[find(other)] = find(keys[item][0])
+    units: dict[str, list[pytest.Item]] = {}
     for item in items:
         if keys[item]:
             item.add_marker(pytest.mark.xdist_group(find(keys[item][0])))
+        units.setdefault(find(keys[item][0]) if keys[item] else item.nodeid, []).append(item)
+    if not hasattr(config, "workerinput"):  # one process (-n 0): the tests in their files' order
+        return
+    order = scheduling.order_units([
+        scheduling.Unit(key, _unit_kind(tests), sum(scheduling.cost_of(_marks(t)) for t in tests))
+        for key, tests in units.items()])
+    items[:] = [item for unit in order for item in units[unit.key]]
+
+
+def _marks(item: pytest.Item) -> set[str]:
+    return {m.name for m in item.iter_markers()}
+
+
+def _unit_kind(tests: list[pytest.Item]) -> str:
+    kinds = {scheduling.kind_of(_marks(t)) for t in tests}
+    return next(k for k in (scheduling.EXCLUSIVE, scheduling.HEAVY, scheduling.LIGHT) if k in kinds)
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
@@ -230,40 +277,7 @@ def pytest_collection_finish(session: pytest.Session) -> None:
                                 "(pytest-xdist issue 1386): install the test extra's pytest (pyproject.toml)")
 
 
-def _exclusive(item: pytest.Item | None) -> bool:
-    return item is not None and item.get_closest_marker("exclusive") is not None
-
-
-class _SuiteLock:
-    """A readers-writer lock shared by the run's workers (two ``flock`` files in the run's temporary folder):
-    every test holds it shared, an ``exclusive`` test alone. A writer waits at a turnstile first, so readers
-    cannot keep it waiting forever; consecutive exclusive tests of one worker keep it (no re-queueing)."""
-
-    def __init__(self) -> None:
-        self.held: bool | None = None  # None: not held; else whether held exclusively
-        self.fds: list[int] = []
-
-    def acquire(self, config: pytest.Config, exclusive: bool) -> None:
-        base = config._tmp_path_factory.getbasetemp().parent  # the run's folder, shared by its workers
-        turnstile, lock = (os.open(base / name, os.O_CREAT | os.O_RDWR, 0o600)
-                           for name in ("suite.turnstile", "suite.lock"))
-        self.fds = [turnstile, lock]
-        fcntl.flock(turnstile, fcntl.LOCK_EX)
-        if not exclusive:
-            fcntl.flock(turnstile, fcntl.LOCK_UN)
-        fcntl.flock(lock, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH)
-        if exclusive:
-            fcntl.flock(turnstile, fcntl.LOCK_UN)
-        self.held = exclusive
-
-    def release(self) -> None:
-        for fd in self.fds:  # unlock before closing: a child forked during the test may share the descriptor
-            fcntl.flock(fd, fcntl.LOCK_UN)
-            os.close(fd)
-        self.fds, self.held = [], None
-
-
-_SUITE_LOCK = _SuiteLock()
+_SUITE_LOCK: scheduling.SuiteLock | None = None
 
 
 def _timeout_for_the_load(item: pytest.Item) -> None:
@@ -289,18 +303,20 @@ def _timeout_for_the_load(item: pytest.Item) -> None:
 
 @pytest.hookimpl(wrapper=True, tryfirst=True)  # outside pytest-timeout's wrapper: its timer starts after this
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
-    """On an xdist worker, each test (its fixtures' set-up and teardown included) runs under the suite lock;
-    everywhere, its time limit scales with the machine's load (:func:`_timeout_for_the_load`)."""
+    """On an xdist worker, each test (its fixtures' set-up and teardown included) runs under the suite lock
+    (tests/scheduling.py), a heavy or exclusive one once the numba kernels are compiled; everywhere, its time
+    limit scales with the machine's load (:func:`_timeout_for_the_load`)."""
+    global _SUITE_LOCK
     _timeout_for_the_load(item)
     if not hasattr(item.config, "workerinput"):
         return (yield)
-    exclusive = _exclusive(item)
-    if _SUITE_LOCK.held is not None and _SUITE_LOCK.held != exclusive:
-        _SUITE_LOCK.release()
-    if _SUITE_LOCK.held is None:
-        _SUITE_LOCK.acquire(item.config, exclusive)
+    folder = _run_folder(item.config)
+    kind = scheduling.kind_of(_marks(item))
+    if kind != scheduling.LIGHT:
+        _WARM_UP.wait(folder)
+    _SUITE_LOCK = _SUITE_LOCK or scheduling.SuiteLock(folder)
+    leave = _SUITE_LOCK.enter(kind, scheduling.kind_of(_marks(nextitem)) if nextitem is not None else None)
     try:
         return (yield)
     finally:
-        if not (exclusive and _exclusive(nextitem)):
-            _SUITE_LOCK.release()
+        leave()

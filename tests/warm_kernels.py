@@ -1,5 +1,5 @@
-"""Compile the suite's numba kernels once, before the xdist workers start (``tests/conftest.py`` calls
-:func:`warm_kernels` in the controlling process).
+"""Compile the suite's numba kernels once (``tests/conftest.py`` calls :func:`warm_kernels` in the controlling
+process, in the background while the xdist workers start and run light tests: tests/scheduling.py).
 
 Every kernel is ``numba.njit(cache=True)``: compiled at its first call and kept in the ``__pycache__`` folder
 beside its source, keyed by the source's modification time. A fresh clone (CI's every run) has no cache,
