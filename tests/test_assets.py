@@ -54,10 +54,10 @@ def test_mesh_volume_over_box_volume_is_real_world_per_class(rows):
 
 
 def test_vtypes_take_their_size_from_the_models():
-    from cosim.world.vtypes import VARIANTS
+    from cosim.world.vtypes import variants
 
-    for cls, variants in VARIANTS.items():
-        for v in variants:
+    for cls, of_class in variants().items():
+        for v in of_class:
             assert vehicles.BY_NAME[v.model].cls == cls
             assert (v.length_m, v.width_m, v.height_m) == vehicles.dims(v.model)
 

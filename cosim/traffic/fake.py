@@ -14,7 +14,7 @@ import numpy as np
 from cosim.protocol import VehicleState
 from cosim.scenario.model import Scenario
 from cosim.world.types import World
-from cosim.world.vtypes import VARIANTS
+from cosim.world.vtypes import variants
 
 ROW_SPACING_M = 6.0  # [m] between the rows the vehicles drive on
 N_BACKGROUND = 6
@@ -33,7 +33,7 @@ class FakeTraffic:
         y0 = 0.5 * (ymin + ymax) - 0.5 * ROW_SPACING_M * (len(ids) - 1)
         self._vehicles = []
         for k, (vid, cls) in enumerate(zip(ids, classes, strict=True)):
-            variant = VARIANTS[cls][0]
+            variant = variants()[cls][0]
             speed = min(
                 variant.max_speed_mps,
                 float(rng.uniform(5.0, 10.0)),

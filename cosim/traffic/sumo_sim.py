@@ -34,7 +34,7 @@ from cosim.traffic.pedestrians import Pedestrians
 from cosim.world.netgen import sumo_binary
 from cosim.world.routes import inner_edges, read_sumolib, sources_and_sinks, strong_core
 from cosim.world.types import World
-from cosim.world.vtypes import SUMO_VCLASS, VARIANTS, class_of_type
+from cosim.world.vtypes import SUMO_VCLASS, class_of_type, variants
 
 log = logging.getLogger(__name__)
 
@@ -179,8 +179,8 @@ class TrafficSim:
         safe speed (SUMO keeps it waiting while the entry is blocked)."""
         vclass = SUMO_VCLASS[cls]
         sources, sinks = self._gates[vclass]
-        variants = VARIANTS[cls]
-        variant = variants[int(self._rng.integers(len(variants)))]
+        of_class = variants()[cls]
+        variant = of_class[int(self._rng.integers(len(of_class)))]
         vid = f"bg_{self._next_bg:04d}"
         for _ in range(10 if sources and sinks else 0):
             a = sources[int(self._rng.integers(len(sources)))]

@@ -32,7 +32,7 @@ from cosim.world.routes import (
     random_route,
     strong_core,
 )
-from cosim.world.vtypes import SUMO_VCLASS, VARIANTS
+from cosim.world.vtypes import SUMO_VCLASS, variants
 
 GAP_M = (25.0, 40.0)  # [m] along-road gap between one group member's front bumper and the next one's
 NEAR_M = (20.0, 100.0)  # [m] each member departs within this straight-line distance of another member
@@ -76,12 +76,13 @@ def _place_members(
     cls = scenario.agents.vehicles.vclass
     vclass = SUMO_VCLASS[cls]
     n = scenario.agents.vehicles.count
-    variants = [VARIANTS[cls][int(rng.integers(len(VARIANTS[cls])))] for _ in range(n)]
+    of_class = variants()[cls]
+    picked = [of_class[int(rng.integers(len(of_class)))] for _ in range(n)]
     slots = _slots(net, route)
     placed: list[tuple[int, str, int, float, np.ndarray]] = []  # route index, lane id, lane index, pos, xy
     s_next = 0.0
     for k in range(n):
-        v = variants[k]
+        v = picked[k]
         found = None
         for idx, (s0, eid, length) in enumerate(slots):
             lo, hi = v.length_m + 2.0, length - END_CLEARANCE_M
@@ -106,7 +107,7 @@ def _place_members(
         s_next = slots[found[0]][0] + found[3] + float(rng.uniform(*GAP_M))
     # the first one placed is the last in the queue: vehicle_0 is the last placed, at the front
     members = [
-        PlannedVehicle(f"vehicle_{n - 1 - k}", variants[k], lane_id, lane_index, round(pos, 2), tuple(route[idx:]))
+        PlannedVehicle(f"vehicle_{n - 1 - k}", picked[k], lane_id, lane_index, round(pos, 2), tuple(route[idx:]))
         for k, (idx, lane_id, lane_index, pos, _xy) in enumerate(placed)
     ]
     return members[::-1]

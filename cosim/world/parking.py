@@ -19,7 +19,7 @@ from cosim.world.geom import Occupancy
 from cosim.world.layout import CELL_M, GROUND_Z, _outer_right
 from cosim.world.network import RoadNetwork
 from cosim.world.types import ParkedVehicle, Prism
-from cosim.world.vtypes import VARIANTS
+from cosim.world.vtypes import variants
 
 KERB_GAP_M = 0.4  # [m] between the sidewalk's (or road's) outer border and the parked box
 CLEAR_M = 0.3  # [m] kept free around every parked box
@@ -54,8 +54,8 @@ def place_parked(
         s = float(rng.uniform(2.0, 6.0))
         while s < length - 2.0:
             cls = classes[int(rng.choice(len(classes), p=shares))]
-            variants = VARIANTS[cls]
-            v = variants[int(rng.integers(len(variants)))]
+            of_class = variants()[cls]
+            v = of_class[int(rng.integers(len(of_class)))]
             keep = rng.random() < p_keep
             mid = s + v.length_m / 2
             if mid + v.length_m / 2 > length - 2.0:

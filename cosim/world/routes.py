@@ -28,7 +28,7 @@ import sumolib
 
 from cosim.errors import InputError
 from cosim.scenario.model import Scenario
-from cosim.world.vtypes import SUMO_VCLASS, VARIANTS, VehicleVariant
+from cosim.world.vtypes import SUMO_VCLASS, VehicleVariant, variants
 
 log = logging.getLogger(__name__)
 
@@ -237,8 +237,8 @@ def plan_vehicles(
                 raise InputError(f"the map has no road where connected vehicles of class {cls!r} can drive")
             log.info("no %s can drive on this map; skipping %s", cls, vid)
             continue
-        variants = VARIANTS[cls]
-        variant = variants[int(rng.integers(len(variants)))]
+        of_class = variants()[cls]
+        variant = of_class[int(rng.integers(len(of_class)))]
         cand = inner_lanes[vclass] if vid.startswith("vehicle_") and inner_lanes[vclass] else lanes[vclass]
         weights = np.array([ln.getLength() for ln in cand])
         weights /= weights.sum()
@@ -275,8 +275,9 @@ def plan_vehicles(
 def routes_xml(planned: list[PlannedVehicle]) -> bytes:
     """SUMO route file: the vTypes of every variant, then every vehicle departing at time 0."""
     root = ET.Element("routes")
-    for cls in sorted(VARIANTS):
-        for v in VARIANTS[cls]:
+    table = variants()
+    for cls in sorted(table):
+        for v in table[cls]:
             ET.SubElement(
                 root,
                 "vType",

@@ -8,6 +8,7 @@ agree on every vehicle's size.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 
 #: SUMO vehicle class per object class.
 SUMO_VCLASS: dict[str, str] = {
@@ -54,8 +55,11 @@ _STYLE_SPEED: dict[str, float] = {"microcar": 25.0, "suv": 50.0, "saloon": 50.0,
                                   "sport": 55.0, "touring": 50.0, "road": 9.0, "cargo": 6.0}
 
 
-def _variants() -> dict[str, tuple[VehicleVariant, ...]]:
-    """One variant per catalogue model (cosim.sensors.assets.vehicles), its box the model's tight box."""
+@cache
+def variants() -> dict[str, tuple[VehicleVariant, ...]]:
+    """Variants per class (index k is part of the SUMO type id): one per model of the catalogue
+    (cosim.sensors.assets.vehicles), its box the model's tight box. Made at the first call, not at import: it
+    builds every model's mesh (about 0.2 CPU-s), which most of the processes that import the world never need."""
     from cosim.sensors.assets import vehicles
 
     out: dict[str, list[VehicleVariant]] = {cls: [] for cls in SUMO_VCLASS}
@@ -68,16 +72,15 @@ def _variants() -> dict[str, tuple[VehicleVariant, ...]]:
     return {cls: tuple(vs) for cls, vs in out.items()}
 
 
-#: Variants per class (index k is part of the SUMO type id): one per vehicle model of the catalogue.
-VARIANTS: dict[str, tuple[VehicleVariant, ...]] = _variants()
-
-#: Every variant by SUMO type id.
-BY_TYPE_ID: dict[str, VehicleVariant] = {v.type_id: v for vs in VARIANTS.values() for v in vs}
+@cache
+def by_type_id() -> dict[str, VehicleVariant]:
+    """Every variant by SUMO type id."""
+    return {v.type_id: v for vs in variants().values() for v in vs}
 
 
 def class_of_type(type_id: str) -> str:
     """Object class of a SUMO type id written by :mod:`cosim.world.routes`."""
     try:
-        return BY_TYPE_ID[type_id].cls
+        return by_type_id()[type_id].cls
     except KeyError:
         return type_id.rsplit("_", 1)[0]
