@@ -190,9 +190,9 @@ def _controls_workers(config: pytest.Config) -> bool:
 
 def pytest_configure(config: pytest.Config) -> None:
     """xdist hands the units out in the order :func:`pytest_collection_modifyitems` leaves them in (its default
-    sorts them by their number of tests)."""
-    if _controls_workers(config):
-        config.option.loadscopereorder = False
+    sorts them by their number of tests). Set in every process: xdist's controller is not registered yet here
+    (its own ``pytest_configure`` runs last), and the option means nothing elsewhere."""
+    config.option.loadscopereorder = False
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist starts the workers (its hook is trylast)

@@ -3,10 +3,15 @@ suite lock between worker processes, the numba warm-up that heavy tests wait for
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import textwrap
 import threading
 
 import numba
 
+from tests.helpers import REPO, load_factor
 from tests.scheduling import EXCLUSIVE, HEAVY, LIGHT, KernelWarmUp, SuiteLock, Unit, cost_of, kind_of, order_units
 
 BLOCKED_S = 0.3  # a request still waiting after this long is taken to wait for the holder
@@ -16,7 +21,7 @@ def test_kinds_and_costs_follow_the_marks():
     assert kind_of({"exclusive", "integration"}) == EXCLUSIVE
     assert kind_of({"integration", "timeout"}) == kind_of({"container"}) == kind_of({"cluster"}) == HEAVY
     assert kind_of({"parametrize"}) == kind_of(set()) == LIGHT
-    assert cost_of({"container", "integration"}) > cost_of({"integration"}) > cost_of(set())
+    assert cost_of({"container", "integration"}) > cost_of({"cluster"}) > cost_of({"integration"}) > cost_of(set())
 
 
 def test_exclusive_units_go_first_then_half_the_light_ones_then_the_heavy_costliest_first():
@@ -135,3 +140,36 @@ def test_without_a_warm_up_nothing_waits(tmp_path):
     worker.hold_compilations(tmp_path)  # no kernels.lock: nothing patched
     worker.wait(tmp_path)
     assert not (tmp_path / KernelWarmUp.FILE).exists()
+
+
+def test_xdist_hands_out_the_units_in_this_order(tmp_path):
+    """A small suite under xdist with tests/conftest.py's hooks: its exclusive test is the first unit, given to
+    the first worker, where xdist's own order would put the biggest group first."""
+    (tmp_path / "test_small.py").write_text(textwrap.dedent("""
+        import pytest
+
+        @pytest.fixture(scope="module")
+        def shared():
+            return 1
+
+        def test_grouped_1(shared):
+            assert shared
+
+        def test_grouped_2(shared):
+            assert shared
+
+        def test_grouped_3(shared):
+            assert shared
+
+        @pytest.mark.exclusive
+        def test_deadline():
+            assert True
+    """))
+    (tmp_path / "pytest.ini").write_text("[pytest]\nmarkers =\n    exclusive: deadline\n")
+    env = {**os.environ, "PYTHONPATH": str(REPO), "COSIM_TEST_FAST": "1"}
+    r = subprocess.run([sys.executable, "-m", "pytest", "-p", "tests.conftest", "-p", "no:cacheprovider", "-n", "2",
+                        "--dist", "loadgroup", "-v", "test_small.py"], cwd=tmp_path, capture_output=True, text=True,
+                       env=env, timeout=120 * load_factor())
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    first_on_gw0 = next(line for line in r.stdout.splitlines() if line.startswith("[gw0]"))
+    assert "test_deadline" in first_on_gw0, r.stdout
