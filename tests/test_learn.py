@@ -246,6 +246,14 @@ def test_learn_without_torch_says_how_to_install(tmp_path):
 # ------------------------------------------------------------------------------------------ trained on real data
 
 
+def cosim(capsys, *args: str) -> str:
+    """``cosim ARGS`` in this process (the main() a user's command runs, without a new interpreter importing torch
+    afresh): its standard output; the test fails unless it exits 0."""
+    status, out, err = cli_in_process(capsys, *args)
+    assert status == 0, err[-3000:]
+    return out
+
+
 @pytest.fixture(scope="module")
 def tiny_batch(tmp_path_factory) -> Path:
     sweep = SWEEP.format(base=REPO / "scenarios" / "base" / "paper.yaml")
@@ -275,17 +283,15 @@ def test_thirty_steps_lower_the_loss(trained):
 @needs_torch
 @pytest.mark.integration
 @pytest.mark.timeout(900)
-def test_predictions_pass_the_validator_and_score_on_training_episodes(trained, tiny_batch, tmp_path):
+def test_predictions_pass_the_validator_and_score_on_training_episodes(trained, tiny_batch, tmp_path, capsys):
     from cosim.eval.predictions import read_predictions
 
     preds = tmp_path / "preds.jsonl"
-    r = run_cli("learn", "predict", str(trained), str(tiny_batch), "--split", "train", "--out", str(preds), "-q")
-    assert r.returncode == 0, r.stderr[-3000:]
+    cosim(capsys, "learn", "predict", str(trained), str(tiny_batch), "--split", "train", "--out", str(preds), "-q")
     records = read_predictions(preds)  # the validator of cosim eval: raises on any malformed record
     assert len(records) == 2 * 5 and {rec.agents for rec in records} == {"ego"}
-    r = run_cli("eval", "--gt", str(tiny_batch), "--split", "train", "--pred", str(preds), "--visible-only",
-                "--out", str(tmp_path / "eval"))
-    assert r.returncode == 0, r.stderr[-3000:]
+    cosim(capsys, "eval", "--gt", str(tiny_batch), "--split", "train", "--pred", str(preds), "--visible-only",
+          "--out", str(tmp_path / "eval"))
     overall = json.loads((tmp_path / "eval" / "eval.json").read_text())
     ap30 = _ap(overall, "AP30")
     assert ap30 > 0.0, overall
@@ -357,26 +363,24 @@ def test_late_fusion_detects_per_agent_and_merges(tiny_batch, tmp_path):
 @needs_torch
 @pytest.mark.integration
 @pytest.mark.timeout(900)
-def test_augmented_finer_front_view_model_trains_and_predicts_from_the_cli(tiny_batch, tmp_path):
+def test_augmented_finer_front_view_model_trains_and_predicts_from_the_cli(tiny_batch, tmp_path, capsys):
     """Every augmentation of issue 48 on, 0.4 m pillars over a front view, width 32, on real episodes, through
     the commands a user types; the run records its grid and options, predict rebuilds them
     (tests/test_learn_augment.py checks each transform)."""
     from cosim.eval.predictions import read_predictions
 
     run, preds = tmp_path / "run", tmp_path / "preds.jsonl"
-    r = run_cli("learn", "train", str(tiny_batch), "--out", str(run), "--steps", "3", "--batch-size", "2",
-                "--every", "2", "--threads", "1", "--turn", "45", "--scale", "0.95", "1.05", "--translate-m", "0.2",
-                "--height-jitter-m", "0.2", "--point-drop", "0.1", "--intensity-scale", "2", "--intensity-noise",
-                "0.05", "--gt-sample", "4", "--pillar-m", "0.4", "--range-m", "0", "70.4", "-40", "40", "--width",
-                "32", "-q")
-    assert r.returncode == 0, r.stderr[-3000:]
+    cosim(capsys, "learn", "train", str(tiny_batch), "--out", str(run), "--steps", "3", "--batch-size", "2",
+          "--every", "2", "--threads", "1", "--turn", "45", "--scale", "0.95", "1.05", "--translate-m", "0.2",
+          "--height-jitter-m", "0.2", "--point-drop", "0.1", "--intensity-scale", "2", "--intensity-noise",
+          "0.05", "--gt-sample", "4", "--pillar-m", "0.4", "--range-m", "0", "70.4", "-40", "40", "--width",
+          "32", "-q")
     summary = json.loads((run / "summary.json").read_text())
     assert summary["setup"]["grid"]["pillar_m"] == 0.4 and summary["setup"]["grid"]["x_range"] == [0.0, 70.4]
     assert summary["options"]["gt_sample"] == 4 and summary["options"]["width"] == 32
     assert summary["gt_database_objects"] > 0
-    r = run_cli("learn", "predict", str(run), str(tiny_batch), "--split", "train", "--every", "2", "--out",
-                str(preds), "-q")
-    assert r.returncode == 0, r.stderr[-3000:]
+    cosim(capsys, "learn", "predict", str(run), str(tiny_batch), "--split", "train", "--every", "2", "--out",
+          str(preds), "-q")
     records = read_predictions(preds)
     x = np.concatenate([rec.centers_m[:, 0] for rec in records])
     assert len(records) > 0 and len(x) > 0
@@ -443,7 +447,7 @@ def test_bad_input_one_message_exit_2(trained, tiny_batch, tmp_path, capsys):
 @needs_torch
 @pytest.mark.integration
 @pytest.mark.timeout(900)
-def test_early_model_predicts_with_fewer_agents_than_trained(tiny_batch, tmp_path):
+def test_early_model_predicts_with_fewer_agents_than_trained(tiny_batch, tmp_path, capsys):
     from cosim.eval.dataset import load_dataset
     from cosim.eval.predictions import SETTINGS, read_predictions
     from cosim.learn.data import Samples, Setup
@@ -454,10 +458,9 @@ def test_early_model_predicts_with_fewer_agents_than_trained(tiny_batch, tmp_pat
           tmp_path / "early", show_progress=False)
     for agents in ("vehicles", "vehicles+drones"):
         preds = tmp_path / f"{agents}.jsonl"
-        r = run_cli("learn", "predict", str(tmp_path / "early"), str(tiny_batch), "--split", "train", "--every", "2",
-                    "--agents", agents, "--out", str(preds), "-q")
-        assert r.returncode == 0, r.stderr[-3000:]
-        assert f"fusion early, agents {agents}" in r.stdout
+        out = cosim(capsys, "learn", "predict", str(tmp_path / "early"), str(tiny_batch), "--split", "train", "--every",
+                    "2", "--agents", agents, "--out", str(preds), "-q")
+        assert f"fusion early, agents {agents}" in out
         assert {rec.agents for rec in read_predictions(preds)} == {agents}
         samples = Samples(refs, Setup(fusion="early", agents=agents), every=2)
         kinds = {src.rsplit("_", 1)[0] for i in range(len(samples)) for src in samples.item(i)["sources"][0]}
@@ -798,17 +801,16 @@ def test_validate_rescores_kept_checkpoints_as_the_training_did(tiny_batch, tiny
 @needs_torch
 @pytest.mark.integration
 @pytest.mark.timeout(900)
-def test_recall_counts_the_objects_the_ego_does_not_see(trained, tiny_batch, tmp_path):
+def test_recall_counts_the_objects_the_ego_does_not_see(trained, tiny_batch, tmp_path, capsys):
     preds = []
     for agents in ("ego", "all"):
         p = tmp_path / f"{agents}.jsonl"
         args = ["--fusion", "late", "--agents", "all"] if agents == "all" else []
-        r = run_cli("learn", "predict", str(trained), str(tiny_batch), "--split", "train", "--out", str(p), "-q", *args)
-        assert r.returncode == 0, r.stderr[-3000:]
+        cosim(capsys, "learn", "predict", str(trained), str(tiny_batch), "--split", "train", "--out", str(p), "-q",
+              *args)
         preds.append(str(p))
-    r = run_cli("learn", "recall", str(tiny_batch), *preds, "--split", "train", "--out", str(tmp_path / "recall"),
-                "--min-score", "0.0")
-    assert r.returncode == 0, r.stderr[-3000:]
+    cosim(capsys, "learn", "recall", str(tiny_batch), *preds, "--split", "train", "--out", str(tmp_path / "recall"),
+          "--min-score", "0.0")
     rows = json.loads((tmp_path / "recall" / "recall.json").read_text())["rows"]
     assert [row["agents"] for row in rows] == ["ego", "all"]
     ego, allr = rows
@@ -819,9 +821,8 @@ def test_recall_counts_the_objects_the_ego_does_not_see(trained, tiny_batch, tmp
         assert row["found"] == row["found (ego-blind)"] + row["found (ego-seen)"]
     assert "How tight the found boxes are" in (tmp_path / "recall" / "recall.md").read_text()
     # by a condition: one row per file and value, whose counts add up to the file's
-    r = run_cli("learn", "recall", str(tiny_batch), *preds, "--split", "train", "--out", str(tmp_path / "by"),
-                "--min-score", "0.0", "--by", "environment")
-    assert r.returncode == 0, r.stderr[-3000:]
+    cosim(capsys, "learn", "recall", str(tiny_batch), *preds, "--split", "train", "--out", str(tmp_path / "by"),
+          "--min-score", "0.0", "--by", "environment")
     by = json.loads((tmp_path / "by" / "recall.json").read_text())
     assert by["by"] == "environment" and [row["environment"] for row in by["rows"]] == ["urban", "urban"]
     for row, whole in zip(by["rows"], rows, strict=True):  # (as JSON text: NaN, a share of nothing, is not == NaN)
