@@ -25,6 +25,7 @@ import os
 import shutil
 import subprocess
 import sys
+import sysconfig
 import time
 import tomllib
 import uuid
@@ -137,7 +138,12 @@ def host_pins() -> str:
     give last-digit differences in float results after the host's environment moved on."""
     from importlib import metadata
 
-    pins = {(d.metadata["Name"] or "").lower().replace("_", "-"): d.version for d in metadata.distributions()}
+    # The environment's own site-packages, not whatever sys.path holds now: importing Ray puts its vendored
+    # packages (colorama) on sys.path, which gave the whole suite (whose collection imports Ray) another key
+    # than a run of this file alone, and each switch rebuilt the wheelhouse and the image's dependency layer.
+    paths = sorted({sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]})
+    pins = {(d.metadata["Name"] or "").lower().replace("_", "-"): d.version
+            for d in metadata.distributions(path=paths)}
     return "".join(f"{name}=={version}\n" for name, version in sorted(pins.items())
                    if name and name not in UNPINNED)
 
@@ -312,6 +318,19 @@ case "$1 $2" in
   "images cosim-base") printf 'cosim-base:bookworm-old\\ncosim-base:bookworm-new\\ncosim-base:other\\n' ;;
 esac
 """
+
+
+def test_host_pins_are_the_environments_whatever_sys_path_holds(tmp_path, monkeypatch):
+    before = host_pins()
+    assert "numpy==" in before and "\ncosim==" not in "\n" + before
+    fake = tmp_path / "vendored_thing-1.0.dist-info"
+    fake.mkdir()
+    (fake / "METADATA").write_text("Metadata-Version: 2.1\nName: vendored-thing\nVersion: 1.0\n")
+    monkeypatch.syspath_prepend(str(tmp_path))  # as importing Ray does with its vendored packages
+    from importlib import metadata
+
+    assert any(d.metadata["Name"] == "vendored-thing" for d in metadata.distributions())
+    assert host_pins() == before
 
 
 def test_clean_up_removes_earlier_builds_only_and_a_full_disk_skips_with_the_free_space(tmp_path, monkeypatch):
