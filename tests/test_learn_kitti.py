@@ -5,6 +5,7 @@ hand-counted cases; the height shift; --init; bad input."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 from pathlib import Path
@@ -27,12 +28,7 @@ from cosim.io.kitti import (
 from cosim.learn.kitti import KittiSource, ScoreOptions, estimate_height_m, score_source
 from tests.helpers import cli_in_process
 
-try:
-    import torch  # noqa: F401
-
-    HAVE_TORCH = True
-except ModuleNotFoundError:
-    HAVE_TORCH = False
+HAVE_TORCH = importlib.util.find_spec("torch") is not None  # not imported: collecting this file stays cheap
 needs_torch = pytest.mark.skipif(not HAVE_TORCH, reason="PyTorch is not installed (pip install -e '.[learn]')")
 
 HEIGHT_M = 1.73  # the synthetic sensor's height above the road
