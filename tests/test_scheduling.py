@@ -143,33 +143,25 @@ def test_without_a_warm_up_nothing_waits(tmp_path):
 
 
 def test_xdist_hands_out_the_units_in_this_order(tmp_path):
-    """A small suite under xdist with tests/conftest.py's hooks: its exclusive test is the first unit, given to
-    the first worker, where xdist's own order would put the biggest group first."""
+    """A small suite under xdist with tests/conftest.py's hooks, on one worker (which runs the units in the order
+    it is handed them): its exclusive test comes first, where xdist's own order puts the biggest group first."""
     (tmp_path / "test_small.py").write_text(textwrap.dedent("""
         import pytest
 
-        @pytest.fixture(scope="module")
-        def shared():
-            return 1
-
-        def test_grouped_1(shared):
-            assert shared
-
-        def test_grouped_2(shared):
-            assert shared
-
-        def test_grouped_3(shared):
-            assert shared
+        @pytest.mark.resource("thing")
+        @pytest.mark.parametrize("k", [1, 2, 3])
+        def test_grouped(k):
+            assert k
 
         @pytest.mark.exclusive
         def test_deadline():
             assert True
     """))
-    (tmp_path / "pytest.ini").write_text("[pytest]\nmarkers =\n    exclusive: deadline\n")
+    (tmp_path / "pytest.ini").write_text("[pytest]\nmarkers =\n    exclusive: deadline\n    resource(name): shared\n")
     env = {**os.environ, "PYTHONPATH": str(REPO), "COSIM_TEST_FAST": "1"}
-    r = subprocess.run([sys.executable, "-m", "pytest", "-p", "tests.conftest", "-p", "no:cacheprovider", "-n", "2",
+    r = subprocess.run([sys.executable, "-m", "pytest", "-p", "tests.conftest", "-p", "no:cacheprovider", "-n", "1",
                         "--dist", "loadgroup", "-v", "test_small.py"], cwd=tmp_path, capture_output=True, text=True,
                        env=env, timeout=120 * load_factor())
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
-    first_on_gw0 = next(line for line in r.stdout.splitlines() if line.startswith("[gw0]"))
-    assert "test_deadline" in first_on_gw0, r.stdout
+    ran = [line.split("::")[1].split("@")[0] for line in r.stdout.splitlines() if line.startswith("[gw0]")]
+    assert ran == ["test_deadline", "test_grouped[1]", "test_grouped[2]", "test_grouped[3]"], r.stdout
