@@ -15,13 +15,15 @@ SYSTEM_LIBS := libusb-1.0-0 libgl1 libegl1 libgomp1 libatomic1 libxrender1
 APT_LINE    := apt-get update && apt-get install -y --no-install-recommends $(SYSTEM_LIBS)
 SCENARIO    ?= scenarios/default.yaml
 PYTEST_ARGS ?=
-# pytest-xdist workers: 4 on the product's 2-core machine: a test waits part of its time (processes starting,
-# Zenoh handshakes, SUMO and the engines loading: a tiny `cosim run` keeps about a third of one core busy), and
-# with two workers per core both cores stay busy (load average about 6; 818 s for the suite from a fresh clone
-# on a quiet machine). tests/conftest.py keeps tests that share a
-# module or session fixture, or a resource, on one worker, runs `exclusive` tests (timing deadlines) alone, and
-# every time bound in a test grows with the measured load. PYTEST_ARGS='-n 0' runs one test at a time.
-TEST_WORKERS ?= 4
+# pytest-xdist workers: 3 on the product's 2-core machine. A test waits part of its time (processes starting, Zenoh
+# handshakes, SUMO and the engines loading), so one worker per core leaves the cores idle; with 3 both stay busy
+# from the first minute to the last. From a fresh clone on a quiet machine the suite took 728 s and 827 s with 3,
+# 828 s and 837 s with 4 (the same tests cost 1,145 to 1,310 CPU-s from run to run: this machine is shared).
+# tests/conftest.py keeps tests that share a module or session fixture, or a resource, on one worker;
+# tests/scheduling.py runs the `exclusive` tests (timing deadlines) first with no engine test beside them,
+# compiles the numba kernels in the background and hands out the engine tests costliest first; every time bound
+# in a test grows with the measured load. PYTEST_ARGS='-n 0' runs one test at a time.
+TEST_WORKERS ?= 3
 XDIST       := -n $(TEST_WORKERS) --dist loadgroup
 # make image: BASE is the image to build on (docker/base.sh makes cosim-base:bookworm without a
 # registry); WHEELHOUSE=1 (default) fills wheelhouse/ on the host first so the build needs no network;

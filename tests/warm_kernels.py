@@ -3,7 +3,7 @@ process, in the background while the xdist workers start and run light tests: te
 
 Every kernel is ``numba.njit(cache=True)``: compiled at its first call and kept in the ``__pycache__`` folder
 beside its source, keyed by the source's modification time. A fresh clone (CI's every run) has no cache,
-so the first episodes of the suite's four workers each compiled the same kernels at once, about 20 CPU-s per
+so the first episodes of the suite's workers each compiled the same kernels at once, about 20 CPU-s per
 process (``python -m tests.warm_kernels`` prints what it costs here). One tiny full-rig episode, its
 validation (instance pixels) and its AirV2X export (depth images) call every kernel with the types the
 product uses, and leave the cache for every later process.
