@@ -62,6 +62,18 @@ def test_vtypes_take_their_size_from_the_models():
             assert (v.length_m, v.width_m, v.height_m) == vehicles.dims(v.model)
 
 
+def test_the_mesh_free_type_table_names_every_variant_in_its_order():
+    """The traffic worker draws background types from :func:`type_ids` (no meshes built): it must list exactly
+    the variants' type ids, in their order, so one seed draws the same vehicles either way."""
+    from cosim.world.vtypes import class_of_type, type_ids, variants
+
+    assert type_ids() == {cls: tuple(v.type_id for v in vs) for cls, vs in variants().items()}
+    for vs in variants().values():
+        for v in vs:
+            assert class_of_type(v.type_id) == v.cls
+    assert class_of_type("DEFAULT_VEHTYPE") == "DEFAULT"
+
+
 def _placed_extent(actor: Actor) -> tuple[np.ndarray, np.ndarray]:
     from cosim.sensors.scene import place_actors
 

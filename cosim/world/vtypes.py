@@ -73,14 +73,25 @@ def variants() -> dict[str, tuple[VehicleVariant, ...]]:
 
 
 @cache
-def by_type_id() -> dict[str, VehicleVariant]:
-    """Every variant by SUMO type id."""
-    return {v.type_id: v for vs in variants().values() for v in vs}
+def type_ids() -> dict[str, tuple[str, ...]]:
+    """The SUMO type ids of each class, in :func:`variants`' order, from the catalogue alone: no mesh is built,
+    so the traffic worker, which reads the types' sizes from the route file, never pays for the boxes."""
+    from cosim.sensors.assets import vehicles
+
+    out: dict[str, list[str]] = {cls: [] for cls in SUMO_VCLASS}
+    for m in vehicles.MODELS:
+        out[m.cls].append(f"{m.cls}_{len(out[m.cls])}")
+    return {cls: tuple(ids) for cls, ids in out.items()}
+
+
+@cache
+def _class_by_type_id() -> dict[str, str]:
+    return {tid: cls for cls, ids in type_ids().items() for tid in ids}
 
 
 def class_of_type(type_id: str) -> str:
     """Object class of a SUMO type id written by :mod:`cosim.world.routes`."""
     try:
-        return by_type_id()[type_id].cls
+        return _class_by_type_id()[type_id]
     except KeyError:
         return type_id.rsplit("_", 1)[0]
