@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cosim.preflight import map_file
-from cosim.scenario.loader import LoadedScenario
 from cosim.world import geom
 from cosim.world.clutter import place_clutter
 from cosim.world.group import plan_group
@@ -24,6 +24,9 @@ from cosim.world.routes import plan_vehicles, read_sumolib, routes_xml
 from cosim.world.rsu import place_rsus
 from cosim.world.signals import plan_signals
 from cosim.world.types import Junction, StaticLayout, World
+
+if TYPE_CHECKING:
+    from cosim.scenario.loader import LoadedScenario
 
 log = logging.getLogger(__name__)
 
