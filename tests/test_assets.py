@@ -59,7 +59,15 @@ def test_vtypes_take_their_size_from_the_models():
     for cls, of_class in variants().items():
         for v in of_class:
             assert vehicles.BY_NAME[v.model].cls == cls
-            assert (v.length_m, v.width_m, v.height_m) == vehicles.dims(v.model)
+            assert (v.length_m, v.width_m, v.height_m) == vehicles.mesh_dims(v.model)
+
+
+def test_the_tight_box_table_is_every_models_mesh_box():
+    """vehicles.TIGHT_BOX_M stands in for measuring the meshes: one entry per model, each its mesh's box."""
+    assert list(vehicles.TIGHT_BOX_M) == [m.name for m in vehicles.MODELS]
+    wrong = [f'    "{m.name}": {vehicles.mesh_dims(m.name)!r},' for m in vehicles.MODELS
+             if vehicles.TIGHT_BOX_M[m.name] != vehicles.mesh_dims(m.name)]
+    assert not wrong, "TIGHT_BOX_M differs from the meshes; the lines to put there:\n" + "\n".join(wrong)
 
 
 def test_the_mesh_free_type_table_names_every_variant_in_its_order():

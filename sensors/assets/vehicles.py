@@ -499,7 +499,72 @@ def build(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np
     return v, t, part, grp, comp
 
 
+#: Every model's tight box (length, width, height) [m], as :func:`mesh_dims` measures it on the built mesh. SUMO's
+#: vTypes and the renderer's model lookup read it in every episode process; measuring all the meshes there cost
+#: 0.3 CPU-s a process. tests/test_assets.py checks each entry against its mesh (and prints the line to put here
+#: when a model changes); a model not listed is measured.
+TIGHT_BOX_M: dict[str, tuple[float, float, float]] = {
+    "hatchback_0": (3.72, 1.93, 1.43),
+    "hatchback_1": (3.89, 1.91, 1.47),
+    "hatchback_2": (4.01, 1.93, 1.5),
+    "hatchback_3": (4.12, 1.92, 1.53),
+    "saloon_0": (4.55, 1.98, 1.41),
+    "saloon_1": (4.7, 2.04, 1.44),
+    "saloon_2": (4.76, 2.03, 1.46),
+    "saloon_3": (4.89, 2.04, 1.49),
+    "estate_0": (4.54, 2.04, 1.46),
+    "estate_1": (4.74, 1.99, 1.51),
+    "estate_2": (4.85, 1.97, 1.54),
+    "suv_0": (4.49, 2.13, 1.65),
+    "suv_1": (4.72, 2.07, 1.73),
+    "suv_2": (4.9, 2.15, 1.78),
+    "suv_3": (5.07, 2.03, 1.84),
+    "pickup_0": (5.24, 2.08, 1.8),
+    "pickup_1": (5.36, 2.11, 1.84),
+    "pickup_2": (5.5, 2.14, 1.9),
+    "coupe_0": (4.34, 2.02, 1.27),
+    "coupe_1": (4.49, 2.02, 1.31),
+    "coupe_2": (4.6, 2.0, 1.33),
+    "microcar_0": (2.24, 1.72, 1.4),
+    "microcar_1": (2.43, 1.71, 1.46),
+    "panel_van_0": (4.96, 2.32, 2.04),
+    "panel_van_1": (5.38, 2.24, 2.28),
+    "panel_van_2": (5.64, 2.3, 2.43),
+    "minibus_0": (5.48, 2.26, 2.28),
+    "minibus_1": (5.8, 2.28, 2.43),
+    "box_0": (7.21, 2.84, 3.24),
+    "box_1": (7.93, 2.87, 3.39),
+    "flatbed_0": (7.45, 2.82, 3.01),
+    "flatbed_1": (8.26, 2.86, 3.04),
+    "semi_0": (12.99, 2.89, 3.87),
+    "semi_1": (13.45, 2.89, 3.93),
+    "tanker_0": (9.83, 2.86, 3.57),
+    "tipper_0": (8.06, 2.85, 3.31),
+    "city_bus_0": (10.74, 2.55, 3.03),
+    "city_bus_1": (11.78, 2.55, 3.17),
+    "coach_0": (12.17, 2.55, 3.54),
+    "coach_1": (12.62, 2.55, 3.65),
+    "sport_0": (2.03, 0.72, 1.64),
+    "sport_1": (2.08, 0.72, 1.68),
+    "scooter_0": (1.85, 0.72, 1.77),
+    "scooter_1": (1.92, 0.72, 1.43),
+    "touring_0": (2.3, 0.84, 1.64),
+    "touring_1": (2.36, 0.84, 1.79),
+    "city_0": (1.73, 0.67, 1.92),
+    "city_1": (1.82, 0.6, 1.73),
+    "road_0": (1.79, 0.67, 1.76),
+    "road_1": (1.75, 0.6, 1.6),
+    "cargo_0": (2.39, 0.66, 1.79),
+}
+
+
 def dims(name: str) -> tuple[float, float, float]:
-    """(length, width, height) [m] of the model's tight box, rounded to centimetres."""
+    """(length, width, height) [m] of the model's tight box, rounded to centimetres (:data:`TIGHT_BOX_M`)."""
+    box = TIGHT_BOX_M.get(name)
+    return box if box is not None else mesh_dims(name)
+
+
+def mesh_dims(name: str) -> tuple[float, float, float]:
+    """:func:`dims` measured on the model's mesh (:func:`build`)."""
     v = build(name)[0]
     return tuple(round(float(x), 2) for x in (v.max(0) - v.min(0)))  # type: ignore[return-value]
