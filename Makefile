@@ -18,7 +18,8 @@ PYTEST_ARGS ?=
 # pytest-xdist workers: 3 on the product's 2-core machine. A test waits part of its time (processes starting, Zenoh
 # handshakes, SUMO and the engines loading), so one worker per core leaves the cores idle; with 3 both stay busy
 # from the first minute to the last. From a fresh clone on a quiet machine the suite took 728, 800 and 827 s with
-# 3, 828 and 837 s with 4 (the same tests cost 1,145 to 1,310 CPU-s from run to run: this machine is shared).
+# 3, 828 and 837 s with 4 (the same tests cost 1,145 to 1,310 CPU-s from run to run: this machine is shared); on a
+# slower 2-core machine (a tiny episode 1.6x the CPU) 1,074 to 1,147 s with 3.
 # tests/conftest.py keeps tests that share a module or session fixture, or a resource, on one worker;
 # tests/scheduling.py runs the `exclusive` tests (timing deadlines) first with no engine test beside them,
 # compiles the numba kernels in the background and hands out the engine tests costliest first; every time bound
