@@ -70,12 +70,9 @@ def test_the_tight_box_table_is_every_models_mesh_box():
     assert not wrong, "TIGHT_BOX_M differs from the meshes; the lines to put there:\n" + "\n".join(wrong)
 
 
-def test_the_mesh_free_type_table_names_every_variant_in_its_order():
-    """The traffic worker draws background types from :func:`type_ids` (no meshes built): it must list exactly
-    the variants' type ids, in their order, so one seed draws the same vehicles either way."""
-    from cosim.world.vtypes import class_of_type, type_ids, variants
+def test_every_variant_type_id_names_its_class():
+    from cosim.world.vtypes import class_of_type, variants
 
-    assert type_ids() == {cls: tuple(v.type_id for v in vs) for cls, vs in variants().items()}
     for vs in variants().values():
         for v in vs:
             assert class_of_type(v.type_id) == v.cls

@@ -34,7 +34,7 @@ from cosim.traffic.pedestrians import Pedestrians
 from cosim.world.netgen import sumo_binary
 from cosim.world.routes import inner_edges, read_sumolib, sources_and_sinks, strong_core
 from cosim.world.types import World
-from cosim.world.vtypes import SUMO_VCLASS, class_of_type, type_ids
+from cosim.world.vtypes import SUMO_VCLASS, class_of_type, variants
 
 log = logging.getLogger(__name__)
 
@@ -179,20 +179,20 @@ class TrafficSim:
         safe speed (SUMO keeps it waiting while the entry is blocked)."""
         vclass = SUMO_VCLASS[cls]
         sources, sinks = self._gates[vclass]
-        of_class = type_ids()[cls]
-        type_id = of_class[int(self._rng.integers(len(of_class)))]
+        of_class = variants()[cls]
+        variant = of_class[int(self._rng.integers(len(of_class)))]
         vid = f"bg_{self._next_bg:04d}"
         for _ in range(10 if sources and sinks else 0):
             a = sources[int(self._rng.integers(len(sources)))]
             b = sinks[int(self._rng.integers(len(sinks)))]
             try:
-                edges = libsumo.simulation.findRoute(a, b, vType=type_id).edges
+                edges = libsumo.simulation.findRoute(a, b, vType=variant.type_id).edges
             except libsumo.TraCIException:  # an event closed the source edge to this type (a road block)
                 continue
             if not edges:
                 continue
             libsumo.route.add(f"route_{vid}", list(edges))
-            libsumo.vehicle.add(vid, f"route_{vid}", typeID=type_id, depart="now", departLane="best",
+            libsumo.vehicle.add(vid, f"route_{vid}", typeID=variant.type_id, depart="now", departLane="best",
                                 departPos="base", departSpeed="max")
             self._next_bg += 1
             return

@@ -58,8 +58,8 @@ _STYLE_SPEED: dict[str, float] = {"microcar": 25.0, "suv": 50.0, "saloon": 50.0,
 @cache
 def variants() -> dict[str, tuple[VehicleVariant, ...]]:
     """Variants per class (index k is part of the SUMO type id): one per model of the catalogue
-    (cosim.sensors.assets.vehicles), its box the model's tight box. Made at the first call, not at import: it
-    builds every model's mesh (about 0.2 CPU-s), which most of the processes that import the world never need."""
+    (cosim.sensors.assets.vehicles), its box the model's tight box (read from the catalogue's table, no mesh is
+    built). Made at the first call, not at import."""
     from cosim.sensors.assets import vehicles
 
     out: dict[str, list[VehicleVariant]] = {cls: [] for cls in SUMO_VCLASS}
@@ -73,25 +73,14 @@ def variants() -> dict[str, tuple[VehicleVariant, ...]]:
 
 
 @cache
-def type_ids() -> dict[str, tuple[str, ...]]:
-    """The SUMO type ids of each class, in :func:`variants`' order, from the catalogue alone: no mesh is built,
-    so the traffic worker, which reads the types' sizes from the route file, never pays for the boxes."""
-    from cosim.sensors.assets import vehicles
-
-    out: dict[str, list[str]] = {cls: [] for cls in SUMO_VCLASS}
-    for m in vehicles.MODELS:
-        out[m.cls].append(f"{m.cls}_{len(out[m.cls])}")
-    return {cls: tuple(ids) for cls, ids in out.items()}
-
-
-@cache
-def _class_by_type_id() -> dict[str, str]:
-    return {tid: cls for cls, ids in type_ids().items() for tid in ids}
+def by_type_id() -> dict[str, VehicleVariant]:
+    """Every variant by SUMO type id."""
+    return {v.type_id: v for vs in variants().values() for v in vs}
 
 
 def class_of_type(type_id: str) -> str:
     """Object class of a SUMO type id written by :mod:`cosim.world.routes`."""
     try:
-        return _class_by_type_id()[type_id]
+        return by_type_id()[type_id].cls
     except KeyError:
         return type_id.rsplit("_", 1)[0]
