@@ -100,6 +100,31 @@ def test_a_box_with_iou_04_counts_at_03_and_not_at_05():
     assert _ap([(det, np.array([0.9]), gt)], 0.5) == 0.0
 
 
+def test_the_operating_point_is_the_deepest_score_cut_within_the_false_positive_budget():
+    gt = _stack(box(0, 0), box(10, 0), box(20, 0), box(30, 0))
+    # ranked: true 0.9, false 0.8, true 0.7, false 0.6, true 0.5 (boxes at 0, 10 and 20 found; 30 never)
+    det = _stack(box(0, 0), box(0, 40), box(10, 0), box(0, 60), box(20, 0))
+    acc = DetectionAccumulator((0.3, 0.5, 0.7))
+    acc.add(det, np.array([0.9, 0.8, 0.7, 0.6, 0.5]), gt)
+    assert acc.operating_point(0.3, 0) == (0.25, 0.9)
+    assert acc.operating_point(0.3, 1) == (0.5, 0.7)
+    assert acc.operating_point(0.3, 2) == (0.75, 0.5)
+    assert acc.operating_point(0.3, 10) == (0.75, 0.5)
+    # a cut never parts equal scores: a false and a true detection tied at 0.7 go in together or not at all
+    tied = DetectionAccumulator((0.3,))
+    tied.add(det[[0, 1, 2]], np.array([0.9, 0.7, 0.7]), gt)
+    assert tied.operating_point(0.3, 0) == (0.25, 0.9)
+    assert tied.operating_point(0.3, 1) == (0.5, 0.7)
+    # the best detection false and no budget: nothing kept; no ground truth: no recall
+    first_false = DetectionAccumulator((0.3,))
+    first_false.add(det[[1, 0]], np.array([0.9, 0.8]), gt)
+    assert first_false.operating_point(0.3, 0) == (0.0, math.inf)
+    empty = DetectionAccumulator((0.3,))
+    empty.add(det[:1], np.array([0.9]), np.zeros((0, 4, 2)))
+    r, cut = empty.operating_point(0.3, 1)
+    assert r != r and cut == math.inf
+
+
 def test_duplicates_are_false_positives():
     gt = _stack(box(0, 0), box(20, 0))
     det = _stack(box(0, 0), box(0.1, 0), box(20, 0))

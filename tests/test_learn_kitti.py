@@ -25,7 +25,14 @@ from cosim.io.kitti import (
     format_label,
     write_velodyne,
 )
-from cosim.learn.kitti import KittiSource, ScoreOptions, estimate_height_m, score_source
+from cosim.learn.kitti import (
+    OPERATING_RECALL,
+    OPERATING_SCORE,
+    KittiSource,
+    ScoreOptions,
+    estimate_height_m,
+    score_source,
+)
 from tests.helpers import cli_in_process
 
 HAVE_TORCH = importlib.util.find_spec("torch") is not None  # not imported: collecting this file stays cheap
@@ -141,6 +148,8 @@ def test_scoring_counts_the_camera_view_and_ignores_dontcare_other_types_and_spa
     ref.add(footprints(np.array([A[:2], FALSE[:2]]), np.array([A[3:5], FALSE[3:5]]), np.array([0.0, 0.0])),
             np.array([0.9, 0.5]), footprints(np.array([A[:2], B[:2]]), np.array([A[3:5], B[3:5]]), np.zeros(2)))
     assert s["AP30"] == pytest.approx(100 * ref.result(0.3).ap) and s["AP30"] == pytest.approx(50.0)
+    # one frame, a budget of one false positive: A and FALSE are both kept, A of the two labels found
+    assert (s[OPERATING_RECALL], s[OPERATING_SCORE]) == (0.5, 0.5)
 
     front = score_source(src, preds, ScoreOptions(fov="front90")).summary()
     assert front["cars"] == 3 and front["recall 0-20 m"] == 1.0  # EDGE (27.9 m) joins: missed
@@ -157,6 +166,33 @@ def test_scoring_counts_the_camera_view_and_ignores_dontcare_other_types_and_spa
     assert (none["cars"], none["recall 0-20 m"], none["false positives"], none["AP30"]) == (2, 0.0, 0, 0.0)
     near = score_source(src, preds, ScoreOptions(max_range_m=20)).summary()
     assert near["cars"] == 1 and near["AP30"] == pytest.approx(100.0)
+
+
+def test_the_reports_errors_say_where_false_positives_stand_and_what_was_near_the_missed(scored_folder):
+    from cosim.learn.transfer import _error_counts, error_kind, errors
+
+    src = KittiSource(scored_folder, height_m=HEIGHT_M)
+    beside_a = car(A[0] + 2.5, A[1] + 0.5)  # overlaps A (IoU about 0.2): a misplaced box, not background
+    near_b = car(B[0] + 1.0, B[1])  # under the score cut: B is missed, but something was there
+    preds = _dets((A, 0.9), (beside_a, 0.6), (FALSE, 0.5), (near_b, 0.2))
+    o = ScoreOptions()
+    frames: list = []
+    score_source(src, preds, o, keep=frames)
+    e = errors(frames, src, o)
+    fps = sorted(e["false_positives"], key=lambda f: -f["score"])
+    assert [(f["scan"], f["score"]) for f in fps] == [("000007", 0.6), ("000007", 0.5)]
+    assert fps[0]["iou_with_a_vehicle"] > 0 and error_kind(fps[0]) == "on a vehicle (misplaced)"
+    # FALSE stands on bare road: the road's own points are under the footprint's lowest 0.15 m
+    assert fps[1]["points"] == 0 and fps[1]["top_m"] is None and error_kind(fps[1]) == "empty"
+    assert [(m["x_m"], m["best_score_near"]) for m in e["missed"]] == [(B[0], 0.2)]
+    assert e["missed"][0]["points"] > 50  # a whole surface
+    counts = _error_counts([e, e])
+    assert counts["false positives by kind"]["empty"] == 2 and counts["missed"] == 2
+    assert counts["false positives by range"] == {"10-20 m": 4}
+    assert counts["missed by range"] == {"30-40 m": 2} and counts["missed with a detection near (score > 0.05)"] == 2
+    stands = {"iou_with_a_vehicle": 0.0, "points": 40}
+    assert [error_kind(stands | {"top_m": t}) for t in (0.5, 1.6, 2.2, 6.0)] == [
+        "top 0-1 m", "top 1-2.2 m", "top 2.2-6 m", "top 2.2-6 m"]
 
 
 def test_score_command_reads_prediction_files(scored_folder, tmp_path, capsys):
@@ -283,6 +319,9 @@ def test_a_kitti_folder_trains_predicts_scores_and_fine_tunes(tmp_path, capsys):
     report = json.loads((tmp_path / "t" / "transfer.json").read_text())
     assert report["folders"][0]["names"]["real"]["seeds"] == 2 and len(report["runs"]) == 2
     assert (tmp_path / "t" / "t.png").stat().st_size > 10_000 and "| real | 2 |" in out
+    row = report["folders"][0]["names"]["real"]
+    assert row[OPERATING_RECALL]["n"] == 2 and 0.0 <= row[OPERATING_RECALL]["mean"] <= 1.0
+    assert f"| {OPERATING_RECALL} | {OPERATING_SCORE} |" in out
 
 
 # ------------------------------------------------------------------------------------------------ bad input

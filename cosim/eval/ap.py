@@ -110,3 +110,20 @@ class DetectionAccumulator:
         precision = ctp / np.maximum(ctp + cfp, 1)
         return APResult(threshold, voc_ap(recall, precision), self.n_gt, len(tp),
                         int(ctp[-1]) if len(tp) else 0, recall, precision)
+
+    def operating_point(self, threshold: float, max_false_positives: float) -> tuple[float, float]:
+        """The recall at ``threshold`` (IoU) of the lowest score cut that keeps the false positives at or under
+        ``max_false_positives`` (over all frames), and that cut (detections of at least that score are kept;
+        inf when even the best one is false). A cut never parts detections of equal score. The point of the
+        recall against false positives per frame curve that detection benchmarks quote (e.g. the miss rate at
+        one false positive per image)."""
+        scores = np.concatenate(self._scores) if self._scores else np.zeros(0)
+        tp = np.concatenate(self._tp.get(threshold, [])) if self._scores else np.zeros(0, bool)
+        order = np.argsort(-scores, kind="stable")
+        scores, tp = scores[order], tp[order]
+        last = np.r_[scores[1:] < scores[:-1], True] if len(scores) else np.zeros(0, bool)  # a cut may end here
+        ok = last & (np.cumsum(~tp) <= max_false_positives)
+        if not ok.any() or self.n_gt == 0:
+            return (0.0 if self.n_gt else float("nan")), float("inf")
+        k = int(np.flatnonzero(ok)[-1])
+        return float(np.cumsum(tp)[k]) / self.n_gt, float(scores[k])

@@ -215,17 +215,21 @@ def box_point_counts(xyz: np.ndarray, boxes: np.ndarray, margin_m: float = 0.1, 
                     ) -> np.ndarray:
     """Points (M,) inside each box (M, 7), grown by ``margin_m`` on every side but the bottom, less its lowest
     ``ground_m`` (the road under a labelled box is not the car; as benchmarks/lidar_realism.py counts)."""
-    out = np.zeros(len(boxes), np.int64)
     xyz = np.asarray(xyz, np.float64)[:, :3]
-    for k, b in enumerate(boxes):
-        d = xyz - b[:3]
-        reach = math.hypot(b[3], b[4]) / 2 + margin_m
-        near = (np.abs(d[:, 0]) <= reach) & (np.abs(d[:, 1]) <= reach)
-        d = d[near]
-        c, s = math.cos(b[6]), math.sin(b[6])
-        u, v = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
-        out[k] = int(((np.abs(u) <= b[3] / 2 + margin_m) & (np.abs(v) <= b[4] / 2 + margin_m)
-                      & (d[:, 2] >= -b[5] / 2 + ground_m) & (d[:, 2] <= b[5] / 2 + margin_m)).sum())
+    return np.array([int(points_in_box(xyz, b, margin_m, ground_m).sum()) for b in boxes], np.int64)
+
+
+def points_in_box(xyz: np.ndarray, b: np.ndarray, margin_m: float = 0.1, ground_m: float = 0.15) -> np.ndarray:
+    """(N,) bool: which points ``xyz`` (N, 3) lie inside box ``b`` (7,) as :func:`box_point_counts` counts them."""
+    d = np.asarray(xyz, np.float64)[:, :3] - b[:3]
+    reach = math.hypot(b[3], b[4]) / 2 + margin_m
+    out = (np.abs(d[:, 0]) <= reach) & (np.abs(d[:, 1]) <= reach)
+    near = np.flatnonzero(out)
+    d = d[near]
+    c, s = math.cos(b[6]), math.sin(b[6])
+    u, v = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
+    out[near] = ((np.abs(u) <= b[3] / 2 + margin_m) & (np.abs(v) <= b[4] / 2 + margin_m)
+                 & (d[:, 2] >= -b[5] / 2 + ground_m) & (d[:, 2] <= b[5] / 2 + margin_m))
     return out
 
 
@@ -381,6 +385,13 @@ class ScoreOptions:
             raise InputError(f"--iou {self.iou}: must be above 0 and at most 1")
 
 
+#: The operating point of the report beside its fixed score: the recall within ``max_range_m`` (AP's matching at
+#: the scoring IoU) at the lowest score cut that leaves at most this many false positives per frame, and that cut.
+OPERATING_FP_PER_FRAME = 1.0
+OPERATING_RECALL = "recall at 1 false positive per frame"
+OPERATING_SCORE = "score at 1 false positive per frame"
+
+
 @dataclass
 class FrameScore:
     """What :func:`score_frame` finds in one scan (boxes in the velodyne frame, for pictures too)."""
@@ -422,6 +433,10 @@ class KittiScore:
         out[f"recall 0-{o.max_range_m:g} m"] = round(found / gt, 3) if gt else float("nan")
         out["false positives"] = self.false_pos
         out["false positives per frame"] = round(self.false_pos / self.frames, 3) if self.frames else float("nan")
+        iou = o.iou if o.iou in o.thresholds else o.thresholds[0]
+        recall, cut = self.acc.operating_point(iou, OPERATING_FP_PER_FRAME * self.frames)
+        out[OPERATING_RECALL] = round(recall, 3) if recall == recall else float("nan")
+        out[OPERATING_SCORE] = round(cut, 3) if math.isfinite(cut) else float("nan")
         return out
 
 
@@ -513,7 +528,7 @@ def predictions_from_file(path: Path, source: KittiSource) -> dict[int, tuple[np
 
 
 SCORE_COLUMNS = ("frames", "cars", "recall 0-20 m", "recall 20-40 m", "recall 40-60 m", "false positives per frame",
-                 "AP30", "AP50", "AP70")
+                 "AP30", "AP50", "AP70", OPERATING_RECALL, OPERATING_SCORE)
 
 
 def write_score(rows: list[dict[str, Any]], out: Path, o: ScoreOptions, title: str) -> tuple[Path, Path]:
@@ -538,7 +553,8 @@ def score_title(o: ScoreOptions) -> str:
     view = {"camera": "in the front camera's view", "front90": "in the front 90 deg", "all": "all around"}[o.fov]
     return (f"Vehicles {view} with >= {o.min_points} points: recall at score >= {o.min_score:g} (BEV IoU >= "
             f"{o.iou:g}) by range, false positives per frame and BEV AP within {o.max_range_m:g} m "
-            "(cosim eval's AP)")
+            f"(cosim eval's AP); the recall within {o.max_range_m:g} m at the lowest score cut with at most "
+            f"{OPERATING_FP_PER_FRAME:g} false positive per frame, and that cut")
 
 
 def _cell(v: Any) -> str:

@@ -4,8 +4,9 @@ Given runs by name (``--run cosim=RUN --run real=RUN --run finetuned=RUN``, a na
 and KITTI-layout folders (``--kitti DIR``, several), each run's model detects on each folder's scans and is
 scored as ``cosim learn score`` scores (:func:`cosim.learn.kitti.score_source`): recall at score >= 0.3 by range
 band (0-20, 20-40, 40-60 m), false positives per frame, BEV AP30 / AP50 / AP70 (cosim eval's definition)
-within the range asked, over the vehicles with >= 5 points in the front camera's view. Per folder and name:
-the mean over the seeds and their spread (lowest to highest). Writes ``transfer.md`` and ``transfer.json``
+within the range asked, and the recall at 1 false positive per frame with the score cut that gives it, over the
+vehicles with >= 5 points in the front camera's view. Per folder and name: the mean over the seeds and their
+spread (lowest to highest). Writes ``transfer.md`` and ``transfer.json``
 (every run's own numbers too) and, with ``--picture``, real scans in bird's eye view with the labels (found:
 green, missed: red, ignored: grey) and the detections (true: blue, false: orange), one row per name.
 """
@@ -20,10 +21,11 @@ from typing import Any
 import numpy as np
 
 from cosim.errors import InputError
+from cosim.learn.kitti import OPERATING_RECALL, OPERATING_SCORE
 
 #: The summary columns of the report, in order (keys of :meth:`cosim.learn.kitti.KittiScore.summary`).
 REPORT_COLUMNS = ("recall 0-20 m", "recall 20-40 m", "recall 40-60 m", "false positives per frame", "AP30", "AP50",
-                  "AP70")
+                  "AP70", OPERATING_RECALL, OPERATING_SCORE)
 
 
 def parse_runs(specs: list[str]) -> list[tuple[str, Path]]:
@@ -69,12 +71,13 @@ def transfer(runs: list[tuple[str, Path]], sources: list[Any], o: Any, device: A
         for k, s in enumerate(sources):
             t0 = time.perf_counter()
             preds = {t: p[:2] for t, p in predict_source(model, setup, s, device).items()}
-            frames = [] if (picture is not None and k == 0 and name not in keep) else None
+            frames: list = []
             summary = score_source(s, preds, o, keep=frames).summary()
-            if frames is not None:
+            if picture is not None and k == 0 and name not in keep:
                 keep[name] = frames
             per_run.append({"name": name, "run": str(run), "folder": s.id, "step": int(ckpt.get("step", 0)),
-                            "model_height_m": setup.lidar_height_m, "folder_height_m": s.height_m, **summary})
+                            "model_height_m": setup.lidar_height_m, "folder_height_m": s.height_m, **summary,
+                            "errors": errors(frames, s, o)})
             log(f"{name:>10} {run}: {s.id} AP30 {summary['AP30']:.1f} AP50 {summary['AP50']:.1f}, recall 0-"
                 f"{o.max_range_m:g} m {summary[f'recall 0-{o.max_range_m:g} m']}, "
                 f"{summary['false positives per frame']} false positives per frame ({time.perf_counter() - t0:.0f} s)")
@@ -91,13 +94,97 @@ def transfer(runs: list[tuple[str, Path]], sources: list[Any], o: Any, device: A
                   "cars front 90 deg": front, "names": {}}
         for n in names:
             mine = [r for r in rows if r["name"] == n]
-            folder["names"][n] = {"seeds": len(mine), **{c: spread([r[c] for r in mine]) for c in cols}}
+            folder["names"][n] = {"seeds": len(mine), **{c: spread([r[c] for r in mine]) for c in cols},
+                                  "errors": _error_counts([r["errors"] for r in mine])}
         folders.append(folder)
     report = {"options": _options(o), "runs": per_run, "folders": folders, "names": names}
     if picture is not None and keep:
         draw(keep, sources[0], o, picture, picture_scans)
         report["picture"] = str(picture)
     return report
+
+
+#: What a false positive stands on: the top of the scan's points in its footprint [m above the road] (up to
+#: :data:`COLUMN_TOP_M`), in these bands; "empty" when fewer than :data:`EMPTY_POINTS` points are there.
+TOP_BANDS_M = ((0.0, 1.0), (1.0, 2.2), (2.2, COLUMN_TOP_M := 6.0))
+EMPTY_POINTS = 5
+NEAR_M = 2.0  # [m] a missed vehicle's best score is that of the best detection centred this close to it
+
+
+def errors(frames: list, source: Any, o: Any) -> dict[str, list[dict[str, Any]]]:
+    """Where one run's errors are on a folder, from :func:`cosim.learn.kitti.score_source`'s kept frames:
+    every false positive at score >= ``o.min_score`` within ``o.max_range_m`` (scan, centre, range, score,
+    points in its footprint above the road's lowest 0.15 m and their top above the road, the best BEV IoU
+    with a scored vehicle: above 0, a misplaced box rather than background) and every missed scored vehicle
+    within the range (scan, centre, range, its points, the best score of a detection centred within
+    :data:`NEAR_M`)."""
+    from cosim.eval.boxes import footprints, iou_matrix
+    from cosim.learn.kitti import box_point_counts, points_in_box
+
+    fps, missed = [], []
+    for stem, fs in frames:
+        pts = source.frame(stem).points[:, :3].astype(np.float64)
+        strong = (fs.det_scores >= o.min_score) & ~fs.det_tp & (np.hypot(fs.det[:, 0], fs.det[:, 1]) <= o.max_range_m)
+        gt_fp = footprints(fs.gt[:, :2], fs.gt[:, 3:5], fs.gt[:, 6])
+        for b, score in zip(fs.det[strong], fs.det_scores[strong], strict=True):
+            column = b.copy()
+            column[2], column[5] = COLUMN_TOP_M / 2 - source.height_m, COLUMN_TOP_M  # the road to 6 m up
+            inside = points_in_box(pts, column, margin_m=0.0)
+            iou = float(iou_matrix(footprints(b[None, :2], b[None, 3:5], b[None, 6]), gt_fp).max()) if len(gt_fp) \
+                else 0.0
+            fps.append({"scan": stem, "x_m": round(float(b[0]), 2), "y_m": round(float(b[1]), 2),
+                        "range_m": round(float(np.hypot(b[0], b[1])), 2), "score": round(float(score), 3),
+                        "points": int(inside.sum()),
+                        "top_m": round(float(pts[inside, 2].max() + source.height_m), 2) if inside.any() else None,
+                        "iou_with_a_vehicle": round(iou, 3)})
+        counts = box_point_counts(pts, fs.gt) if len(fs.gt) else np.zeros(0, np.int64)
+        for g, n, found, r in zip(fs.gt, counts, fs.found, fs.gt_range_m, strict=True):
+            if found or r > o.max_range_m:
+                continue
+            near = np.hypot(fs.det[:, 0] - g[0], fs.det[:, 1] - g[1]) <= NEAR_M
+            missed.append({"scan": stem, "x_m": round(float(g[0]), 2), "y_m": round(float(g[1]), 2),
+                           "range_m": round(float(r), 2), "points": int(n),
+                           "best_score_near": round(float(fs.det_scores[near].max()), 3) if near.any() else 0.0})
+    return {"false_positives": fps, "missed": missed}
+
+
+def error_kind(fp: dict[str, Any]) -> str:
+    """A false positive's kind: on a vehicle (a misplaced box), empty, or by the top of what it stands on."""
+    if fp["iou_with_a_vehicle"] > 0:
+        return "on a vehicle (misplaced)"
+    if fp["points"] < EMPTY_POINTS:
+        return "empty"
+    return next(f"top {lo:g}-{hi:g} m" for lo, hi in TOP_BANDS_M if fp["top_m"] < hi or hi == TOP_BANDS_M[-1][1])
+
+
+ERROR_KINDS = ("on a vehicle (misplaced)", "empty", *(f"top {lo:g}-{hi:g} m" for lo, hi in TOP_BANDS_M))
+
+
+def _error_counts(per_seed: list[dict[str, list]]) -> dict[str, Any]:
+    """False positives per frame-folder by kind and range band, and missed vehicles by range band and by
+    whether a detection under the cut stood near them, summed over the seeds (and their number)."""
+    fp_kind = {k: 0 for k in ERROR_KINDS}
+    fp_band: dict[str, int] = {}
+    miss_band: dict[str, int] = {}
+    miss_near = 0
+    for e in per_seed:
+        for fp in e["false_positives"]:
+            fp_kind[error_kind(fp)] += 1
+            b = f"{int(fp['range_m'] // 10) * 10}-{int(fp['range_m'] // 10) * 10 + 10} m"
+            fp_band[b] = fp_band.get(b, 0) + 1
+        for m in e["missed"]:
+            b = f"{int(m['range_m'] // 10) * 10}-{int(m['range_m'] // 10) * 10 + 10} m"
+            miss_band[b] = miss_band.get(b, 0) + 1
+            miss_near += m["best_score_near"] > 0.05
+
+    def key(band: str) -> int:
+        return int(band.split("-")[0])
+
+    return {"seeds": len(per_seed), "false positives by kind": fp_kind,
+            "false positives by range": {b: fp_band[b] for b in sorted(fp_band, key=key)},
+            "missed by range": {b: miss_band[b] for b in sorted(miss_band, key=key)},
+            "missed with a detection near (score > 0.05)": int(miss_near),
+            "missed": sum(len(e["missed"]) for e in per_seed)}
 
 
 def _options(o: Any) -> dict[str, Any]:
@@ -134,6 +221,21 @@ def markdown(report: dict[str, Any]) -> str:
         for n, row in f["names"].items():
             lines.append(f"| {n} | {row['seeds']} | " + " | ".join(_fmt(row[c], c.startswith("AP")) for c in cols)
                          + " |")
+        lines += ["", f"Where the errors are (summed over the seeds): false positives at score >= {o.min_score:g} "
+                      f"by what stands in their footprint (the top of the scan's points there), and missed vehicles.",
+                  "", "| model | seeds | " + " | ".join(f"false: {k}" for k in ERROR_KINDS)
+                  + " | false by range | missed | missed by range | missed with a detection near |",
+                  "|---|---:" + "|---:" * len(ERROR_KINDS) + "|---|---:|---|---:|"]
+        for n, row in f["names"].items():
+            e = row["errors"]
+
+            def bands(d: dict[str, int]) -> str:
+                return ", ".join(f"{b}: {v}" for b, v in d.items()) or "-"
+
+            lines.append(f"| {n} | {e['seeds']} | " + " | ".join(str(e["false positives by kind"][k])
+                                                               for k in ERROR_KINDS)
+                         + f" | {bands(e['false positives by range'])} | {e['missed']} | "
+                           f"{bands(e['missed by range'])} | {e['missed with a detection near (score > 0.05)']} |")
         lines.append("")
     if report.get("picture"):
         lines += [f"![real scans with each model's boxes and the labels]({report['picture']})", ""]
