@@ -31,6 +31,7 @@ from cosim import protocol, transport
 from cosim.errors import SyncTimeout, WorkerError
 from cosim.logs import NOTICE
 from cosim.workers import ROLES, spawned_worker_main
+from cosim.workers.process import remove_workdirs
 
 log = logging.getLogger(__name__)
 
@@ -190,6 +191,9 @@ class Conductor:
             if proc.is_alive():
                 proc.kill()
                 proc.join(1.0)
+        for role, proc in self._procs.items():
+            if proc.exitcode is not None:  # gone: a worker killed before its finalisers leaves its scratch folder
+                remove_workdirs(role, proc.pid)
         self._procs.clear()
         self._keep.clear()
         if self._session is not None:

@@ -15,6 +15,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 import uuid
 from collections.abc import Iterator
@@ -24,6 +25,7 @@ import psutil
 import pytest
 
 from cosim.io.writer import temporary_path
+from cosim.workers.process import workdir_prefix
 from tests.helpers import REPO, load_bound
 
 pytestmark = [pytest.mark.integration, pytest.mark.exclusive]  # deadlines in seconds: no other test beside
@@ -134,7 +136,10 @@ def fault_while_rendering(tmp_path: Path, role: str, sig: signal.Signals, *run_a
                            proc, err, period_s=0.05)
         wait_for(lambda: partial.exists() and partial.stat().st_size > 100_000, proc, err, period_s=0.05)
         time.sleep(0.3)
-        os.kill(workers[f"cosim-{role}"].pid, sig)
+        victim = workers[f"cosim-{role}"].pid
+        scratch = sorted(Path(tempfile.gettempdir()).glob(workdir_prefix(role, victim) + "*"))
+        assert len(scratch) == (1 if role == "traffic" else 0), scratch  # SUMO's files, named after the worker
+        os.kill(victim, sig)
         t_signal = time.monotonic()
         proc.wait(60)
         elapsed = time.monotonic() - t_signal
@@ -142,6 +147,7 @@ def fault_while_rendering(tmp_path: Path, role: str, sig: signal.Signals, *run_a
         leftover = marked(mark)
     text = err.read_text()
     assert leftover == [], [(p.pid, p.name()) for p in leftover]
+    assert not any(d.exists() for d in scratch), scratch  # a killed worker's scratch folder goes with it
     assert "Traceback" not in text, text
     assert list(out.iterdir()) == []  # neither an episode nor its temporary file
     return elapsed, proc.returncode, text

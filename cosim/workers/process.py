@@ -1,5 +1,6 @@
 """What a worker process does to itself before anything else: its name as ``ps`` shows it, and its death with
-the conductor that spawned it (light: no Zenoh, no engines)."""
+the conductor that spawned it; and the scratch folder a worker keeps, named after its process so that the
+conductor can remove it after a worker that died without cleaning up (light: no Zenoh, no engines)."""
 
 from __future__ import annotations
 
@@ -7,11 +8,29 @@ import logging
 import multiprocessing
 import multiprocessing.connection
 import os
+import shutil
 import signal
 import sys
+import tempfile
 import threading
+from pathlib import Path
 
 _PR_SET_PDEATHSIG, _PR_SET_NAME = 1, 15  # prctl(2) options
+
+
+def workdir_prefix(role: str, pid: int | None = None) -> str:
+    """The name prefix of a worker's scratch folder in the temporary directory: its role and process id
+    (default: this process)."""
+    return f"cosim-{role}-{os.getpid() if pid is None else pid}-"
+
+
+def remove_workdirs(role: str, pid: int) -> list[Path]:
+    """Remove what an ended worker process ``pid`` of ``role`` left of its scratch folders (a SIGKILL runs no
+    finaliser) and return them. Only for a process known to be gone: its id may be reused after that."""
+    gone = sorted(Path(tempfile.gettempdir()).glob(workdir_prefix(role, pid) + "*"))
+    for d in gone:
+        shutil.rmtree(d, ignore_errors=True)
+    return gone
 
 
 def set_process(role: str, *, die_with_parent: bool) -> None:

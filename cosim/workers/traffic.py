@@ -9,6 +9,7 @@ from typing import Any
 from cosim import protocol
 from cosim.errors import CosimError
 from cosim.scenario.model import Scenario
+from cosim.workers.process import workdir_prefix
 from cosim.world.types import World
 
 
@@ -17,7 +18,7 @@ class TrafficEngine:
 
     def __init__(self) -> None:
         self._sim: Any = None
-        self._workdir = tempfile.TemporaryDirectory(prefix="cosim-traffic-")
+        self._workdir = tempfile.TemporaryDirectory(prefix=workdir_prefix("traffic"))
 
     def init(self, request: protocol.InitRequest) -> dict[str, Any]:
         from cosim.traffic import TrafficSim
