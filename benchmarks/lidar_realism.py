@@ -318,7 +318,7 @@ def kitti_detect(run: Path, folder: Path, kitti_height_m: float, model_height_m:
     one its checkpoint records)."""
     import dataclasses
 
-    from cosim.learn.kitti import KittiSource, ScoreOptions, predict_source, score_source
+    from cosim.learn.kitti import KittiSource, ScoreOptions, predict_source, score_source, with_class_names
     from cosim.learn.train import device_of, load_run
 
     device = device_of("cpu")
@@ -326,7 +326,7 @@ def kitti_detect(run: Path, folder: Path, kitti_height_m: float, model_height_m:
     if model_height_m is not None:
         setup = dataclasses.replace(setup, lidar_height_m=model_height_m)
     source = KittiSource(folder, height_m=kitti_height_m)
-    preds = {t: p[:2] for t, p in predict_source(model, setup, source, device).items()}
+    preds = with_class_names(predict_source(model, setup, source, device), setup.classes)
     out = score_source(source, preds, ScoreOptions(fov="front90", min_score=score_min)).summary()
     out["shift_m"] = 0.0 if setup.lidar_height_m is None else kitti_height_m - setup.lidar_height_m
     return out

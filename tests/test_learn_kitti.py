@@ -168,6 +168,27 @@ def test_scoring_counts_the_camera_view_and_ignores_dontcare_other_types_and_spa
     assert near["cars"] == 1 and near["AP30"] == pytest.approx(100.0)
 
 
+def test_only_the_target_types_classes_detections_are_scored_as_kitti_scores_each_class(scored_folder):
+    src = KittiSource(scored_folder, height_m=HEIGHT_M)
+    bike = car(FALSE[0], FALSE[1], size=(1.8, 0.7, 1.7))
+    boxes = np.array([A, FALSE, bike, B])
+    named = {7: (boxes, np.array([0.9, 0.5, 0.6, 0.8]), np.array(["car", "van", "bicycle", "truck"], dtype=object))}
+    types = score_source(src, named, ScoreOptions()).summary()
+    # Car and Van are the targets: the bicycle and the truck (on B) detections are left out; FALSE (a van) is false
+    assert (types["false positives"], types["recall 20-40 m"]) == (1, 0.0)
+    every = score_source(src, named, ScoreOptions(det_classes="all")).summary()
+    assert (every["false positives"], every["recall 20-40 m"]) == (2, 1.0)  # the bicycle is false, the truck finds B
+    unnamed = score_source(src, {7: named[7][:2]}, ScoreOptions()).summary()  # no class names: every detection
+    assert unnamed["false positives"] == every["false positives"] and unnamed["AP30"] == every["AP30"]
+    cyclists = KittiSource(scored_folder, height_m=HEIGHT_M, types=("Car", "Van", "Truck", "Cyclist"))
+    assert score_source(cyclists, named, ScoreOptions()).summary()["false positives"] == 2
+    around = score_source(src, named, ScoreOptions(fov="all")).summary()  # cosim eval's rule: every class
+    assert around["false positives"] == score_source(src, named, ScoreOptions(fov="all", det_classes="all")
+                                                     ).summary()["false positives"]
+    with pytest.raises(InputError, match="--det-classes some"):
+        ScoreOptions(det_classes="some")
+
+
 def test_the_reports_errors_say_where_false_positives_stand_and_what_was_near_the_missed(scored_folder):
     from cosim.learn.transfer import _error_counts, error_kind, errors
 

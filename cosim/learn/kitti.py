@@ -371,6 +371,10 @@ class ScoreOptions:
     bands_m: tuple[tuple[float, float], ...] = BANDS_M
     thresholds: tuple[float, ...] = THRESHOLDS
     ignore: bool = True  # leave out detections on DontCare, other types and labels under min_points (not for "all")
+    #: which detections are scored (when they carry class names; not for ``fov="all"``, where every vehicle class
+    #: counts as cosim eval counts them): "types" those of the classes the KITTI types map to (KITTI scores each
+    #: class on its own detections: a bicycle detection is no false car), "all" every vehicle class's
+    det_classes: str = "types"
 
     def __post_init__(self) -> None:
         if self.fov not in FOVS:
@@ -383,7 +387,11 @@ class ScoreOptions:
             raise InputError(f"--min-score {self.min_score}: must be 0 to 1")
         if not (math.isfinite(self.iou) and 0.0 < self.iou <= 1.0):
             raise InputError(f"--iou {self.iou}: must be above 0 and at most 1")
+        if self.det_classes not in DET_CLASSES:
+            raise InputError(f"--det-classes {self.det_classes}: choose one of {', '.join(DET_CLASSES)}")
 
+
+DET_CLASSES = ("types", "all")  # :attr:`ScoreOptions.det_classes`
 
 #: The operating point of the report beside its fixed score: the recall within ``max_range_m`` (AP's matching at
 #: the scoring IoU) at the lowest score cut that leaves at most this many false positives per frame, and that cut.
@@ -441,9 +449,10 @@ class KittiScore:
 
 
 def score_frame(frame: Scan, types: Sequence[str], det_boxes: np.ndarray, det_scores: np.ndarray,
-                o: ScoreOptions, acc: DetectionAccumulator | None = None) -> FrameScore:
-    """Score one scan's detections (N, 7) with scores (N,) in the velodyne frame (see the module doc and
-    :class:`ScoreOptions`); AP's true and false positives go to ``acc``."""
+                o: ScoreOptions, acc: DetectionAccumulator | None = None, det_classes: Sequence[str] | None = None
+                ) -> FrameScore:
+    """Score one scan's detections (N, 7) with scores (N,) in the velodyne frame, and their class names (N,)
+    when known (see the module doc and :class:`ScoreOptions`); AP's true and false positives go to ``acc``."""
     reach = max([o.max_range_m] + [hi for _lo, hi in o.bands_m])
     xyz = frame.points[:, :3]
     boxes = frame.boxes
@@ -457,6 +466,8 @@ def score_frame(frame: Scan, types: Sequence[str], det_boxes: np.ndarray, det_sc
     det_scores = np.asarray(det_scores, np.float64).reshape(-1)
     d_rng = np.hypot(det_boxes[:, 0], det_boxes[:, 1])
     keep = in_view(det_boxes[:, :3], frame, o.fov) & (d_rng <= reach)
+    if det_classes is not None and o.det_classes == "types" and o.fov != "all":
+        keep &= np.isin(np.asarray(det_classes, dtype=object).reshape(-1), [KITTI_CLASSES[t] for t in types])
     det_boxes, det_scores, d_rng = det_boxes[keep], det_scores[keep], d_rng[keep]
     det_fp = footprints(det_boxes[:, :2], det_boxes[:, 3:5], det_boxes[:, 6])
     gt_fp = footprints(boxes[scored, :2], boxes[scored, 3:5], boxes[scored, 6])
@@ -484,17 +495,18 @@ def score_frame(frame: Scan, types: Sequence[str], det_boxes: np.ndarray, det_sc
 
 def score_source(source: KittiSource, predictions: dict[int, tuple[np.ndarray, np.ndarray]], o: ScoreOptions,
                  frames: Iterable[str] | None = None, keep: list | None = None) -> KittiScore:
-    """Score detections ``predictions`` (scan number -> boxes (N, 7), scores (N,), velodyne frame) on a
-    source's scans (``frames``: stems, default all; every one needs its predictions). ``keep``: a list that
-    gets (stem, :class:`FrameScore`) of each scan (for pictures)."""
+    """Score detections ``predictions`` (scan number -> boxes (N, 7), scores (N,), velodyne frame, and
+    optionally class names (N,): :func:`with_class_names`) on a source's scans (``frames``: stems, default all;
+    every one needs its predictions). ``keep``: a list that gets (stem, :class:`FrameScore`) of each scan (for
+    pictures)."""
     out = KittiScore(o, DetectionAccumulator(o.thresholds), band_gt=[0] * len(o.bands_m),
                      band_found=[0] * len(o.bands_m))
     for stem in frames or source.stems:
         frame = source.frame(stem)
         if frame.tick not in predictions:
             raise InputError(f"no predictions for scan {stem} of {source.id}")
-        boxes, scores = predictions[frame.tick]
-        fs = score_frame(frame, source.types, boxes, scores, o, out.acc)
+        boxes, scores, *named = predictions[frame.tick]
+        fs = score_frame(frame, source.types, boxes, scores, o, out.acc, named[0] if named else None)
         out.frames += 1
         out.cars += int((fs.gt_range_m <= o.max_range_m).sum())
         for k, (lo, hi) in enumerate(o.bands_m):
@@ -508,9 +520,9 @@ def score_source(source: KittiSource, predictions: dict[int, tuple[np.ndarray, n
     return out
 
 
-def predictions_from_file(path: Path, source: KittiSource) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+def predictions_from_file(path: Path, source: KittiSource) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The vehicle detections of a prediction file (docs/evaluation.md) for one KITTI folder (its records of
-    episode ``source.id``): scan number -> boxes (N, 7), scores (N,) in the velodyne frame."""
+    episode ``source.id``): scan number -> boxes (N, 7), scores (N,) in the velodyne frame, class names (N,)."""
     from cosim.eval.predictions import read_predictions
     from cosim.learn.samples import VEHICLE_CLASSES
 
@@ -521,7 +533,7 @@ def predictions_from_file(path: Path, source: KittiSource) -> dict[int, tuple[np
         veh = np.isin(np.asarray(r.classes, dtype=object), VEHICLE_CLASSES) if len(r.classes) else \
             np.zeros(0, bool)
         boxes = np.column_stack([r.centers_m, r.sizes_m, r.yaws_rad]).reshape(-1, 7)[veh]
-        out[r.tick] = (boxes, r.scores[veh])
+        out[r.tick] = (boxes, r.scores[veh], np.asarray(r.classes, dtype=object).reshape(-1)[veh])
     if not out:
         raise InputError(f"{path}: no prediction records of the KITTI folder {source.id!r}")
     return out
@@ -546,12 +558,14 @@ def write_score(rows: list[dict[str, Any]], out: Path, o: ScoreOptions, title: s
 
 def options_dict(o: ScoreOptions) -> dict[str, Any]:
     return {"fov": o.fov, "max_range_m": o.max_range_m, "min_points": o.min_points, "min_score": o.min_score,
-            "iou": o.iou, "bands_m": [list(b) for b in o.bands_m], "ignore": o.ignore}
+            "iou": o.iou, "bands_m": [list(b) for b in o.bands_m], "ignore": o.ignore, "det_classes": o.det_classes}
 
 
 def score_title(o: ScoreOptions) -> str:
     view = {"camera": "in the front camera's view", "front90": "in the front 90 deg", "all": "all around"}[o.fov]
-    return (f"Vehicles {view} with >= {o.min_points} points: recall at score >= {o.min_score:g} (BEV IoU >= "
+    which = "every vehicle class's detections" if o.fov == "all" or o.det_classes == "all" else \
+        "the detections of the target types' classes"
+    return (f"Vehicles {view} with >= {o.min_points} points, {which}: recall at score >= {o.min_score:g} (BEV IoU >= "
             f"{o.iou:g}) by range, false positives per frame and BEV AP within {o.max_range_m:g} m "
             f"(cosim eval's AP); the recall within {o.max_range_m:g} m at the lowest score cut with at most "
             f"{OPERATING_FP_PER_FRAME:g} false positive per frame, and that cut")
@@ -603,8 +617,15 @@ def prediction_lines(source: KittiSource, setup: Any, preds: dict[int, tuple[np.
 def score_model(model: Any, setup: Any, sources: Sequence[KittiSource], device: Any, o: ScoreOptions
                 ) -> list[KittiScore]:
     """Each source's :class:`KittiScore` of a model's detections."""
-    return [score_source(s, {t: p[:2] for t, p in predict_source(model, setup, s, device).items()}, o)
+    return [score_source(s, with_class_names(predict_source(model, setup, s, device), setup.classes), o)
             for s in sources]
+
+
+def with_class_names(preds: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]], classes: Sequence[str]
+                     ) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """:func:`predict_source`'s detections with class names (the model's ``classes``) for their indices."""
+    names = np.asarray(classes, dtype=object)
+    return {t: (b, s, names[np.asarray(c, np.int64)]) for t, (b, s, c) in preds.items()}
 
 
 def ap_of(scores: Sequence[KittiScore]) -> dict[str, float]:

@@ -60,6 +60,10 @@ def add_score_options(p: argparse.ArgumentParser, own_match: bool = True) -> Non
                        help="recall and false positives at score >= S (default 0.3)")
         p.add_argument("--iou", type=cli_args.fraction, default=0.3,
                        help="BEV IoU of a found vehicle (default 0.3)")
+    p.add_argument("--det-classes", choices=("types", "all"), default="types",
+                   help="detections scored: those of the classes the KITTI types map to (default; KITTI scores each "
+                        "class on its own detections, so a bicycle detection is no false car), or every vehicle "
+                        "class's (--fov all always takes every class, as cosim eval)")
 
 
 def add_kitti_options(p: argparse.ArgumentParser, command: str) -> None:
@@ -104,7 +108,7 @@ def score_options(args: argparse.Namespace) -> Any:
     from cosim.learn.kitti import ScoreOptions
 
     return ScoreOptions(fov=args.fov, max_range_m=args.max_range_m, min_points=args.min_points,
-                        min_score=args.min_score, iou=args.iou)
+                        min_score=args.min_score, iou=args.iou, det_classes=args.det_classes)
 
 
 def _no_dataset(args: argparse.Namespace, command: str) -> None:

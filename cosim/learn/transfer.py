@@ -66,11 +66,11 @@ def transfer(runs: list[tuple[str, Path]], sources: list[Any], o: Any, device: A
         model, setup, ckpt = load_run(run, device)
         if setup.fusion != "none":
             raise InputError(f"--run {name}={run}: a model of fusion {setup.fusion}; real scans need fusion none")
-        from cosim.learn.kitti import predict_source
+        from cosim.learn.kitti import predict_source, with_class_names
 
         for k, s in enumerate(sources):
             t0 = time.perf_counter()
-            preds = {t: p[:2] for t, p in predict_source(model, setup, s, device).items()}
+            preds = with_class_names(predict_source(model, setup, s, device), setup.classes)
             frames: list = []
             summary = score_source(s, preds, o, keep=frames).summary()
             if picture is not None and k == 0 and name not in keep:
@@ -206,7 +206,7 @@ def markdown(report: dict[str, Any]) -> str:
 
     opts = report["options"]
     o = ScoreOptions(fov=opts["fov"], max_range_m=opts["max_range_m"], min_points=opts["min_points"],
-                     min_score=opts["min_score"], iou=opts["iou"])
+                     min_score=opts["min_score"], iou=opts["iou"], det_classes=opts.get("det_classes", "types"))
     cols = (*REPORT_COLUMNS[:3], f"recall 0-{o.max_range_m:g} m", *REPORT_COLUMNS[3:])
     lines = ["# Transfer to real scans", "", score_title(o) + "; mean over seeds (lowest-highest).", ""]
     for f in report["folders"]:
