@@ -19,7 +19,8 @@ PYTEST_ARGS ?=
 # handshakes, SUMO and the engines loading), so one worker per core leaves the cores idle; with 3 both stay busy
 # from the first minute to the last. From a fresh clone on a quiet machine the suite took 728, 800 and 827 s with
 # 3, 828 and 837 s with 4 (the same tests cost 1,145 to 1,310 CPU-s from run to run: this machine is shared); on a
-# slower 2-core machine (a tiny episode 1.6x the CPU) 1,074 to 1,147 s with 3.
+# slower 2-core machine (a tiny episode 1.6x the CPU) 1,074 to 1,147 s with 3; on a faster quiet one 641 s with 3
+# (1,137 tests, 1,397 machine CPU-s; the whole .ci/run 711 s with the Docker base image already made).
 # tests/conftest.py keeps tests that share a module or session fixture, or a resource, on one worker;
 # tests/scheduling.py runs the `exclusive` tests (timing deadlines) first with no engine test beside them,
 # compiles the numba kernels in the background and hands out the engine tests costliest first; every time bound
