@@ -46,7 +46,7 @@ def add_source_options(p: argparse.ArgumentParser, training: bool = False) -> No
 def add_score_options(p: argparse.ArgumentParser, own_match: bool = True) -> None:
     """What counts on a KITTI folder (:class:`cosim.learn.kitti.ScoreOptions`); ``own_match`` False: the command
     has its own ``--min-score`` and ``--iou``."""
-    from cosim.learn.kitti import FOVS
+    from cosim.learn.kitti import DET_CLASSES, FOVS
 
     p.add_argument("--fov", choices=FOVS, default="camera",
                    help="score boxes in the front camera's view (default: KITTI labels nothing else), the front 90 "
@@ -60,7 +60,7 @@ def add_score_options(p: argparse.ArgumentParser, own_match: bool = True) -> Non
                        help="recall and false positives at score >= S (default 0.3)")
         p.add_argument("--iou", type=cli_args.fraction, default=0.3,
                        help="BEV IoU of a found vehicle (default 0.3)")
-    p.add_argument("--det-classes", choices=("types", "all"), default="types",
+    p.add_argument("--det-classes", choices=DET_CLASSES, default=DET_CLASSES[0],
                    help="detections scored: those of the classes the KITTI types map to (default; KITTI scores each "
                         "class on its own detections, so a bicycle detection is no false car), or every vehicle "
                         "class's (--fov all always takes every class, as cosim eval)")

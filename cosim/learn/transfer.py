@@ -21,7 +21,19 @@ from typing import Any
 import numpy as np
 
 from cosim.errors import InputError
-from cosim.learn.kitti import OPERATING_RECALL, OPERATING_SCORE
+from cosim.learn.kitti import (
+    OPERATING_RECALL,
+    OPERATING_SCORE,
+    ScoreOptions,
+    box_point_counts,
+    in_view,
+    options_dict,
+    points_in_box,
+    predict_source,
+    score_source,
+    score_title,
+    with_class_names,
+)
 
 #: The summary columns of the report, in order (keys of :meth:`cosim.learn.kitti.KittiScore.summary`).
 REPORT_COLUMNS = ("recall 0-20 m", "recall 20-40 m", "recall 40-60 m", "false positives per frame", "AP30", "AP50",
@@ -57,7 +69,6 @@ def transfer(runs: list[tuple[str, Path]], sources: list[Any], o: Any, device: A
              picture_scans: int = 4, log: Any = print) -> dict[str, Any]:
     """The report's numbers: per folder, per name, every run's :meth:`KittiScore.summary` and the spread of each
     column; the picture of the first run of each name on the first folder."""
-    from cosim.learn.kitti import score_source
     from cosim.learn.train import load_run
 
     keep: dict[str, list] = {}
@@ -66,8 +77,6 @@ def transfer(runs: list[tuple[str, Path]], sources: list[Any], o: Any, device: A
         model, setup, ckpt = load_run(run, device)
         if setup.fusion != "none":
             raise InputError(f"--run {name}={run}: a model of fusion {setup.fusion}; real scans need fusion none")
-        from cosim.learn.kitti import predict_source, with_class_names
-
         for k, s in enumerate(sources):
             t0 = time.perf_counter()
             preds = with_class_names(predict_source(model, setup, s, device), setup.classes)
@@ -97,7 +106,7 @@ def transfer(runs: list[tuple[str, Path]], sources: list[Any], o: Any, device: A
             folder["names"][n] = {"seeds": len(mine), **{c: spread([r[c] for r in mine]) for c in cols},
                                   "errors": _error_counts([r["errors"] for r in mine])}
         folders.append(folder)
-    report = {"options": _options(o), "runs": per_run, "folders": folders, "names": names}
+    report = {"options": options_dict(o), "runs": per_run, "folders": folders, "names": names}
     if picture is not None and keep:
         draw(keep, sources[0], o, picture, picture_scans)
         report["picture"] = str(picture)
@@ -119,7 +128,6 @@ def errors(frames: list, source: Any, o: Any) -> dict[str, list[dict[str, Any]]]
     within the range (scan, centre, range, its points, the best score of a detection centred within
     :data:`NEAR_M`)."""
     from cosim.eval.boxes import footprints, iou_matrix
-    from cosim.learn.kitti import box_point_counts, points_in_box
 
     fps, missed = [], []
     for stem, fs in frames:
@@ -170,10 +178,10 @@ def _error_counts(per_seed: list[dict[str, list]]) -> dict[str, Any]:
     for e in per_seed:
         for fp in e["false_positives"]:
             fp_kind[error_kind(fp)] += 1
-            b = f"{int(fp['range_m'] // 10) * 10}-{int(fp['range_m'] // 10) * 10 + 10} m"
+            b = _band_10m(fp["range_m"])
             fp_band[b] = fp_band.get(b, 0) + 1
         for m in e["missed"]:
-            b = f"{int(m['range_m'] // 10) * 10}-{int(m['range_m'] // 10) * 10 + 10} m"
+            b = _band_10m(m["range_m"])
             miss_band[b] = miss_band.get(b, 0) + 1
             miss_near += m["best_score_near"] > 0.05
 
@@ -187,10 +195,10 @@ def _error_counts(per_seed: list[dict[str, list]]) -> dict[str, Any]:
             "missed": sum(len(e["missed"]) for e in per_seed)}
 
 
-def _options(o: Any) -> dict[str, Any]:
-    from cosim.learn.kitti import options_dict
-
-    return options_dict(o)
+def _band_10m(range_m: float) -> str:
+    """The 10 m range band of a distance, as "20-30 m"."""
+    lo = int(range_m // 10) * 10
+    return f"{lo}-{lo + 10} m"
 
 
 def _fmt(s: dict[str, float], pct: bool = False) -> str:
@@ -202,8 +210,6 @@ def _fmt(s: dict[str, float], pct: bool = False) -> str:
 
 def markdown(report: dict[str, Any]) -> str:
     """The report as markdown: one table per folder, a row per name (mean over its seeds, lowest-highest)."""
-    from cosim.learn.kitti import ScoreOptions, score_title
-
     opts = report["options"]
     o = ScoreOptions(fov=opts["fov"], max_range_m=opts["max_range_m"], min_points=opts["min_points"],
                      min_score=opts["min_score"], iou=opts["iou"], det_classes=opts.get("det_classes", "types"))
@@ -250,7 +256,6 @@ def draw(keep: dict[str, list], source: Any, o: Any, out: Path, scans: int) -> N
     import matplotlib.pyplot as plt
 
     from cosim.eval.boxes import footprints
-    from cosim.learn.kitti import in_view
 
     first = next(iter(keep.values()))
     order = sorted(range(len(first)), key=lambda i: (-len(first[i][1].gt), i))[:scans]
