@@ -223,6 +223,14 @@ def predict_jobs(args: argparse.Namespace, folders: dict[str, Path] | None = Non
     return jobs
 
 
+def selected(args: argparse.Namespace) -> list[str]:
+    """The trainings ``run`` takes, in :data:`ORDER`: ``--only``'s settings (default all), ``--seeds``' seeds of
+    each (default its own)."""
+    keys = [k.split("/s") for k in ORDER]
+    return [f"{n}/s{s}" for n, s in keys
+            if (not args.only or n in args.only) and (not args.seeds or int(s) in args.seeds)]
+
+
 def run_all(args: argparse.Namespace) -> int:
     from cosim.learn.samples import cache_meta_path
 
@@ -247,10 +255,8 @@ def run_all(args: argparse.Namespace) -> int:
             return rc
     preds = dict(predict_jobs(args))
     chains = []
-    for key in ORDER:
+    for key in selected(args):
         name, seed = key.split("/s")
-        if args.only and name not in args.only:
-            continue
         chain = []
         run = out / "runs" / f"{name}-s{seed}"
         if f"train {key}" not in done:
@@ -789,6 +795,8 @@ def main() -> int:
     r.add_argument("--val-steps", type=int, default=200)
     r.add_argument("--parallel", type=int, default=2)
     r.add_argument("--only", nargs="*", help="only these settings (names of SETTINGS)")
+    r.add_argument("--seeds", nargs="*", type=int, metavar="S",
+                   help="only these seeds of each setting (e.g. 0 1: issue 49's two seeds a cell)")
     r.add_argument("--cache", type=Path, help="an existing cache to train from (another run's OUT/cache), made\n"
                    "with --every 2 on the same dataset (default: OUT/cache, made when missing)")
     for q in (r, rp):  # the test perturbation (cosim learn predict checks the values)

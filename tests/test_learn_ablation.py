@@ -174,3 +174,13 @@ def test_robustness_compares_mixed_lidars_with_uniform_ones_and_refuses_a_folder
     md = la.robustness_tables(grid, mixed).split("## Mixed LiDARs")[1]
     assert "| intermediate (max), V+I+D | 80.0 / 60.0 | 70.0 / 50.0 | -10.0 |" in md
     assert "| intermediate (max), V+I+D, an encoder per kind | 79.0 / 59.0 | 76.0 / 56.0 | -3.0 |" in md
+
+
+def test_run_takes_only_the_named_settings_and_seeds_in_the_grids_order():
+    def pick(only=None, seeds=None):
+        return la.selected(argparse.Namespace(only=only, seeds=seeds))
+
+    assert pick() == list(la.ORDER)
+    assert pick(only=["ego", "early-VID"], seeds=[0, 1]) == ["ego/s0", "early-VID/s0", "ego/s1", "early-VID/s1"]
+    assert pick(seeds=[2]) == ["inter-VID/s2", "ego/s2"]  # the only settings with a third seed
+    assert pick(only=["inter-V"], seeds=[1]) == []  # inter-V has seed 0 only
