@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import re
 from collections import Counter
 from pathlib import Path
 
@@ -288,6 +289,30 @@ def test_shards_write_their_own_manifests_and_a_full_run_sees_them(tmp_path):
         "manifest.shard000of002.jsonl", "manifest.shard001of002.jsonl"]
     assert len(latest_records(out)) == 4
     assert run(plan, out).skipped == 4
+
+
+def test_one_split_alone_makes_the_same_episodes_and_a_full_run_keeps_them(tmp_path):
+    plan = six_plan(tmp_path, SIX.replace("count: 6\n", "count: 6\nsplit: {train: 2, test: 1}\n"))
+    test = plan.only_splits(["test"])
+    assert test.episodes == tuple(e for e in plan.episodes if e.split == "test") and len(test.episodes) == 2
+    out = tmp_path / "out"
+    assert run(test, out).done == 2
+    assert sorted(p.parent.name for p in out.rglob("*.mcap")) == ["test", "test"]
+    assert run(plan, out).skipped == 2  # the same ids, seeds and scenarios: nothing made twice
+    with pytest.raises(SweepError, match="no split 'tset' in sweep 'six' \\(its splits: train, test\\)"):
+        plan.only_splits(["tset"])
+
+
+def test_cli_split_plans_one_split_and_refuses_an_unknown_one(tmp_path):
+    path = write_sweep(tmp_path, SIX.replace("count: 6\n", "count: 6\nsplit: {train: 2, test: 1}\n"))
+    r = run_cli("batch", str(path), "--out", str(tmp_path / "o"), "--dry-run", "--calibrate-s", "0",
+                "--split", "test", timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "six: 2 episodes" in r.stdout
+    assert re.search(r"split +train +0 episodes", r.stdout) and re.search(r"split +test +2 episodes", r.stdout)
+    r = run_cli("batch", str(path), "--out", str(tmp_path / "o"), "--dry-run", "--split", "tset", timeout=120)
+    assert r.returncode == 2 and "--split" in r.stderr and "no split 'tset'" in r.stderr
+    assert "Traceback" not in r.stderr and not (tmp_path / "o").exists()
 
 
 def test_calibration_extrapolates_to_the_plan(tmp_path):

@@ -44,6 +44,8 @@ def _plan(args: argparse.Namespace) -> Any:
     from cosim.batch.plan import plan_file
 
     plan = plan_file(args.sweep, count=args.count, hours=args.hours, scale=args.scale, cli_set=args.set or [])
+    if args.split:
+        plan = plan.only_splits(args.split)
     if args.shard:
         plan = plan.sharded(*args.shard)
     return plan
@@ -167,6 +169,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--max-in-flight", type=cli_args.positive_int,
                    help="Ray: tasks submitted at once (default 2 x cluster CPUs)")
     b.add_argument("--shard", type=_shard, metavar="I/K", help="run only episodes i, i+k, ... (0 <= i < k)")
+    b.add_argument("--split", action="append", metavar="NAME",
+                   help="run only this split's episodes (repeatable), e.g. --split test --set tick_hz=10")
     b.add_argument("--retries", type=cli_args.non_negative_int, default=2,
                    help="extra attempts per failed episode (default 2)")
     size = b.add_mutually_exclusive_group()

@@ -95,6 +95,15 @@ class Plan:
         picked = tuple(e for e in self.episodes if e.index % count == index)
         return replace(self, episodes=picked, shard=(index, count))
 
+    def only_splits(self, names: Sequence[str]) -> Plan:
+        """The episodes of these splits only (e.g. the test split again at another tick rate): each keeps its
+        id, seed and parameters, so the episodes are those of the whole plan."""
+        unknown = [n for n in names if n not in self.sweep.split]
+        if unknown:
+            raise SweepError(f"no split {', '.join(map(repr, unknown))} in sweep {self.sweep.name!r} "
+                             f"(its splits: {', '.join(self.sweep.split)})", source="--split")
+        return replace(self, episodes=tuple(e for e in self.episodes if e.split in names))
+
 
 def derive_seed(sweep_seed: int, episode_id: str) -> int:
     """Scenario seed of an episode: a hash of the sweep seed and the episode id, in [0, 2**31)."""
