@@ -40,8 +40,9 @@ perturbation with the trained models (a prediction each, no training), into ``OU
 ``OUT/ablation-<tag>.md``; the same command without them is the clean grid. ``robustness`` does that for every
 level of the protocol (pose error 0.2 to 0.6 m and deg, latency 200 and 400 ms, ``--links``: the simulated
 links) and writes ``OUT/robustness.md`` and ``.json``: AP against each level, against bytes sent, and with
-``--mixed DIR`` mixed LiDARs against uniform ones (docs/learnability.md, "The benchmark of collaboration as
-deployed").
+``--mixed DIR`` mixed LiDARs against uniform ones; ``--latency-data DIR`` puts the latency and links sweeps on
+the test split of the same sweep at 10 Hz (``cosim batch ... --split test --set tick_hz=10``), where 100 ms is
+one tick (docs/learnability.md, "The benchmark of collaboration as deployed").
 """
 
 from __future__ import annotations
@@ -189,9 +190,40 @@ def perturb_flags(args: argparse.Namespace) -> list[str]:
 
 
 def perturb_tag(args: argparse.Namespace) -> str:
-    """The perturbation's name in folder and job names (``pose-0.2,0.2+latency-100+loss-links+perturb-0``), or ""."""
+    """The perturbation's name in folder and job names (``pose-0.2,0.2+latency-100+loss-links+perturb-0``), or "";
+    led by ``data-<folder>`` when the test split is another dataset's (``robustness --latency-data``)."""
     flags = perturb_flags(args)
-    return "+".join(f"{flags[i].lstrip('-').split('-')[0]}-{flags[i + 1]}" for i in range(0, len(flags), 2))
+    data = getattr(args, "test_data", None)
+    return "+".join([*([f"data-{Path(data).name}"] if data else []),
+                     *(f"{flags[i].lstrip('-').split('-')[0]}-{flags[i + 1]}" for i in range(0, len(flags), 2))])
+
+
+def test_dataset(args: argparse.Namespace) -> Path:
+    """The dataset whose test split is predicted and scored: the grid's, or ``robustness --latency-data``'s."""
+    return getattr(args, "test_data", None) or args.dataset
+
+
+def test_every(args: argparse.Namespace) -> int:
+    """The test split's tick step: :data:`TEST_EVERY`, times the ticks per second of ``--latency-data`` over the
+    grid's (every 12th tick at 10 Hz: the same instants as every 6th at 5 Hz)."""
+    return getattr(args, "test_every", None) or TEST_EVERY
+
+
+def tick_ratio(data: Path, grid: Path) -> int:
+    """How many ticks ``data``'s test episodes have for each of ``grid``'s (2: the same sweep at 10 Hz, not
+    5); ValueError unless a whole number."""
+    from cosim.eval.dataset import load_dataset
+
+    def ticks(folder: Path) -> int:
+        test = [r.n_ticks for r in load_dataset(folder) if r.split == "test"]
+        if not test:
+            raise ValueError(f"{folder}: no test split")
+        return test[0]
+
+    n, m = ticks(data), ticks(grid)
+    if n % m:
+        raise ValueError(f"--latency-data {data}: {n} ticks an episode, not a whole multiple of the grid's {m}")
+    return n // m
 
 
 def pred_dir(args: argparse.Namespace, folder: Path | None = None) -> Path:
@@ -212,7 +244,7 @@ def predict_jobs(args: argparse.Namespace, folders: dict[str, Path] | None = Non
         pred = pred_dir(args, folders.get(name, args.out)) / f"{name}-s{s}.jsonl"
         cache = [] if getattr(args, "mcap", False) else ["--cache", str(cache_dir(args))]
         return (f"predict {name}/s{s}{suffix}", cosim(
-            "learn", "predict", str(run), str(args.dataset), "--split", "test", "--every", str(TEST_EVERY),
+            "learn", "predict", str(run), str(test_dataset(args)), "--split", "test", "--every", str(test_every(args)),
             *cache, *extra, "--threads", "1", "--quiet", *perturb_flags(args),
             "--out", str(pred)))
 
@@ -412,7 +444,7 @@ def report(args: argparse.Namespace, recall_tables: bool = True) -> int:
     out = args.to or args.out
     tag = perturb_tag(args)
     (out / "logs").mkdir(parents=True, exist_ok=True)
-    refs = [r for r in load_dataset(args.dataset) if r.split == "test"]
+    refs = [r for r in load_dataset(test_dataset(args)) if r.split == "test"]
     done = {folder: jobs_done(folder) for folder in set(src.values())}
     jobs = {}  # the jobs behind the reported results, from each setting's folder
     for folder, recs in done.items():
@@ -592,23 +624,27 @@ ROBUST_ROWS = ("ego", "early-VID", "inter-VID", "inter-VID-att", "late-VID", "in
 
 
 def level(args: argparse.Namespace, pose: str | None = None, latency: str | None = None,
-          loss: str | None = None) -> argparse.Namespace:
+          loss: str | None = None, timed_data: bool = False) -> argparse.Namespace:
     """``args`` with one test perturbation (the others off). A latency reads earlier ticks: its predictions
     read ``--latency-cache`` (a cache made with ``--every 1``), or the episodes' MCAP without one (the grid's
-    cache holds every second tick only)."""
-    a = argparse.Namespace(**{**vars(args), "pose_noise": pose, "latency": latency, "loss": loss})
-    if latency is not None:
+    cache holds every second tick only). ``timed_data``: on ``--latency-data``'s test split when given (the
+    same sweep at 10 Hz, where 100 ms is a tick), from its cache or MCAP too."""
+    a = argparse.Namespace(**{**vars(args), "pose_noise": pose, "latency": latency, "loss": loss, "test_data": None,
+                              "test_every": None})
+    if timed_data and args.latency_data is not None:
+        a.test_data, a.test_every = args.latency_data, TEST_EVERY * tick_ratio(args.latency_data, args.dataset)
+    if latency is not None or a.test_data is not None:
         a.cache, a.mcap = args.latency_cache, args.latency_cache is None
     return a
 
 
 def levels(args: argparse.Namespace) -> dict[str, list[tuple[str, argparse.Namespace]]]:
     """The sweeps of ``robustness``: name -> [(column, the perturbation's args)], each from the clean grid."""
-    clean = ("0", level(args))
+    clean, timed = ("0", level(args)), ("0", level(args, timed_data=True))  # the same unless --latency-data
     out = {"pose": [clean, *((p, level(args, pose=p)) for p in args.pose_levels)],
-           "latency": [clean, *((f"{ms} ms", level(args, latency=ms)) for ms in args.latency_levels)]}
+           "latency": [timed, *((f"{ms} ms", level(args, latency=ms, timed_data=True)) for ms in args.latency_levels)]}
     if args.links:
-        out["links"] = [("ideal", clean[1]), ("links", level(args, latency="links", loss="links"))]
+        out["links"] = [("ideal", timed[1]), ("links", level(args, latency="links", loss="links", timed_data=True))]
     return out
 
 
@@ -626,7 +662,11 @@ def robustness(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     out = args.to or args.out
-    sweeps = levels(args)
+    try:
+        sweeps = levels(args)
+    except ValueError as e:
+        print(e, file=sys.stderr)
+        return 2
     perturbed = {perturb_tag(a): a for cols in sweeps.values() for _c, a in cols if perturb_tag(a)}
     done = {folder: jobs_done(folder) for folder in set(src.values())}
     for a in perturbed.values():  # the predictions, in the folder of each setting's results
@@ -658,7 +698,7 @@ def robustness(args: argparse.Namespace) -> int:
     (out / "robustness.json").write_text(json.dumps({"sweeps": {n: [c for c, _r in cols] for n, cols in grid.items()},
                                                      "results": {t or "clean": r for t, r in scored.items()},
                                                      "mixed": mixed}, indent=1) + "\n")
-    (out / "robustness.md").write_text(robustness_tables(grid, mixed))
+    (out / "robustness.md").write_text(robustness_tables(grid, mixed, args.latency_data))
     if args.picture:
         robustness_picture(grid, args.picture)
     print(out / "robustness.md")
@@ -675,7 +715,8 @@ def _ap(results: dict, name: str, key: str = "overall=all") -> str:
     return f"{a30:.1f}" + (f" ± {spread:.1f}" if n > 1 else "") + f" / {a50:.1f}"
 
 
-def robustness_tables(grid: dict[str, list[tuple[str, dict]]], mixed: dict | None = None) -> str:
+def robustness_tables(grid: dict[str, list[tuple[str, dict]]], mixed: dict | None = None,
+                      latency_data: Path | None = None) -> str:
     """The markdown of ``robustness``: AP against each sweep's levels (with the fall from the clean column),
     the links as simulated per environment, AP against bytes sent, and mixed LiDARs against uniform ones."""
     first = grid["pose"][0][1]
@@ -690,7 +731,9 @@ def robustness_tables(grid: dict[str, list[tuple[str, dict]]], mixed: dict | Non
               "latency": "Against latency (each collaborator's data from that long before the ego's tick)"}
     for name in ("pose", "latency"):
         cols = grid[name]
-        lines += [f"## {titles[name]}", "",
+        where = ([f"On the test split of `{latency_data}` (the same sweep at another tick rate), its own clean column "
+                  "0; the links below too.", ""] if name == "latency" and latency_data is not None else [])
+        lines += [f"## {titles[name]}", "", *where,
                   "| setting | seeds | " + " | ".join(c for c, _r in cols) + " | AP30 fall at the last level |",
                   "|---|---:|" + "---:|" * (len(cols) + 1)]
         for n in rows:
@@ -783,6 +826,10 @@ def main() -> int:
     rb.add_argument("--latency-cache", type=Path, metavar="DIR",
                     help="a `cosim learn cache --every 1` of the dataset for the latency and links predictions\n"
                          "(default: they read the MCAP files)")
+    rb.add_argument("--latency-data", type=Path, metavar="DIR",
+                    help="the latency and links sweeps on this dataset's test split instead, with its own clean\n"
+                         "column: the same sweep at 10 Hz, where 100 ms is one tick (cosim batch ... --split test\n"
+                         "--set tick_hz=10); --latency-cache is then a cache of it")
     rb.add_argument("--links", action="store_true", help="also --latency links --loss links (the simulated links)")
     rb.add_argument("--mixed", type=Path, metavar="DIR",
                     help="a results folder of `run` and `report` on the same sweep with mixed LiDARs (per-agent rigs)")

@@ -98,8 +98,8 @@ def test_every_settings_seed_trains_once_with_its_own_flags(tmp_path):
 def _robust_args(tmp_path, **kw) -> argparse.Namespace:
     base = dict(dataset=tmp_path / "data", out=tmp_path / "ablation", use=None, to=None, cache=None,
                 pose_levels=["0.2,0.2", "0.6,0.6"], latency_levels=["200"], links=True, mixed=None, parallel=1,
-                latency_cache=None,
-                perturb_seed=3, picture=None, pose_noise=None, latency=None, loss=None)
+                latency_cache=None, latency_data=None, perturb_seed=3, picture=None, pose_noise=None, latency=None,
+                loss=None)
     return argparse.Namespace(**{**base, **kw})
 
 
@@ -184,3 +184,60 @@ def test_run_takes_only_the_named_settings_and_seeds_in_the_grids_order():
     assert pick(only=["ego", "early-VID"], seeds=[0, 1]) == ["ego/s0", "early-VID/s0", "ego/s1", "early-VID/s1"]
     assert pick(seeds=[2]) == ["inter-VID/s2", "ego/s2"]  # the only settings with a third seed
     assert pick(only=["inter-V"], seeds=[1]) == []  # inter-V has seed 0 only
+
+
+def test_latency_data_puts_the_latency_and_links_sweeps_on_its_test_split_at_its_own_tick_step(tmp_path,
+                                                                                                 monkeypatch):
+    data10 = tmp_path / "learn72_10hz"
+    args = _robust_args(tmp_path, latency_data=data10, latency_cache=tmp_path / "cache10", latency_levels=["100"])
+    (args.out / "runs" / "inter-VID-s0").mkdir(parents=True)
+    (args.out / "runs" / "inter-VID-s0" / "best.pt").write_bytes(b"")
+    monkeypatch.setattr(la, "tick_ratio", lambda data, grid: 2 if (data, grid) == (data10, args.dataset) else 0)
+    ran: dict[str, list[str]] = {}
+
+    def fake_run_chains(chains, parallel, folder):
+        ran.update(job for chain in chains for job in chain)
+        return [], False
+
+    def fake_report(a, recall_tables=True):
+        tag = la.perturb_tag(a)
+        results = {"inter-VID/s0": _scores(80.0, 60.0)}
+        (a.out / (f"ablation-{tag}.json" if tag else "ablation.json")).write_text(json.dumps({"results": results}))
+        return 0
+
+    monkeypatch.setattr(la, "run_chains", fake_run_chains)
+    monkeypatch.setattr(la, "report", fake_report)
+    assert la.robustness(args) == 0
+
+    def data_and_every(job):
+        cmd = ran[job]
+        return cmd[cmd.index("predict") + 2], cmd[cmd.index("--every") + 1], cmd[cmd.index("--cache") + 1]
+
+    # the clean column of the latency sweep is predicted again, on the 10 Hz data (every 12th tick: the same
+    # instants as the grid's every 6th at 5 Hz), from its cache; the pose sweep stays on the grid's data
+    assert data_and_every("predict inter-VID/s0 [data-learn72_10hz]") == (str(data10), "12", str(tmp_path / "cache10"))
+    assert data_and_every("predict inter-VID/s0 [data-learn72_10hz+latency-100+perturb-3]")[:2] == (str(data10), "12")
+    assert data_and_every("predict inter-VID/s0 [data-learn72_10hz+latency-links+loss-links+perturb-3]")[:2] == (
+        str(data10), "12")
+    assert data_and_every("predict inter-VID/s0 [pose-0.6,0.6+perturb-3]") == (
+        str(args.dataset), "6", str(args.out / "cache"))
+    assert not any("latency" in job and "data-" not in job for job in ran)
+    md = (args.out / "robustness.md").read_text()
+    assert f"On the test split of `{data10}`" in md.split("## Against latency")[1].split("##")[0]
+    assert "On the test split" not in md.split("## Against latency")[0]
+
+
+def test_the_tick_ratio_of_latency_data_is_a_whole_number(tmp_path, monkeypatch, capsys):
+    import cosim.eval.dataset
+    from cosim.eval.dataset import EpisodeRef
+
+    ticks = {"d5": 50, "d10": 100, "d7": 70}
+    monkeypatch.setattr(cosim.eval.dataset, "load_dataset", lambda folder: [
+        EpisodeRef("train-0", folder / "a.mcap", "train", n_ticks=1),
+        EpisodeRef("test-0", folder / "b.mcap", "test", n_ticks=ticks[folder.name])])
+    assert la.tick_ratio(tmp_path / "d10", tmp_path / "d5") == 2
+    with pytest.raises(ValueError, match="70 ticks an episode, not a whole multiple of the grid's 50"):
+        la.tick_ratio(tmp_path / "d7", tmp_path / "d5")
+    args = _robust_args(tmp_path, dataset=tmp_path / "d5", latency_data=tmp_path / "d7")
+    assert la.robustness(args) == 2
+    assert "not a whole multiple" in capsys.readouterr().err and not args.out.exists()
