@@ -674,8 +674,8 @@ def robustness(args: argparse.Namespace) -> int:
         for job, cmd in predict_jobs(a, src):
             name, s = job.split(" ")[1].split("/s")
             folder, base = src[name], LATE[1] if name == LATE[0] else name
-            if job in done[folder] or not (src[base] / "runs" / f"{base}-s{s}" / "best.pt").is_file():
-                continue  # done already, or a setting not trained
+            if job in done[folder] or f"train {base}/s{s}" not in done[src[base]]:
+                continue  # done already, or a setting not trained (or still training: its best.pt is not final)
             pred_dir(a, folder).mkdir(parents=True, exist_ok=True)
             (folder / "logs").mkdir(exist_ok=True)
             by_folder.setdefault(folder, []).append([(job, cmd)])

@@ -106,12 +106,13 @@ def _robust_args(tmp_path, **kw) -> argparse.Namespace:
 def test_robustness_predicts_the_trained_models_under_every_level_and_tabulates_the_fall(tmp_path, monkeypatch):
     args = _robust_args(tmp_path, picture=tmp_path / "robust.png")
     out = args.out
-    for run in ("ego-s0", "ego-s1", "inter-VID-s0"):  # trained: best.pt; every other setting was not
-        (out / "runs" / run).mkdir(parents=True)
-        (out / "runs" / run / "best.pt").write_bytes(b"")
     done_tag = "pose-0.2,0.2+perturb-3"
-    (out / "jobs.jsonl").write_text(json.dumps({"job": f"predict ego/s0 [{done_tag}]", "rc": 0, "cpu_s": 1.0,
-                                                "wall_s": 1.0}) + "\n")
+    # trained: ego s0 and s1, inter-VID s0; inter-VID s1 still training (its best.pt is not final); no other
+    jobs = [{"job": f"train {k}", "rc": 0} for k in ("ego/s0", "ego/s1", "inter-VID/s0")]
+    jobs += [{"job": "train inter-VID/s1", "rc": -15}, {"job": f"predict ego/s0 [{done_tag}]", "rc": 0}]
+    (out / "runs" / "inter-VID-s1").mkdir(parents=True)
+    (out / "runs" / "inter-VID-s1" / "best.pt").write_bytes(b"")
+    (out / "jobs.jsonl").write_text("".join(json.dumps({**j, "cpu_s": 1.0, "wall_s": 1.0}) + "\n" for j in jobs))
     ran: list[str] = []
 
     def fake_run_chains(chains, parallel, folder):
@@ -145,7 +146,7 @@ def test_robustness_predicts_the_trained_models_under_every_level_and_tabulates_
     # predictions: every perturbed level of the trained models (late fusion from ego's), none done twice
     assert f"predict ego/s0 [{done_tag}]" not in ran and f"predict ego/s1 [{done_tag}]" in ran
     assert "predict late-VID/s1 [latency-links+loss-links+perturb-3]" in ran
-    assert not any("early-VID" in job or "late-VID/s2" in job for job in ran)
+    assert not any("early-VID" in job or "late-VID/s2" in job or "inter-VID/s1" in job for job in ran)
     assert len(ran) == 4 * 5 - 1  # 4 levels x (ego s0, s1, inter-VID s0, late s0, s1), less the one done
     assert sorted(t for t, _r in reported) == sorted(ap) and not any(r for _t, r in reported)
     md = (out / "robustness.md").read_text()
@@ -190,8 +191,9 @@ def test_latency_data_puts_the_latency_and_links_sweeps_on_its_test_split_at_its
                                                                                                  monkeypatch):
     data10 = tmp_path / "learn72_10hz"
     args = _robust_args(tmp_path, latency_data=data10, latency_cache=tmp_path / "cache10", latency_levels=["100"])
-    (args.out / "runs" / "inter-VID-s0").mkdir(parents=True)
-    (args.out / "runs" / "inter-VID-s0" / "best.pt").write_bytes(b"")
+    args.out.mkdir(parents=True)
+    (args.out / "jobs.jsonl").write_text(json.dumps({"job": "train inter-VID/s0", "rc": 0, "cpu_s": 1.0,
+                                                     "wall_s": 1.0}) + "\n")
     monkeypatch.setattr(la, "tick_ratio", lambda data, grid: 2 if (data, grid) == (data10, args.dataset) else 0)
     ran: dict[str, list[str]] = {}
 
