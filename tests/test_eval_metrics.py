@@ -13,7 +13,14 @@ from cosim.eval.ap import DetectionAccumulator, match_frame, voc_ap
 from cosim.eval.boxes import footprints, iou_matrix
 from cosim.eval.dataset import FrameTruth
 from cosim.eval.evaluate import EvalOptions, EvalResult, SegAccumulator, _score_frame
-from cosim.eval.predictions import PredictionError, parse_record, read_predictions
+from cosim.eval.predictions import (
+    PredictionError,
+    parse_record,
+    prediction_files,
+    read_predictions,
+    record_json,
+    write_prediction_lines,
+)
 from cosim.traffic.metrics import convex_overlap_area
 from tests.helpers import run_cli
 
@@ -288,3 +295,20 @@ def test_cli_exits_2_with_one_message_on_malformed_predictions(tmp_path):
     assert r.stderr.strip().splitlines() == [f"cosim: error: {f}:1: boxes[0].yaw_rad: must be a finite number "
                                              "[rad], got 'north'"]
     assert not (tmp_path / "o").exists()
+
+
+def test_a_prediction_file_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
+    lines = [record_json("ep", k, "vehicle_0", "ego", np.zeros((1, 3)), np.ones((1, 3)), np.zeros(1), ["car"],
+                         np.array([0.5])) for k in range(3)]
+    out = write_prediction_lines(tmp_path / "runs" / "pred.jsonl", lines)
+    assert [r.tick for r in read_predictions(out)] == [0, 1, 2]
+    assert sorted(p.name for p in out.parent.iterdir()) == ["pred.jsonl"]  # no partial file left
+    # killed before the rename: the old file stays as it was, and the partial one is no prediction file
+    def killed(self, target):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(type(out), "replace", killed)
+    with pytest.raises(KeyboardInterrupt):
+        write_prediction_lines(out, lines[:1])
+    assert len(read_predictions(out)) == 3
+    assert prediction_files(out.parent) == [out] and (out.parent / ".pred.jsonl.partial").is_file()

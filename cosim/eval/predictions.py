@@ -201,6 +201,18 @@ def record_json(episode: str, tick: int, ego: str, agents: str, centers_m: np.nd
     return json.dumps(rec, separators=(",", ":"))
 
 
+def write_prediction_lines(out: Path, lines: Iterable[str]) -> Path:
+    """Write a prediction file (one :func:`record_json` line each) whole or not at all: into
+    ``.<name>.partial`` beside it, renamed when complete, so a killed run never leaves a file that looks
+    finished (and a reader never sees half of one)."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.partial")
+    tmp.write_text("".join(line + "\n" for line in lines), encoding="utf-8")
+    tmp.replace(out)
+    return out
+
+
 def iter_bev_layers(rec: FramePrediction, shape: tuple[int, int], layers: Iterable[str]
                     ) -> Iterator[tuple[str, np.ndarray]]:
     """The predicted BEV layers of a record, checked against the grid ``shape`` and layer names."""

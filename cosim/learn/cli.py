@@ -148,6 +148,7 @@ def cmd_predict(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from cosim.eval.dataset import load_dataset
+    from cosim.eval.predictions import write_prediction_lines
     from cosim.learn.data import Samples, check_classes, split_episodes
     from cosim.learn.train import device_of, load_run, record_lines
 
@@ -182,9 +183,7 @@ def cmd_predict(args: argparse.Namespace) -> int:
     finally:
         bar.close()
         samples.close()
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("".join(line + "\n" for line in lines))
+    out = write_prediction_lines(Path(args.out), lines)
     sent = [json.loads(line).get("bytes_sent", 0) for line in lines]
     print(f"predictions {out}: {len(lines)} records from {len(refs)} episodes, fusion {setup.fusion}, agents "
           f"{setup.agents}, lidar {setup.lidar} ({time.perf_counter() - t0:.1f} s)\n"

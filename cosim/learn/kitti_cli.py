@@ -186,6 +186,7 @@ def cmd_predict(args: argparse.Namespace) -> int:
     from cosim.learn import require_torch
 
     torch = require_torch()
+    from cosim.eval.predictions import write_prediction_lines
     from cosim.learn.kitti import predict_source, prediction_lines
     from cosim.learn.train import device_of, load_run
 
@@ -202,9 +203,7 @@ def cmd_predict(args: argparse.Namespace) -> int:
     src = sources([args.kitti], args, labels=False, split=args.kitti_split)[0]
     t0 = time.perf_counter()
     lines = prediction_lines(src, setup, predict_source(model, setup, src, device))
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("".join(line + "\n" for line in lines))
+    out = write_prediction_lines(Path(args.out), lines)
     shift = "no height recorded: not moved" if setup.lidar_height_m is None else \
         f"moved {src.height_m - setup.lidar_height_m:+.3f} m to the model's {setup.lidar_height_m:.3f} m"
     print(f"predictions {out}: {len(lines)} scans of {src.id} (points {shift}; {time.perf_counter() - t0:.1f} s)")
