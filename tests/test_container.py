@@ -221,17 +221,13 @@ def image(base_image: str, wheelhouse: Path, tmp_path_factory) -> str:
 NUMERIC_PREFIXES = ("OPENBLAS_", "GOTO_", "OMP_", "MKL_")
 
 
-def numeric_settings() -> dict[str, str]:
-    return {k: v for k, v in os.environ.items() if k.startswith(NUMERIC_PREFIXES)}
-
-
 def run_container(image: str, out: Path, *args: str, detach: bool = False, timeout: float = 600) -> str:
     """``docker run`` as the calling user with ``out`` mounted at /out; returns stdout (the id if detached).
 
     A detached container is kept after it exits (for its status and log): remove it with ``docker rm``."""
     out.mkdir(parents=True, exist_ok=True)
     cmd = ["run", "-u", f"{os.getuid()}:{os.getgid()}", "-v", f"{out}:/out", "--label", LABEL]
-    for name in sorted(numeric_settings()):
+    for name in sorted(k for k in os.environ if k.startswith(NUMERIC_PREFIXES)):
         cmd += ["-e", name]  # the host's value, as docker reads it from this process's environment
     cmd.append("-d" if detach else "--rm")
     r = docker(*cmd, image, *args, timeout=timeout)
