@@ -80,8 +80,8 @@ class Setting(NamedTuple):
 #: predicted with each ego-only model (:data:`LATE`). Intermediate V+I+D is trained with both per-cell
 #: fusions: max (F-Cooper, every other intermediate setting) and attention (AttFuse). Collaboration as
 #: deployed (issue 49) adds two: the robust variant, trained under V2X-ViT's and CoAlign's pose error of the
-#: middle level (0.4 m, 0.4 deg), and one pillar encoder per agent kind (for the mixed LiDARs of
-#: ``robustness --mixed``).
+#: middle level (0.4 m, 0.4 deg), one pillar encoder per agent kind and one per LiDAR (for the mixed LiDARs
+#: of ``robustness --mixed``: the mix is within each kind, so only the second gives each LiDAR its encoder).
 SETTINGS: dict[str, Setting] = {
     "ego": Setting("none", "ego", "max", (0, 1, 2)),
     "inter-VID": Setting("intermediate", "all", "max", (0, 1, 2)),
@@ -92,6 +92,7 @@ SETTINGS: dict[str, Setting] = {
     "inter-VID-att": Setting("intermediate", "all", "attention", (0, 1)),
     "inter-VID-pose": Setting("intermediate", "all", "max", (0, 1), ("--pose-noise", "0.4,0.4")),
     "inter-VID-kind": Setting("intermediate", "all", "max", (0, 1), ("--encoders", "kind")),
+    "inter-VID-sensor": Setting("intermediate", "all", "max", (0, 1), ("--encoders", "sensor")),
 }
 #: late fusion: each ego-only model on every agent's cloud
 LATE = ("late-VID", "ego", "all")
@@ -99,7 +100,8 @@ LATE_SEEDS = (0, 1, 2)
 #: the order training jobs start in: a long and a short one side by side, the first seed of everything first
 ORDER = ("inter-VID/s0", "ego/s0", "inter-V/s0", "inter-VI/s0", "inter-VD/s0", "early-VID/s0", "inter-VID/s1",
          "ego/s1", "inter-VID/s2", "ego/s2", "inter-VID-att/s0", "early-VID/s1", "inter-VID-att/s1",
-         "inter-VID-pose/s0", "inter-VID-pose/s1", "inter-VID-kind/s0", "inter-VID-kind/s1")
+         "inter-VID-pose/s0", "inter-VID-pose/s1", "inter-VID-kind/s0", "inter-VID-kind/s1", "inter-VID-sensor/s0",
+         "inter-VID-sensor/s1")
 CONDITIONS = ("environment", "strategy", "lighting")
 RECALL_BY = ("environment", "strategy")  # the recall table again per value of these (where drones add sight)
 AGENT_LABEL = {"ego": "ego only", "vehicles": "V", "vehicles+rsus": "V+I", "vehicles+drones": "V+D", "all": "V+I+D"}
@@ -555,7 +557,7 @@ def setting_label(name: str) -> str:
     kind = {"none": "", "early": "early, ", "intermediate": f"intermediate ({st.fuse}), "}[st.fusion]
     train = dict(zip(st.train[::2], st.train[1::2], strict=True))
     extra = ([f"trained with pose error {train['--pose-noise']}"] if "--pose-noise" in train else []) + \
-        (["an encoder per kind"] if train.get("--encoders") == "kind" else [])
+        ([f"an encoder per {train['--encoders']}"] if "--encoders" in train else [])
     return ", ".join([f"{kind}{AGENT_LABEL[st.agents]}", *extra])
 
 
@@ -620,7 +622,8 @@ def tables(results: dict, jobs: dict, tag: str = "") -> str:
 POSE_LEVELS = ("0.2,0.2", "0.4,0.4", "0.6,0.6")
 LATENCY_LEVELS = ("200", "400")
 #: the rows of the robustness tables: every fusion mode on V+I+D, ego only, and the robust variants
-ROBUST_ROWS = ("ego", "early-VID", "inter-VID", "inter-VID-att", "late-VID", "inter-VID-pose", "inter-VID-kind")
+ROBUST_ROWS = ("ego", "early-VID", "inter-VID", "inter-VID-att", "late-VID", "inter-VID-pose", "inter-VID-kind",
+               "inter-VID-sensor")
 
 
 def level(args: argparse.Namespace, pose: str | None = None, latency: str | None = None,

@@ -190,3 +190,26 @@ def test_learn_eval_coverage_and_render_take_an_agent_without_lidar(mixed, tmp_p
     assert status == 0, out + err
     sheets = {p.name for p in (tmp_path / "render").glob("contact_*.png")}
     assert {"contact_vehicle_1_t0000.png", "contact_drone_0_t0000.png", "contact_vehicle_0_t0000.png"} <= sheets
+
+
+@pytest.mark.integration
+def test_per_sensor_encoders_give_each_lidar_of_the_episode_its_own(mixed, tmp_path, capsys):
+    import torch
+
+    from cosim.eval.dataset import load_dataset
+    from cosim.learn.data import episode_lidars
+
+    lidars = episode_lidars(load_dataset(mixed)[0])
+    assert lidars == {"vehicle_0": "vlp16", "vehicle_1": None, "rsu_0": "vlp32c", "drone_0": None}, lidars
+    run = tmp_path / "run"
+    status, out, err = cli_in_process(capsys, "learn", "train", str(mixed), "--out", str(run), "--steps", "2",
+                                      "--batch-size", "2", "--fusion", "intermediate", "--encoders", "sensor",
+                                      "--agents", "all", "--no-val", "--threads", "1", "-q")
+    assert status == 0, out + err
+    ckpt = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert ckpt["setup"]["sensors"] == ["vlp16", "vlp32c"]
+    assert sorted(k for k in ckpt["model"] if k.startswith("sensor_pfn")) == ["sensor_pfn.0.weight"]
+    preds = tmp_path / "pred.jsonl"
+    status, out, err = cli_in_process(capsys, "learn", "predict", str(run), str(mixed), "--out", str(preds), "-q")
+    assert status == 0, out + err
+    assert {json.loads(line)["ego"] for line in preds.read_text().splitlines()} == {"vehicle_0", "vehicle_1"}

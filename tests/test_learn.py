@@ -9,6 +9,7 @@ import json
 import math
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -528,7 +529,7 @@ def test_intermediate_fusion_puts_a_collaborators_object_in_its_ego_cell(yaw_deg
     item = make_item(_record((61.0, 17.0, np.radians(yaw_deg)), obj), "vehicle_0", setup, "ep")
     assert [s[0] for s in item["sources"]] == ["vehicle_0", "rsu_0"] and len(item["clouds"][1]) == 9
     assert len(item["targets"][0][0]) == 1  # the car: a target, seen by the collaborator alone
-    b = batch_arrays(item["clouds"], setup, [2], [item["poses"]], [item["kinds"]])
+    b = batch_arrays(item["clouds"], setup, [2], [item["poses"]], [item["encoder"]])
     # each pillar's feature: 1 in channel 0 for the ego's pillars, channel 1 for the collaborator's
     agent_of = b["coords"][:, 0] % 2
     feats = torch.zeros(len(agent_of), 2)
@@ -686,7 +687,7 @@ def test_cache_gives_the_uncached_samples_bit_for_bit(tiny_batch, tmp_path):
             for (bp, lp), (bq, lq) in zip(x["targets"], y["targets"], strict=True):
                 assert np.array_equal(bp, bq) and np.array_equal(lp, lq)
             if fusion == "intermediate":
-                assert np.array_equal(x["poses"], y["poses"]) and np.array_equal(x["kinds"], y["kinds"])
+                assert np.array_equal(x["poses"], y["poses"]) and np.array_equal(x["encoder"], y["encoder"])
         a.close()
         b.close()
 
@@ -756,6 +757,14 @@ def test_intermediate_training_is_deterministic_with_workers_and_keeps_the_best(
     a, b = (torch.load(tmp_path / n / CHECKPOINT, weights_only=False)["model"] for n in "ab")
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert any(k.startswith("kind_pfn") for k in a)  # one encoder per agent kind
+    # one encoder per LiDAR, on data with one LiDAR per kind: the per-kind model, weight for weight
+    train(train_refs, test_refs, replace(setup, encoders="sensor"),
+          TrainOptions(steps=4, batch_size=2, seed=3, threads=1, workers=0, val_steps=2, val_every_tick=2,
+                       turn_deg=45.0), tmp_path / "c", show_progress=False, cache=tiny_cache)
+    c = torch.load(tmp_path / "c" / CHECKPOINT, weights_only=False)
+    assert c["setup"]["sensors"] == ["vehicle", "rsu", "drone"]
+    assert {k.replace("sensor_", "kind_"): v for k, v in c["model"].items()}.keys() == a.keys()
+    assert all(torch.equal(a[k], c["model"][k.replace("kind_", "sensor_")]) for k in a)
     assert (tmp_path / "a" / BEST).is_file()
     vals = [json.loads(line) for line in (tmp_path / "a" / "log.jsonl").read_text().splitlines() if "val" in line]
     assert [v["step"] for v in vals] == [2, 4]

@@ -179,6 +179,7 @@ def _samples(perturb: Perturb, fusion: str = "early", **kw):
     s.setup = Setup(fusion=fusion, agents="all", perturb=perturb)
     s.src = _Source(**kw)
     s._records = {}
+    s.lidars = {}
     if perturb.latency:
         s._check_latency(perturb)
     return s

@@ -289,7 +289,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--fuse", choices=FUSES, default="max", help="intermediate fusion per cell: max (F-Cooper) or "
                                                                  "attention (AttFuse); default max")
     tr.add_argument("--encoders", choices=ENCODERS, default="shared",
-                    help="intermediate fusion: one pillar encoder for all agents, or one per agent kind")
+                    help="intermediate fusion: one pillar encoder for all agents (shared), one per agent kind "
+                         "(kind), or one per LiDAR of the training data (sensor: its preset, or its kind's LiDAR; "
+                         "a LiDAR unknown at prediction takes its kind's encoder)")
     tr.add_argument("--lidar", choices=LIDAR_MODES, default="tick", help=lidar_help)
     tr.add_argument("--cache", type=CACHE,
                     help="a folder of cosim learn cache: read the samples from it, not from MCAP")

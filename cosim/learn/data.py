@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -36,13 +37,38 @@ from cosim.learn.samples import (  # noqa: F401  (the names the rest of cosim le
     crop_record,
     inside_box,
     learn_record,
+    lidar_sensor,
     make_item,
+    sensor_vocabulary,
     write_episode_cache,
 )
 from cosim.learn.samples import delivered as _delivered  # noqa: F401
 
 #: Learn records a :class:`Samples` keeps at hand: the egos of a tick and, with a latency, the earlier ticks.
 _RECORDS_KEPT = 8
+
+
+def episode_lidars(ref: EpisodeRef) -> dict[str, str | None]:
+    """Each agent's LiDAR in an episode as the per-sensor encoders name it (:func:`lidar_sensor`), from the
+    resolved scenario the episode carries (an episode without one: every agent its kind's LiDAR)."""
+    import yaml
+
+    from cosim.io.reader import open_episode
+
+    with open_episode(ref.path) as ep:
+        resolved = yaml.safe_load(ep.attachment("scenario.yaml")) if "scenario.yaml" in ep.attachments else None
+        agents = list(ep.agents)
+    if not resolved:
+        return {a: a.rsplit("_", 1)[0] for a in agents}
+    return {a: lidar_sensor(resolved, a) for a in agents}
+
+
+def with_sensors(setup: Setup, refs: list[EpisodeRef]) -> Setup:
+    """``setup`` with the LiDARs of ``refs`` (the training and validation episodes) as its per-sensor encoders
+    when its encoders are ``sensor``; else unchanged."""
+    if setup.encoders != "sensor":
+        return setup
+    return replace(setup, sensors=sensor_vocabulary(episode_lidars(r) for r in refs))
 
 
 def split_episodes(refs: list[EpisodeRef], split: str | None, role: str, dataset: Path | str) -> list[EpisodeRef]:
@@ -137,8 +163,9 @@ class Samples:
     ``item(i)`` gives ``episode`` (id), ``tick``, ``ego``, ``clouds`` (list of (N, 4) float32 x, y, z,
     intensity: one cloud, or one per agent for late and intermediate fusion), ``sources`` (the agents of
     each cloud), ``targets`` (boxes (M, 7) and class indices (M,) per target set), and for intermediate fusion
-    ``poses`` and ``kinds`` (:func:`cosim.learn.samples.make_item`). With ``cache`` (a folder of
-    ``cosim learn cache``), records come from it and no MCAP is read.
+    ``poses`` and ``encoder`` (:func:`cosim.learn.samples.make_item`). With ``cache`` (a folder of
+    ``cosim learn cache``), records come from it and no sensor data is read from MCAP (per-sensor encoders
+    read each episode's scenario).
     """
 
     def __init__(self, refs: list[EpisodeRef], setup: Setup, every: int = 1, cache: Path | str | None = None):
@@ -155,6 +182,7 @@ class Samples:
         if setup.perturb.latency:
             self._check_latency(setup.perturb)
         self._records: dict[tuple[str, int], dict[str, Any]] = {}
+        self.lidars = {r.id: episode_lidars(r) for r in refs} if setup.encoders == "sensor" else {}
 
     def _check_latency(self, perturb: Perturb) -> None:
         """InputError unless every episode's earlier ticks that ``perturb``'s latency asks for can be read: a
@@ -203,7 +231,7 @@ class Samples:
     def item(self, index: int) -> dict[str, Any]:
         episode, tick, ego = self.src.keys[index]
         history = (lambda t: self._record(episode, t)) if self.setup.perturb.latency else None
-        return make_item(self._record(episode, tick), ego, self.setup, episode, history)
+        return make_item(self._record(episode, tick), ego, self.setup, episode, history, self.lidars.get(episode))
 
 
 def write_cache(refs: list[EpisodeRef], out: Path, lidar: str, every: int,

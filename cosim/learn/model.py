@@ -32,7 +32,7 @@ class PillarDetector(nn.Module):
     """Pillars -> (B, C, ny, nx) pseudo-image -> backbone at strides 2 and 4 -> head at stride 2."""
 
     def __init__(self, grid: Grid, n_classes: int, width: int = 32, fusion: str = "none", fuse: str = "max",
-                 encoders: str = "shared"):
+                 encoders: str = "shared", n_sensors: int = 0):
         super().__init__()
         if grid.stride != 2:
             raise ValueError("the backbone's head works at stride 2")
@@ -40,13 +40,20 @@ class PillarDetector(nn.Module):
         self.n_classes = n_classes
         self.intermediate = fusion == "intermediate"
         self.fuse = fuse
-        self.per_kind = self.intermediate and encoders == "kind"
+        if encoders == "sensor" and self.intermediate and n_sensors < 1:
+            raise ValueError("per-sensor encoders need the number of sensors")
+        self.per_agent = self.intermediate and encoders in ("kind", "sensor")
         c = width
         self.pfn = nn.Linear(POINT_FEATURES, c, bias=False)
         self.pfn_bn = nn.BatchNorm1d(c)
-        if self.per_kind:  # kinds after the first have their own encoder; the first uses pfn, pfn_bn
-            self.kind_pfn = nn.ModuleList(nn.Linear(POINT_FEATURES, c, bias=False) for _ in KINDS[1:])
-            self.kind_bn = nn.ModuleList(nn.BatchNorm1d(c) for _ in KINDS[1:])
+        self._encoders = [(self.pfn, self.pfn_bn)]
+        if self.per_agent:  # encoders after the first have their own layers; the first uses pfn, pfn_bn
+            prefix, n = ("kind", len(KINDS)) if encoders == "kind" else ("sensor", n_sensors)
+            lins = nn.ModuleList(nn.Linear(POINT_FEATURES, c, bias=False) for _ in range(n - 1))
+            bns = nn.ModuleList(nn.BatchNorm1d(c) for _ in range(n - 1))
+            setattr(self, f"{prefix}_pfn", lins)
+            setattr(self, f"{prefix}_bn", bns)
+            self._encoders += list(zip(lins, bns, strict=True))
         self.block1 = nn.Sequential(*_conv(c, 2 * c, 2), *_conv(2 * c, 2 * c))
         self.block2 = nn.Sequential(*_conv(2 * c, 3 * c, 2), *_conv(3 * c, 3 * c), *_conv(3 * c, 3 * c))
         self.up1 = nn.Sequential(nn.Conv2d(2 * c, 2 * c, 1, bias=False), nn.BatchNorm2d(2 * c), nn.ReLU(inplace=True))
@@ -57,22 +64,22 @@ class PillarDetector(nn.Module):
         self.reg = nn.Conv2d(2 * c, REG_CHANNELS, 1)
         nn.init.constant_(self.heat.bias, -2.19)  # a prior of 0.1 per cell, as CenterNet
 
-    def encode(self, features: torch.Tensor, counts: torch.Tensor, kinds: torch.Tensor | None = None
+    def encode(self, features: torch.Tensor, counts: torch.Tensor, encoder: torch.Tensor | None = None
                ) -> torch.Tensor:
         """Pillar features (P, C): the PointNet of each pillar's points, ``features`` (K, 9) of the points,
-        pillar after pillar, ``counts`` (P,) points per pillar (per agent kind with ``kinds`` (P,) of each
-        pillar): a linear layer, batch norm over the points, ReLU, then the maximum over each pillar's points."""
+        pillar after pillar, ``counts`` (P,) points per pillar (per agent kind or sensor with ``encoder`` (P,),
+        each pillar's encoder): a linear layer, batch norm over the points, ReLU, then the maximum over each
+        pillar's points."""
         c = self.pfn.out_features
-        if not self.per_kind or kinds is None:
+        if not self.per_agent or encoder is None:
             point = F.relu(self.pfn_bn(self.pfn(features)))
         else:
             point = features.new_zeros(features.shape[0], c)
-            of_point = kinds.repeat_interleave(counts)
-            for k in range(len(KINDS)):
+            of_point = encoder.repeat_interleave(counts)
+            for k, (lin, bn) in enumerate(self._encoders):
                 sel = of_point == k
                 if not bool(sel.any()):
                     continue
-                lin, bn = (self.pfn, self.pfn_bn) if k == 0 else (self.kind_pfn[k - 1], self.kind_bn[k - 1])
                 point = point.index_put((torch.nonzero(sel).squeeze(1),), F.relu(bn(lin(features[sel]))))
         return torch.segment_reduce(point, "max", lengths=counts, unsafe=True)
 
@@ -81,14 +88,14 @@ class PillarDetector(nn.Module):
         """``features`` (K, 9) of the pillars' points, pillar after pillar, ``counts`` (P,) long points per
         pillar, ``coords`` (P, 3) long [batch, row, column] of each pillar.
         Intermediate fusion: ``coords`` [map, row, column] in the agents' grids, map = batch x J + agent,
-        and ``maps`` with ``kinds`` (B, J) and the warp's hits ``cell``, ``src``, ``ego``
+        and ``maps`` with ``encoder`` (B, J) and the warp's hits ``cell``, ``src``, ``ego``
         (:func:`cosim.learn.grid.warp_index`). Returns heatmap logits (B, K, H, W) and regression (B, 9, H, W)."""
         g = self.grid
         c = self.pfn.out_features
         if self.intermediate:
             if maps is None:
                 raise ValueError("intermediate fusion needs the agents' poses (maps)")
-            pillars = self.encode(features, counts, maps["kinds"].reshape(-1)[coords[:, 0]])
+            pillars = self.encode(features, counts, maps["encoder"].reshape(-1)[coords[:, 0]])
             fused = fuse(pillars, maps["cell"], maps["src"], maps["ego"], batch_size * g.ny * g.nx, self.fuse)
             x = fused.view(batch_size, g.ny, g.nx, c).permute(0, 3, 1, 2)
         else:

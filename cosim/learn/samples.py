@@ -25,10 +25,11 @@ lost; every draw is seeded by (seed, episode, tick, agents), so the same seed gi
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -43,8 +44,9 @@ from cosim.learn.grid import Grid
 FUSIONS: tuple[str, ...] = ("none", "late", "early", "intermediate")
 #: How intermediate fusion merges the agents' BEV maps per cell: max (F-Cooper) or attention (AttFuse).
 FUSES: tuple[str, ...] = ("max", "attention")
-#: Pillar encoders of intermediate fusion: one for all agents, or one per agent kind (HEAL's point).
-ENCODERS: tuple[str, ...] = ("shared", "kind")
+#: Pillar encoders of intermediate fusion: one for all agents, one per agent kind (HEAL's point), or one per
+#: LiDAR (:func:`lidar_sensor`: its preset, or its kind's own LiDAR) of the training data.
+ENCODERS: tuple[str, ...] = ("shared", "kind", "sensor")
 #: Learning-rate schedules of training (cosim.learn.train._lr).
 SCHEDULES: tuple[str, ...] = ("cosine", "onecycle")
 #: Agent kinds in the order of the per-kind encoders.
@@ -138,7 +140,8 @@ class Perturb:
 class Setup:
     """What a model is trained for: fusion mode, collaborating agent kinds (a :data:`SETTINGS` name),
     object classes, grid, the collaborators' perturbation (:class:`Perturb`), the target rule, LiDAR
-    compensation, and for intermediate fusion how maps are fused and encoded."""
+    compensation, and for intermediate fusion how maps are fused and encoded: ``sensors`` names the LiDARs of
+    ``encoders`` sensor, one pillar encoder each, in order (:func:`sensor_vocabulary`)."""
 
     fusion: str = "none"
     agents: str = "ego"
@@ -152,6 +155,7 @@ class Setup:
     #: The LiDAR's height above the road [m] in the training data (cosim: the rig's mount; a KITTI folder: given
     #: or estimated); scans from another height are moved to it (cosim.learn.kitti). None: not recorded.
     lidar_height_m: float | None = None
+    sensors: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.fusion not in FUSIONS:
@@ -172,12 +176,14 @@ class Setup:
             raise InputError(f"unknown fuse {self.fuse!r}; choose one of {', '.join(FUSES)}")
         if self.encoders not in ENCODERS:
             raise InputError(f"unknown encoders {self.encoders!r}; choose one of {', '.join(ENCODERS)}")
+        if self.sensors and self.encoders != "sensor":
+            raise InputError(f"sensors {', '.join(self.sensors)} name per-sensor encoders: give encoders sensor")
 
     def to_dict(self) -> dict[str, Any]:
         return {"fusion": self.fusion, "agents": self.agents, "classes": list(self.classes),
                 "grid": self.grid.to_dict(), "perturb": self.perturb.to_dict(), "min_points": self.min_points,
                 "lidar": self.lidar, "fuse": self.fuse, "encoders": self.encoders,
-                "lidar_height_m": self.lidar_height_m}
+                "lidar_height_m": self.lidar_height_m, "sensors": list(self.sensors)}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Setup:
@@ -186,7 +192,7 @@ class Setup:
         perturb = Perturb.from_dict(d["perturb"]) if "perturb" in d else Perturb(loss_links=bool(d.get("delivery")))
         return cls(d["fusion"], d["agents"], tuple(d["classes"]), Grid.from_dict(d["grid"]), perturb,
                    int(d["min_points"]), d.get("lidar", "raw"), d.get("fuse", "max"), d.get("encoders", "shared"),
-                   d.get("lidar_height_m"))
+                   d.get("lidar_height_m"), tuple(d.get("sensors", ())))
 
     def with_agents(self, fusion: str | None, agents: str | None) -> Setup:
         fusion = fusion or self.fusion
@@ -195,6 +201,49 @@ class Setup:
 
 def kind_of(agent: str) -> str:
     return agent.rsplit("_", 1)[0]
+
+
+def lidar_sensor(resolved: dict[str, Any], agent: str) -> str | None:
+    """The name of an agent's LiDAR for the per-sensor encoders, from its episode's resolved scenario: its
+    preset (``lidar.model``: ``vlp16``...), else its kind (``vehicle``...) when it carries its kind's LiDAR
+    (``sensors.<kind>.lidar``), else ``custom-`` and a digest of its fields; None without a LiDAR."""
+    from cosim.scenario.model import rig_data_of
+
+    lidar = rig_data_of(resolved, agent).get("lidar")
+    if not lidar:
+        return None
+    if lidar.get("model"):
+        return str(lidar["model"])
+    kind = kind_of(agent)
+    if lidar == ((resolved.get("sensors") or {}).get(kind) or {}).get("lidar"):
+        return kind
+    digest = hashlib.sha256(json.dumps(lidar, sort_keys=True).encode()).hexdigest()[:8]
+    return f"custom-{digest}"
+
+
+def sensor_vocabulary(lidars: Iterable[dict[str, str | None]]) -> tuple[str, ...]:
+    """The per-sensor encoders' LiDARs of some episodes' ``{agent: sensor}`` maps: the agent kinds first
+    (:data:`KINDS`, so a LiDAR unknown to a model can fall back to its kind's), then the other names sorted."""
+    names = {s for m in lidars for s in m.values() if s}
+    return tuple(k for k in KINDS if k in names) + tuple(sorted(names - set(KINDS)))
+
+
+def encoder_index(agent: str, setup: Setup, lidars: dict[str, str | None] | None) -> int:
+    """The pillar encoder of an agent's points: its kind's (:data:`KINDS`), or with ``encoders`` sensor its
+    LiDAR's in ``setup.sensors`` (``lidars``: the episode's ``{agent: sensor}``), falling back to its kind's
+    for a LiDAR the model was not trained on (0 for an agent without one: it has no pillars); InputError when
+    neither is among the model's."""
+    kind = kind_of(agent)
+    if setup.encoders != "sensor":
+        return KINDS.index(kind) if kind in KINDS else 0
+    if lidars is not None and agent in lidars and lidars[agent] is None:
+        return 0
+    name = (lidars or {}).get(agent) or kind
+    for candidate in (name, kind):
+        if candidate in setup.sensors:
+            return setup.sensors.index(candidate)
+    raise InputError(f"{agent}'s LiDAR {name!r} has no encoder in this model, nor has its kind: it was trained "
+                     f"with the LiDARs {', '.join(setup.sensors)}")
 
 
 def quantise(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -335,12 +384,14 @@ def to_bev_frame(cloud: np.ndarray, pose: np.ndarray) -> np.ndarray:
 
 
 def make_item(rec: dict[str, Any], ego: str, setup: Setup, episode: str,
-              history: Callable[[int], dict[str, Any] | None] | None = None) -> dict[str, Any]:
+              history: Callable[[int], dict[str, Any] | None] | None = None,
+              lidars: dict[str, str | None] | None = None) -> dict[str, Any]:
     """The sample of ego ``ego`` from a learn record: ``episode`` (id), ``tick``, ``ego``, ``clouds`` (list
     of (N, 4) float32), ``sources`` (the agents of each cloud), ``targets`` (boxes (M, 7), class indices (M,)
     per target set: one per cloud for late fusion, else one), ``sent`` (the points each collaborator of
     ``sources`` sends: its cloud inside the ego's range), and for intermediate fusion ``poses`` (J, 3) and
-    ``kinds`` (J,) (indices into :data:`KINDS`). ``setup.perturb`` perturbs each collaborator's message;
+    ``encoder`` (J,) (each agent's pillar encoder, :func:`encoder_index`; ``lidars`` the episode's
+    ``{agent: sensor}`` for encoders sensor). ``setup.perturb`` perturbs each collaborator's message;
     with latency, ``history(tick)`` gives the learn record of an earlier tick of the episode (None: not at hand)."""
     agents = rec["agents"]
     map_from = dict(zip(agents, rec["map_from"], strict=True))
@@ -397,7 +448,7 @@ def make_item(rec: dict[str, Any], ego: str, setup: Setup, episode: str,
         item["clouds"] = [to_bev_frame(c, p) for c, p in zip(clouds_by_agent, poses, strict=True)]
         item["sources"] = [[a] for a in use]
         item["poses"] = np.array(poses, np.float64).reshape(-1, 3)
-        item["kinds"] = np.array([KINDS.index(kind_of(a)) if kind_of(a) in KINDS else 0 for a in use], np.int64)
+        item["encoder"] = np.array([encoder_index(a, setup, lidars) for a in use], np.int64)
     return item
 
 

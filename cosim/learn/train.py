@@ -122,12 +122,12 @@ def device_of(name: str | None) -> torch.device:
 
 
 def batch_arrays(clouds: Sequence[np.ndarray], setup: Setup, per_sample: Sequence[int] | None = None,
-                 poses: Sequence[np.ndarray] | None = None, kinds: Sequence[np.ndarray] | None = None
+                 poses: Sequence[np.ndarray] | None = None, encoders: Sequence[np.ndarray] | None = None
                  ) -> dict[str, np.ndarray]:
     """Voxelise clouds into one batch (numpy): ``feats`` (K, 9) the kept points, pillar after pillar,
     ``counts`` (P,) points per pillar, ``coords`` (P, 3) [batch, row, column]. Intermediate fusion (``per_sample``:
-    clouds of each sample, in order; ``poses``, ``kinds`` per sample): coords [b x J + j, row, column] in the
-    agents' grid, ``poses`` (B, J, 3), ``kinds`` (B, J), ``present`` (B, J) with J the most agents of a
+    clouds of each sample, in order; ``poses``, ``encoders`` per sample): coords [b x J + j, row, column] in the
+    agents' grid, ``poses`` (B, J, 3), ``encoder`` (B, J), ``present`` (B, J) with J the most agents of a
     sample, and the warp's hits ``cell``, ``src``, ``ego`` (:func:`cosim.learn.grid.warp_index`)."""
     inter = per_sample is not None
     grid = agent_grid(setup.grid) if inter else setup.grid
@@ -145,11 +145,11 @@ def batch_arrays(clouds: Sequence[np.ndarray], setup: Setup, per_sample: Sequenc
     if inter:
         b = len(per_sample)
         out["poses"] = np.zeros((b, j_max, 3), np.float64)
-        out["kinds"] = np.zeros((b, j_max), np.int64)
+        out["encoder"] = np.zeros((b, j_max), np.int64)
         out["present"] = np.zeros((b, j_max), bool)
         for i, n in enumerate(per_sample):
             out["poses"][i, :n] = poses[i]
-            out["kinds"][i, :n] = kinds[i]
+            out["encoder"][i, :n] = encoders[i]
             out["present"][i, :n] = True
         out["cell"], out["src"], out["ego"] = warp_index(out["coords"], out["poses"], out["present"], setup.grid, grid)
     return out
@@ -162,7 +162,7 @@ def to_device(arrays: dict[str, Any], device: torch.device) -> dict[str, torch.T
 
 def run_model(model: PillarDetector, batch: dict[str, torch.Tensor], batch_size: int
               ) -> tuple[torch.Tensor, torch.Tensor]:
-    maps = {k: batch[k] for k in ("kinds", "cell", "src", "ego")} if "poses" in batch else None
+    maps = {k: batch[k] for k in ("encoder", "cell", "src", "ego")} if "poses" in batch else None
     return model(batch["feats"], batch["counts"], batch["coords"], batch_size, maps)
 
 
@@ -190,7 +190,7 @@ def new_model(setup: Setup, opts: TrainOptions, device: torch.device) -> PillarD
 
 def model_for(setup: Setup, opts: TrainOptions) -> PillarDetector:
     return PillarDetector(setup.grid, len(setup.classes), width=opts.width, fusion=setup.fusion, fuse=setup.fuse,
-                          encoders=setup.encoders)
+                          encoders=setup.encoders, n_sensors=len(setup.sensors))
 
 
 def check_format(ckpt: Any, path: Path) -> None:
@@ -245,7 +245,7 @@ def predict_and_send(model: PillarDetector, item: dict[str, Any], setup: Setup, 
     ``max_boxes`` an agent); 0 for the ego alone."""
     clouds = item["clouds"]
     if setup.fusion == "intermediate":
-        arrays = batch_arrays(clouds, setup, [len(clouds)], [item["poses"]], [item["kinds"]])
+        arrays = batch_arrays(clouds, setup, [len(clouds)], [item["poses"]], [item["encoder"]])
         sent = int((arrays["coords"][:, 0] != 0).sum()) * pillar_bytes(model.pfn.out_features)
         batch = to_device(arrays, device)
         n = 1
@@ -312,7 +312,7 @@ def step_batch(samples: Any, order: np.ndarray, start: int, opts: TrainOptions, 
     setup = samples.setup
     g = setup.grid
     mirrors = np.array([g.x_range[0] == -g.x_range[1], g.y_range[0] == -g.y_range[1]])
-    clouds, tgts, per_sample, poses, kinds = [], [], [], [], []
+    clouds, tgts, per_sample, poses, encoders = [], [], [], [], []
     for j in range(opts.batch_size):
         item = samples.item(int(order[(start + j) % len(order)]))
         k = int(rng.integers(len(item["clouds"])))  # late fusion: one agent's cloud of the sample
@@ -336,7 +336,7 @@ def step_batch(samples: Any, order: np.ndarray, start: int, opts: TrainOptions, 
             clouds += item_clouds
             per_sample.append(len(item["clouds"]))
             poses.append(item_poses)
-            kinds.append(item["kinds"])
+            encoders.append(item["encoder"])
             tgts.append(targets(boxes_f, labels, setup.grid, len(setup.classes)))
             continue
         cloud, boxes = item["clouds"][k], item["targets"][k][0]
@@ -350,7 +350,7 @@ def step_batch(samples: Any, order: np.ndarray, start: int, opts: TrainOptions, 
         clouds.append(cloud)
         tgts.append(targets(boxes, labels, setup.grid, len(setup.classes)))
     if setup.fusion == "intermediate":
-        batch = batch_arrays(clouds, setup, per_sample, poses, kinds)
+        batch = batch_arrays(clouds, setup, per_sample, poses, encoders)
     else:
         batch = batch_arrays(clouds, setup)
     batch.update({f"t_{k}": np.stack([t[k] for t in tgts]) for k in tgts[0]})
@@ -483,12 +483,14 @@ def train(train_refs: list[EpisodeRef], val_refs: list[EpisodeRef] | None, setup
     """Train (or resume) a detector into ``run`` on the episodes ``train_refs`` (from MCAP, or from the
     ``cosim learn cache`` folder ``cache``), validating on ``val_refs``, starting from the weights of the run
     ``init`` when given; returns the summary (also written to summary.json)."""
-    from cosim.learn.data import Samples, check_classes
+    from cosim.learn.data import Samples, check_classes, with_sensors
 
     run = Path(run)
     check_run_folder(run, resume)
     check_classes(train_refs, setup.classes, "the model")
     t0 = time.perf_counter()
+    if not setup.sensors:
+        setup = with_sensors(setup, train_refs + list(val_refs or []))
     samples = Samples(train_refs, setup, every=opts.every, cache=cache)
     val = Samples(val_refs, setup, every=opts.val_every_tick, cache=cache) if val_refs else None
     device = device or device_of(None)
