@@ -350,6 +350,7 @@ def kitti_samples(sources: Sequence[KittiSource], setup: Any, crop_fov: str | No
     samples.setup = setup
     samples.src = KittiRecords(sources, setup.lidar_height_m, crop_fov)
     samples._records = {}
+    samples.lidars = {}  # one agent of one LiDAR: no per-sensor encoders
     return samples
 
 
