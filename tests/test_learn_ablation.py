@@ -170,11 +170,14 @@ def test_robustness_compares_mixed_lidars_with_uniform_ones_and_refuses_a_folder
     assert la.robustness(args) == 2
     assert "--mixed" in capsys.readouterr().err and not args.out.exists()
     uniform = {"inter-VID/s0": _scores(80.0, 60.0), "inter-VID-kind/s0": _scores(79.0, 59.0)}
-    mixed = {"inter-VID/s0": _scores(70.0, 50.0), "inter-VID-kind/s0": _scores(76.0, 56.0)}
+    mixed = {"inter-VID/s0": _scores(70.0, 50.0), "inter-VID-kind/s0": _scores(76.0, 56.0),
+             "inter-VID-sensor/s0": _scores(78.0, 58.0)}
     grid = {"pose": [("0", uniform)], "latency": [("0", uniform)]}
     md = la.robustness_tables(grid, mixed).split("## Mixed LiDARs")[1]
     assert "| intermediate (max), V+I+D | 80.0 / 60.0 | 70.0 / 50.0 | -10.0 |" in md
     assert "| intermediate (max), V+I+D, an encoder per kind | 79.0 / 59.0 | 76.0 / 56.0 | -3.0 |" in md
+    # the uniform grid has no per-sensor model: on one LiDAR per kind it is the per-kind one
+    assert "| intermediate (max), V+I+D, an encoder per sensor | 79.0 / 59.0 | 78.0 / 58.0 | -1.0 |" in md
 
 
 def test_run_takes_only_the_named_settings_and_seeds_in_the_grids_order():
