@@ -115,3 +115,16 @@ def test_each_per_sensor_encoder_acts_on_its_own_agents_pillars_only():
     assert changed.tolist() == [False, True, False, True]
     with pytest.raises(ValueError, match="number of sensors"):
         PillarDetector(Grid(), 1, fusion="intermediate", encoders="sensor")
+
+
+def test_per_sensor_training_takes_the_lidars_of_its_episodes_and_refuses_none(monkeypatch):
+    from cosim.learn import data
+
+    maps = {"a": {"vehicle_0": "vehicle", "vehicle_1": "vlp16"}, "b": {"vehicle_0": "vlp32c", "drone_0": None},
+            "dark": {"vehicle_0": None}}
+    monkeypatch.setattr(data, "episode_lidars", lambda ref: maps[ref])
+    setup = Setup(fusion="intermediate", agents="all", encoders="sensor")
+    assert data.with_sensors(setup, ["a", "b"]).sensors == ("vehicle", "vlp16", "vlp32c")
+    assert data.with_sensors(Setup(fusion="intermediate", agents="all", encoders="kind"), ["a"]).sensors == ()
+    with pytest.raises(InputError, match=r"no agent of the 1 training and validation episode.* carries a LiDAR"):
+        data.with_sensors(setup, ["dark"])

@@ -68,7 +68,11 @@ def with_sensors(setup: Setup, refs: list[EpisodeRef]) -> Setup:
     when its encoders are ``sensor``; else unchanged."""
     if setup.encoders != "sensor":
         return setup
-    return replace(setup, sensors=sensor_vocabulary(episode_lidars(r) for r in refs))
+    sensors = sensor_vocabulary(episode_lidars(r) for r in refs)
+    if not sensors:
+        raise InputError(f"--encoders sensor: no agent of the {len(refs)} training and validation episode(s) "
+                         "carries a LiDAR")
+    return replace(setup, sensors=sensors)
 
 
 def split_episodes(refs: list[EpisodeRef], split: str | None, role: str, dataset: Path | str) -> list[EpisodeRef]:
