@@ -16,6 +16,7 @@ model's classes with at least ``min_points`` LiDAR returns from the agents whose
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from dataclasses import replace
@@ -50,12 +51,18 @@ _RECORDS_KEPT = 8
 
 def episode_lidars(ref: EpisodeRef) -> dict[str, str | None]:
     """Each agent's LiDAR in an episode as the per-sensor encoders name it (:func:`lidar_sensor`), from the
-    resolved scenario the episode carries (an episode without one: every agent its kind's LiDAR)."""
+    resolved scenario the episode carries (an episode without one: every agent its kind's LiDAR). Read once
+    per file and process: a training names its episodes' LiDARs for its encoders, then its samples do."""
+    return _episode_lidars(Path(ref.path))
+
+
+@functools.cache
+def _episode_lidars(path: Path) -> dict[str, str | None]:
     import yaml
 
     from cosim.io.reader import open_episode
 
-    with open_episode(ref.path) as ep:
+    with open_episode(path) as ep:
         resolved = yaml.safe_load(ep.attachment("scenario.yaml")) if "scenario.yaml" in ep.attachments else None
         agents = list(ep.agents)
     if not resolved:
